@@ -1,0 +1,115 @@
+//! `socialflow bench ...`: measurements with JSON output for scripts.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use serde_json::json;
+use sf_sim::policy::route_follower;
+use sf_sim::vec_env::{VecEnv, VecEnvConfig};
+use sf_sim::{Action, Layout, Mode, SimConfig};
+
+use crate::scenarios::Ctx;
+
+#[derive(Subcommand, Debug)]
+pub enum BenchCmd {
+    /// Simulator throughput: every vehicle a learning agent driven by a fixed cheap policy
+    /// that reads its observation; observations built for every agent on every step.
+    Sim(SimArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct SimArgs {
+    #[arg(long, default_value = "intersection")]
+    scenario: String,
+    #[arg(long, default_value_t = 20)]
+    vehicles: u32,
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+    /// Environments stepped together (default: 8 per thread).
+    #[arg(long)]
+    envs: Option<usize>,
+    #[arg(long, value_enum, default_value = "query-centric")]
+    layout: LayoutArg,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum LayoutArg {
+    EgoFrame,
+    QueryCentric,
+}
+
+pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
+    match cmd {
+        BenchCmd::Sim(a) => sim(ctx, a),
+    }
+}
+
+fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
+    let map = ctx.map(&a.scenario)?;
+    let mut cfg = SimConfig::default();
+    cfg.obs.layout = match a.layout {
+        LayoutArg::EgoFrame => Layout::EgoFrame,
+        LayoutArg::QueryCentric => Layout::QueryCentric,
+    };
+    let cfg = Arc::new(cfg);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(a.threads.max(1)).build().context("building the thread pool")?;
+    let n_envs = a.envs.unwrap_or(8 * a.threads.max(1));
+    let vehicles = a.vehicles.min(map.spawns.len() as u32);
+    let result = pool.install(|| {
+        let mut venv = VecEnv::new(
+            map.clone(),
+            cfg.clone(),
+            VecEnvConfig { n_envs, mode: Mode::MultiAgent, vehicles: (vehicles, vehicles), seed: 7 },
+        );
+        let rows = venv.alive().len();
+        let mut actions = vec![Action::default(); rows];
+        let spec = venv.spec.clone();
+        let start = Instant::now();
+        let mut steps = 0u64;
+        while start.elapsed().as_secs_f64() < a.seconds {
+            for _ in 0..10 {
+                let obs = venv.observations();
+                for (r, act) in actions.iter_mut().enumerate() {
+                    if venv.alive()[r] != 0.0 {
+                        *act = route_follower(&spec, &obs[r * spec.len..(r + 1) * spec.len], &cfg.vehicle, 2, 1.0);
+                    }
+                }
+                venv.step(&actions);
+                steps += 1;
+            }
+        }
+        let secs = start.elapsed().as_secs_f64();
+        let (env_steps, agent_steps) = venv.counters();
+        let finished = venv.take_finished();
+        let success = finished.iter().map(|m| m.success as f64).sum::<f64>() / finished.len().max(1) as f64;
+        (secs, steps, env_steps, agent_steps, finished.len(), success, spec)
+    });
+    let (secs, _steps, env_steps, agent_steps, episodes, success, spec) = result;
+    let out = json!({
+        "scenario": a.scenario,
+        "vehicles": vehicles,
+        "threads": a.threads,
+        "envs": n_envs,
+        "layout": format!("{:?}", cfg.obs.layout).to_lowercase(),
+        "seconds": secs,
+        "agent_steps_per_s": agent_steps as f64 / secs,
+        "env_steps_per_s": env_steps as f64 / secs,
+        "episodes": episodes,
+        "episode_success_of_scripted_policy": success,
+        "obs_floats": spec.len,
+        "obs_bytes_f32": spec.bytes_f32(),
+        "obs_bytes_f16": spec.len * 2,
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    }
+    Ok(())
+}

@@ -1,0 +1,94 @@
+//! The `socialflow` command line: argument parsing and dispatch to the library crates.
+//!
+//! Owns: the CLI contract (subcommand names, flags and JSON output fields that scripts read).
+//! Must not: hold simulator or training logic; each subcommand is a thin layer over a library.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+
+mod bench;
+mod evalflow;
+mod render;
+mod scenarios;
+
+/// Zero-shot transfer of driving policies via socially adversarial traffic flow.
+#[derive(Parser, Debug)]
+#[command(name = "socialflow", version, about)]
+struct Cli {
+    /// Directory holding the scenario files (`<name>.json`).
+    #[arg(long, global = true, default_value = "configs/scenarios", env = "SOCIALFLOW_SCENARIOS")]
+    scenarios: PathBuf,
+    /// Directory holding the evaluation case files (`<name>.v1.json`).
+    #[arg(long, global = true, default_value = "configs/cases", env = "SOCIALFLOW_CASES")]
+    cases_dir: PathBuf,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand, Debug)]
+enum Cmd {
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        what: bench::BenchCmd,
+    },
+    /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
+    EvalFlow(evalflow::EvalFlowArgs),
+    /// Renders a frame (PNG) or an episode (GIF).
+    Render(render::RenderArgs),
+    /// Writes the four scenario files from their builders.
+    GenScenarios {
+        #[arg(long, default_value = "configs/scenarios")]
+        out: PathBuf,
+    },
+    /// Writes the evaluation case files (200 per scenario by default).
+    GenCases {
+        #[arg(long, default_value = "configs/cases")]
+        out: PathBuf,
+        #[arg(long, default_value_t = 200)]
+        n: u32,
+        #[arg(long, default_value_t = 20221)]
+        seed: u64,
+    },
+}
+
+/// Traffic flows selectable on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Flow {
+    Idm,
+    Macad,
+    Copo,
+    Socialcomm,
+    Failmaker,
+    Socialcommadv,
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .try_init();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let ctx = scenarios::Ctx { scenarios: cli.scenarios, cases: cli.cases_dir };
+    match cli.cmd {
+        Cmd::Bench { what } => bench::run(&ctx, what),
+        Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
+        Cmd::Render(a) => render::run(&ctx, a),
+        Cmd::GenScenarios { out } => scenarios::gen_scenarios(&out),
+        Cmd::GenCases { out, n, seed } => scenarios::gen_cases(&ctx, &out, n, seed),
+    }
+    .context("socialflow")
+}

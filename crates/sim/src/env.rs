@@ -1,0 +1,589 @@
+//! One simulated episode: vehicles on a map, stepped at the decision rate.
+//!
+//! Owns: [`Env`] (reset from a [`Case`], [`Env::step`] with sub-steps, collisions through
+//! parry2d, the failure and success rules, rewards with SVO composition, per-agent outcomes).
+//! Must not: allocate in `step` once warmed up, iterate over hash maps, or use any randomness
+//! (a case plus the actions fully determine the trajectory). Observations live in `obs`.
+//!
+//! Agent indices are stable for an episode: agent `i` is `case.vehicles[i]`, and agent 0 is
+//! the ego in ego mode. Terminated agents stay in the list (`alive == false`) but are removed
+//! from the world: they neither collide nor are observed.
+
+use std::sync::Arc;
+
+use parry2d::math::{Pose, Vector};
+use parry2d::query::details::{intersection_test_cuboid_cuboid, intersection_test_cuboid_segment};
+use parry2d::shape::{Cuboid, Segment};
+use serde::{Deserialize, Serialize};
+
+use crate::case::Case;
+use crate::config::SimConfig;
+use crate::geom::{self, Frame, P2};
+use crate::idm::{idm_accel, pure_pursuit_steer};
+use crate::map::Map;
+use crate::vehicle::{Action, Pid, VehicleState};
+
+/// Who computes a vehicle's controls.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Controller {
+    /// Actions come from the caller (a learned or scripted policy).
+    External,
+    /// The rule-based IDM driver with a pure-pursuit path follower.
+    Idm,
+}
+
+/// Whether an agent's episode end matters for the episode's end.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Role {
+    Learner,
+    Background,
+}
+
+/// How the episode's vehicles are controlled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Every vehicle is a learner driven by external actions.
+    MultiAgent,
+    /// Agent 0 is the (external) learner; the others are background with this controller.
+    Ego { background: Controller },
+    /// Every vehicle is driven by IDM and scored (the all-IDM flow).
+    AllIdm,
+}
+
+/// Why an agent's episode ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Termination {
+    Collision,
+    OffRoad,
+    OffRoute,
+    WrongLane,
+    Destination,
+    Timeout,
+}
+
+impl Termination {
+    pub fn is_failure(self) -> bool {
+        matches!(self, Self::Collision | Self::OffRoad | Self::OffRoute | Self::WrongLane)
+    }
+}
+
+/// The rewards of one agent for one decision step.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Rewards {
+    /// `R_i = w1 (2 v / v_max - 1) - w2 * failure`.
+    pub individual: f32,
+    /// `cos(c) R_i + sin(c) mean(R_j)` over other external agents within the radius.
+    pub composed: f32,
+    /// FailMaker background: `cos(c) R_i' + sin(c) R_ego` with no collision penalty in `R_i'`.
+    pub failmaker: f32,
+}
+
+/// The outcome of one agent's episode.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AgentOutcome {
+    pub role: Role,
+    pub success: bool,
+    pub termination: Option<Termination>,
+    /// Mean over its steps of clip(v / v_max, 0, 1).
+    pub speed_ratio: f32,
+    pub steps: u32,
+}
+
+/// One vehicle's full state.
+#[derive(Clone, Debug)]
+pub struct Agent {
+    pub state: VehicleState,
+    pub route: u32,
+    /// Arc length of the projection onto the route.
+    pub s_m: f32,
+    /// Route segment holding the projection.
+    pub seg: usize,
+    pub lateral_m: f32,
+    pub svo_deg: f32,
+    pub controller: Controller,
+    pub role: Role,
+    pub alive: bool,
+    pub termination: Option<Termination>,
+    pub zone_entered: bool,
+    pub zone_passed: bool,
+    pub steps: u32,
+    speed_ratio_sum: f32,
+    pid: Pid,
+    ref_speed_mps: f32,
+    steer_rad: f32,
+    collided: bool,
+    /// IDM: bumper gap and leader speed along the route, updated every sub-step.
+    leader: Option<(f32, f32)>,
+    /// History ring: `[x, y, theta, v]` per decision step; `hist_head` is the newest.
+    hist: Vec<[f32; 4]>,
+    hist_head: usize,
+}
+
+impl Agent {
+    /// History frame `k` steps back (0 = current), world coordinates `[x, y, theta, v]`.
+    #[inline]
+    pub fn history(&self, k: usize) -> [f32; 4] {
+        let h = self.hist.len();
+        self.hist[(self.hist_head + h - k.min(h - 1)) % h]
+    }
+
+    fn push_history(&mut self) {
+        self.hist_head = (self.hist_head + 1) % self.hist.len();
+        let s = &self.state;
+        self.hist[self.hist_head] = [s.x_m, s.y_m, s.theta_rad, s.speed_mps];
+    }
+
+    pub fn frame(&self) -> Frame {
+        Frame::new(self.state.pos(), self.state.theta_rad)
+    }
+
+    pub fn outcome(&self) -> AgentOutcome {
+        AgentOutcome {
+            role: self.role,
+            success: self.zone_passed && !self.termination.is_some_and(Termination::is_failure),
+            termination: self.termination,
+            speed_ratio: if self.steps > 0 { self.speed_ratio_sum / self.steps as f32 } else { 0.0 },
+            steps: self.steps,
+        }
+    }
+}
+
+/// Errors from misuse of the environment API.
+#[derive(Debug, thiserror::Error)]
+pub enum EnvError {
+    #[error("case {case}: {field}: {reason}")]
+    BadCase { case: u32, field: String, reason: String },
+    #[error("step called on a finished episode; call reset first")]
+    Finished,
+    #[error("step got {got} actions for {want} agents")]
+    ActionCount { got: usize, want: usize },
+}
+
+/// A single episode of one scenario.
+#[derive(Clone)]
+pub struct Env {
+    pub map: Arc<Map>,
+    pub cfg: Arc<SimConfig>,
+    agents: Vec<Agent>,
+    step_idx: u32,
+    done: bool,
+    rewards: Vec<Rewards>,
+    ended_now: Vec<bool>,
+    /// Per observer: the ego's SVO it is told (Stage 2 adversary), in degrees.
+    seen_ego_svo: Vec<Option<f32>>,
+    box_full: Cuboid,
+    box_road: Cuboid,
+    poses: Vec<Pose>,
+    alive_before: Vec<bool>,
+}
+
+impl Env {
+    pub fn new(map: Arc<Map>, cfg: Arc<SimConfig>) -> Self {
+        let v = &cfg.vehicle;
+        let half = Vector::new(v.length_m / 2.0, v.width_m / 2.0);
+        Self {
+            box_full: Cuboid::new(half),
+            box_road: Cuboid::new(half * cfg.off_road_box_scale),
+            map,
+            cfg,
+            agents: Vec::new(),
+            step_idx: 0,
+            done: true,
+            rewards: Vec::new(),
+            ended_now: Vec::new(),
+            seen_ego_svo: Vec::new(),
+            poses: Vec::new(),
+            alive_before: Vec::new(),
+        }
+    }
+
+    /// Starts an episode from a case; `max_vehicles` truncates it (density sweeps use fewer).
+    pub fn reset(&mut self, case: &Case, mode: Mode, max_vehicles: Option<usize>) -> Result<(), EnvError> {
+        case.check(&self.map).map_err(|(field, reason)| EnvError::BadCase { case: case.id, field, reason })?;
+        let n = max_vehicles.map_or(case.vehicles.len(), |m| m.min(case.vehicles.len()));
+        let h = self.cfg.obs.history;
+        self.agents.clear();
+        for (i, cv) in case.vehicles[..n].iter().enumerate() {
+            let sp = &self.map.spawns[cv.spawn as usize];
+            let route = &self.map.routes[cv.route as usize];
+            let pr = geom::project_range(&route.points, &route.cum_m, sp.pos, 0, route.points.len());
+            let (controller, role) = match mode {
+                Mode::MultiAgent => (Controller::External, Role::Learner),
+                Mode::AllIdm => (Controller::Idm, Role::Learner),
+                Mode::Ego { .. } if i == 0 => (Controller::External, Role::Learner),
+                Mode::Ego { background } => (background, Role::Background),
+            };
+            let state = VehicleState { x_m: sp.pos[0], y_m: sp.pos[1], theta_rad: sp.heading_rad, speed_mps: 0.0 };
+            let mut a = Agent {
+                state,
+                route: cv.route,
+                s_m: pr.s_m,
+                seg: pr.seg,
+                lateral_m: pr.lateral_m,
+                svo_deg: cv.svo_deg,
+                controller,
+                role,
+                alive: true,
+                termination: None,
+                zone_entered: false,
+                zone_passed: false,
+                steps: 0,
+                speed_ratio_sum: 0.0,
+                pid: Pid::default(),
+                ref_speed_mps: 0.0,
+                steer_rad: 0.0,
+                collided: false,
+                leader: None,
+                hist: vec![[state.x_m, state.y_m, state.theta_rad, 0.0]; h],
+                hist_head: 0,
+            };
+            a.zone_entered = geom::point_in_polygon(state.pos(), &self.map.zone);
+            self.agents.push(a);
+        }
+        self.step_idx = 0;
+        self.done = false;
+        self.rewards.clear();
+        self.rewards.resize(n, Rewards::default());
+        self.ended_now.clear();
+        self.ended_now.resize(n, false);
+        self.seen_ego_svo.clear();
+        self.seen_ego_svo.resize(n, None);
+        Ok(())
+    }
+
+    pub fn agents(&self) -> &[Agent] {
+        &self.agents
+    }
+
+    pub fn len(&self) -> usize {
+        self.agents.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.agents.is_empty()
+    }
+
+    pub fn done(&self) -> bool {
+        self.done
+    }
+
+    /// Decision steps taken in this episode.
+    pub fn step_index(&self) -> u32 {
+        self.step_idx
+    }
+
+    /// Rewards of the last step, by agent.
+    pub fn rewards(&self) -> &[Rewards] {
+        &self.rewards
+    }
+
+    /// Which agents ended on the last step.
+    pub fn ended_now(&self) -> &[bool] {
+        &self.ended_now
+    }
+
+    /// Sets the SVO of the ego (agent 0) that `observer` is told, or `None` for the genuine one.
+    pub fn set_seen_ego_svo(&mut self, observer: usize, svo_deg: Option<f32>) {
+        if let Some(s) = self.seen_ego_svo.get_mut(observer) {
+            *s = svo_deg;
+        }
+    }
+
+    /// Sets agent `i`'s genuine SVO (flows with other SVO ranges remap the case's value).
+    pub fn set_svo(&mut self, i: usize, svo_deg: f32) {
+        if let Some(a) = self.agents.get_mut(i) {
+            a.svo_deg = svo_deg;
+        }
+    }
+
+    /// The SVO of agent `j` as observer `o` sees it.
+    #[inline]
+    pub fn communicated_svo_deg(&self, o: usize, j: usize) -> f32 {
+        if j == 0 && o != 0 {
+            if let Some(s) = self.seen_ego_svo[o] {
+                return s;
+            }
+        }
+        self.agents[j].svo_deg
+    }
+
+    /// Agents' outcomes (meaningful once they have ended).
+    pub fn outcomes(&self) -> impl Iterator<Item = AgentOutcome> + '_ {
+        self.agents.iter().map(Agent::outcome)
+    }
+
+    /// Advances one decision step. `actions[i]` drives agent `i` when its controller is
+    /// external; other entries are ignored.
+    pub fn step(&mut self, actions: &[Action]) -> Result<(), EnvError> {
+        if self.done {
+            return Err(EnvError::Finished);
+        }
+        if actions.len() != self.agents.len() {
+            return Err(EnvError::ActionCount { got: actions.len(), want: self.agents.len() });
+        }
+        let cfg = Arc::clone(&self.cfg);
+        let vp = &cfg.vehicle;
+        let dt = cfg.dt_s / cfg.substeps as f32;
+        let mut alive_before = std::mem::take(&mut self.alive_before);
+        alive_before.clear();
+        alive_before.extend(self.agents.iter().map(|a| a.alive));
+        for (i, a) in self.agents.iter_mut().enumerate() {
+            self.ended_now[i] = false;
+            if a.alive && a.controller == Controller::External {
+                let (v, d) = actions[i].decode(vp);
+                a.ref_speed_mps = v;
+                a.steer_rad = d;
+            }
+        }
+        self.find_leaders();
+        for _ in 0..cfg.substeps {
+            let map = &self.map;
+            for a in self.agents.iter_mut().filter(|a| a.alive && !a.collided) {
+                let accel = match a.controller {
+                    Controller::External => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
+                    Controller::Idm => {
+                        let route = &map.routes[a.route as usize];
+                        let look = (1.5 * a.state.speed_mps).max(4.0);
+                        let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
+                        a.steer_rad = pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target));
+                        idm_accel(&cfg.idm, a.state.speed_mps, a.leader)
+                    }
+                };
+                let v0 = a.state.speed_mps;
+                a.state.step(vp, accel, a.steer_rad, dt);
+                a.s_m += 0.5 * (v0 + a.state.speed_mps) * dt;
+                if let Some((gap, v_lead)) = a.leader.as_mut() {
+                    *gap -= (a.state.speed_mps - *v_lead) * dt;
+                }
+            }
+            self.detect_collisions();
+        }
+        self.step_idx += 1;
+        self.apply_rules();
+        self.compute_rewards(&alive_before);
+        self.alive_before = alive_before;
+        for (i, a) in self.agents.iter_mut().enumerate() {
+            if a.alive && a.termination.is_some() {
+                a.alive = false;
+                self.ended_now[i] = true;
+            }
+        }
+        let learners_left = self.agents.iter().any(|a| a.alive && a.role == Role::Learner);
+        self.done = !learners_left || self.step_idx >= cfg.horizon;
+        Ok(())
+    }
+
+    /// IDM leaders: the nearest vehicle ahead on the remaining route within the look-ahead.
+    fn find_leaders(&mut self) {
+        let p = &self.cfg.idm;
+        let len = self.cfg.vehicle.length_m;
+        for i in 0..self.agents.len() {
+            let a = &self.agents[i];
+            if !(a.alive && a.controller == Controller::Idm) {
+                continue;
+            }
+            let route = &self.map.routes[a.route as usize];
+            let hi = route.cum_m.partition_point(|&c| c <= a.s_m + p.look_ahead_m) + 1;
+            let mut best: Option<(f32, f32)> = None;
+            for (j, b) in self.agents.iter().enumerate() {
+                if j == i || !b.alive || geom::dist2(a.state.pos(), b.state.pos()) > (p.look_ahead_m + len).powi(2) {
+                    continue;
+                }
+                let pr = geom::project_range(&route.points, &route.cum_m, b.state.pos(), a.seg, hi);
+                let ahead = pr.s_m - a.s_m;
+                if pr.lateral_m.abs() > p.lateral_tolerance_m || ahead <= 0.0 {
+                    continue;
+                }
+                let gap = ahead - len;
+                if best.is_none_or(|(g, _)| gap < g) {
+                    let along = route.headings[pr.seg];
+                    best = Some((gap, b.state.speed_mps * (b.state.theta_rad - along).cos().max(0.0)));
+                }
+            }
+            self.agents[i].leader = best;
+        }
+    }
+
+    /// Marks every pair of overlapping boxes as collided (both freeze until removal).
+    fn detect_collisions(&mut self) {
+        let reach2 = {
+            let v = &self.cfg.vehicle;
+            v.length_m * v.length_m + v.width_m * v.width_m
+        };
+        self.poses.clear();
+        self.poses.extend(self.agents.iter().map(|a| Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad)));
+        let n = self.agents.len();
+        for i in 0..n {
+            if !self.agents[i].alive {
+                continue;
+            }
+            for j in (i + 1)..n {
+                if !self.agents[j].alive || (self.agents[i].collided && self.agents[j].collided) {
+                    continue;
+                }
+                if geom::dist2(self.agents[i].state.pos(), self.agents[j].state.pos()) > reach2 {
+                    continue;
+                }
+                let pos12 = self.poses[i].inv_mul(&self.poses[j]);
+                if intersection_test_cuboid_cuboid(&pos12, &self.box_full, &self.box_full) {
+                    for k in [i, j] {
+                        let a = &mut self.agents[k];
+                        a.collided = true;
+                        a.state.speed_mps = 0.0;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether agent `a`'s shrunk box touches a road edge.
+    fn off_road(&self, a: &Agent) -> bool {
+        let pose_inv = Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad).inverse();
+        let reach = 0.5 * (self.cfg.vehicle.length_m + self.cfg.vehicle.width_m);
+        let mut hit = false;
+        self.map.edge_grid.for_each_near(a.state.pos(), reach, |k| {
+            if hit {
+                return;
+            }
+            let (p, q) = self.map.edge_segments[k];
+            let seg = Segment::new(pose_inv * Vector::new(p[0], p[1]), pose_inv * Vector::new(q[0], q[1]));
+            hit = intersection_test_cuboid_segment(&Pose::IDENTITY, &self.box_road, &seg);
+        });
+        hit
+    }
+
+    /// Route progress, zone bookkeeping, failure and success rules, timeout.
+    fn apply_rules(&mut self) {
+        let cfg = Arc::clone(&self.cfg);
+        let max_heading = cfg.wrong_lane_deg.to_radians();
+        let timeout = self.step_idx >= cfg.horizon;
+        for i in 0..self.agents.len() {
+            if !self.agents[i].alive {
+                continue;
+            }
+            let off_road = self.off_road(&self.agents[i]);
+            let map = Arc::clone(&self.map);
+            let a = &mut self.agents[i];
+            a.push_history();
+            a.steps += 1;
+            a.speed_ratio_sum += (a.state.speed_mps / cfg.vehicle.max_speed_mps).clamp(0.0, 1.0);
+            let route = &map.routes[a.route as usize];
+            let lo = a.seg.saturating_sub(2);
+            let pr = geom::project_range(&route.points, &route.cum_m, a.state.pos(), lo, a.seg + 8);
+            a.seg = pr.seg;
+            a.s_m = pr.s_m;
+            a.lateral_m = pr.lateral_m;
+            let pos = a.state.pos();
+            let in_zone = geom::point_in_polygon(pos, &map.zone);
+            if in_zone {
+                a.zone_entered = true;
+            } else if a.zone_entered {
+                a.zone_passed = true;
+            }
+            let wrong_lane = !map.in_junction(pos)
+                && map
+                    .nearest_lane_heading(pos, 4.0)
+                    .is_some_and(|h| geom::wrap_angle(a.state.theta_rad - h).abs() > max_heading);
+            a.termination = if a.collided {
+                Some(Termination::Collision)
+            } else if off_road {
+                Some(Termination::OffRoad)
+            } else if pr.lateral_m.abs() > cfg.off_route_m {
+                Some(Termination::OffRoute)
+            } else if wrong_lane {
+                Some(Termination::WrongLane)
+            } else if a.s_m >= route.length_m - cfg.destination_tolerance_m {
+                if a.zone_entered {
+                    a.zone_passed = true;
+                }
+                Some(Termination::Destination)
+            } else if timeout {
+                Some(Termination::Timeout)
+            } else {
+                None
+            };
+        }
+    }
+
+    fn compute_rewards(&mut self, alive_before: &[bool]) {
+        let rc = &self.cfg.reward;
+        let vmax = self.cfg.vehicle.max_speed_mps;
+        let n = self.agents.len();
+        let mut ego_r = 0.0;
+        for i in 0..n {
+            let a = &self.agents[i];
+            let r = &mut self.rewards[i];
+            *r = Rewards::default();
+            if !alive_before[i] {
+                continue;
+            }
+            let speed = rc.speed_weight * (2.0 * a.state.speed_mps / vmax - 1.0);
+            let fail = a.termination.is_some_and(Termination::is_failure);
+            r.individual = speed - if fail { rc.failure_penalty } else { 0.0 };
+            // FailMaker's own term: no collision penalty.
+            let own = speed - if fail && a.termination != Some(Termination::Collision) { rc.failure_penalty } else { 0.0 };
+            r.failmaker = own;
+            if i == 0 {
+                ego_r = r.individual;
+            }
+        }
+        let r2 = rc.neighbour_radius_m * rc.neighbour_radius_m;
+        for i in 0..n {
+            if !alive_before[i] {
+                continue;
+            }
+            let a = &self.agents[i];
+            let (mut sum, mut cnt) = (0.0, 0u32);
+            for (j, b) in self.agents.iter().enumerate() {
+                if j != i && alive_before[j] && b.controller == Controller::External && geom::dist2(a.state.pos(), b.state.pos()) <= r2 {
+                    sum += self.rewards[j].individual;
+                    cnt += 1;
+                }
+            }
+            let others = if cnt > 0 { sum / cnt as f32 } else { 0.0 };
+            let c = a.svo_deg.to_radians();
+            let r = &mut self.rewards[i];
+            r.composed = c.cos() * r.individual + c.sin() * others;
+            let ego_term = if i == 0 { 0.0 } else { ego_r };
+            r.failmaker = c.cos() * r.failmaker + c.sin() * ego_term;
+        }
+    }
+
+    /// Runs the episode to its end: before each step `policy` fills one action per agent,
+    /// after each step (and once after reset) `on_step` sees the environment.
+    pub fn run_episode(
+        &mut self,
+        mut policy: impl FnMut(&Env, &mut [Action]),
+        mut on_step: impl FnMut(&Env),
+    ) -> Result<(), EnvError> {
+        let mut actions = vec![Action::default(); self.agents.len()];
+        on_step(self);
+        while !self.done {
+            policy(self, &mut actions);
+            self.step(&actions)?;
+            on_step(self);
+        }
+        Ok(())
+    }
+
+    /// A world-frame snapshot of every agent for rendering: (pose, alive, svo, role).
+    pub fn snapshot(&self) -> Vec<(VehicleState, bool, f32, Role)> {
+        self.agents.iter().map(|a| (a.state, a.alive, a.svo_deg, a.role)).collect()
+    }
+
+    /// Moves agent `i` to a pose (tests and tools that construct situations).
+    pub fn place_agent(&mut self, i: usize, pos: P2, theta_rad: f32, speed_mps: f32) {
+        let a = &mut self.agents[i];
+        a.state = VehicleState { x_m: pos[0], y_m: pos[1], theta_rad, speed_mps };
+        let route = &self.map.routes[a.route as usize];
+        let pr = geom::project_range(&route.points, &route.cum_m, pos, 0, route.points.len());
+        a.seg = pr.seg;
+        a.s_m = pr.s_m;
+        for k in 0..a.hist.len() {
+            a.hist[k] = [pos[0], pos[1], theta_rad, speed_mps];
+        }
+    }
+}

@@ -1,0 +1,411 @@
+//! Maps as data: the scenario file format, its validating loader, and the runtime map.
+//!
+//! Owns: [`ScenarioFile`] (serde, JSON on disk), [`Map`] (lanes, road edges, routes, zones,
+//! spawn points, spatial indices). Must not: hold vehicles or any per-episode state; a `Map`
+//! is immutable after loading and shared (`Arc`) by every environment on it.
+//!
+//! Invariants established by [`Map::from_file`]: ids are dense indices; every polyline has at
+//! least two finite points inside the boundary; consecutive lanes of a route are connected
+//! (`successors`); every route crosses the interaction zone; every spawn point lies on the
+//! first lane of each route it lists, outside the interaction zone.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::geom::{self, Grid, P2};
+
+/// The only format version this loader reads.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Spawn points closer than this overlap (less than a lane width, more than a car's width).
+pub const MIN_SPAWN_SEPARATION_M: f32 = 3.0;
+
+/// Resampling spacing of route polylines and lane centre-lines, in metres.
+pub const POINT_SPACING_M: f32 = 2.0;
+
+/// On-disk scenario description.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ScenarioFile {
+    pub format_version: u32,
+    pub name: String,
+    pub boundary: Boundary,
+    pub lanes: Vec<LaneSpec>,
+    pub edges: Vec<EdgeSpec>,
+    pub routes: Vec<RouteSpec>,
+    /// Polygon of the interaction zone; success requires passing through it.
+    pub interaction_zone: Vec<P2>,
+    /// Polygons inside which the wrong-lane rule is not applied (junction boxes, rings).
+    pub junction_zones: Vec<Vec<P2>>,
+    pub spawn_points: Vec<SpawnSpec>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Boundary {
+    pub min: P2,
+    pub max: P2,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LaneSpec {
+    pub id: u32,
+    pub width_m: f32,
+    /// Centre-line points in travel order.
+    pub centre: Vec<P2>,
+    pub successors: Vec<u32>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct EdgeSpec {
+    pub id: u32,
+    pub points: Vec<P2>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RouteSpec {
+    pub id: u32,
+    pub lanes: Vec<u32>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SpawnSpec {
+    /// Arc length along the route(s), which all start with the same lane.
+    pub s_m: f32,
+    pub routes: Vec<u32>,
+}
+
+/// Why a scenario file was rejected. Messages name the file, the field and the reason.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    #[error("cannot read scenario file {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("scenario file {path} is not valid JSON for the scenario format: {source}")]
+    Parse { path: String, source: serde_json::Error },
+    #[error("scenario file {path}: field `{field}`: {reason}")]
+    Invalid { path: String, field: String, reason: String },
+}
+
+/// A lane at run time.
+#[derive(Clone, Debug)]
+pub struct Lane {
+    pub width_m: f32,
+    pub centre: Vec<P2>,
+    pub headings: Vec<f32>,
+    pub cum_m: Vec<f32>,
+    pub successors: Vec<u32>,
+}
+
+/// A route at run time: its lanes joined and resampled every [`POINT_SPACING_M`].
+#[derive(Clone, Debug)]
+pub struct Route {
+    pub lanes: Vec<u32>,
+    pub points: Vec<P2>,
+    pub headings: Vec<f32>,
+    pub cum_m: Vec<f32>,
+    pub length_m: f32,
+    /// Width of the route's first lane (used as the route polyline's width feature).
+    pub width_m: f32,
+}
+
+/// A spawn pose with the routes that may start there.
+#[derive(Clone, Debug)]
+pub struct SpawnPoint {
+    pub s_m: f32,
+    pub pos: P2,
+    pub heading_rad: f32,
+    pub routes: Vec<u32>,
+}
+
+/// A static map polyline kind, for observations and rendering.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PolyKind {
+    Lane,
+    Edge,
+}
+
+/// The immutable runtime map.
+#[derive(Clone, Debug)]
+pub struct Map {
+    pub name: String,
+    pub boundary: Boundary,
+    pub lanes: Vec<Lane>,
+    pub edges: Vec<Vec<P2>>,
+    pub routes: Vec<Route>,
+    pub zone: Vec<P2>,
+    pub junction_zones: Vec<Vec<P2>>,
+    pub spawns: Vec<SpawnPoint>,
+    /// Every edge segment as (a, b).
+    pub edge_segments: Vec<(P2, P2)>,
+    pub edge_grid: Grid,
+    /// Every lane centre point as (point, heading).
+    pub lane_points: Vec<(P2, f32)>,
+    pub lane_point_grid: Grid,
+}
+
+fn invalid(path: &str, field: impl Into<String>, reason: impl Into<String>) -> MapError {
+    MapError::Invalid { path: path.to_string(), field: field.into(), reason: reason.into() }
+}
+
+impl ScenarioFile {
+    /// Reads and parses a scenario file; use [`Map::from_file`] to validate it too.
+    pub fn read(path: &Path) -> Result<Self, MapError> {
+        let p = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| MapError::Io { path: p.clone(), source })?;
+        serde_json::from_str(&text).map_err(|source| MapError::Parse { path: p, source })
+    }
+
+    /// Writes the file as pretty JSON (write to a temporary file, then rename).
+    pub fn write(&self, path: &Path) -> std::io::Result<()> {
+        let text = serde_json::to_string_pretty(self).map_err(std::io::Error::other)?;
+        let tmp = path.with_extension("json.tmp");
+        std::fs::write(&tmp, text + "\n")?;
+        std::fs::rename(tmp, path)
+    }
+}
+
+impl Map {
+    /// Loads and validates a scenario file.
+    pub fn load(path: &Path) -> Result<Self, MapError> {
+        let file = ScenarioFile::read(path)?;
+        Self::from_file(&file, &path.display().to_string())
+    }
+
+    /// Validates a parsed scenario; `origin` names it in error messages.
+    pub fn from_file(f: &ScenarioFile, origin: &str) -> Result<Self, MapError> {
+        let bad = |field: String, reason: String| invalid(origin, field, reason);
+        if f.format_version != FORMAT_VERSION {
+            return Err(bad(
+                "format_version".into(),
+                format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version),
+            ));
+        }
+        if f.name.is_empty() {
+            return Err(bad("name".into(), "must not be empty".into()));
+        }
+        let b = &f.boundary;
+        if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite()) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
+            return Err(bad("boundary".into(), "min must be finite and below max on both axes".into()));
+        }
+        let inside = |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
+        let check_poly = |field: String, pts: &[P2], min_len: usize| -> Result<(), MapError> {
+            if pts.len() < min_len {
+                return Err(bad(field, format!("needs at least {min_len} points, has {}", pts.len())));
+            }
+            for (k, p) in pts.iter().enumerate() {
+                if !(p[0].is_finite() && p[1].is_finite()) {
+                    return Err(bad(format!("{field}[{k}]"), "point is not finite".into()));
+                }
+                if !inside(p) {
+                    return Err(bad(format!("{field}[{k}]"), format!("point {p:?} lies outside the boundary")));
+                }
+            }
+            Ok(())
+        };
+        if f.lanes.is_empty() {
+            return Err(bad("lanes".into(), "a scenario needs at least one lane".into()));
+        }
+        let n_lanes = f.lanes.len() as u32;
+        let mut lanes = Vec::with_capacity(f.lanes.len());
+        for (i, l) in f.lanes.iter().enumerate() {
+            if l.id != i as u32 {
+                return Err(bad(format!("lanes[{i}].id"), format!("is {}, ids must equal their index {i}", l.id)));
+            }
+            if !(l.width_m.is_finite() && l.width_m > 0.0 && l.width_m < 10.0) {
+                return Err(bad(format!("lanes[{i}].width_m"), format!("{} is not in (0, 10) m", l.width_m)));
+            }
+            check_poly(format!("lanes[{i}].centre"), &l.centre, 2)?;
+            for (k, w) in l.centre.windows(2).enumerate() {
+                if geom::dist(w[0], w[1]) < 1e-3 {
+                    return Err(bad(format!("lanes[{i}].centre[{}]", k + 1), "repeats the previous point".into()));
+                }
+            }
+            for &s in &l.successors {
+                if s >= n_lanes {
+                    return Err(bad(format!("lanes[{i}].successors"), format!("lane {s} does not exist")));
+                }
+            }
+            lanes.push(Lane {
+                width_m: l.width_m,
+                headings: geom::polyline_headings(&l.centre),
+                cum_m: geom::cumulative_lengths(&l.centre),
+                centre: l.centre.clone(),
+                successors: l.successors.clone(),
+            });
+        }
+        for (i, e) in f.edges.iter().enumerate() {
+            if e.id != i as u32 {
+                return Err(bad(format!("edges[{i}].id"), format!("is {}, ids must equal their index {i}", e.id)));
+            }
+            check_poly(format!("edges[{i}].points"), &e.points, 2)?;
+        }
+        check_poly("interaction_zone".into(), &f.interaction_zone, 3)?;
+        for (i, z) in f.junction_zones.iter().enumerate() {
+            check_poly(format!("junction_zones[{i}]"), z, 3)?;
+        }
+        if f.routes.is_empty() {
+            return Err(bad("routes".into(), "a scenario needs at least one route".into()));
+        }
+        let mut routes = Vec::with_capacity(f.routes.len());
+        for (i, r) in f.routes.iter().enumerate() {
+            let field = format!("routes[{i}]");
+            if r.id != i as u32 {
+                return Err(bad(format!("{field}.id"), format!("is {}, ids must equal their index {i}", r.id)));
+            }
+            if r.lanes.is_empty() {
+                return Err(bad(format!("{field}.lanes"), "a route needs at least one lane".into()));
+            }
+            for (k, &l) in r.lanes.iter().enumerate() {
+                if l >= n_lanes {
+                    return Err(bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist")));
+                }
+                if k > 0 && !lanes[r.lanes[k - 1] as usize].successors.contains(&l) {
+                    return Err(bad(
+                        format!("{field}.lanes[{k}]"),
+                        format!("lane {l} is not a successor of lane {}", r.lanes[k - 1]),
+                    ));
+                }
+            }
+            let route = build_route(&lanes, &r.lanes);
+            let crosses = route.points.iter().any(|p| geom::point_in_polygon(*p, &f.interaction_zone));
+            if !crosses {
+                return Err(bad(format!("{field}"), "the route never enters the interaction zone".into()));
+            }
+            if geom::point_in_polygon(route.points[route.points.len() - 1], &f.interaction_zone) {
+                return Err(bad(format!("{field}"), "the route ends inside the interaction zone".into()));
+            }
+            routes.push(route);
+        }
+        if f.spawn_points.is_empty() {
+            return Err(bad("spawn_points".into(), "a scenario needs at least one spawn point".into()));
+        }
+        let mut spawns = Vec::with_capacity(f.spawn_points.len());
+        for (i, s) in f.spawn_points.iter().enumerate() {
+            let field = format!("spawn_points[{i}]");
+            if s.routes.is_empty() {
+                return Err(bad(format!("{field}.routes"), "lists no route".into()));
+            }
+            let mut pose = None;
+            for &r in &s.routes {
+                let Some(route) = routes.get(r as usize) else {
+                    return Err(bad(format!("{field}.routes"), format!("route {r} does not exist")));
+                };
+                let first_lane = route.lanes[0];
+                let lane_len = lanes[first_lane as usize].cum_m.last().copied().unwrap_or(0.0);
+                if !(s.s_m.is_finite() && s.s_m >= 0.0 && s.s_m <= lane_len) {
+                    return Err(bad(
+                        format!("{field}.s_m"),
+                        format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m),
+                    ));
+                }
+                let here = geom::point_at(&route.points, &route.cum_m, s.s_m);
+                match pose {
+                    None => pose = Some((first_lane, here)),
+                    Some((l0, _)) if l0 != first_lane => {
+                        return Err(bad(format!("{field}.routes"), "routes listed do not share their first lane".into()))
+                    }
+                    _ => {}
+                }
+            }
+            let (_, (pos, heading_rad)) = pose.expect("at least one route was checked");
+            if geom::point_in_polygon(pos, &f.interaction_zone) {
+                return Err(bad(field, "spawn point lies inside the interaction zone".into()));
+            }
+            spawns.push(SpawnPoint { s_m: s.s_m, pos, heading_rad, routes: s.routes.clone() });
+        }
+        for i in 0..spawns.len() {
+            for j in 0..i {
+                if geom::dist(spawns[i].pos, spawns[j].pos) < MIN_SPAWN_SEPARATION_M {
+                    return Err(bad(format!("spawn_points[{i}]"), format!("overlaps spawn point {j}")));
+                }
+            }
+        }
+
+        let edges: Vec<Vec<P2>> = f.edges.iter().map(|e| e.points.clone()).collect();
+        let edge_segments: Vec<(P2, P2)> =
+            edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
+        let seg_boxes: Vec<(P2, P2)> = edge_segments
+            .iter()
+            .map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])]))
+            .collect();
+        let edge_grid = Grid::build(b.min, b.max, 8.0, &seg_boxes);
+        let lane_points: Vec<(P2, f32)> = lanes
+            .iter()
+            .flat_map(|l| {
+                // Dense points (about every metre) so the nearest lane is found reliably.
+                let dense = geom::resample(&l.centre, 1.0);
+                let hs = geom::polyline_headings(&dense);
+                dense.into_iter().zip(hs).collect::<Vec<_>>()
+            })
+            .collect();
+        let lp_boxes: Vec<(P2, P2)> = lane_points.iter().map(|(p, _)| (*p, *p)).collect();
+        let lane_point_grid = Grid::build(b.min, b.max, 4.0, &lp_boxes);
+
+        Ok(Map {
+            name: f.name.clone(),
+            boundary: f.boundary.clone(),
+            lanes,
+            edges,
+            routes,
+            zone: f.interaction_zone.clone(),
+            junction_zones: f.junction_zones.clone(),
+            spawns,
+            edge_segments,
+            edge_grid,
+            lane_points,
+            lane_point_grid,
+        })
+    }
+
+    /// Whether `p` lies in a zone where the wrong-lane rule is off.
+    pub fn in_junction(&self, p: P2) -> bool {
+        self.junction_zones.iter().any(|z| geom::point_in_polygon(p, z))
+    }
+
+    /// Heading of the lane point nearest to `p` within `max_m`, if any.
+    pub fn nearest_lane_heading(&self, p: P2, max_m: f32) -> Option<f32> {
+        let mut best = (max_m * max_m, None);
+        self.lane_point_grid.for_each_near(p, max_m, |i| {
+            let (q, h) = self.lane_points[i];
+            let d2 = geom::dist2(p, q);
+            if d2 < best.0 {
+                best = (d2, Some(h));
+            }
+        });
+        best.1
+    }
+
+    /// Static polylines (lane centre-lines with their widths, then edges with width 0).
+    pub fn static_polylines(&self) -> impl Iterator<Item = (PolyKind, &[P2], f32)> {
+        self.lanes
+            .iter()
+            .map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m))
+            .chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
+    }
+}
+
+fn build_route(lanes: &[Lane], ids: &[u32]) -> Route {
+    let mut pts: Vec<P2> = Vec::new();
+    for &l in ids {
+        for &p in &lanes[l as usize].centre {
+            if pts.last().is_none_or(|q| geom::dist(*q, p) > 1e-3) {
+                pts.push(p);
+            }
+        }
+    }
+    let points = geom::resample(&pts, POINT_SPACING_M);
+    let cum_m = geom::cumulative_lengths(&points);
+    Route {
+        lanes: ids.to_vec(),
+        headings: geom::polyline_headings(&points),
+        length_m: cum_m[cum_m.len() - 1],
+        cum_m,
+        points,
+        width_m: lanes[ids[0] as usize].width_m,
+    }
+}

@@ -1,0 +1,117 @@
+//! Episode metrics: Success, Safety, Speed and the failure breakdown.
+//!
+//! Owns: [`EpisodeMetrics`] (one episode, averaged over the agents it scores) and
+//! [`MetricTotals`] (running sums over episodes). Must not: compute confidence intervals or
+//! tests (that is the eval crate). Flow evaluation scores every agent; ego evaluation only
+//! the learner (agent 0).
+
+use serde::{Deserialize, Serialize};
+
+use crate::env::{AgentOutcome, Role, Termination};
+
+/// One episode's scores, each a mean over the scored agents, in [0, 1].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeMetrics {
+    pub agents: u32,
+    pub success: f32,
+    pub safety: f32,
+    pub speed: f32,
+    pub collision: f32,
+    pub off_road: f32,
+    pub off_route: f32,
+    pub wrong_lane: f32,
+    pub timeout: f32,
+    pub destination: f32,
+}
+
+impl EpisodeMetrics {
+    /// Scores an episode; `learners_only` keeps agents with the learner role (ego evaluation).
+    pub fn from_outcomes(outcomes: impl IntoIterator<Item = AgentOutcome>, learners_only: bool) -> Self {
+        let mut m = Self::default();
+        for o in outcomes {
+            if learners_only && o.role != Role::Learner {
+                continue;
+            }
+            m.agents += 1;
+            m.success += o.success as u32 as f32;
+            m.safety += !o.termination.is_some_and(Termination::is_failure) as u32 as f32;
+            m.speed += o.speed_ratio;
+            match o.termination {
+                Some(Termination::Collision) => m.collision += 1.0,
+                Some(Termination::OffRoad) => m.off_road += 1.0,
+                Some(Termination::OffRoute) => m.off_route += 1.0,
+                Some(Termination::WrongLane) => m.wrong_lane += 1.0,
+                Some(Termination::Timeout) => m.timeout += 1.0,
+                Some(Termination::Destination) => m.destination += 1.0,
+                None => {}
+            }
+        }
+        if m.agents > 0 {
+            let n = m.agents as f32;
+            for v in [
+                &mut m.success,
+                &mut m.safety,
+                &mut m.speed,
+                &mut m.collision,
+                &mut m.off_road,
+                &mut m.off_route,
+                &mut m.wrong_lane,
+                &mut m.timeout,
+                &mut m.destination,
+            ] {
+                *v /= n;
+            }
+        }
+        m
+    }
+}
+
+/// Running means over episodes.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MetricTotals {
+    pub episodes: u64,
+    pub sum: [f64; 9],
+}
+
+impl MetricTotals {
+    pub fn add(&mut self, m: &EpisodeMetrics) {
+        self.episodes += 1;
+        for (s, v) in self.sum.iter_mut().zip(Self::fields(m)) {
+            *s += v as f64;
+        }
+    }
+
+    fn fields(m: &EpisodeMetrics) -> [f32; 9] {
+        [m.success, m.safety, m.speed, m.collision, m.off_road, m.off_route, m.wrong_lane, m.timeout, m.destination]
+    }
+
+    /// Means in the order success, safety, speed, collision, off_road, off_route, wrong_lane,
+    /// timeout, destination.
+    pub fn means(&self) -> [f64; 9] {
+        let n = self.episodes.max(1) as f64;
+        self.sum.map(|s| s / n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn o(role: Role, success: bool, t: Termination, speed: f32) -> AgentOutcome {
+        AgentOutcome { role, success, termination: Some(t), speed_ratio: speed, steps: 10 }
+    }
+
+    #[test]
+    fn episode_means_and_learner_filter() {
+        let outs = [
+            o(Role::Learner, true, Termination::Destination, 0.8),
+            o(Role::Background, false, Termination::Collision, 0.2),
+        ];
+        let m = EpisodeMetrics::from_outcomes(outs, false);
+        assert_eq!(m.agents, 2);
+        assert!((m.success - 0.5).abs() < 1e-6 && (m.safety - 0.5).abs() < 1e-6 && (m.collision - 0.5).abs() < 1e-6);
+        assert!((m.speed - 0.5).abs() < 1e-6);
+        let e = EpisodeMetrics::from_outcomes(outs, true);
+        assert_eq!((e.agents, e.success, e.safety), (1, 1.0, 1.0));
+    }
+}

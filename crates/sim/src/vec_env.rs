@@ -1,0 +1,163 @@
+//! Batched stepping of many environments in parallel (rayon), for rollout workers.
+//!
+//! Owns: [`VecEnv`]: K environments on one map, one observation batch
+//! `[K * max_agents, spec.len]` reused every step (no per-step allocation once warm),
+//! random resets from a seeded generator per environment, finished-episode metrics.
+//! Must not: choose actions. Environment `k`'s agent `i` is row `k * max_agents + i`;
+//! rows of absent or ended agents are zero with `alive = 0`.
+//!
+//! Run inside a rayon pool of the wanted size (`ThreadPool::install`); results do not depend
+//! on the thread count.
+
+use std::sync::Arc;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+
+use crate::case::random_case;
+use crate::config::SimConfig;
+use crate::env::{Env, Mode, Role};
+use crate::map::Map;
+use crate::metrics::EpisodeMetrics;
+use crate::obs::{MapSegments, ObsSpec, Observer};
+use crate::vehicle::Action;
+
+/// What a [`VecEnv`] runs.
+#[derive(Clone, Debug)]
+pub struct VecEnvConfig {
+    pub n_envs: usize,
+    pub mode: Mode,
+    /// Vehicles per episode, inclusive range.
+    pub vehicles: (u32, u32),
+    pub seed: u64,
+}
+
+struct Slot {
+    env: Env,
+    observer: Observer,
+    rng: ChaCha8Rng,
+    episodes: u32,
+    finished: Vec<EpisodeMetrics>,
+}
+
+/// K environments stepped together.
+pub struct VecEnv {
+    cfg: VecEnvConfig,
+    slots: Vec<Slot>,
+    pub spec: ObsSpec,
+    pub max_agents: usize,
+    obs: Vec<f32>,
+    alive: Vec<f32>,
+    env_steps: u64,
+    agent_steps: u64,
+}
+
+impl VecEnv {
+    pub fn new(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
+        let base = Observer::new(&map, &sim);
+        let segments: Arc<MapSegments> = Arc::clone(&base.segments);
+        let spec = base.spec.clone();
+        let max_agents = (cfg.vehicles.1 as usize).min(map.spawns.len()).max(1);
+        let slots = (0..cfg.n_envs)
+            .map(|k| Slot {
+                env: Env::new(Arc::clone(&map), Arc::clone(&sim)),
+                observer: Observer::with_segments(Arc::clone(&segments), &sim),
+                rng: ChaCha8Rng::seed_from_u64(cfg.seed.wrapping_add(k as u64 * 0x9E37_79B9)),
+                episodes: 0,
+                finished: Vec::new(),
+            })
+            .collect();
+        let rows = cfg.n_envs * max_agents;
+        let mut v = Self { obs: vec![0.0; rows * spec.len], alive: vec![0.0; rows], spec, max_agents, cfg, slots, env_steps: 0, agent_steps: 0 };
+        let (spec_len, mode, vehicles) = (v.spec.len, v.cfg.mode, v.cfg.vehicles);
+        v.slots
+            .par_iter_mut()
+            .zip(v.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(v.alive.par_chunks_mut(max_agents))
+            .for_each(|((s, obs), alive)| {
+                s.reset(mode, vehicles);
+                s.observe(obs, alive, spec_len);
+            });
+        v
+    }
+
+    /// Observation rows, `[n_envs * max_agents, spec.len]` flattened.
+    pub fn observations(&self) -> &[f32] {
+        &self.obs
+    }
+
+    /// 1 where the row holds a live learner's observation.
+    pub fn alive(&self) -> &[f32] {
+        &self.alive
+    }
+
+    pub fn n_envs(&self) -> usize {
+        self.slots.len()
+    }
+
+    pub fn env(&self, k: usize) -> &Env {
+        &self.slots[k].env
+    }
+
+    /// Decision steps taken, summed over environments, and learner steps taken.
+    pub fn counters(&self) -> (u64, u64) {
+        (self.env_steps, self.agent_steps)
+    }
+
+    /// Drains the metrics of episodes finished since the last call.
+    pub fn take_finished(&mut self) -> Vec<EpisodeMetrics> {
+        self.slots.iter_mut().flat_map(|s| s.finished.drain(..)).collect()
+    }
+
+    /// Steps every environment; `actions` has one entry per row. Finished episodes are
+    /// scored and replaced by fresh random ones before observing.
+    pub fn step(&mut self, actions: &[Action]) {
+        assert_eq!(actions.len(), self.alive.len(), "one action per observation row");
+        let (spec_len, max_agents, mode, vehicles) = (self.spec.len, self.max_agents, self.cfg.mode, self.cfg.vehicles);
+        let learners_only = matches!(mode, Mode::Ego { .. });
+        let agent_steps: u64 = self
+            .slots
+            .par_iter_mut()
+            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(self.alive.par_chunks_mut(max_agents))
+            .zip(actions.par_chunks(max_agents))
+            .map(|(((s, obs), alive), acts)| {
+                let n = s.env.len();
+                let stepped = s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count() as u64;
+                s.env.step(&acts[..n]).expect("a live episode with one action per agent");
+                if s.env.done() {
+                    s.finished.push(EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only));
+                    s.reset(mode, vehicles);
+                }
+                s.observe(obs, alive, spec_len);
+                stepped
+            })
+            .sum();
+        self.env_steps += self.slots.len() as u64;
+        self.agent_steps += agent_steps;
+    }
+}
+
+impl Slot {
+    fn reset(&mut self, mode: Mode, vehicles: (u32, u32)) {
+        let n = self.rng.random_range(vehicles.0..=vehicles.1) as usize;
+        let case = random_case(&self.env.map, &mut self.rng, self.episodes, n);
+        self.episodes += 1;
+        self.env.reset(&case, mode, None).expect("generated cases are valid for their map");
+    }
+
+    fn observe(&mut self, obs: &mut [f32], alive: &mut [f32], spec_len: usize) {
+        self.observer.prepare(&self.env);
+        for (i, (row, live)) in obs.chunks_mut(spec_len).zip(alive.iter_mut()).enumerate() {
+            let a = self.env.agents().get(i);
+            if a.is_some_and(|a| a.alive && a.role == Role::Learner) {
+                self.observer.write(&self.env, i, row);
+                *live = 1.0;
+            } else if *live != 0.0 {
+                row.fill(0.0);
+                *live = 0.0;
+            }
+        }
+    }
+}

@@ -1,0 +1,161 @@
+//! Observation invariants in both layouts.
+
+mod common;
+
+use std::f32::consts::PI;
+use std::sync::Arc;
+
+use sf_sim::case::random_case;
+use sf_sim::config::{Layout, SvoVisibility};
+use sf_sim::obs::{Observer, AGENT_CTX, AGENT_FEATS, MAP_FEATS, POS_SCALE_M, SEG_POSE};
+use sf_sim::policy::route_follower;
+use sf_sim::{Action, Env, Mode, SimConfig};
+
+fn check_layout(layout: Layout) {
+    use rand::SeedableRng;
+    let mut cfg = SimConfig::default();
+    cfg.obs.layout = layout;
+    cfg.obs.svo = SvoVisibility::All;
+    cfg.obs.ego_flag = true;
+    let cfg = Arc::new(cfg);
+    for name in sf_sim::scenarios::SCENARIOS {
+        let m = common::map(name);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let case = random_case(&m, &mut rng, 0, 20);
+        let mut env = Env::new(m.clone(), cfg.clone());
+        env.reset(&case, Mode::MultiAgent, None).expect("reset");
+        let mut ob = Observer::new(&m, &cfg);
+        let spec = ob.spec.clone();
+        let mut row = vec![f32::NAN; spec.len];
+        let r = cfg.obs.radius_m / POS_SCALE_M + 1e-4;
+        let h = cfg.obs.history;
+        let mut actions = vec![Action::default(); env.len()];
+        for step in 0..30 {
+            ob.prepare(&env);
+            for i in 0..env.len() {
+                if !env.agents()[i].alive {
+                    continue;
+                }
+                ob.write(&env, i, &mut row);
+                assert!(row.iter().all(|v| v.is_finite()), "{name}: non-finite value");
+                // Own current pose at the origin facing +x; speed normalised.
+                let cur = &row[spec.ego_hist.start + (h - 1) * AGENT_FEATS..][..AGENT_FEATS];
+                assert!(cur[0].abs() < 1e-5 && cur[1].abs() < 1e-5 && cur[2].abs() < 1e-5, "{name}: {cur:?}");
+                assert!((cur[3] - env.agents()[i].state.speed_mps / 6.0).abs() < 1e-5);
+                assert_eq!(row[spec.ego_ctx.start + 1], if i == 0 { 1.0 } else { 0.0 });
+                assert!((row[spec.ego_ctx.start] - env.agents()[i].svo_deg / 90.0).abs() < 1e-6);
+                // Neighbours: masked, within the radius, headings as unit vectors, nearest first.
+                let mask = &row[spec.agents_mask.clone()];
+                let live_near = env
+                    .agents()
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, b)| *j != i && b.alive && sf_sim::geom::dist(b.state.pos(), env.agents()[i].state.pos()) <= 50.0)
+                    .count();
+                assert_eq!(mask.iter().filter(|&&v| v == 1.0).count(), live_near.min(spec.neighbours), "{name}: neighbour count");
+                let mut last_d = 0.0;
+                for (slot, &mv) in mask.iter().enumerate() {
+                    let c = &row[spec.agents_ctx.start + slot * AGENT_CTX..][..AGENT_CTX];
+                    if mv == 0.0 {
+                        assert!(c.iter().all(|&v| v == 0.0), "{name}: masked neighbour carries data");
+                        continue;
+                    }
+                    let d = (c[0] * c[0] + c[1] * c[1]).sqrt();
+                    assert!(d <= r && d + 1e-6 >= last_d, "{name}: neighbour {slot} at {d}");
+                    last_d = d;
+                    assert!((c[2] * c[2] + c[3] * c[3] - 1.0).abs() < 1e-4);
+                    if layout == Layout::QueryCentric {
+                        // Own-frame history: its current frame is at its own origin.
+                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..][..AGENT_FEATS];
+                        assert!(hc[0].abs() < 1e-5 && hc[1].abs() < 1e-5 && hc[2].abs() < 1e-5);
+                    } else {
+                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..][..AGENT_FEATS];
+                        assert!((hc[0] - c[0]).abs() < 1e-5 && (hc[1] - c[1]).abs() < 1e-5);
+                    }
+                }
+                // Route: ahead of the agent in its frame, masked at the end.
+                let rm = &row[spec.route_mask.clone()];
+                let first = &row[spec.route.clone()][..4];
+                if rm[0] == 1.0 {
+                    assert!(first[0] > -0.1, "{name}: first route point behind: {first:?}");
+                }
+                // Map pieces.
+                match layout {
+                    Layout::QueryCentric => {
+                        let n = row[spec.seg_mask.clone()].iter().filter(|&&v| v == 1.0).count();
+                        assert!(n > 0, "{name}: no map segment in reach");
+                        for s in 0..n {
+                            let id = row[spec.seg_id.start + s];
+                            assert!(id >= 0.0 && (id as usize) < ob.segments.len() && id.fract() == 0.0);
+                            let p = &row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE];
+                            assert!((p[2] * p[2] + p[3] * p[3] - 1.0).abs() < 1e-4);
+                        }
+                    }
+                    Layout::EgoFrame => {
+                        let mm = &row[spec.map_mask.clone()];
+                        assert!(mm.iter().any(|&v| v == 1.0), "{name}: no map point");
+                        for (k, &v) in mm.iter().enumerate() {
+                            let f = &row[spec.map.start + k * MAP_FEATS..][..MAP_FEATS];
+                            if v == 1.0 {
+                                assert!((f[0] * f[0] + f[1] * f[1]).sqrt() <= r, "{name}: map point beyond radius");
+                                assert!(f[2].abs() <= 1.0 + 1e-6);
+                            } else {
+                                assert!(f.iter().all(|&x| x == 0.0));
+                            }
+                        }
+                    }
+                }
+                actions[i] = route_follower(&spec, &row, &cfg.vehicle, 2, if step % 7 == 0 { 0.0 } else { 1.0 });
+            }
+            if env.done() {
+                break;
+            }
+            env.step(&actions).expect("step");
+        }
+    }
+}
+
+#[test]
+fn query_centric_invariants() {
+    check_layout(Layout::QueryCentric);
+}
+
+#[test]
+fn ego_frame_invariants() {
+    check_layout(Layout::EgoFrame);
+}
+
+/// A segment's stored shape, placed at its observed pose, reproduces the world geometry.
+#[test]
+fn query_centric_segments_round_trip_to_world() {
+    let m = common::map("roundabout");
+    let cfg = SimConfig::default();
+    let ob = Observer::new(&m, &cfg);
+    let s = &ob.segments;
+    let p = s.points;
+    for k in (0..s.len()).step_by(7) {
+        for q in 0..s.counts[k] {
+            let f = &s.local_feats[(k * p + q) * MAP_FEATS..][..MAP_FEATS];
+            let w = s.frames[k].to_world([f[0] * POS_SCALE_M, f[1] * POS_SCALE_M]);
+            assert!(sf_sim::geom::dist(w, s.world[k * p + q]) < 1e-3);
+            assert!(f[2].abs() <= 1.0 + 1e-6 && (f[2] * PI).is_finite());
+        }
+    }
+}
+
+#[test]
+fn visibility_none_hides_svo() {
+    let m = common::map("merge");
+    let cfg = Arc::new(SimConfig::default());
+    assert_eq!(cfg.obs.svo, SvoVisibility::None);
+    let c = common::case(&[(common::spawn_for(&m, 0, 0), 0, 45.0), (common::spawn_for(&m, 0, 2), 0, 80.0)]);
+    let mut env = Env::new(m.clone(), cfg.clone());
+    env.reset(&c, Mode::MultiAgent, None).expect("reset");
+    let mut ob = Observer::new(&m, &cfg);
+    ob.prepare(&env);
+    let mut row = vec![0.0; ob.spec.len];
+    ob.write(&env, 0, &mut row);
+    assert_eq!(row[ob.spec.ego_ctx.start], 0.0);
+    assert_eq!(row[ob.spec.agents_mask.start], 1.0);
+    assert_eq!(row[ob.spec.agents_ctx.start + 4], 0.0);
+}
