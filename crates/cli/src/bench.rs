@@ -96,7 +96,7 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
         "vehicles": vehicles,
         "threads": a.threads,
         "envs": n_envs,
-        "layout": format!("{:?}", cfg.obs.layout).to_lowercase(),
+        "layout": serde_json::to_value(cfg.obs.layout)?,
         "seconds": secs,
         "agent_steps_per_s": agent_steps as f64 / secs,
         "env_steps_per_s": env_steps as f64 / secs,

@@ -206,8 +206,7 @@ mod tests {
         c.obs.history = 0;
         let e = c.validate().expect_err("invalid");
         assert_eq!(e.field, "obs.history");
-        let mut c = SimConfig::default();
-        c.dt_s = f32::NAN;
+        let c = SimConfig { dt_s: f32::NAN, ..SimConfig::default() };
         assert_eq!(c.validate().expect_err("nan").field, "dt_s");
     }
 }

@@ -9,6 +9,8 @@
 //! Determinism: no randomness inside a step and no hash-map iteration; the same scenario
 //! file, case, seed and actions give bit-identical trajectories, on any thread count.
 
+#![allow(clippy::needless_range_loop)] // index loops over parallel per-agent arrays read clearer
+
 pub mod case;
 pub mod config;
 pub mod env;

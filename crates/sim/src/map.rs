@@ -274,10 +274,10 @@ impl Map {
             let route = build_route(&lanes, &r.lanes);
             let crosses = route.points.iter().any(|p| geom::point_in_polygon(*p, &f.interaction_zone));
             if !crosses {
-                return Err(bad(format!("{field}"), "the route never enters the interaction zone".into()));
+                return Err(bad(field.clone(), "the route never enters the interaction zone".into()));
             }
             if geom::point_in_polygon(route.points[route.points.len() - 1], &f.interaction_zone) {
-                return Err(bad(format!("{field}"), "the route ends inside the interaction zone".into()));
+                return Err(bad(field.clone(), "the route ends inside the interaction zone".into()));
             }
             routes.push(route);
         }

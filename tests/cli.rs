@@ -1,0 +1,81 @@
+//! The `socialflow` command as scripts use it: JSON contracts, files written, clear errors.
+
+use std::time::Duration;
+
+use socialflow_e2e::socialflow;
+
+const T: Duration = Duration::from_secs(120);
+
+fn json_of(out: &std::process::Output) -> serde_json::Value {
+    assert!(out.status.success(), "failed: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("one JSON object on stdout")
+}
+
+#[test]
+fn bench_sim_prints_the_contract_fields() {
+    let v = json_of(&socialflow(
+        &["bench", "sim", "--scenario", "roundabout", "--vehicles", "12", "--seconds", "0.5", "--threads", "1", "--json"],
+        T,
+    ));
+    for k in ["scenario", "vehicles", "threads", "agent_steps_per_s", "env_steps_per_s"] {
+        assert!(v.get(k).is_some(), "missing {k} in {v}");
+    }
+    assert_eq!(v["scenario"], "roundabout");
+    assert_eq!(v["vehicles"], 12);
+    assert!(v["agent_steps_per_s"].as_f64().unwrap_or(0.0) > 0.0);
+}
+
+#[test]
+fn eval_flow_reports_metrics_with_intervals() {
+    let v = json_of(&socialflow(&["eval-flow", "--flow", "idm", "--scenario", "merge", "--cases", "6", "--seeds", "2", "--json"], T));
+    assert_eq!(v["episodes"], 12);
+    for k in ["success", "safety", "speed"] {
+        let m = v[k]["mean"].as_f64().expect("mean");
+        let ci = v[k]["ci95"].as_f64().expect("ci95");
+        assert!((0.0..=1.0).contains(&m) && ci >= 0.0, "{k}: {m} +- {ci}");
+    }
+    assert!(v["safety"]["mean"].as_f64() >= v["success"]["mean"].as_f64(), "success implies safety");
+}
+
+#[test]
+fn render_writes_gif_and_png() {
+    let dir = std::env::temp_dir().join(format!("sf-e2e-render-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let gif = dir.join("ep.gif");
+    let png = dir.join("frame.png");
+    let g = gif.to_string_lossy().to_string();
+    let p = png.to_string_lossy().to_string();
+    let out = socialflow(&["render", "--scenario", "intersection", "--flow", "idm", "--case", "3", "--seed", "0", "--out", &g, "--size", "200"], T);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(std::fs::read(&gif).expect("gif").starts_with(b"GIF89a"));
+    let out = socialflow(&["render", "--scenario", "merge", "--case", "1", "--step", "5", "--out", &p, "--size", "200"], T);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(std::fs::read(&png).expect("png").starts_with(b"\x89PNG"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bad_inputs_fail_with_a_message_naming_the_problem() {
+    let out = socialflow(&["eval-flow", "--flow", "idm", "--scenario", "highway", "--cases", "1", "--seeds", "1"], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("unknown scenario `highway`") && err.contains("roundabout"), "{err}");
+
+    // A scenario directory whose merge file has a broken route.
+    let dir = std::env::temp_dir().join(format!("sf-e2e-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let good = std::fs::read_to_string(socialflow_e2e::repo().join("configs/scenarios/merge.json")).expect("merge");
+    let mut v: serde_json::Value = serde_json::from_str(&good).expect("json");
+    v["routes"][1]["lanes"][0] = serde_json::json!(4242);
+    std::fs::write(dir.join("merge.json"), v.to_string()).expect("write");
+    let d = dir.to_string_lossy().to_string();
+    let out = socialflow(&["--scenarios", &d, "eval-flow", "--flow", "idm", "--scenario", "merge", "--cases", "1", "--seeds", "1"], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("merge.json") && err.contains("routes[1].lanes[0]") && err.contains("4242"), "{err}");
+
+    let out = socialflow(&["eval-flow", "--flow", "macad", "--scenario", "merge", "--cases", "1", "--seeds", "1"], T);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("needs a trained policy"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,71 @@
+//! Helpers for end-to-end tests: locating the built binaries and running them with a deadline.
+//!
+//! `cargo test --workspace` does not build other packages' binaries; `.ci/run` builds them
+//! first. Children are killed when their deadline passes or when the handle drops.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// The repository root.
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// Path of a workspace binary built in the same profile as this test.
+pub fn bin(name: &str) -> PathBuf {
+    if let Ok(p) = std::env::var(format!("SOCIALFLOW_BIN_{}", name.to_uppercase())) {
+        return PathBuf::from(p);
+    }
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/<test> -> target/<profile>/<name>
+    let dir = exe.parent().and_then(Path::parent).expect("target profile dir");
+    let p = dir.join(name);
+    assert!(p.exists(), "{} is not built: run `cargo build --workspace --bins` first", p.display());
+    p
+}
+
+/// A child process that is killed (and reaped) on drop unless it was waited for.
+pub struct Proc(Option<Child>);
+
+impl Proc {
+    pub fn new(child: Child) -> Self {
+        Self(Some(child))
+    }
+
+    /// Waits for exit and collects the output; fails the test past `deadline`.
+    /// Output must fit the pipe buffers (these commands print little).
+    pub fn output(mut self, what: &str, deadline: Duration) -> Output {
+        let start = Instant::now();
+        loop {
+            let child = self.0.as_mut().expect("child present until waited");
+            if child.try_wait().expect("try_wait").is_some() {
+                return self.0.take().expect("child").wait_with_output().expect("collect output");
+            }
+            assert!(start.elapsed() < deadline, "{what} ran past {deadline:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Some(c) = self.0.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// Runs `socialflow` with `args` in the repository root; fails the test past `deadline`.
+pub fn socialflow(args: &[&str], deadline: Duration) -> Output {
+    let child = Command::new(bin("socialflow"))
+        .args(args)
+        .current_dir(repo())
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn socialflow");
+    Proc::new(child).output(&format!("socialflow {args:?}"), deadline)
+}
