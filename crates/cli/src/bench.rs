@@ -17,6 +17,8 @@ pub enum BenchCmd {
     /// Simulator throughput: every vehicle a learning agent driven by a fixed cheap policy
     /// that reads its observation; observations built for every agent on every step.
     Sim(SimArgs),
+    /// SAC update and actor inference speed of a network size on real observations.
+    Sac(crate::bench_sac::SacArgs),
 }
 
 #[derive(Args, Debug)]
@@ -47,6 +49,7 @@ pub enum LayoutArg {
 pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
     match cmd {
         BenchCmd::Sim(a) => sim(ctx, a),
+        BenchCmd::Sac(a) => crate::bench_sac::run(ctx, a),
     }
 }
 

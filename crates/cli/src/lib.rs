@@ -10,6 +10,7 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 
 mod bench;
+mod bench_sac;
 mod evalflow;
 mod render;
 mod scenarios;

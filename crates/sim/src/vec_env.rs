@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::case::random_case;
 use crate::config::SimConfig;
-use crate::env::{Env, Mode, Role};
+use crate::env::{Env, Mode, Rewards, Role, Termination};
 use crate::map::Map;
 use crate::metrics::EpisodeMetrics;
 use crate::obs::{MapSegments, ObsSpec, Observer};
@@ -31,6 +31,16 @@ pub struct VecEnvConfig {
     /// Vehicles per episode, inclusive range.
     pub vehicles: (u32, u32),
     pub seed: u64,
+}
+
+/// What happened to one observation row on the last step.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RowStep {
+    /// The row held a live learner before the step.
+    pub stepped: bool,
+    pub rewards: Rewards,
+    /// Set when the agent's episode ended on this step.
+    pub ended: Option<Termination>,
 }
 
 struct Slot {
@@ -49,6 +59,10 @@ pub struct VecEnv {
     pub max_agents: usize,
     obs: Vec<f32>,
     alive: Vec<f32>,
+    /// Per row, the last step's outcome (see [`RowStep`]) and the final observation of rows
+    /// that ended on it (before any reset).
+    steps: Vec<RowStep>,
+    final_obs: Vec<f32>,
     env_steps: u64,
     agent_steps: u64,
 }
@@ -69,7 +83,18 @@ impl VecEnv {
             })
             .collect();
         let rows = cfg.n_envs * max_agents;
-        let mut v = Self { obs: vec![0.0; rows * spec.len], alive: vec![0.0; rows], spec, max_agents, cfg, slots, env_steps: 0, agent_steps: 0 };
+        let mut v = Self {
+            obs: vec![0.0; rows * spec.len],
+            alive: vec![0.0; rows],
+            steps: vec![RowStep::default(); rows],
+            final_obs: vec![0.0; rows * spec.len],
+            spec,
+            max_agents,
+            cfg,
+            slots,
+            env_steps: 0,
+            agent_steps: 0,
+        };
         let (spec_len, mode, vehicles) = (v.spec.len, v.cfg.mode, v.cfg.vehicles);
         v.slots
             .par_iter_mut()
@@ -100,6 +125,17 @@ impl VecEnv {
         &self.slots[k].env
     }
 
+    /// Per row: what the last step did.
+    pub fn row_steps(&self) -> &[RowStep] {
+        &self.steps
+    }
+
+    /// Per row: the observation at the end of the last step for rows that ended on it
+    /// (the bootstrap observation of a timeout); other rows hold stale data.
+    pub fn final_observations(&self) -> &[f32] {
+        &self.final_obs
+    }
+
     /// Decision steps taken, summed over environments, and learner steps taken.
     pub fn counters(&self) -> (u64, u64) {
         (self.env_steps, self.agent_steps)
@@ -122,10 +158,13 @@ impl VecEnv {
             .zip(self.obs.par_chunks_mut(max_agents * spec_len))
             .zip(self.alive.par_chunks_mut(max_agents))
             .zip(actions.par_chunks(max_agents))
-            .map(|(((s, obs), alive), acts)| {
+            .zip(self.steps.par_chunks_mut(max_agents))
+            .zip(self.final_obs.par_chunks_mut(max_agents * spec_len))
+            .map(|(((((s, obs), alive), acts), steps), finals)| {
                 let n = s.env.len();
                 let stepped = s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count() as u64;
                 s.env.step(&acts[..n]).expect("a live episode with one action per agent");
+                s.record(steps, finals, alive, spec_len);
                 if s.env.done() {
                     s.finished.push(EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only));
                     s.reset(mode, vehicles);
@@ -140,6 +179,27 @@ impl VecEnv {
 }
 
 impl Slot {
+    /// Fills per-row step results and final observations of rows that ended.
+    fn record(&mut self, steps: &mut [RowStep], finals: &mut [f32], alive: &[f32], spec_len: usize) {
+        let mut prepared = false;
+        for (i, st) in steps.iter_mut().enumerate() {
+            *st = RowStep::default();
+            if alive[i] == 0.0 || i >= self.env.len() {
+                continue;
+            }
+            st.stepped = true;
+            st.rewards = self.env.rewards()[i];
+            if self.env.ended_now()[i] {
+                st.ended = self.env.agents()[i].termination;
+                if !prepared {
+                    self.observer.prepare(&self.env);
+                    prepared = true;
+                }
+                self.observer.write(&self.env, i, &mut finals[i * spec_len..(i + 1) * spec_len]);
+            }
+        }
+    }
+
     fn reset(&mut self, mode: Mode, vehicles: (u32, u32)) {
         let n = self.rng.random_range(vehicles.0..=vehicles.1) as usize;
         let case = random_case(&self.env.map, &mut self.rng, self.episodes, n);

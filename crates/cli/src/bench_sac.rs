@@ -1,0 +1,150 @@
+//! `socialflow bench sac`: SAC updates/s and actor inference observations/s.
+//!
+//! Sizes: `paper` and `compact` are the paper's ego-frame network at the reference script's
+//! sizes (`../shared/bench/sac_torch.py`); `default` is our default query-centric network at
+//! the paper's observation content. Batches are real observations from the simulator.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::{Args, ValueEnum};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde_json::json;
+use sf_nn::NetConfig;
+use sf_sac::{Replay, Sac, SacConfig, Transition};
+use sf_sim::obs::MapSegments;
+use sf_sim::policy::route_follower;
+use sf_sim::vec_env::{VecEnv, VecEnvConfig};
+use sf_sim::{Action, Layout, Mode, SimConfig};
+
+use crate::scenarios::Ctx;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum Size {
+    Paper,
+    Compact,
+    Default,
+}
+
+#[derive(Args, Debug)]
+pub struct SacArgs {
+    #[arg(long, value_enum, default_value = "default")]
+    size: Size,
+    /// Seconds spent timing updates (inference gets a third of it).
+    #[arg(long, default_value_t = 20.0)]
+    seconds: f64,
+    #[arg(long, default_value_t = 128)]
+    batch: usize,
+    #[arg(long)]
+    json: bool,
+}
+
+/// The observation and network configuration of a benchmark size.
+pub fn size_config(size: Size) -> (SimConfig, NetConfig) {
+    let mut sim = SimConfig::default();
+    let net = match size {
+        Size::Paper => {
+            sim.obs.layout = Layout::EgoFrame;
+            sim.obs.max_neighbours = 20;
+            sim.obs.max_polylines = 40;
+            sim.obs.polyline_points = 25;
+            NetConfig::paper()
+        }
+        Size::Compact => {
+            sim.obs.layout = Layout::EgoFrame;
+            sim.obs.max_neighbours = 16;
+            sim.obs.max_polylines = 16;
+            sim.obs.polyline_points = 10;
+            NetConfig::compact()
+        }
+        Size::Default => NetConfig::fast(),
+    };
+    (sim, net)
+}
+
+pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
+    let (sim, net) = size_config(a.size);
+    let sim = Arc::new(sim);
+    let map = ctx.map("intersection")?;
+    let mut venv = VecEnv::new(map.clone(), sim.clone(), VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (20, 20), seed: 1 });
+    let spec = venv.spec.clone();
+    let mut replay = Replay::new(100_000, spec.len, 2);
+    let mut actions = vec![Action::default(); venv.alive().len()];
+    while replay.len() < 4 * a.batch {
+        let before = venv.observations().to_vec();
+        let alive = venv.alive().to_vec();
+        for (i, act) in actions.iter_mut().enumerate() {
+            *act = route_follower(&spec, &before[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.8);
+        }
+        venv.step(&actions);
+        for i in (0..alive.len()).filter(|&i| alive[i] == 1.0) {
+            let act = [actions[i].ref_speed, actions[i].steer];
+            replay.push(Transition {
+                obs: &before[i * spec.len..(i + 1) * spec.len],
+                action: &act,
+                reward: venv.env(i / venv.max_agents).rewards().get(i % venv.max_agents).map_or(0.0, |r| r.individual),
+                next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
+                terminal: false,
+                map_id: 0,
+            })?;
+        }
+    }
+    let segs = MapSegments::build(&map, sim.obs.segment_points);
+    let mut sac = Sac::new(SacConfig { batch_size: a.batch, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
+    for b in batches.iter().take(2) {
+        sac.update(b);
+    }
+    let mut times = Vec::new();
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < a.seconds || times.len() < 3 {
+        let t = Instant::now();
+        sac.update(&batches[times.len() % batches.len()]);
+        times.push(t.elapsed().as_secs_f64());
+    }
+    let update_median = median(&mut times);
+
+    // Inference: the worker's step, 20 observations through the actor (batch building included).
+    let (actor, table) = sac.policy();
+    let rows: Vec<f32> = batches[0].obs[..20 * spec.len].to_vec();
+    let ids = vec![0u32; 20];
+    let mut inf = Vec::new();
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < a.seconds / 3.0 || inf.len() < 20 {
+        let t = Instant::now();
+        let obs = sac.obs_batch(&rows, &ids);
+        let out = actor.act_mean(&obs, table.as_ref());
+        let _: Vec<f32> = out.into_data().try_to_vec().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        inf.push(t.elapsed().as_secs_f64());
+    }
+    let infer_median = median(&mut inf);
+    let out = json!({
+        "size": format!("{:?}", a.size).to_lowercase(),
+        "batch": a.batch,
+        "updates_per_s": 1.0 / update_median,
+        "update_median_s": update_median,
+        "updates_timed": times.len(),
+        "inference_obs_per_s": 20.0 / infer_median,
+        "inference_batch": 20,
+        "encoder": net.encoder,
+        "d_model": net.d_model,
+        "set_hidden": net.set_hidden,
+        "obs_floats": spec.len,
+        "replay_bytes_per_transition": replay.bytes_per_transition(),
+        "threads": rayon::current_num_threads(),
+    });
+    if a.json {
+        println!("{out}");
+    } else {
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    }
+    Ok(())
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}

@@ -1,0 +1,133 @@
+//! The observation encoder: DeepSets per polyline, token embeddings, one ego-query attention.
+
+use burn::module::{Module, Param};
+use burn::nn::Linear;
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use sf_sim::obs::{MapSegments, AGENT_CTX, EGO_CTX, MAP_FEATS, SEG_POSE};
+
+use crate::batch::{MapInput, ObsBatch, AGENT_IN, STATIC_IN};
+use crate::config::{EncoderKind, NetConfig};
+use crate::layers::{DeepSet, EgoAttention, Init, Mlp};
+
+/// Token types (rows of the type embedding added to keys).
+const TYPES: usize = 4;
+const T_EGO: i64 = 0;
+const T_AGENT: i64 = 1;
+const T_ROUTE: i64 = 2;
+const T_MAP: i64 = 3;
+
+/// Encodes an observation batch into one feature vector per observation.
+#[derive(Module, Debug)]
+pub struct Encoder {
+    pub agent_set: DeepSet,
+    pub static_set: DeepSet,
+    pub ego_ctx: Linear,
+    pub agent_ctx: Mlp,
+    /// Query-centric: the observer-relative pose of a map segment -> token offset.
+    pub seg_pose: Mlp,
+    /// `[4, D]`, added to keys.
+    pub type_emb: Param<Tensor<2>>,
+    pub attn: EgoAttention,
+    #[module(skip)]
+    pub kind: EncoderKind,
+}
+
+/// Map-segment embeddings of one or more maps, computed once per weight version and shared
+/// by every observation of the batch (rows of map `k` start at `offsets[k]`).
+#[derive(Clone, Debug)]
+pub struct SegmentTable {
+    /// `[S_total, D]`
+    pub emb: Tensor<2>,
+    pub offsets: Vec<u32>,
+}
+
+/// The raw shape features of maps' segments, ready to encode: `[1, S, P, 5]`, `[1, S, P]`.
+#[derive(Clone, Debug)]
+pub struct SegmentInput {
+    pub feats: Tensor<4>,
+    pub mask: Tensor<3>,
+    pub offsets: Vec<u32>,
+}
+
+impl SegmentInput {
+    pub fn new(maps: &[&MapSegments], device: &Device) -> Self {
+        let p = maps.first().map_or(1, |m| m.points);
+        assert!(maps.iter().all(|m| m.points == p), "all maps use one segment length");
+        let mut feats = Vec::new();
+        let mut mask = Vec::new();
+        let mut offsets = Vec::new();
+        let mut s = 0u32;
+        for m in maps {
+            offsets.push(s);
+            feats.extend_from_slice(&m.local_feats);
+            mask.extend_from_slice(&m.local_mask);
+            s += m.len() as u32;
+        }
+        let s = s as usize;
+        Self {
+            feats: Tensor::from_data(TensorData::new(feats, [1, s, p, MAP_FEATS]), device),
+            mask: Tensor::from_data(TensorData::new(mask, [1, s, p]), device),
+            offsets,
+        }
+    }
+}
+
+impl Encoder {
+    pub fn new(cfg: &NetConfig, init: &mut Init, device: &Device) -> Self {
+        let (d, hid) = (cfg.d_model, cfg.set_hidden);
+        let mut type_emb = vec![0f32; TYPES * d];
+        for (k, v) in type_emb.iter_mut().enumerate() {
+            *v = 0.02 * ((k as f32) * 0.7).sin();
+        }
+        Self {
+            agent_set: DeepSet::new(init, AGENT_IN, hid, d, device),
+            static_set: DeepSet::new(init, STATIC_IN, hid, d, device),
+            ego_ctx: init.linear(EGO_CTX, d, device),
+            agent_ctx: init.mlp(&[AGENT_CTX, d, d], device),
+            seg_pose: init.mlp(&[SEG_POSE, d, d], device),
+            type_emb: Param::from_tensor(Tensor::from_data(TensorData::new(type_emb, [TYPES, d]), device)),
+            attn: EgoAttention::new(init, d, cfg.heads, device),
+            kind: cfg.encoder,
+        }
+    }
+
+    /// Encodes map segments once: `[S_total, D]`.
+    pub fn segment_table(&self, input: &SegmentInput) -> SegmentTable {
+        let e = self.static_set.forward(input.feats.clone(), input.mask.clone());
+        let [_, s, d] = e.dims();
+        SegmentTable { emb: e.reshape([s, d]), offsets: input.offsets.clone() }
+    }
+
+    /// `obs -> [B, D]`. Query-centric batches need the segment table of their maps.
+    pub fn forward(&self, obs: &ObsBatch, table: Option<&SegmentTable>) -> Tensor<2> {
+        let b = obs.batch;
+        let [_, n, _, _] = obs.agents.dims();
+        let ego_mask = Tensor::<3>::ones([b, 1, obs.ego.dims()[2]], &obs.ego.device());
+        let ego = self.agent_set.forward(obs.ego.clone(), ego_mask).reshape([b, self.d()]) + self.ego_ctx.forward(obs.ego_ctx.clone());
+        let agents = self.agent_set.forward(obs.agents.clone(), obs.agents_vmask.clone()) + self.agent_ctx.forward(obs.agents_ctx.clone());
+        let route = self.static_set.forward(obs.route.clone(), obs.route_mask.clone());
+        let map = match &obs.map {
+            MapInput::EgoFrame { pts, mask } => self.static_set.forward(pts.clone(), mask.clone()),
+            MapInput::QueryCentric { ids, pose } => {
+                let table = table.expect("a query-centric batch needs its segment table");
+                let [_, s, _] = pose.dims();
+                table.emb.clone().select(0, ids.clone()).reshape([b, s, self.d()]) + self.seg_pose.forward(pose.clone())
+            }
+        };
+        let m = map.dims()[1];
+        let tokens = Tensor::cat(vec![ego.clone().reshape([b, 1, self.d()]), agents, route, map], 1);
+        let t = tokens.dims()[1];
+        let mut types = Vec::with_capacity(t);
+        types.push(T_EGO);
+        types.extend(std::iter::repeat_n(T_AGENT, n));
+        types.push(T_ROUTE);
+        types.extend(std::iter::repeat_n(T_MAP, m));
+        let types = Tensor::<1, Int>::from_data(TensorData::new(types, [t]), &tokens.device());
+        let keys = tokens.clone() + self.type_emb.val().select(0, types).unsqueeze_dim::<3>(0);
+        self.attn.forward(ego, keys, tokens, obs.pad.clone())
+    }
+
+    pub fn d(&self) -> usize {
+        self.attn.wq.weight.dims()[1]
+    }
+}

@@ -1,0 +1,24 @@
+//! socialflow-nn: the paper's policy networks as burn modules.
+//!
+//! Owns: DeepSets polyline encoders and the ego-query attention ([`layers`], [`encoder`]),
+//! the tanh-Gaussian actor, the twin critic and the adversary ([`policy`]), the observation
+//! batch that feeds them ([`batch`]), network sizes ([`config`]), device selection ([`device`])
+//! and weight (de)serialisation ([`weights`]). Must not: know about replay buffers, SAC
+//! losses or gRPC; it maps observations to actions and values.
+//!
+//! Two encoders share one observation contract (`sf_sim::obs`): `ego-frame` (the paper's:
+//! every map vector in the observer's frame, encoded per observation) and `query-centric`
+//! (map segments encoded once per map in their own frame and gathered by index, plus an MLP of
+//! each token's observer-relative pose before attention).
+
+pub mod batch;
+pub mod config;
+pub mod device;
+pub mod encoder;
+pub mod layers;
+pub mod policy;
+pub mod weights;
+
+pub use batch::ObsBatch;
+pub use config::{EncoderKind, NetConfig, SvoInput};
+pub use policy::{Actor, Critic};

@@ -1,0 +1,152 @@
+//! Checkpoints of the SAC state: weights, target, optimizer states, alpha, counters, RNG.
+//!
+//! Owns: the on-disk layout of a checkpoint directory and its atomic replacement (everything
+//! is written into a sibling temporary directory, then renamed over the old one), and the
+//! restore that continues training exactly. Must not: save the replay buffer (too large; a
+//! restored learner refills it) or run during an update.
+//!
+//! Layout: `actor.bpk`, `critic.bpk`, `target.bpk`, `log_alpha.bpk`, `opt_actor.bpk`,
+//! `opt_critic.bpk`, `opt_alpha.bpk`, `state.json`.
+
+use std::path::{Path, PathBuf};
+
+use burn::module::Module;
+use burn::store::ModuleRecord;
+use burn::tensor::Bytes;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::sac::{Sac, SacConfig};
+
+/// Version of the checkpoint layout.
+pub const CHECKPOINT_VERSION: u32 = 1;
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct State {
+    version: u32,
+    updates: u64,
+    rng_seed: [u8; 32],
+    rng_word_pos: u128,
+    sac: SacConfig,
+    net: sf_nn::NetConfig,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("checkpoint {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("checkpoint {path}: cannot encode or decode {what}: {reason}")]
+    Record { path: String, what: &'static str, reason: String },
+    #[error("checkpoint {path}: state.json: {reason}")]
+    State { path: String, reason: String },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
+    move |source| CheckpointError::Io { path: path.display().to_string(), source }
+}
+
+fn rec_err<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(String) -> CheckpointError + 'a {
+    move |reason| CheckpointError::Record { path: path.display().to_string(), what, reason }
+}
+
+fn module_bytes<M: Module + Clone>(m: &M) -> Result<Vec<u8>, String> {
+    m.clone().into_record().into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))
+}
+
+fn load_module<M: Module>(m: M, bytes: Vec<u8>) -> Result<M, String> {
+    let rec = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes)).map_err(|e| format!("{e:?}"))?;
+    m.try_load_record(rec).map_err(|e| format!("{e:?}"))
+}
+
+/// Writes `sac` into `dir` atomically: readers see either the old or the new checkpoint.
+pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
+    let tmp = sibling(dir, "tmp");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+    let files: [(&str, &'static str, Result<Vec<u8>, String>); 7] = [
+        ("actor.bpk", "actor", module_bytes(&sac.actor)),
+        ("critic.bpk", "critic", module_bytes(&sac.critic)),
+        ("target.bpk", "target critic", module_bytes(&sac.target)),
+        ("log_alpha.bpk", "log alpha", module_bytes(&sac.log_alpha)),
+        ("opt_actor.bpk", "actor optimizer", sac.opt_actor.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
+        ("opt_critic.bpk", "critic optimizer", sac.opt_critic.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
+        ("opt_alpha.bpk", "alpha optimizer", sac.opt_alpha.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
+    ];
+    for (name, what, bytes) in files {
+        let bytes = bytes.map_err(rec_err(dir, what))?;
+        let p = tmp.join(name);
+        std::fs::write(&p, bytes).map_err(io(&p))?;
+    }
+    let state = State {
+        version: CHECKPOINT_VERSION,
+        updates: sac.updates,
+        rng_seed: sac.rng.get_seed(),
+        rng_word_pos: sac.rng.get_word_pos(),
+        sac: sac.cfg.clone(),
+        net: sac.net.clone(),
+    };
+    let p = tmp.join("state.json");
+    let text = serde_json::to_string_pretty(&state).map_err(|e| CheckpointError::State { path: p.display().to_string(), reason: e.to_string() })?;
+    std::fs::write(&p, text).map_err(io(&p))?;
+    // Swap: old -> .old, tmp -> dir, drop .old.
+    let old = sibling(dir, "old");
+    if old.exists() {
+        std::fs::remove_dir_all(&old).map_err(io(&old))?;
+    }
+    if dir.exists() {
+        std::fs::rename(dir, &old).map_err(io(dir))?;
+    }
+    std::fs::rename(&tmp, dir).map_err(io(dir))?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old).map_err(io(&old))?;
+    }
+    Ok(())
+}
+
+fn sibling(dir: &Path, suffix: &str) -> PathBuf {
+    let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_else(|| "checkpoint".into());
+    dir.with_file_name(format!(".{name}.{suffix}"))
+}
+
+/// Restores a checkpoint into `sac`, which must have been built with the same network and
+/// observation layout (the usual case: the same job config). Nothing is changed on error.
+pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
+    let read = |name: &str| {
+        let p = dir.join(name);
+        std::fs::read(&p).map_err(io(&p))
+    };
+    let p = dir.join("state.json");
+    let text = std::fs::read_to_string(&p).map_err(io(&p))?;
+    let state: State = serde_json::from_str(&text).map_err(|e| CheckpointError::State { path: dir.display().to_string(), reason: e.to_string() })?;
+    if state.version != CHECKPOINT_VERSION {
+        return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("version {} is not supported (this build reads {CHECKPOINT_VERSION})", state.version) });
+    }
+    if state.net != sac.net {
+        return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net) });
+    }
+    let actor = load_module(sac.actor.clone(), read("actor.bpk")?).map_err(rec_err(dir, "actor"))?;
+    let critic = load_module(sac.critic.clone(), read("critic.bpk")?).map_err(rec_err(dir, "critic"))?;
+    let target = load_module(sac.target.clone(), read("target.bpk")?).map_err(rec_err(dir, "target critic"))?;
+    let log_alpha = load_module(sac.log_alpha.clone(), read("log_alpha.bpk")?).map_err(rec_err(dir, "log alpha"))?;
+    let opt = |name: &str| -> Result<Bytes, CheckpointError> { Ok(Bytes::from_bytes_vec(read(name)?)) };
+    let fresh = || burn::optim::AdamConfig::new().init();
+    let opt_actor = fresh().from_bytes(opt("opt_actor.bpk")?).map_err(|e| rec_err(dir, "actor optimizer")(format!("{e:?}")))?;
+    let opt_critic = fresh().from_bytes(opt("opt_critic.bpk")?).map_err(|e| rec_err(dir, "critic optimizer")(format!("{e:?}")))?;
+    let opt_alpha = fresh().from_bytes(opt("opt_alpha.bpk")?).map_err(|e| rec_err(dir, "alpha optimizer")(format!("{e:?}")))?;
+    let mut rng = <ChaCha8Rng as rand::SeedableRng>::from_seed(state.rng_seed);
+    rng.set_word_pos(state.rng_word_pos);
+    sac.actor = actor;
+    sac.critic = critic;
+    sac.target = target;
+    sac.log_alpha = log_alpha;
+    sac.opt_actor = opt_actor;
+    sac.opt_critic = opt_critic;
+    sac.opt_alpha = opt_alpha;
+    sac.rng = rng;
+    sac.updates = state.updates;
+    sac.cfg = state.sac;
+    Ok(())
+}

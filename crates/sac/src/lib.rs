@@ -1,0 +1,15 @@
+//! socialflow-sac: Soft Actor-Critic for the paper's networks.
+//!
+//! Owns: the replay buffer ([`replay`]), the Reverb-style rate limiter ([`rate_limiter`]),
+//! the SAC state and update ([`sac`]) and checkpoints that restore training exactly
+//! ([`checkpoint`]). Must not: do IO on the update path or know about gRPC.
+
+pub mod checkpoint;
+pub mod ego;
+pub mod rate_limiter;
+pub mod replay;
+pub mod sac;
+
+pub use rate_limiter::{RateLimiter, RateLimiterConfig};
+pub use replay::{Batch, Replay, Transition};
+pub use sac::{Losses, Sac, SacConfig};

@@ -1,0 +1,270 @@
+//! Soft Actor-Critic: configuration, state and the update, which reads top to bottom in
+//! [`Sac::update`] (compare CleanRL's `sac_continuous_action.py`).
+//!
+//! Owns: the actor, the twin critic and its Polyak target, log-alpha, their Adam optimizers,
+//! the update counter and the noise RNG. Must not: do IO on the update path (checkpoints are
+//! written by `checkpoint` between updates). Target networks are plain (no autodiff) copies
+//! moved only by Polyak averaging.
+
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+use sf_nn::device::{self, DeviceKind};
+use sf_nn::encoder::{SegmentInput, SegmentTable};
+use sf_nn::{Actor, Critic, NetConfig, ObsBatch};
+use sf_sim::obs::{MapSegments, ObsSpec};
+
+use crate::replay::Batch;
+
+/// The paper's SAC table, plus what the released code adds.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct SacConfig {
+    pub gamma: f32,
+    pub tau: f32,
+    pub lr_actor: f64,
+    pub lr_critic: f64,
+    pub lr_alpha: f64,
+    pub batch_size: usize,
+    pub initial_alpha: f32,
+    /// Default: minus the action dimension.
+    pub target_entropy: Option<f32>,
+    /// Rewards are multiplied by this before the update (the ego and adversary used 50).
+    pub reward_scale: f32,
+    /// Environment steps of uniformly random actions before learning starts.
+    pub warmup_steps: u64,
+    pub seed: u64,
+    pub device: DeviceKind,
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            gamma: 0.9,
+            tau: 0.005,
+            lr_actor: 1e-4,
+            lr_critic: 5e-4,
+            lr_alpha: 1e-4,
+            batch_size: 128,
+            initial_alpha: 1.0,
+            target_entropy: None,
+            reward_scale: 1.0,
+            warmup_steps: 30_000,
+            seed: 0,
+            device: DeviceKind::Cpu,
+        }
+    }
+}
+
+/// `log(alpha)` as a module so Adam can optimise it.
+#[derive(Module, Debug)]
+pub struct LogAlpha {
+    pub value: Param<Tensor<1>>,
+}
+
+/// What one update reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Losses {
+    pub critic: f32,
+    pub actor: f32,
+    pub alpha_loss: f32,
+    pub alpha: f32,
+    /// Mean of -log pi(a|s) over the batch.
+    pub entropy: f32,
+    pub q_mean: f32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SacError {
+    #[error("sac config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Device(#[from] device::DeviceError),
+}
+
+/// The learner's SAC state.
+pub struct Sac {
+    pub cfg: SacConfig,
+    pub net: NetConfig,
+    pub spec: ObsSpec,
+    pub frame_dt_s: f32,
+    pub plain: Device,
+    pub ad: Device,
+    pub actor: Actor,
+    pub critic: Critic,
+    pub target: Critic,
+    pub log_alpha: LogAlpha,
+    pub(crate) opt_actor: burn::optim::ModuleOptimizer,
+    pub(crate) opt_critic: burn::optim::ModuleOptimizer,
+    pub(crate) opt_alpha: burn::optim::ModuleOptimizer,
+    /// Query-centric: every map's segments on each device.
+    seg_plain: Option<SegmentInput>,
+    seg_ad: Option<SegmentInput>,
+    pub updates: u64,
+    pub(crate) rng: ChaCha8Rng,
+}
+
+impl Sac {
+    /// `maps` are the maps whose segments query-centric observations index (by map id).
+    pub fn new(cfg: SacConfig, net: NetConfig, spec: ObsSpec, frame_dt_s: f32, maps: &[&MapSegments]) -> Result<Self, SacError> {
+        net.validate().map_err(SacError::Config)?;
+        if !(cfg.gamma > 0.0 && cfg.gamma <= 1.0 && cfg.tau > 0.0 && cfg.tau <= 1.0 && cfg.batch_size > 0 && cfg.initial_alpha > 0.0) {
+            return Err(SacError::Config(format!("gamma, tau in (0, 1], batch_size and initial_alpha positive; got {cfg:?}")));
+        }
+        let plain = device::device(cfg.device)?;
+        let ad = plain.clone().autodiff();
+        let actor = Actor::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(1), &ad);
+        let critic = Critic::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(2), &ad);
+        let target = critic.valid();
+        let la = Tensor::from_data(TensorData::new(vec![cfg.initial_alpha.ln()], [1]), &ad);
+        let qc = spec.layout == sf_sim::Layout::QueryCentric;
+        Ok(Self {
+            seg_plain: qc.then(|| SegmentInput::new(maps, &plain)),
+            seg_ad: qc.then(|| SegmentInput::new(maps, &ad)),
+            opt_actor: AdamConfig::new().init(),
+            opt_critic: AdamConfig::new().init(),
+            opt_alpha: AdamConfig::new().init(),
+            log_alpha: LogAlpha { value: Param::from_tensor(la) },
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+            net,
+            spec,
+            frame_dt_s,
+            plain,
+            ad,
+            actor,
+            critic,
+            target,
+            updates: 0,
+        })
+    }
+
+    fn batch_on(&self, rows: &[f32], map_ids: &[u32], device: &Device) -> ObsBatch {
+        let offsets = self.seg_plain.as_ref().map_or(&[][..], |s| &s.offsets[..]);
+        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, offsets, device)
+    }
+
+    fn noise(&mut self, b: usize, device: &Device) -> Tensor<2> {
+        let a = self.net.action_dim;
+        let v: Vec<f32> = (0..b * a).map(|_| self.rng.sample(StandardNormal)).collect();
+        Tensor::from_data(TensorData::new(v, [b, a]), device)
+    }
+
+    pub fn alpha(&self) -> f32 {
+        self.log_alpha.value.val().exp().into_scalar::<f32>()
+    }
+
+    /// One SAC update on a sampled batch.
+    pub fn update(&mut self, batch: &Batch) -> Losses {
+        let b = batch.len();
+        let a_dim = self.net.action_dim;
+        let alpha = self.alpha();
+        let target_entropy = self.cfg.target_entropy.unwrap_or(-(a_dim as f32));
+        let col = |v: &[f32], dev: &Device| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), dev);
+
+        // 1. TD target without gradients: y = s r + gamma (1 - d) (min Q'(s', a') - alpha log pi(a'|s')).
+        let next = self.batch_on(&batch.next_obs, &batch.map_ids, &self.plain);
+        let actor_v = self.actor.valid();
+        let table = self.seg_plain.as_ref().map(|s| actor_v.enc.segment_table(s));
+        let plain = self.plain.clone();
+        let eps = self.noise(b, &plain);
+        let (a2, logp2) = actor_v.sample(&next, table.as_ref(), eps);
+        let table = self.seg_plain.as_ref().map(|s| self.target.enc.segment_table(s));
+        let (tq1, tq2) = self.target.forward(&next, table.as_ref(), a2);
+        let soft_q = tq1.min_pair(tq2) - logp2.mul_scalar(alpha);
+        let not_done = col(&batch.terminals, &self.plain).neg().add_scalar(1.0);
+        let y = col(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + not_done * soft_q.mul_scalar(self.cfg.gamma);
+        let y = Tensor::<2>::from_data(y.into_data(), &self.ad);
+
+        // 2. Critic: MSE of both heads to y, one Adam step.
+        let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.ad);
+        let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
+        let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [b, a_dim]), &self.ad);
+        let (q1, q2) = self.critic.forward(&obs, table.as_ref(), act);
+        let q_mean = q1.clone().mean().into_scalar::<f32>();
+        let loss_c = (q1 - y.clone()).square().mean() + (q2 - y).square().mean();
+        let critic_loss = loss_c.clone().into_scalar::<f32>();
+        let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
+        self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
+
+        // 3. Actor: maximise Q1(s, a~pi) - alpha log pi, critic features taken without gradients.
+        let critic_v = self.critic.valid();
+        let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
+        let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
+        let fc = critic_v.enc.forward(&obs_plain, table.as_ref());
+        let fc = Tensor::<2>::from_data(fc.into_data(), &self.ad);
+        let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
+        let ad = self.ad.clone();
+        let eps = self.noise(b, &ad);
+        let (a_new, logp) = self.actor.sample(&obs, table.as_ref(), eps);
+        let q_pi = self.critic.q1.clone().no_grad().forward(Tensor::cat(vec![fc, a_new], 1));
+        let loss_a = (logp.clone().mul_scalar(alpha) - q_pi).mean();
+        let actor_loss = loss_a.clone().into_scalar::<f32>();
+        let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
+        self.actor = self.opt_actor.step(self.cfg.lr_actor, self.actor.clone(), grads);
+
+        // 4. Temperature: push the policy's entropy towards the target.
+        let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
+        let entropy = -logp.clone().mean().into_scalar::<f32>();
+        let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
+        let alpha_loss = loss_al.clone().into_scalar::<f32>();
+        let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
+        self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+
+        // 5. Polyak: target <- (1 - tau) target + tau critic.
+        self.target = polyak(self.target.clone(), &self.critic.valid(), self.cfg.tau);
+        self.updates += 1;
+        Losses { critic: critic_loss, actor: actor_loss, alpha_loss, alpha: self.alpha(), entropy, q_mean }
+    }
+
+    /// An inference copy of the actor and, for query-centric observations, its segment table
+    /// (compute once per weight version; workers cache both).
+    pub fn policy(&self) -> (Actor, Option<SegmentTable>) {
+        let a = self.actor.valid();
+        let t = self.seg_plain.as_ref().map(|s| a.enc.segment_table(s));
+        (a, t)
+    }
+
+    /// Builds an inference batch on the plain device.
+    pub fn obs_batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
+        self.batch_on(rows, map_ids, &self.plain)
+    }
+}
+
+/// Flattened parameter values in visit order.
+struct Collect(Vec<Tensor<1>>);
+
+impl ModuleVisitor for Collect {
+    fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+        let t = p.val();
+        let n = t.shape().num_elements();
+        self.0.push(t.reshape([n]));
+    }
+}
+
+struct Blend {
+    src: std::vec::IntoIter<Tensor<1>>,
+    tau: f32,
+}
+
+impl ModuleMapper for Blend {
+    fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let s = self.src.next().expect("target and online nets have the same architecture");
+        let tau = self.tau;
+        p.map(|t| {
+            let dims = t.dims();
+            t.mul_scalar(1.0 - tau) + s.reshape(dims).mul_scalar(tau)
+        })
+    }
+}
+
+/// `target <- (1 - tau) target + tau online`, parameter by parameter.
+pub fn polyak<M: Module>(target: M, online: &M, tau: f32) -> M {
+    let mut c = Collect(Vec::new());
+    online.visit(&mut c);
+    target.map(&mut Blend { src: c.0.into_iter(), tau })
+}
