@@ -79,3 +79,32 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("needs a trained policy"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn bench_sac_prints_the_contract_fields() {
+    let v = json_of(&socialflow(&["bench", "sac", "--size", "default", "--seconds", "0.5", "--batch", "32", "--json"], T));
+    for k in ["size", "batch", "updates_per_s", "inference_obs_per_s"] {
+        assert!(v.get(k).is_some(), "missing {k} in {v}");
+    }
+    assert_eq!(v["size"], "default");
+    assert_eq!(v["batch"], 32);
+    assert!(v["updates_per_s"].as_f64().unwrap_or(0.0) > 0.0);
+}
+
+#[test]
+fn learn_ego_writes_curve_config_and_checkpoint() {
+    let dir = std::env::temp_dir().join(format!("sf-e2e-learn-{}", std::process::id()));
+    let d = dir.to_string_lossy().to_string();
+    let out = socialflow(
+        &["learn-ego", "--scenario", "merge", "--steps", "400", "--warmup", "100", "--envs", "4", "--width", "16", "--batch", "16", "--out", &d],
+        Duration::from_secs(300),
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("summary JSON");
+    assert!(v["updates"].as_u64().unwrap_or(0) > 0, "{v}");
+    let csv = std::fs::read_to_string(dir.join("curve.csv")).expect("curve.csv");
+    assert!(csv.starts_with("env_steps,updates,episodes,success") && csv.lines().count() > 2, "{csv}");
+    assert!(std::fs::read(dir.join("curve.png")).expect("png").starts_with(b"\x89PNG"));
+    assert!(dir.join("checkpoint/state.json").exists() && dir.join("config.json").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -92,7 +92,9 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         }
     }
     let segs = MapSegments::build(&map, sim.obs.segment_points);
-    let mut sac = Sac::new(SacConfig { batch_size: a.batch, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
+    // paper and compact follow the reference update exactly (fresh critic features).
+    let reuse = matches!(a.size, Size::Default);
+    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
     for b in batches.iter().take(2) {
@@ -132,6 +134,8 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         "encoder": net.encoder,
         "d_model": net.d_model,
         "set_hidden": net.set_hidden,
+        "phi_layers": net.phi_layers,
+        "reuse_critic_features": reuse,
         "obs_floats": spec.len,
         "replay_bytes_per_transition": replay.bytes_per_transition(),
         "threads": rayon::current_num_threads(),

@@ -12,6 +12,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 mod bench;
 mod bench_sac;
 mod evalflow;
+mod learn;
 mod render;
 mod scenarios;
 
@@ -38,6 +39,10 @@ enum Cmd {
     },
     /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
     EvalFlow(evalflow::EvalFlowArgs),
+    /// Trains an ego policy with SAC among IDM traffic (single process) and writes its curve.
+    LearnEgo(learn::LearnArgs),
+    /// Overlays learning curves (CSV) of several runs in one PNG.
+    PlotCurves(learn::PlotArgs),
     /// Renders a frame (PNG) or an episode (GIF).
     Render(render::RenderArgs),
     /// Writes the four scenario files from their builders.
@@ -67,7 +72,21 @@ pub enum Flow {
     Socialcommadv,
 }
 
+/// Keeps freed memory in the process instead of returning it to the kernel after every
+/// tensor: burn allocates and frees many large buffers per update, and glibc's defaults turn
+/// each into mmap/munmap plus page faults (measured: ~1.5x on SAC updates).
+fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes allocator thresholds; it is called before any thread starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+        libc::mallopt(libc::M_TOP_PAD, 64 << 20);
+    }
+}
+
 pub fn main() -> ExitCode {
+    tune_allocator();
     let cli = Cli::parse();
     let _ = tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
@@ -88,8 +107,21 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Bench { what } => bench::run(&ctx, what),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),
+        Cmd::LearnEgo(a) => learn::run(&ctx, a),
+        Cmd::PlotCurves(a) => learn::plot_curves(a),
         Cmd::GenScenarios { out } => scenarios::gen_scenarios(&out),
         Cmd::GenCases { out, n, seed } => scenarios::gen_cases(&ctx, &out, n, seed),
     }
     .context("socialflow")
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    /// Catches clashing or malformed argument definitions at test time, not at a user's run.
+    #[test]
+    fn cli_definition_is_consistent() {
+        super::Cli::command().debug_assert();
+    }
 }

@@ -4,6 +4,8 @@
 //! Must not: run simulations; callers pass per-episode values. Grows into the evaluation
 //! grid, tables and plots (issue 6).
 
+pub mod plot;
+
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, StudentsT};
 

@@ -30,6 +30,11 @@ pub struct NetConfig {
     pub d_model: usize,
     /// Width of the DeepSets' phi and rho MLPs.
     pub set_hidden: usize,
+    /// Linear layers of the per-vector phi MLP (the paper: 3). The per-vector MLP runs on every
+    /// history and map vector, so its depth is the main cost of the encoder.
+    pub phi_layers: usize,
+    /// Linear layers of the MLPs that embed observer-relative poses (agent context, segments).
+    pub pose_layers: usize,
     /// Width of the actor and critic head MLPs.
     pub head_hidden: usize,
     pub heads: usize,
@@ -53,6 +58,8 @@ impl NetConfig {
             encoder: EncoderKind::EgoFrame,
             d_model: 128,
             set_hidden: 256,
+            phi_layers: 3,
+            pose_layers: 2,
             head_hidden: 256,
             heads: 4,
             svo: SvoInput::None,
@@ -68,12 +75,12 @@ impl NetConfig {
 
     /// Our default: query-centric encoder at widths this CPU can train.
     pub fn fast() -> Self {
-        Self { encoder: EncoderKind::QueryCentric, d_model: 64, set_hidden: 64, head_hidden: 128, ..Self::paper() }
+        Self { encoder: EncoderKind::QueryCentric, d_model: 64, set_hidden: 64, phi_layers: 1, pose_layers: 1, head_hidden: 128, ..Self::paper() }
     }
 
     /// Checks sizes; names the field.
     pub fn validate(&self) -> Result<(), String> {
-        for (f, v) in [("d_model", self.d_model), ("set_hidden", self.set_hidden), ("head_hidden", self.head_hidden), ("heads", self.heads), ("action_dim", self.action_dim)] {
+        for (f, v) in [("d_model", self.d_model), ("set_hidden", self.set_hidden), ("phi_layers", self.phi_layers), ("pose_layers", self.pose_layers), ("head_hidden", self.head_hidden), ("heads", self.heads), ("action_dim", self.action_dim)] {
             if v == 0 {
                 return Err(format!("net config field `{f}` must be positive"));
             }

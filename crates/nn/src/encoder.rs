@@ -74,17 +74,22 @@ impl SegmentInput {
 
 impl Encoder {
     pub fn new(cfg: &NetConfig, init: &mut Init, device: &Device) -> Self {
-        let (d, hid) = (cfg.d_model, cfg.set_hidden);
+        let (d, hid, phi) = (cfg.d_model, cfg.set_hidden, cfg.phi_layers);
+        let pose = |init: &mut Init, d_in: usize| {
+            let mut sizes = vec![d_in];
+            sizes.extend(std::iter::repeat_n(d, cfg.pose_layers.max(1)));
+            init.mlp(&sizes, device)
+        };
         let mut type_emb = vec![0f32; TYPES * d];
         for (k, v) in type_emb.iter_mut().enumerate() {
             *v = 0.02 * ((k as f32) * 0.7).sin();
         }
         Self {
-            agent_set: DeepSet::new(init, AGENT_IN, hid, d, device),
-            static_set: DeepSet::new(init, STATIC_IN, hid, d, device),
+            agent_set: DeepSet::new(init, AGENT_IN, hid, d, phi, device),
+            static_set: DeepSet::new(init, STATIC_IN, hid, d, phi, device),
             ego_ctx: init.linear(EGO_CTX, d, device),
-            agent_ctx: init.mlp(&[AGENT_CTX, d, d], device),
-            seg_pose: init.mlp(&[SEG_POSE, d, d], device),
+            agent_ctx: pose(init, AGENT_CTX),
+            seg_pose: pose(init, SEG_POSE),
             type_emb: Param::from_tensor(Tensor::from_data(TensorData::new(type_emb, [TYPES, d]), device)),
             attn: EgoAttention::new(init, d, cfg.heads, device),
             kind: cfg.encoder,

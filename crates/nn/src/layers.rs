@@ -82,14 +82,21 @@ pub struct DeepSet {
 }
 
 impl DeepSet {
-    pub fn new(init: &mut Init, d_in: usize, hidden: usize, d_out: usize, device: &Device) -> Self {
-        Self { phi: init.mlp(&[d_in, hidden, hidden, hidden], device), rho: init.mlp(&[hidden, hidden, hidden, d_out], device) }
+    /// phi: `d_in -> hidden` then `phi_layers - 1` layers `hidden -> hidden`; rho: 3 layers to `d_out`.
+    /// With one phi layer a ReLU follows it before the sum (phi must be non-linear).
+    pub fn new(init: &mut Init, d_in: usize, hidden: usize, d_out: usize, phi_layers: usize, device: &Device) -> Self {
+        let mut sizes = vec![d_in];
+        sizes.extend(std::iter::repeat_n(hidden, phi_layers.max(1)));
+        Self { phi: init.mlp(&sizes, device), rho: init.mlp(&[hidden, hidden, hidden, d_out], device) }
     }
 
     /// `x: [B, N, P, F]`, `mask: [B, N, P]` (1 valid, 0 padding) -> `[B, N, D]`.
     pub fn forward(&self, x: Tensor<4>, mask: Tensor<3>) -> Tensor<3> {
         let [b, n, p, f] = x.dims();
-        let h = self.phi.forward(x.reshape([b * n * p, f]));
+        let mut h = self.phi.forward(x.reshape([b * n * p, f]));
+        if self.phi.layers.len() == 1 {
+            h = relu(h);
+        }
         let hid = h.dims()[1];
         let h = h.reshape([b, n, p, hid]) * mask.unsqueeze_dim::<4>(3);
         let s = h.sum_dim(2).reshape([b * n, hid]);
@@ -115,17 +122,21 @@ impl EgoAttention {
 
     /// `query: [B, D]`, `keys, values: [B, T, D]`, `pad: [B, T]` (true = padding) -> `[B, D]`.
     /// Every row must have at least one valid token (the ego token always is).
+    ///
+    /// With a single query, scores and the weighted sum are broadcast products summed over the
+    /// head width and the tokens, which avoids transposing keys and values into head-major
+    /// layout (copies that cost more than the arithmetic here).
     pub fn forward(&self, query: Tensor<2>, keys: Tensor<3>, values: Tensor<3>, pad: Tensor<2, Bool>) -> Tensor<2> {
         let [b, t, d] = keys.dims();
         let h = self.heads;
         let dh = d / h;
-        let q = self.wq.forward(query).reshape([b, h, 1, dh]);
-        let k = self.wk.forward(keys).reshape([b, t, h, dh]).swap_dims(1, 2);
-        let v = self.wv.forward(values).reshape([b, t, h, dh]).swap_dims(1, 2);
-        let scores = q.matmul(k.swap_dims(2, 3)).div_scalar((dh as f32).sqrt());
-        let scores = scores.mask_fill(pad.reshape([b, 1, 1, t]), -1.0e9);
-        let w = softmax(scores, 3);
-        let ctx = w.matmul(v).reshape([b, d]);
+        let q = self.wq.forward(query).reshape([b, 1, h, dh]).div_scalar((dh as f32).sqrt());
+        let k = self.wk.forward(keys).reshape([b, t, h, dh]);
+        let v = self.wv.forward(values).reshape([b, t, h, dh]);
+        let scores = (k * q).sum_dim(3); // [B, T, H, 1]
+        let scores = scores.mask_fill(pad.reshape([b, t, 1, 1]), -1.0e9);
+        let w = softmax(scores, 1);
+        let ctx = (v * w).sum_dim(1).reshape([b, d]);
         self.wo.forward(ctx)
     }
 }
@@ -157,11 +168,62 @@ mod tests {
         }
     }
 
+    fn lin(l: &Linear, x: &[f32]) -> Vec<f32> {
+        let w: Vec<f32> = l.weight.val().into_data().try_to_vec().expect("f32");
+        let bias: Vec<f32> = l.bias.as_ref().expect("bias").val().into_data().try_to_vec().expect("f32");
+        let (i, o) = (x.len(), bias.len());
+        (0..o).map(|c| bias[c] + (0..i).map(|r| x[r] * w[r * o + c]).sum::<f32>()).collect()
+    }
+
+    /// The attention against a direct per-head computation in plain Rust.
+    #[test]
+    fn attention_matches_a_naive_reference() {
+        let dev = Device::flex();
+        let mut init = Init::new(5);
+        let (d, h, t) = (8, 2, 4);
+        let att = EgoAttention::new(&mut init, d, h, &dev);
+        let qv: Vec<f32> = (0..d).map(|k| (k as f32 * 0.3).cos()).collect();
+        let kv: Vec<f32> = (0..t * d).map(|k| (k as f32 * 0.17).sin()).collect();
+        let vv: Vec<f32> = (0..t * d).map(|k| (k as f32 * 0.11).cos()).collect();
+        let pad = vec![false, false, true, false];
+        let got: Vec<f32> = att
+            .forward(
+                Tensor::from_data(TensorData::new(qv.clone(), [1, d]), &dev),
+                Tensor::from_data(TensorData::new(kv.clone(), [1, t, d]), &dev),
+                Tensor::from_data(TensorData::new(vv.clone(), [1, t, d]), &dev),
+                Tensor::from_data(TensorData::new(pad.clone(), [1, t]), &dev),
+            )
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
+        let q = lin(&att.wq, &qv);
+        let ks: Vec<Vec<f32>> = (0..t).map(|j| lin(&att.wk, &kv[j * d..(j + 1) * d])).collect();
+        let vs: Vec<Vec<f32>> = (0..t).map(|j| lin(&att.wv, &vv[j * d..(j + 1) * d])).collect();
+        let dh = d / h;
+        let mut ctx = vec![0f32; d];
+        for head in 0..h {
+            let r = head * dh..(head + 1) * dh;
+            let sc: Vec<f32> = (0..t)
+                .map(|j| if pad[j] { f32::NEG_INFINITY } else { r.clone().map(|c| q[c] * ks[j][c]).sum::<f32>() / (dh as f32).sqrt() })
+                .collect();
+            let m = sc.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+            let e: Vec<f32> = sc.iter().map(|s| (s - m).exp()).collect();
+            let z: f32 = e.iter().sum();
+            for c in r {
+                ctx[c] = (0..t).map(|j| e[j] / z * vs[j][c]).sum();
+            }
+        }
+        let want = lin(&att.wo, &ctx);
+        for (a, b) in got.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-5, "{got:?} vs {want:?}");
+        }
+    }
+
     #[test]
     fn deepset_ignores_padding_and_attention_ignores_pad_tokens() {
         let dev = Device::flex();
         let mut init = Init::new(2);
-        let ds = DeepSet::new(&mut init, 3, 8, 4, &dev);
+        let ds = DeepSet::new(&mut init, 3, 8, 4, 3, &dev);
         let x = Tensor::<4>::from_data(TensorData::new((0..24).map(|v| v as f32 * 0.1).collect::<Vec<_>>(), [1, 2, 4, 3]), &dev);
         let mask = Tensor::<3>::from_data(TensorData::new(vec![1.0f32, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], [1, 2, 4]), &dev);
         let a: Vec<f32> = ds.forward(x.clone(), mask.clone()).into_data().try_to_vec().expect("f32");

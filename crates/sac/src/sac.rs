@@ -39,6 +39,10 @@ pub struct SacConfig {
     pub warmup_steps: u64,
     pub seed: u64,
     pub device: DeviceKind,
+    /// Take the actor loss's critic features from the critic step's forward pass (detached,
+    /// before that step) instead of a fresh no-grad pass after it, saving one encoder pass.
+    /// The reference script recomputes them (`false`).
+    pub reuse_critic_features: bool,
 }
 
 impl Default for SacConfig {
@@ -56,6 +60,7 @@ impl Default for SacConfig {
             warmup_steps: 30_000,
             seed: 0,
             device: DeviceKind::Cpu,
+            reuse_critic_features: true,
         }
     }
 }
@@ -184,7 +189,9 @@ impl Sac {
         let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.ad);
         let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
         let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [b, a_dim]), &self.ad);
-        let (q1, q2) = self.critic.forward(&obs, table.as_ref(), act);
+        let f_critic = self.critic.enc.forward(&obs, table.as_ref());
+        let f_reuse = self.cfg.reuse_critic_features.then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
+        let (q1, q2) = self.critic.heads(f_critic, act);
         let q_mean = q1.clone().mean().into_scalar::<f32>();
         let loss_c = (q1 - y.clone()).square().mean() + (q2 - y).square().mean();
         let critic_loss = loss_c.clone().into_scalar::<f32>();
@@ -192,11 +199,15 @@ impl Sac {
         self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
 
         // 3. Actor: maximise Q1(s, a~pi) - alpha log pi, critic features taken without gradients.
-        let critic_v = self.critic.valid();
-        let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
-        let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
-        let fc = critic_v.enc.forward(&obs_plain, table.as_ref());
-        let fc = Tensor::<2>::from_data(fc.into_data(), &self.ad);
+        let fc = match f_reuse {
+            Some(f) => f,
+            None => {
+                let critic_v = self.critic.valid();
+                let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
+                let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
+                Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
+            }
+        };
         let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
         let ad = self.ad.clone();
         let eps = self.noise(b, &ad);
