@@ -37,8 +37,18 @@ pub struct SacArgs {
     seconds: f64,
     #[arg(long, default_value_t = 128)]
     batch: usize,
+    /// Tensor device (`ndarray` needs a build with `--features sf-nn/ndarray` or `sf-nn/openblas`).
+    #[arg(long, value_enum, default_value = "cpu")]
+    device: DeviceArg,
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum DeviceArg {
+    Cpu,
+    Ndarray,
+    Cuda,
 }
 
 /// The observation and network configuration of a benchmark size.
@@ -94,7 +104,11 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let segs = MapSegments::build(&map, sim.obs.segment_points);
     // paper and compact follow the reference update exactly (fresh critic features).
     let reuse = matches!(a.size, Size::Default);
-    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
+    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: match a.device {
+        DeviceArg::Cpu => sf_nn::device::DeviceKind::Cpu,
+        DeviceArg::Ndarray => sf_nn::device::DeviceKind::Ndarray,
+        DeviceArg::Cuda => sf_nn::device::DeviceKind::Cuda,
+    }, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
     for b in batches.iter().take(2) {
@@ -139,6 +153,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         "obs_floats": spec.len,
         "replay_bytes_per_transition": replay.bytes_per_transition(),
         "threads": rayon::current_num_threads(),
+        "device": format!("{:?}", a.device).to_lowercase(),
     });
     if a.json {
         println!("{out}");

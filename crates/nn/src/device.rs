@@ -12,12 +12,15 @@ pub enum DeviceKind {
     Cpu,
     /// An NVIDIA GPU (needs the `cuda` feature).
     Cuda,
+    /// burn's deprecated `ndarray` CPU backend (needs the `ndarray` or `openblas` feature);
+    /// kept for backend measurements.
+    Ndarray,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum DeviceError {
-    #[error("device `cuda` needs a build with the `cuda` feature (cargo build --features sf-nn/cuda)")]
-    CudaNotBuilt,
+    #[error("device `{0}` needs a build with the `{0}` feature of socialflow-nn")]
+    NotBuilt(&'static str),
 }
 
 /// The inference device of a kind (no autodiff).
@@ -27,7 +30,11 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
         #[cfg(feature = "cuda")]
         DeviceKind::Cuda => Ok(Device::cuda(0)),
         #[cfg(not(feature = "cuda"))]
-        DeviceKind::Cuda => Err(DeviceError::CudaNotBuilt),
+        DeviceKind::Cuda => Err(DeviceError::NotBuilt("cuda")),
+        #[cfg(feature = "ndarray")]
+        DeviceKind::Ndarray => Ok(Device::ndarray()),
+        #[cfg(not(feature = "ndarray"))]
+        DeviceKind::Ndarray => Err(DeviceError::NotBuilt("ndarray")),
     }
 }
 
