@@ -54,19 +54,20 @@ pub enum DeviceArg {
 /// The observation and network configuration of a benchmark size.
 pub fn size_config(size: Size) -> (SimConfig, NetConfig) {
     let mut sim = SimConfig::default();
+    // The reference script's caps: other agents, static polylines, points per polyline.
+    let mut ego_frame = |neighbours, polylines, points| {
+        sim.obs.layout = Layout::EgoFrame;
+        sim.obs.max_neighbours = neighbours;
+        sim.obs.max_polylines = polylines;
+        sim.obs.polyline_points = points;
+    };
     let net = match size {
         Size::Paper => {
-            sim.obs.layout = Layout::EgoFrame;
-            sim.obs.max_neighbours = 20;
-            sim.obs.max_polylines = 40;
-            sim.obs.polyline_points = 25;
+            ego_frame(20, 40, 25);
             NetConfig::paper()
         }
         Size::Compact => {
-            sim.obs.layout = Layout::EgoFrame;
-            sim.obs.max_neighbours = 16;
-            sim.obs.max_polylines = 16;
-            sim.obs.polyline_points = 10;
+            ego_frame(16, 16, 10);
             NetConfig::compact()
         }
         Size::Default => NetConfig::fast(),
@@ -94,7 +95,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
             replay.push(Transition {
                 obs: &before[i * spec.len..(i + 1) * spec.len],
                 action: &act,
-                reward: venv.env(i / venv.max_agents).rewards().get(i % venv.max_agents).map_or(0.0, |r| r.individual),
+                reward: venv.row_steps()[i].rewards.individual,
                 next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
                 terminal: false,
                 map_id: 0,
