@@ -85,7 +85,7 @@ impl NetConfig {
                 return Err(format!("net config field `{f}` must be positive"));
             }
         }
-        if self.d_model % self.heads != 0 {
+        if !self.d_model.is_multiple_of(self.heads) {
             return Err(format!("net config field `heads`: d_model {} is not divisible by {}", self.d_model, self.heads));
         }
         Ok(())

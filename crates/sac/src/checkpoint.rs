@@ -11,9 +11,9 @@
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
-use burn::store::ModuleRecord;
 use burn::tensor::Bytes;
 use rand_chacha::ChaCha8Rng;
+use sf_nn::weights;
 use serde::{Deserialize, Serialize};
 
 use crate::sac::{Sac, SacConfig};
@@ -51,12 +51,15 @@ fn rec_err<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(String) -> Che
 }
 
 fn module_bytes<M: Module + Clone>(m: &M) -> Result<Vec<u8>, String> {
-    m.clone().into_record().into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))
+    weights::to_bytes(m).map_err(|e| e.to_string())
+}
+
+fn opt_bytes(o: &burn::optim::ModuleOptimizer) -> Result<Vec<u8>, String> {
+    o.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))
 }
 
 fn load_module<M: Module>(m: M, bytes: Vec<u8>) -> Result<M, String> {
-    let rec = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes)).map_err(|e| format!("{e:?}"))?;
-    m.try_load_record(rec).map_err(|e| format!("{e:?}"))
+    weights::from_bytes(m, &bytes).map_err(|e| e.to_string())
 }
 
 /// Writes `sac` into `dir` atomically: readers see either the old or the new checkpoint.
@@ -66,14 +69,14 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
         std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
     }
     std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
-    let files: [(&str, &'static str, Result<Vec<u8>, String>); 7] = [
+    let files = [
         ("actor.bpk", "actor", module_bytes(&sac.actor)),
         ("critic.bpk", "critic", module_bytes(&sac.critic)),
         ("target.bpk", "target critic", module_bytes(&sac.target)),
         ("log_alpha.bpk", "log alpha", module_bytes(&sac.log_alpha)),
-        ("opt_actor.bpk", "actor optimizer", sac.opt_actor.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
-        ("opt_critic.bpk", "critic optimizer", sac.opt_critic.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
-        ("opt_alpha.bpk", "alpha optimizer", sac.opt_alpha.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))),
+        ("opt_actor.bpk", "actor optimizer", opt_bytes(&sac.opt_actor)),
+        ("opt_critic.bpk", "critic optimizer", opt_bytes(&sac.opt_critic)),
+        ("opt_alpha.bpk", "alpha optimizer", opt_bytes(&sac.opt_alpha)),
     ];
     for (name, what, bytes) in files {
         let bytes = bytes.map_err(rec_err(dir, what))?;

@@ -569,11 +569,6 @@ impl Env {
         Ok(())
     }
 
-    /// A world-frame snapshot of every agent for rendering: (pose, alive, svo, role).
-    pub fn snapshot(&self) -> Vec<(VehicleState, bool, f32, Role)> {
-        self.agents.iter().map(|a| (a.state, a.alive, a.svo_deg, a.role)).collect()
-    }
-
     /// Moves agent `i` to a pose (tests and tools that construct situations).
     pub fn place_agent(&mut self, i: usize, pos: P2, theta_rad: f32, speed_mps: f32) {
         let a = &mut self.agents[i];

@@ -1,8 +1,7 @@
 //! Episode metrics: Success, Safety, Speed and the failure breakdown.
 //!
-//! Owns: [`EpisodeMetrics`] (one episode, averaged over the agents it scores) and
-//! [`MetricTotals`] (running sums over episodes). Must not: compute confidence intervals or
-//! tests (that is the eval crate). Flow evaluation scores every agent; ego evaluation only
+//! Owns: [`EpisodeMetrics`] (one episode, averaged over the agents it scores). Must not:
+//! compute confidence intervals or tests (that is the eval crate). Flow evaluation scores every agent; ego evaluation only
 //! the learner (agent 0).
 
 use serde::{Deserialize, Serialize};
@@ -63,33 +62,6 @@ impl EpisodeMetrics {
             }
         }
         m
-    }
-}
-
-/// Running means over episodes.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct MetricTotals {
-    pub episodes: u64,
-    pub sum: [f64; 9],
-}
-
-impl MetricTotals {
-    pub fn add(&mut self, m: &EpisodeMetrics) {
-        self.episodes += 1;
-        for (s, v) in self.sum.iter_mut().zip(Self::fields(m)) {
-            *s += v as f64;
-        }
-    }
-
-    fn fields(m: &EpisodeMetrics) -> [f32; 9] {
-        [m.success, m.safety, m.speed, m.collision, m.off_road, m.off_route, m.wrong_lane, m.timeout, m.destination]
-    }
-
-    /// Means in the order success, safety, speed, collision, off_road, off_route, wrong_lane,
-    /// timeout, destination.
-    pub fn means(&self) -> [f64; 9] {
-        let n = self.episodes.max(1) as f64;
-        self.sum.map(|s| s / n)
     }
 }
 

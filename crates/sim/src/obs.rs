@@ -212,7 +212,6 @@ pub struct Observer {
     pub spec: ObsSpec,
     pub cfg: ObsConfig,
     pub segments: Arc<MapSegments>,
-    dt_s: f32,
     vmax: f32,
     /// Per agent of the current step: own-frame history `[H, 4]` (query-centric sharing).
     own_hist: Vec<f32>,
@@ -238,18 +237,12 @@ impl Observer {
             spec: ObsSpec::new(&cfg),
             cfg,
             segments,
-            dt_s: sim.dt_s,
             vmax: sim.vehicle.max_speed_mps,
             own_hist: Vec::new(),
             cand: Vec::new(),
             pieces: Vec::new(),
             pieces_in_reach: 0,
         }
-    }
-
-    /// Time between history frames, seconds.
-    pub fn frame_dt_s(&self) -> f32 {
-        self.dt_s
     }
 
     /// Computes the per-step data shared by all observers (each agent's own-frame history).
