@@ -69,3 +69,66 @@ pub fn socialflow(args: &[&str], deadline: Duration) -> Output {
         .expect("spawn socialflow");
     Proc::new(child).output(&format!("socialflow {args:?}"), deadline)
 }
+
+/// A free TCP port on 127.0.0.1 (bound and released; good enough for tests).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("a free port")
+}
+
+/// A fresh scratch directory under the target dir's tmp.
+pub fn scratch(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("socialflow-e2e-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("scratch dir");
+    d
+}
+
+impl Proc {
+    /// Spawns `bin` with `args` in the repository root, stdout and stderr appended to `log`.
+    pub fn spawn_logged(bin: &Path, args: &[&str], envs: &[(&str, &str)], log: &Path) -> Self {
+        let f = std::fs::OpenOptions::new().create(true).append(true).open(log).expect("log file");
+        let f2 = f.try_clone().expect("log file");
+        let mut c = Command::new(bin);
+        c.args(args).current_dir(repo()).env("RUST_LOG", "info").stdout(Stdio::from(f)).stderr(Stdio::from(f2));
+        for (k, v) in envs {
+            c.env(k, v);
+        }
+        Self::new(c.spawn().unwrap_or_else(|e| panic!("spawn {}: {e}", bin.display())))
+    }
+
+    /// SIGKILL and reap.
+    pub fn kill9(&mut self) {
+        if let Some(mut c) = self.0.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
+    /// SIGTERM, then wait up to `grace` for exit (SIGKILL after).
+    pub fn terminate(&mut self, grace: Duration) -> bool {
+        let Some(c) = self.0.as_mut() else { return true };
+        let _ = Command::new("kill").arg("-TERM").arg(c.id().to_string()).status();
+        let start = Instant::now();
+        while start.elapsed() < grace {
+            if c.try_wait().ok().flatten().is_some() {
+                self.0 = None;
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        self.kill9();
+        false
+    }
+}
+
+/// Polls `f` every 100 ms until it returns `Some`, failing the test past `deadline`.
+pub fn wait_for<T>(what: &str, deadline: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+    let start = Instant::now();
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(start.elapsed() < deadline, "timed out after {deadline:?} waiting for {what}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}

@@ -19,6 +19,10 @@ pub enum BenchCmd {
     Sim(SimArgs),
     /// SAC update and actor inference speed of a network size on real observations.
     Sac(crate::bench_sac::SacArgs),
+    /// Transitions per second a learner ingests over loopback gRPC from m synthetic senders.
+    Ingest(crate::bench_svc::SvcBenchArgs),
+    /// Environment steps and updates per second of a real job with m in-process workers.
+    E2e(crate::bench_svc::SvcBenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -50,6 +54,8 @@ pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
     match cmd {
         BenchCmd::Sim(a) => sim(ctx, a),
         BenchCmd::Sac(a) => crate::bench_sac::run(ctx, a),
+        BenchCmd::Ingest(a) => crate::bench_svc::ingest(ctx.scenarios.clone(), a),
+        BenchCmd::E2e(a) => crate::bench_svc::e2e(ctx.scenarios.clone(), a),
     }
 }
 

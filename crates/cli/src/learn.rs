@@ -102,14 +102,14 @@ pub fn run(ctx: &Ctx, a: LearnArgs) -> Result<()> {
     std::fs::write(a.out.join("config.json"), serde_json::to_string_pretty(&config)?)?;
     let csv_path = a.out.join("curve.csv");
     let mut csv = std::fs::File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?;
-    writeln!(csv, "env_steps,updates,episodes,success,safety,speed,critic_loss,actor_loss,alpha,entropy,wall_s")?;
+    writeln!(csv, "{}", CurvePoint::CSV_HEADER)?;
     let mut write_err = None;
     let curve = train_ego(&sim, &mut sac, &run, |p| {
         eprintln!(
             "steps {:>7} updates {:>6} episodes {:>5} success {:.2} safety {:.2} speed {:.2} alpha {:.3} {:.0}s",
             p.env_steps, p.updates, p.episodes, p.success, p.safety, p.speed, p.alpha, p.wall_s
         );
-        if let Err(e) = write_row(&mut csv, p) {
+        if let Err(e) = writeln!(csv, "{}", p.csv_row()) {
             write_err.get_or_insert(e);
         }
     });
@@ -125,14 +125,6 @@ pub fn run(ctx: &Ctx, a: LearnArgs) -> Result<()> {
     let last = curve.last().copied().unwrap_or_default();
     println!("{}", json!({"out": a.out, "env_steps": last.env_steps, "updates": last.updates, "success": last.success, "safety": last.safety, "speed": last.speed, "wall_s": last.wall_s}));
     Ok(())
-}
-
-fn write_row(w: &mut impl Write, p: &CurvePoint) -> std::io::Result<()> {
-    writeln!(
-        w,
-        "{},{},{},{},{},{},{},{},{},{},{:.1}",
-        p.env_steps, p.updates, p.episodes, p.success, p.safety, p.speed, p.critic_loss, p.actor_loss, p.alpha, p.entropy, p.wall_s
-    )
 }
 
 fn plot(path: &std::path::Path, title: &str, runs: &[(&str, &Vec<CurvePoint>)]) -> Result<()> {

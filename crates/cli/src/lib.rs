@@ -11,10 +11,13 @@ use clap::{Parser, Subcommand, ValueEnum};
 
 mod bench;
 mod bench_sac;
+mod bench_svc;
 mod evalflow;
 mod learn;
+mod remote;
 mod render;
 mod scenarios;
+mod train;
 
 /// Zero-shot transfer of driving policies via socially adversarial traffic flow.
 #[derive(Parser, Debug)]
@@ -32,6 +35,14 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Cmd {
+    /// Trains a job embedded in this process: the learner and N workers over loopback gRPC.
+    Train(train::TrainArgs),
+    #[command(flatten)]
+    Remote(remote::RemoteCmd),
+    /// Runs the learner service (same as the `socialflow-learner` binary).
+    Learner(sf_learner::cmd::LearnerArgs),
+    /// Runs a rollout worker (same as the `socialflow-worker` binary).
+    Worker(sf_worker::cmd::WorkerArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -104,6 +115,10 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     let ctx = scenarios::Ctx { scenarios: cli.scenarios, cases: cli.cases_dir };
     match cli.cmd {
+        Cmd::Train(a) => train::run(ctx.scenarios.clone(), a),
+        Cmd::Remote(c) => remote::run(c),
+        Cmd::Learner(a) => train::learner(a),
+        Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),

@@ -11,7 +11,7 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use burn::tensor::{Tensor, TensorData};
 use sf_sim::env::{Controller, Termination};
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
@@ -43,7 +43,7 @@ pub struct EgoRun {
 }
 
 /// One point of a learning curve.
-#[derive(Clone, Copy, Debug, Default, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CurvePoint {
     pub env_steps: u64,
     pub updates: u64,
@@ -56,6 +56,19 @@ pub struct CurvePoint {
     pub alpha: f32,
     pub entropy: f32,
     pub wall_s: f64,
+}
+
+impl CurvePoint {
+    /// Header of the curve CSV files (`curve.csv`).
+    pub const CSV_HEADER: &'static str = "env_steps,updates,episodes,success,safety,speed,critic_loss,actor_loss,alpha,entropy,wall_s";
+
+    /// One CSV row (no newline) in [`CurvePoint::CSV_HEADER`] order.
+    pub fn csv_row(&self) -> String {
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{:.1}",
+            self.env_steps, self.updates, self.episodes, self.success, self.safety, self.speed, self.critic_loss, self.actor_loss, self.alpha, self.entropy, self.wall_s
+        )
+    }
 }
 
 /// Trains `sac` on ego episodes; calls `on_point` for every curve point and returns them all.

@@ -6,9 +6,11 @@
 
 pub mod checkpoint;
 pub mod ego;
+pub mod inference;
 pub mod rate_limiter;
 pub mod replay;
 pub mod sac;
+pub mod setup;
 
 pub use rate_limiter::{RateLimiter, RateLimiterConfig};
 pub use replay::{Batch, Replay, Transition};

@@ -154,6 +154,46 @@ impl Replay {
         Ok(())
     }
 
+    /// Stores a transition whose observations are already half floats (the wire format), so
+    /// ingest copies instead of converting. Same checks and eviction as [`Replay::push`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn push_f16(&mut self, obs: &[f16], action: &[f32], reward: f32, next_obs: &[f16], terminal: bool, map_id: u32) -> Result<(), ReplayError> {
+        let check = |field, got: usize, want| if got == want { Ok(()) } else { Err(ReplayError::Shape { field, got, want }) };
+        check("obs", obs.len(), self.obs_len)?;
+        check("next_obs", next_obs.len(), self.obs_len)?;
+        check("action", action.len(), self.act_dim)?;
+        if !obs.iter().all(|x| x.is_finite()) {
+            return Err(ReplayError::NotFinite("obs"));
+        }
+        if !next_obs.iter().all(|x| x.is_finite()) {
+            return Err(ReplayError::NotFinite("next_obs"));
+        }
+        if !(action.iter().all(|x| x.is_finite()) && reward.is_finite()) {
+            return Err(ReplayError::NotFinite("action or reward"));
+        }
+        let i = self.head;
+        if self.len < self.capacity && i == self.len {
+            self.obs.extend_from_slice(obs);
+            self.next_obs.extend_from_slice(next_obs);
+            self.actions.extend_from_slice(action);
+            self.rewards.push(reward);
+            self.terminals.push(terminal as u8 as f32);
+            self.map_ids.push(map_id);
+            self.len += 1;
+        } else {
+            let o = i * self.obs_len;
+            self.obs[o..o + self.obs_len].copy_from_slice(obs);
+            self.next_obs[o..o + self.obs_len].copy_from_slice(next_obs);
+            self.actions[i * self.act_dim..(i + 1) * self.act_dim].copy_from_slice(action);
+            self.rewards[i] = reward;
+            self.terminals[i] = terminal as u8 as f32;
+            self.map_ids[i] = map_id;
+        }
+        self.head = (self.head + 1) % self.capacity;
+        self.inserted += 1;
+        Ok(())
+    }
+
     /// Uniformly samples `n` transitions (with replacement) into `out`, reusing its buffers.
     pub fn sample_into(&self, rng: &mut impl Rng, n: usize, out: &mut Batch) -> Result<(), ReplayError> {
         if self.len == 0 {
@@ -218,6 +258,23 @@ mod tests {
         assert_eq!(&seen[..2], &[0, 0]);
         assert!(seen[2] > 50 && seen[3] > 50 && seen[4] > 50, "{seen:?}");
         assert_eq!(r.bytes_per_transition(), 2 * 3 * 2 + 8 + 12);
+    }
+
+    #[test]
+    fn half_float_pushes_store_the_same_rows() {
+        let mut a = Replay::new(2, 3, 2);
+        let mut b = Replay::new(2, 3, 2);
+        for k in 0..3 {
+            let o = [k as f32, 0.5, -0.25];
+            a.push(t(k as f32, &o)).expect("push");
+            let h: Vec<f16> = o.iter().map(|&x| f16::from_f32(x)).collect();
+            b.push_f16(&h, &[0.5, -0.5], k as f32, &h, k as f32 > 2.0, 1).expect("push_f16");
+        }
+        let mut r1 = ChaCha8Rng::seed_from_u64(3);
+        let mut r2 = ChaCha8Rng::seed_from_u64(3);
+        assert_eq!(a.sample(&mut r1, 20), b.sample(&mut r2, 20));
+        assert_eq!(b.push_f16(&[f16::NAN; 3], &[0.0, 0.0], 0.0, &[f16::ZERO; 3], false, 0), Err(ReplayError::NotFinite("obs")));
+        assert_eq!(b.inserted(), 3);
     }
 
     #[test]

@@ -240,6 +240,11 @@ impl Sac {
         (a, t)
     }
 
+    /// The actor's weights (inference copy) as `sf_nn::weights` bytes: what workers load.
+    pub fn actor_bytes(&self) -> Result<Vec<u8>, sf_nn::weights::WeightsError> {
+        sf_nn::weights::to_bytes(&self.actor.valid())
+    }
+
     /// Builds an inference batch on the plain device.
     pub fn obs_batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
         self.batch_on(rows, map_ids, &self.plain)

@@ -1,0 +1,191 @@
+//! `socialflow submit | status | watch | cancel`: the job API from the command line, and the
+//! progress display shared with the embedded `train`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+use sf_job::{JobRecord, JobState, Progress};
+use sf_proto::pb;
+use sf_proto::pb::job_service_client::JobServiceClient;
+use sf_svc::auth::{AttachToken, Token};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+
+pub type JobsClient = JobServiceClient<InterceptedService<Channel, AttachToken>>;
+
+#[derive(Args, Debug, Clone)]
+pub struct Conn {
+    /// The learner's gRPC URL.
+    #[arg(long, env = "SOCIALFLOW_LEARNER_URL", default_value = "http://127.0.0.1:50051")]
+    pub learner: String,
+    /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
+    #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum RemoteCmd {
+    /// Submits a job config (TOML) and prints the job.
+    Submit {
+        config: PathBuf,
+        #[command(flatten)]
+        conn: Conn,
+        /// Then watch it until it ends.
+        #[arg(long)]
+        watch: bool,
+    },
+    /// One job, or all jobs newest first.
+    Status {
+        job_id: Option<u64>,
+        #[command(flatten)]
+        conn: Conn,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Follows a job's progress until it ends.
+    Watch {
+        job_id: u64,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Cancels a queued or running job.
+    Cancel {
+        job_id: u64,
+        #[command(flatten)]
+        conn: Conn,
+    },
+}
+
+pub async fn jobs_client(url: &str, token: Option<Token>) -> Result<JobsClient> {
+    let ch = Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("learner url `{url}`"))?
+        .connect_timeout(Duration::from_secs(5))
+        .connect()
+        .await
+        .with_context(|| format!("connecting to the learner at {url}"))?;
+    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
+}
+
+fn deadline<T>(msg: T) -> tonic::Request<T> {
+    let mut r = tonic::Request::new(msg);
+    r.set_timeout(Duration::from_secs(30));
+    r
+}
+
+fn status_err(s: tonic::Status) -> anyhow::Error {
+    anyhow!("{} ({})", s.message(), sf_svc::error::code_label(s.code()))
+}
+
+pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord> {
+    let j = c.submit_job(deadline(pb::SubmitJobRequest { config_toml })).await.map_err(status_err).context("submitting the job")?.into_inner();
+    Ok(sf_proto::job_from_wire(&j)?)
+}
+
+pub async fn list(c: &mut JobsClient) -> Result<Vec<JobRecord>> {
+    let r = c.list_jobs(deadline(pb::ListJobsRequest {})).await.map_err(status_err).context("listing jobs")?.into_inner();
+    r.jobs.iter().map(|j| sf_proto::job_from_wire(j).map_err(Into::into)).collect()
+}
+
+pub fn job_json(j: &JobRecord) -> serde_json::Value {
+    json!({
+        "job_id": j.id, "name": j.name, "state": j.state.as_str(), "message": j.message,
+        "artifact_dir": j.artifact_dir, "progress": j.progress,
+    })
+}
+
+/// A progress bar over learner transitions.
+pub fn bar(target: u64) -> ProgressBar {
+    let pb = ProgressBar::new(target);
+    pb.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}").map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb
+}
+
+pub fn show(pb: &ProgressBar, state: JobState, p: &Progress) {
+    pb.set_length(p.target_env_steps.max(1));
+    pb.set_position(p.env_steps);
+    pb.set_message(format!(
+        "{} | updates {} | v{} | {:.0} steps/s | success {:.2} safety {:.2} speed {:.2} (last {} episodes)",
+        state.as_str(),
+        p.updates,
+        p.policy_version,
+        p.env_steps_per_s,
+        p.success,
+        p.safety,
+        p.speed,
+        p.episodes.min(100)
+    ));
+}
+
+/// Follows a job until it reaches a final state; returns that state and the last progress.
+pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobState, Progress)> {
+    let mut stream = c.watch_job(pb::WatchJobRequest { job_id }).await.map_err(status_err).with_context(|| format!("watching job {job_id}"))?.into_inner();
+    let pb = if quiet { ProgressBar::hidden() } else { bar(1) };
+    let mut last = None;
+    while let Some(m) = stream.message().await.map_err(status_err).with_context(|| format!("watching job {job_id}"))? {
+        let (state, p) = sf_proto::progress_from_wire(&m)?;
+        show(&pb, state, &p);
+        last = Some((state, p));
+        if state.is_final() {
+            break;
+        }
+    }
+    pb.finish();
+    last.ok_or_else(|| anyhow!("the learner ended the watch of job {job_id} without progress"))
+}
+
+pub fn run(cmd: RemoteCmd) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting the async runtime")?;
+    rt.block_on(async move {
+        let token = |c: &Conn| Token::load("SOCIALFLOW_TOKEN", c.token_file.as_deref()).context("the learner's bearer token");
+        match cmd {
+            RemoteCmd::Submit { config, conn, watch: w } => {
+                let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
+                sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
+                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let j = submit(&mut c, text).await?;
+                println!("{}", job_json(&j));
+                if w {
+                    let (state, _) = watch(&mut c, j.id, false).await?;
+                    if state != JobState::Succeeded {
+                        bail!("job {} ended {}", j.id, state.as_str());
+                    }
+                }
+                Ok(())
+            }
+            RemoteCmd::Status { job_id, conn, json: as_json } => {
+                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let jobs = match job_id {
+                    Some(id) => vec![sf_proto::job_from_wire(&c.get_job(deadline(pb::GetJobRequest { job_id: id })).await.map_err(status_err)?.into_inner())?],
+                    None => list(&mut c).await?,
+                };
+                for j in &jobs {
+                    if as_json {
+                        println!("{}", job_json(j));
+                    } else {
+                        let p = &j.progress;
+                        println!("{:>5}  {:<20} {:<10} {:>9}/{:<9} updates {:>7}  success {:.2}  {}", j.id, j.name, j.state.as_str(), p.env_steps, p.target_env_steps, p.updates, p.success, j.message);
+                    }
+                }
+                Ok(())
+            }
+            RemoteCmd::Watch { job_id, conn } => {
+                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let (state, p) = watch(&mut c, job_id, false).await?;
+                println!("{}", json!({"job_id": job_id, "state": state.as_str(), "progress": p}));
+                Ok(())
+            }
+            RemoteCmd::Cancel { job_id, conn } => {
+                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let j = c.cancel_job(deadline(pb::CancelJobRequest { job_id })).await.map_err(status_err)?.into_inner();
+                println!("{}", job_json(&sf_proto::job_from_wire(&j)?));
+                Ok(())
+            }
+        }
+    })
+}

@@ -1,0 +1,150 @@
+//! A batch of transitions as one worker sends it.
+//!
+//! Owns: [`TransitionBatch`] and [`TransitionBatch::validate`] (every array holds `count` rows
+//! of the declared widths, observations, actions and rewards are finite, terminal flags are 0
+//! or 1). Observations travel and are stored as IEEE half floats, so the learner copies them
+//! into replay without converting.
+
+use half::f16;
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EpisodeResult {
+    pub scenario_index: u32,
+    pub success: f32,
+    pub safety: f32,
+    pub speed: f32,
+}
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TransitionBatch {
+    pub job_id: u64,
+    pub worker_id: u64,
+    /// Version of the policy that acted; 0 for warm-up random actions.
+    pub policy_version: u64,
+    pub count: usize,
+    pub obs_len: usize,
+    pub action_dim: usize,
+    /// `count x obs_len`.
+    pub obs: Vec<f16>,
+    pub next_obs: Vec<f16>,
+    /// `count x action_dim`.
+    pub actions: Vec<f32>,
+    pub rewards: Vec<f32>,
+    pub terminals: Vec<bool>,
+    pub map_ids: Vec<u32>,
+    pub episodes: Vec<EpisodeResult>,
+    /// Decision steps of all vehicles simulated since the previous batch.
+    pub sim_steps: u64,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum BatchError {
+    #[error("transition batch field `{field}` has {got} values, expected {want}")]
+    Shape { field: &'static str, got: usize, want: usize },
+    #[error("transition batch field `{field}` holds a non-finite value at index {index}")]
+    NotFinite { field: &'static str, index: usize },
+    #[error("transition batch field `{field}`: {reason}")]
+    Invalid { field: &'static str, reason: String },
+}
+
+impl TransitionBatch {
+    /// An empty batch for `obs_len`-float observations and `action_dim` actions.
+    pub fn new(job_id: u64, worker_id: u64, obs_len: usize, action_dim: usize) -> Self {
+        Self { job_id, worker_id, obs_len, action_dim, ..Self::default() }
+    }
+
+    /// Appends one transition.
+    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], terminal: bool, map_id: u32) {
+        self.obs.extend(obs.iter().map(|&v| f16::from_f32(v)));
+        self.next_obs.extend(next_obs.iter().map(|&v| f16::from_f32(v)));
+        self.actions.extend_from_slice(action);
+        self.rewards.push(reward);
+        self.terminals.push(terminal);
+        self.map_ids.push(map_id);
+        self.count += 1;
+    }
+
+    /// Empties the batch, keeping its buffers.
+    pub fn clear(&mut self) {
+        self.obs.clear();
+        self.next_obs.clear();
+        self.actions.clear();
+        self.rewards.clear();
+        self.terminals.clear();
+        self.map_ids.clear();
+        self.episodes.clear();
+        self.count = 0;
+        self.sim_steps = 0;
+    }
+
+    /// Checks shapes and values; the error names the field.
+    pub fn validate(&self) -> Result<(), BatchError> {
+        let n = self.count;
+        if self.obs_len == 0 {
+            return Err(BatchError::Invalid { field: "obs_len", reason: "must be positive".into() });
+        }
+        if self.action_dim == 0 {
+            return Err(BatchError::Invalid { field: "action_dim", reason: "must be positive".into() });
+        }
+        let shape = |field, got: usize, want: usize| if got == want { Ok(()) } else { Err(BatchError::Shape { field, got, want }) };
+        let want_obs = n.checked_mul(self.obs_len).ok_or(BatchError::Invalid { field: "count", reason: "count x obs_len overflows".into() })?;
+        shape("obs_f16", self.obs.len(), want_obs)?;
+        shape("next_obs_f16", self.next_obs.len(), want_obs)?;
+        shape("actions", self.actions.len(), n * self.action_dim)?;
+        shape("rewards", self.rewards.len(), n)?;
+        shape("terminals", self.terminals.len(), n)?;
+        shape("map_ids", self.map_ids.len(), n)?;
+        let finite16 = |field, v: &[f16]| match v.iter().position(|x| !x.is_finite()) {
+            Some(index) => Err(BatchError::NotFinite { field, index }),
+            None => Ok(()),
+        };
+        let finite32 = |field, v: &[f32]| match v.iter().position(|x| !x.is_finite()) {
+            Some(index) => Err(BatchError::NotFinite { field, index }),
+            None => Ok(()),
+        };
+        finite16("obs_f16", &self.obs)?;
+        finite16("next_obs_f16", &self.next_obs)?;
+        finite32("actions", &self.actions)?;
+        finite32("rewards", &self.rewards)?;
+        for (i, e) in self.episodes.iter().enumerate() {
+            for (field, v) in [("episodes.success", e.success), ("episodes.safety", e.safety), ("episodes.speed", e.speed)] {
+                if !(v.is_finite() && (0.0..=1.5).contains(&v)) {
+                    return Err(BatchError::Invalid { field, reason: format!("episode {i}: {v} is not a fraction") });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn one() -> TransitionBatch {
+        let mut b = TransitionBatch::new(1, 2, 3, 2);
+        b.push(&[0.0, 1.0, 2.0], &[0.5, -0.5], 1.0, &[1.0, 2.0, 3.0], false, 0);
+        b
+    }
+
+    #[test]
+    fn a_well_formed_batch_validates() {
+        assert_eq!(one().validate(), Ok(()));
+    }
+
+    #[test]
+    fn shapes_and_values_are_checked_by_field() {
+        let mut b = one();
+        b.rewards.push(0.0);
+        assert_eq!(b.validate(), Err(BatchError::Shape { field: "rewards", got: 2, want: 1 }));
+        let mut b = one();
+        b.obs[1] = f16::NAN;
+        assert_eq!(b.validate(), Err(BatchError::NotFinite { field: "obs_f16", index: 1 }));
+        let mut b = one();
+        b.actions[1] = f32::INFINITY;
+        assert_eq!(b.validate(), Err(BatchError::NotFinite { field: "actions", index: 1 }));
+        let mut b = one();
+        b.obs_len = 0;
+        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
+    }
+}

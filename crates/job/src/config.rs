@@ -1,0 +1,327 @@
+//! The job config a user submits (TOML).
+//!
+//! Owns: [`JobConfig`] and its sections, defaults (the paper's SAC table, our default network)
+//! and [`JobConfig::validate`], whose errors name the field. The learner validates before it
+//! stores a job; workers parse the resolved config they are assigned. Must not: know about
+//! burn types (the learner and worker map these sections onto `NetConfig` / `SacConfig`).
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("job config is not valid TOML for a job: {0}")]
+    Parse(String),
+    #[error("job config field `{field}`: {reason}")]
+    Field { field: &'static str, reason: String },
+}
+
+fn bad<T>(field: &'static str, reason: impl Into<String>) -> Result<T, ConfigError> {
+    Err(ConfigError::Field { field, reason: reason.into() })
+}
+
+/// What the job trains.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum JobKind {
+    /// An ego policy (no SVO input) among frozen background traffic.
+    #[default]
+    Ego,
+}
+
+/// Who drives the vehicles that are not the ego.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Background {
+    #[default]
+    Idm,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NetPreset {
+    Paper,
+    Compact,
+    #[default]
+    Fast,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Encoder {
+    EgoFrame,
+    QueryCentric,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Device {
+    #[default]
+    Cpu,
+    Ndarray,
+    Cuda,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobConfig {
+    /// Shown in job lists and used for the artifact directory.
+    pub name: String,
+    #[serde(default)]
+    pub kind: JobKind,
+    pub env: EnvSection,
+    #[serde(default)]
+    pub net: NetSection,
+    #[serde(default)]
+    pub sac: SacSection,
+    pub train: TrainSection,
+    #[serde(default)]
+    pub worker: WorkerSection,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnvSection {
+    /// Scenario names (files `<name>.json` in the learner's scenario directory). Workers are
+    /// spread over them; the index is the map id of every transition.
+    pub scenarios: Vec<String>,
+    #[serde(default = "d_vmin")]
+    pub vehicles_min: u32,
+    #[serde(default = "d_vmax")]
+    pub vehicles_max: u32,
+    #[serde(default)]
+    pub background: Background,
+}
+fn d_vmin() -> u32 {
+    8
+}
+fn d_vmax() -> u32 {
+    20
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NetSection {
+    pub preset: NetPreset,
+    /// Overrides the preset's encoder.
+    pub encoder: Option<Encoder>,
+    /// Overrides token width and DeepSets width (heads get twice it).
+    pub width: Option<usize>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SacSection {
+    pub gamma: f32,
+    pub tau: f32,
+    pub lr_actor: f64,
+    pub lr_critic: f64,
+    pub lr_alpha: f64,
+    pub batch_size: usize,
+    pub initial_alpha: f32,
+    pub reward_scale: f32,
+    /// Environment steps of uniform random actions before the first update.
+    pub warmup_steps: u64,
+    pub seed: u64,
+    pub device: Device,
+}
+
+impl Default for SacSection {
+    fn default() -> Self {
+        Self {
+            gamma: 0.9,
+            tau: 0.005,
+            lr_actor: 1e-4,
+            lr_critic: 5e-4,
+            lr_alpha: 1e-4,
+            batch_size: 128,
+            initial_alpha: 1.0,
+            reward_scale: 50.0,
+            warmup_steps: 30_000,
+            seed: 0,
+            device: Device::Cpu,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainSection {
+    /// Learner transitions to collect; the job succeeds when they are in.
+    pub env_steps: u64,
+    /// Updates per inserted transition (the replay ratio).
+    #[serde(default = "d_spi")]
+    pub samples_per_insert: f64,
+    #[serde(default = "d_capacity")]
+    pub replay_capacity: usize,
+    /// Transitions from a policy more than this many versions behind are dropped.
+    #[serde(default = "d_lag")]
+    pub max_policy_lag: u64,
+    /// A new policy version every this many updates.
+    #[serde(default = "d_publish")]
+    pub publish_every_updates: u64,
+    #[serde(default = "d_ckpt")]
+    pub checkpoint_every_s: u64,
+    /// A learning-curve point every this many transitions (default: 50 points per job).
+    #[serde(default)]
+    pub curve_every_steps: Option<u64>,
+    /// Finished episodes averaged in rolling statistics.
+    #[serde(default = "d_window")]
+    pub window: usize,
+}
+fn d_spi() -> f64 {
+    0.25
+}
+fn d_capacity() -> usize {
+    1_000_000
+}
+fn d_lag() -> u64 {
+    20
+}
+fn d_publish() -> u64 {
+    10
+}
+fn d_ckpt() -> u64 {
+    60
+}
+fn d_window() -> usize {
+    100
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorkerSection {
+    /// Simulators each worker steps in parallel.
+    pub envs: usize,
+    /// Transitions per pushed batch.
+    pub batch_transitions: usize,
+}
+
+impl Default for WorkerSection {
+    fn default() -> Self {
+        Self { envs: 8, batch_transitions: 256 }
+    }
+}
+
+impl JobConfig {
+    /// Parses and validates.
+    pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
+        let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string().trim_end().to_string()))?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// The config with every default written out.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a job config always serialises to TOML")
+    }
+
+    pub fn curve_every_steps(&self) -> u64 {
+        self.train.curve_every_steps.unwrap_or((self.train.env_steps / 50).max(100))
+    }
+
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.name.trim().is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
+            return bad("name", format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name));
+        }
+        if self.env.scenarios.is_empty() {
+            return bad("env.scenarios", "list at least one scenario");
+        }
+        for s in &self.env.scenarios {
+            if s.is_empty() || !s.chars().all(|c| c.is_ascii_alphanumeric() || "-_".contains(c)) {
+                return bad("env.scenarios", format!("`{s}` is not a scenario name"));
+            }
+        }
+        if self.env.vehicles_min == 0 || self.env.vehicles_min > self.env.vehicles_max {
+            return bad("env.vehicles_min", format!("{} must be in 1..=vehicles_max ({})", self.env.vehicles_min, self.env.vehicles_max));
+        }
+        if self.env.vehicles_max > 64 {
+            return bad("env.vehicles_max", format!("{} exceeds 64", self.env.vehicles_max));
+        }
+        if let Some(w) = self.net.width {
+            if w == 0 || w % 4 != 0 || w > 1024 {
+                return bad("net.width", format!("{w} must be a positive multiple of 4 (the attention heads) up to 1024"));
+            }
+        }
+        let s = &self.sac;
+        if !(s.gamma > 0.0 && s.gamma < 1.0) {
+            return bad("sac.gamma", format!("{} must be in (0, 1)", s.gamma));
+        }
+        if !(s.tau > 0.0 && s.tau <= 1.0) {
+            return bad("sac.tau", format!("{} must be in (0, 1]", s.tau));
+        }
+        for (f, v) in [("sac.lr_actor", s.lr_actor), ("sac.lr_critic", s.lr_critic), ("sac.lr_alpha", s.lr_alpha)] {
+            if !(v.is_finite() && v > 0.0 && v < 1.0) {
+                return bad(f, format!("{v} must be in (0, 1)"));
+            }
+        }
+        if s.batch_size == 0 || s.batch_size > 65_536 {
+            return bad("sac.batch_size", format!("{} must be in 1..=65536", s.batch_size));
+        }
+        if !(s.initial_alpha.is_finite() && s.initial_alpha > 0.0) {
+            return bad("sac.initial_alpha", format!("{} must be positive", s.initial_alpha));
+        }
+        if !(s.reward_scale.is_finite() && s.reward_scale > 0.0) {
+            return bad("sac.reward_scale", format!("{} must be positive", s.reward_scale));
+        }
+        let t = &self.train;
+        if t.env_steps == 0 {
+            return bad("train.env_steps", "must be positive");
+        }
+        if !(t.samples_per_insert.is_finite() && t.samples_per_insert > 0.0 && t.samples_per_insert <= 1024.0) {
+            return bad("train.samples_per_insert", format!("{} must be in (0, 1024]", t.samples_per_insert));
+        }
+        if t.replay_capacity < s.batch_size || t.replay_capacity > 50_000_000 {
+            return bad("train.replay_capacity", format!("{} must be in sac.batch_size ({})..=50000000", t.replay_capacity, s.batch_size));
+        }
+        if (s.warmup_steps.max(s.batch_size as u64)) > t.replay_capacity as u64 {
+            return bad("sac.warmup_steps", format!("{} exceeds train.replay_capacity {}: sampling could never start", s.warmup_steps, t.replay_capacity));
+        }
+        if t.publish_every_updates == 0 {
+            return bad("train.publish_every_updates", "must be positive");
+        }
+        if t.checkpoint_every_s == 0 {
+            return bad("train.checkpoint_every_s", "must be positive");
+        }
+        if t.curve_every_steps == Some(0) {
+            return bad("train.curve_every_steps", "must be positive");
+        }
+        if t.window == 0 {
+            return bad("train.window", "must be positive");
+        }
+        if self.worker.envs == 0 || self.worker.envs > 256 {
+            return bad("worker.envs", format!("{} must be in 1..=256", self.worker.envs));
+        }
+        if self.worker.batch_transitions == 0 || self.worker.batch_transitions > 8192 {
+            return bad("worker.batch_transitions", format!("{} must be in 1..=8192", self.worker.batch_transitions));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: &str = "name = \"t\"\n[env]\nscenarios = [\"merge\"]\n[train]\nenv_steps = 1000\n";
+
+    #[test]
+    fn a_minimal_config_gets_the_paper_defaults() {
+        let c = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\n")).expect("valid");
+        assert_eq!(c.sac.gamma, 0.9);
+        assert_eq!(c.sac.batch_size, 128);
+        assert_eq!(c.net.preset, NetPreset::Fast);
+        let again = JobConfig::from_toml(&c.to_toml()).expect("round trip");
+        assert_eq!(again, c);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\ngamma = 1.5\n")).expect_err("gamma");
+        assert!(e.to_string().contains("sac.gamma"), "{e}");
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nbogus = 1\n")).expect_err("unknown");
+        assert!(e.to_string().contains("bogus"), "{e}");
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 5000\n").replace("env_steps = 1000", "env_steps = 1000\nreplay_capacity = 1000")).expect_err("warm-up");
+        assert!(e.to_string().contains("sac.warmup_steps"), "{e}");
+    }
+}

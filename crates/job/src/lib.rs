@@ -1,0 +1,98 @@
+//! The service's domain types: job configs, job records and progress, worker assignments and
+//! transition batches.
+//!
+//! Owns: [`JobConfig`] (the TOML a user submits; `deny_unknown_fields`, validated with errors
+//! that name the field), [`JobState`], [`JobRecord`], [`Progress`], [`Assignment`],
+//! [`TransitionBatch`] with its shape and finiteness checks. Must not: depend on burn, tokio or
+//! the wire format (`sf_proto` converts to and from these types).
+
+pub mod batch;
+pub mod config;
+
+pub use batch::{BatchError, EpisodeResult, TransitionBatch};
+pub use config::{ConfigError, JobConfig};
+
+use serde::{Deserialize, Serialize};
+
+/// Where a job is in its life. Final states never change again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_final(self) -> bool {
+        matches!(self, Self::Succeeded | Self::Failed | Self::Cancelled)
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Queued => "queued",
+            Self::Running => "running",
+            Self::Succeeded => "succeeded",
+            Self::Failed => "failed",
+            Self::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// A job's progress: counters and rolling episode statistics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Progress {
+    /// Learner transitions accepted into replay.
+    pub env_steps: u64,
+    pub target_env_steps: u64,
+    pub updates: u64,
+    pub policy_version: u64,
+    pub episodes: u64,
+    pub success: f32,
+    pub safety: f32,
+    pub speed: f32,
+    pub critic_loss: f32,
+    pub actor_loss: f32,
+    pub alpha: f32,
+    pub env_steps_per_s: f64,
+    /// Training wall-clock, summed over restarts.
+    pub wall_s: f64,
+    pub dropped_stale: u64,
+}
+
+/// A job as the store keeps it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobRecord {
+    pub id: u64,
+    pub name: String,
+    pub state: JobState,
+    pub config_toml: String,
+    /// Why it failed or was cancelled.
+    pub message: String,
+    pub created_unix_ms: u64,
+    pub updated_unix_ms: u64,
+    pub progress: Progress,
+    pub artifact_dir: String,
+}
+
+/// What a worker is told to do.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Assignment {
+    pub job_id: u64,
+    pub config_toml: String,
+    pub scenario_index: u32,
+    pub seed: u64,
+    pub policy_version: u64,
+    pub obs_len: u32,
+    pub action_dim: u32,
+    /// The job is in its random-action warm-up.
+    pub warmup: bool,
+}
+
+/// Milliseconds since the Unix epoch (0 if the clock is before it).
+pub fn now_unix_ms() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+}

@@ -1,0 +1,265 @@
+//! The `socialflow.v1` wire format.
+//!
+//! Owns: the code generated from `proto/socialflow/v1/socialflow.proto` (module [`pb`]) and
+//! the only conversions between wire messages and the domain types of `sf_job`. Decoding
+//! validates: enum values, shapes (every array holds `count` rows of the declared widths),
+//! finiteness, size caps. Must not: appear in other crates' public APIs (they pass domain
+//! types); hold service logic.
+
+use half::f16;
+use sf_job::{Assignment, EpisodeResult, JobRecord, JobState, Progress, TransitionBatch};
+
+#[allow(clippy::all, missing_docs)]
+pub mod pb {
+    tonic::include_proto!("socialflow.v1");
+}
+
+/// A wire message that does not decode into a valid domain value.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("field `{field}`: {reason}")]
+pub struct WireError {
+    pub field: &'static str,
+    pub reason: String,
+}
+
+fn wire<T>(field: &'static str, reason: impl Into<String>) -> Result<T, WireError> {
+    Err(WireError { field, reason: reason.into() })
+}
+
+pub fn state_to_wire(s: JobState) -> pb::JobState {
+    match s {
+        JobState::Queued => pb::JobState::Queued,
+        JobState::Running => pb::JobState::Running,
+        JobState::Succeeded => pb::JobState::Succeeded,
+        JobState::Failed => pb::JobState::Failed,
+        JobState::Cancelled => pb::JobState::Cancelled,
+    }
+}
+
+pub fn state_from_wire(v: i32) -> Result<JobState, WireError> {
+    match pb::JobState::try_from(v) {
+        Ok(pb::JobState::Queued) => Ok(JobState::Queued),
+        Ok(pb::JobState::Running) => Ok(JobState::Running),
+        Ok(pb::JobState::Succeeded) => Ok(JobState::Succeeded),
+        Ok(pb::JobState::Failed) => Ok(JobState::Failed),
+        Ok(pb::JobState::Cancelled) => Ok(JobState::Cancelled),
+        Ok(pb::JobState::Unspecified) | Err(_) => wire("state", format!("{v} is not a job state")),
+    }
+}
+
+pub fn progress_to_wire(job_id: u64, state: JobState, p: &Progress) -> pb::JobProgress {
+    pb::JobProgress {
+        job_id,
+        state: state_to_wire(state) as i32,
+        env_steps: p.env_steps,
+        target_env_steps: p.target_env_steps,
+        updates: p.updates,
+        policy_version: p.policy_version,
+        episodes: p.episodes,
+        success: p.success,
+        safety: p.safety,
+        speed: p.speed,
+        critic_loss: p.critic_loss,
+        actor_loss: p.actor_loss,
+        alpha: p.alpha,
+        env_steps_per_s: p.env_steps_per_s,
+        wall_s: p.wall_s,
+        dropped_stale: p.dropped_stale,
+    }
+}
+
+pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), WireError> {
+    Ok((
+        state_from_wire(p.state)?,
+        Progress {
+            env_steps: p.env_steps,
+            target_env_steps: p.target_env_steps,
+            updates: p.updates,
+            policy_version: p.policy_version,
+            episodes: p.episodes,
+            success: p.success,
+            safety: p.safety,
+            speed: p.speed,
+            critic_loss: p.critic_loss,
+            actor_loss: p.actor_loss,
+            alpha: p.alpha,
+            env_steps_per_s: p.env_steps_per_s,
+            wall_s: p.wall_s,
+            dropped_stale: p.dropped_stale,
+        },
+    ))
+}
+
+pub fn job_to_wire(j: &JobRecord) -> pb::Job {
+    pb::Job {
+        job_id: j.id,
+        name: j.name.clone(),
+        state: state_to_wire(j.state) as i32,
+        config_toml: j.config_toml.clone(),
+        message: j.message.clone(),
+        created_unix_ms: j.created_unix_ms,
+        updated_unix_ms: j.updated_unix_ms,
+        progress: Some(progress_to_wire(j.id, j.state, &j.progress)),
+        artifact_dir: j.artifact_dir.clone(),
+    }
+}
+
+pub fn job_from_wire(j: &pb::Job) -> Result<JobRecord, WireError> {
+    let progress = match &j.progress {
+        Some(p) => progress_from_wire(p)?.1,
+        None => Progress::default(),
+    };
+    Ok(JobRecord {
+        id: j.job_id,
+        name: j.name.clone(),
+        state: state_from_wire(j.state)?,
+        config_toml: j.config_toml.clone(),
+        message: j.message.clone(),
+        created_unix_ms: j.created_unix_ms,
+        updated_unix_ms: j.updated_unix_ms,
+        progress,
+        artifact_dir: j.artifact_dir.clone(),
+    })
+}
+
+pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
+    pb::Assignment {
+        job_id: a.job_id,
+        config_toml: a.config_toml.clone(),
+        scenario_index: a.scenario_index,
+        seed: a.seed,
+        policy_version: a.policy_version,
+        obs_len: a.obs_len,
+        action_dim: a.action_dim,
+        warmup: a.warmup,
+    }
+}
+
+pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError> {
+    if a.job_id == 0 {
+        return wire("assignment.job_id", "must be set");
+    }
+    if a.obs_len == 0 || a.action_dim == 0 {
+        return wire("assignment.obs_len", "observation length and action size must be positive");
+    }
+    Ok(Assignment {
+        job_id: a.job_id,
+        config_toml: a.config_toml.clone(),
+        scenario_index: a.scenario_index,
+        seed: a.seed,
+        policy_version: a.policy_version,
+        obs_len: a.obs_len,
+        action_dim: a.action_dim,
+        warmup: a.warmup,
+    })
+}
+
+fn f16_to_bytes(v: &[f16]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(v.len() * 2);
+    for x in v {
+        out.extend_from_slice(&x.to_bits().to_le_bytes());
+    }
+    out
+}
+
+fn f16_from_bytes(field: &'static str, b: &[u8], want: usize) -> Result<Vec<f16>, WireError> {
+    if b.len() != want * 2 {
+        return wire(field, format!("{} bytes, expected {} ({} half floats)", b.len(), want * 2, want));
+    }
+    Ok(b.chunks_exact(2).map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]]))).collect())
+}
+
+pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
+    pb::TransitionBatch {
+        job_id: b.job_id,
+        worker_id: b.worker_id,
+        policy_version: b.policy_version,
+        count: b.count as u32,
+        obs_len: b.obs_len as u32,
+        action_dim: b.action_dim as u32,
+        obs_f16: f16_to_bytes(&b.obs),
+        next_obs_f16: f16_to_bytes(&b.next_obs),
+        actions: b.actions.clone(),
+        rewards: b.rewards.clone(),
+        terminals: b.terminals.iter().map(|&t| t as u8).collect(),
+        map_ids: b.map_ids.clone(),
+        episodes: b
+            .episodes
+            .iter()
+            .map(|e| pb::EpisodeResult { scenario_index: e.scenario_index, success: e.success, safety: e.safety, speed: e.speed })
+            .collect(),
+        sim_steps: b.sim_steps,
+    }
+}
+
+/// Decodes and validates a batch (shapes, finiteness, flags).
+pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireError> {
+    if m.job_id == 0 {
+        return wire("job_id", "must be set");
+    }
+    let n = m.count as usize;
+    let want = n.checked_mul(m.obs_len as usize).ok_or(WireError { field: "count", reason: "count x obs_len overflows".into() })?;
+    let obs = f16_from_bytes("obs_f16", &m.obs_f16, want)?;
+    let next_obs = f16_from_bytes("next_obs_f16", &m.next_obs_f16, want)?;
+    let mut terminals = Vec::with_capacity(m.terminals.len());
+    for (i, &t) in m.terminals.iter().enumerate() {
+        match t {
+            0 => terminals.push(false),
+            1 => terminals.push(true),
+            _ => return wire("terminals", format!("byte {i} is {t}, expected 0 or 1")),
+        }
+    }
+    let b = TransitionBatch {
+        job_id: m.job_id,
+        worker_id: m.worker_id,
+        policy_version: m.policy_version,
+        count: n,
+        obs_len: m.obs_len as usize,
+        action_dim: m.action_dim as usize,
+        obs,
+        next_obs,
+        actions: m.actions,
+        rewards: m.rewards,
+        terminals,
+        map_ids: m.map_ids,
+        episodes: m.episodes.iter().map(|e| EpisodeResult { scenario_index: e.scenario_index, success: e.success, safety: e.safety, speed: e.speed }).collect(),
+        sim_steps: m.sim_steps,
+    };
+    b.validate().map_err(|e| WireError { field: "batch", reason: e.to_string() })?;
+    Ok(b)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_batch_round_trips_and_bad_ones_are_named() {
+        let mut b = TransitionBatch::new(3, 4, 2, 2);
+        b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
+        b.episodes.push(EpisodeResult { scenario_index: 1, success: 1.0, safety: 1.0, speed: 0.5 });
+        let back = batch_from_wire(batch_to_wire(&b)).expect("round trip");
+        assert_eq!(back, b);
+
+        let mut m = batch_to_wire(&b);
+        m.obs_f16.pop();
+        assert_eq!(batch_from_wire(m).expect_err("short").field, "obs_f16");
+        let mut m = batch_to_wire(&b);
+        m.terminals[0] = 7;
+        assert_eq!(batch_from_wire(m).expect_err("flag").field, "terminals");
+        let mut m = batch_to_wire(&b);
+        m.rewards[0] = f32::NAN;
+        let e = batch_from_wire(m).expect_err("nan");
+        assert!(e.reason.contains("rewards"), "{e}");
+        let mut m = batch_to_wire(&b);
+        m.obs_f16[0..2].copy_from_slice(&f16::NAN.to_bits().to_le_bytes());
+        assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));
+    }
+
+    #[test]
+    fn unknown_job_states_are_refused() {
+        assert!(state_from_wire(99).is_err());
+        assert!(state_from_wire(0).is_err());
+        assert_eq!(state_from_wire(state_to_wire(JobState::Running) as i32), Ok(JobState::Running));
+    }
+}

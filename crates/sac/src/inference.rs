@@ -1,0 +1,61 @@
+//! Batched actor inference for rollouts: a policy version's actor and, for query-centric
+//! observations, its segment table (computed once per version and reused every step).
+//!
+//! Owns: [`PolicyRunner`], what a worker (and evaluation) acts with. Must not: train.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::Rng;
+use rand_distr::StandardNormal;
+use sf_nn::encoder::{SegmentInput, SegmentTable};
+use sf_nn::{weights, Actor, NetConfig, ObsBatch};
+use sf_sim::obs::{MapSegments, ObsSpec};
+use sf_sim::Layout;
+
+pub struct PolicyRunner {
+    pub version: u64,
+    actor: Actor,
+    table: Option<SegmentTable>,
+    offsets: Vec<u32>,
+    net: NetConfig,
+    spec: ObsSpec,
+    frame_dt_s: f32,
+    device: Device,
+}
+
+impl PolicyRunner {
+    /// Loads actor weights (`sf_nn::weights` bytes) for `net` and encodes the maps' segments.
+    pub fn from_bytes(net: &NetConfig, spec: &ObsSpec, frame_dt_s: f32, maps: &[&MapSegments], bytes: &[u8], version: u64, device: &Device) -> Result<Self, weights::WeightsError> {
+        let actor = weights::from_bytes(Actor::new(net, 0, device), bytes)?;
+        Ok(Self::new(actor, net, spec, frame_dt_s, maps, version, device))
+    }
+
+    pub fn new(actor: Actor, net: &NetConfig, spec: &ObsSpec, frame_dt_s: f32, maps: &[&MapSegments], version: u64, device: &Device) -> Self {
+        let (table, offsets) = if spec.layout == Layout::QueryCentric {
+            let input = SegmentInput::new(maps, device);
+            let offsets = input.offsets.clone();
+            (Some(actor.enc.segment_table(&input)), offsets)
+        } else {
+            (None, Vec::new())
+        };
+        Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
+    }
+
+    fn batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
+        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, &self.device)
+    }
+
+    /// Stochastic actions `[B * A]` (row-major) for `B` observation rows.
+    pub fn sample(&self, rows: &[f32], map_ids: &[u32], rng: &mut impl Rng) -> Vec<f32> {
+        let b = map_ids.len();
+        let a = self.net.action_dim;
+        let eps: Vec<f32> = (0..b * a).map(|_| rng.sample(StandardNormal)).collect();
+        let eps = Tensor::<2>::from_data(TensorData::new(eps, [b, a]), &self.device);
+        let (act, _) = self.actor.sample(&self.batch(rows, map_ids), self.table.as_ref(), eps);
+        act.into_data().try_to_vec::<f32>().expect("actions are f32")
+    }
+
+    /// Deterministic actions (evaluation).
+    pub fn mean(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
+        self.actor.act_mean(&self.batch(rows, map_ids), self.table.as_ref()).into_data().try_to_vec::<f32>().expect("actions are f32")
+    }
+}

@@ -1,0 +1,19 @@
+//! Service plumbing shared by the learner and the worker.
+//!
+//! Owns: the one table from domain errors to gRPC status codes ([`error`]), bearer-token auth
+//! on both ends ([`auth`]), the admin HTTP server with Prometheus metrics, liveness and
+//! readiness ([`admin`]), RPC counters and process gauges ([`metrics`]), bounded backoff
+//! ([`backoff`]) and logging set-up ([`logging`]). Must not: hold learner or worker logic.
+
+pub mod admin;
+pub mod auth;
+pub mod backoff;
+pub mod error;
+pub mod logging;
+pub mod metrics;
+pub mod signal;
+
+pub use error::ServiceError;
+
+/// Largest gRPC message either side accepts (a batch of 256 paper-size observations is ~7 MiB).
+pub const MAX_MESSAGE_BYTES: usize = 64 << 20;

@@ -1,0 +1,71 @@
+//! The `socialflow-learner` command line: flags and environment overrides on top of the TOML
+//! config, validation before any port is bound, SIGTERM/ctrl-c handling.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use sf_svc::auth::Token;
+
+use crate::LearnerConfig;
+
+#[derive(Parser, Debug, Clone)]
+#[command(name = "socialflow-learner", about = "The socialflow learner: job store, replay, SAC trainer, gRPC APIs")]
+pub struct LearnerArgs {
+    /// Learner config (TOML); flags and environment variables override its fields.
+    #[arg(long, env = "SOCIALFLOW_LEARNER_CONFIG")]
+    pub config: Option<PathBuf>,
+    #[arg(long, env = "SOCIALFLOW_GRPC_ADDR")]
+    pub grpc_addr: Option<SocketAddr>,
+    #[arg(long, env = "SOCIALFLOW_ADMIN_ADDR")]
+    pub admin_addr: Option<SocketAddr>,
+    #[arg(long, env = "SOCIALFLOW_DATA_DIR")]
+    pub data_dir: Option<PathBuf>,
+    #[arg(long, env = "SOCIALFLOW_SCENARIOS_DIR")]
+    pub scenarios_dir: Option<PathBuf>,
+    /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
+    #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// Log JSON lines (for containers).
+    #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
+    pub log_json: bool,
+}
+
+impl LearnerArgs {
+    /// The resolved config and token; nothing is bound yet.
+    pub fn resolve(&self) -> anyhow::Result<(LearnerConfig, Token)> {
+        let mut cfg = match &self.config {
+            Some(p) => {
+                let text = std::fs::read_to_string(p).with_context(|| format!("reading learner config {}", p.display()))?;
+                LearnerConfig::from_toml(&text, &p.display().to_string())?
+            }
+            None => LearnerConfig::default(),
+        };
+        if let Some(a) = self.grpc_addr {
+            cfg.grpc_addr = a;
+        }
+        if let Some(a) = self.admin_addr {
+            cfg.admin_addr = a;
+        }
+        if let Some(d) = &self.data_dir {
+            cfg.data_dir = d.clone();
+        }
+        if let Some(d) = &self.scenarios_dir {
+            cfg.scenarios_dir = d.clone();
+        }
+        cfg.validate()?;
+        let token = Token::load("SOCIALFLOW_TOKEN", self.token_file.as_deref())?;
+        Ok((cfg, token))
+    }
+}
+
+/// The binary's whole life: resolve, start, wait for a signal, checkpoint and stop.
+pub async fn run(args: LearnerArgs) -> anyhow::Result<()> {
+    sf_svc::logging::init(args.log_json);
+    let (cfg, token) = args.resolve()?;
+    let l = crate::start(cfg, token).await?;
+    sf_svc::signal::terminate().await;
+    tracing::info!("termination requested");
+    l.shutdown().await
+}

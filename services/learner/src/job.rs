@@ -1,0 +1,318 @@
+//! The running job's shared state: what RPC handlers and the trainer thread both touch.
+//!
+//! Owns: [`ActiveJob`] — the replay buffer, the rate limiter, published policy versions, the
+//! counters and rolling episode statistics, and the stop request. Ingest ([`ActiveJob::ingest`])
+//! validates a batch against the job, drops stale data, waits on the rate limiter and copies
+//! rows into replay; it blocks, so async handlers call it through `spawn_blocking`.
+//! Must not: run tensor code (the trainer thread does).
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::time::{Duration, Instant};
+
+use sf_job::{EpisodeResult, JobConfig, JobState, Progress, TransitionBatch};
+use sf_sac::rate_limiter::RateLimitError;
+use sf_sac::{Losses, RateLimiter, Replay};
+use sf_svc::ServiceError;
+use tokio::sync::watch;
+
+use crate::metrics::LearnerMetrics;
+
+/// Why the trainer should stop.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StopReason {
+    Cancelled,
+    /// The learner is shutting down: checkpoint and leave the job RUNNING for the next start.
+    Shutdown,
+}
+
+/// One published policy version.
+#[derive(Clone)]
+pub struct Published {
+    pub version: u64,
+    pub weights: Arc<Vec<u8>>,
+}
+
+/// Counters and statistics, restored from the job's checkpoint on resume.
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
+pub struct Counters {
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub dropped_stale: u64,
+    pub sim_steps: u64,
+    pub wall_s: f64,
+}
+
+pub struct Stats {
+    pub c: Counters,
+    /// Transitions admitted (reserved) toward the target, including ones being inserted.
+    reserved: u64,
+    window: VecDeque<EpisodeResult>,
+    pub losses: Losses,
+    pub updates: u64,
+    rate: VecDeque<(Instant, u64)>,
+}
+
+/// The reply to one batch.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ack {
+    pub accepted: u32,
+    pub dropped_stale: u32,
+    pub latest_policy_version: u64,
+    pub warmup: bool,
+}
+
+pub struct ActiveJob {
+    pub id: u64,
+    pub cfg: JobConfig,
+    pub obs_len: usize,
+    pub action_dim: usize,
+    pub replay: Mutex<Replay>,
+    pub limiter: RateLimiter,
+    latest: RwLock<Option<Published>>,
+    /// Recent versions kept for workers that ask for one by number.
+    recent: Mutex<VecDeque<Published>>,
+    pub versions: watch::Sender<u64>,
+    stats: Mutex<Stats>,
+    stop: Mutex<Option<StopReason>>,
+    stopping: AtomicBool,
+    /// All transitions are in.
+    complete: AtomicBool,
+    next_scenario: AtomicU64,
+    started: Instant,
+    pub metrics: LearnerMetrics,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl ActiveJob {
+    pub fn new(id: u64, cfg: JobConfig, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
+        let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
+        let complete = restored.env_steps >= cfg.train.env_steps;
+        Self {
+            id,
+            obs_len,
+            action_dim,
+            replay: Mutex::new(replay),
+            limiter,
+            latest: RwLock::new(None),
+            recent: Mutex::new(VecDeque::new()),
+            versions: watch::channel(0).0,
+            stats: Mutex::new(Stats { reserved: restored.env_steps, c: restored, window: VecDeque::new(), losses: Losses::default(), updates: 0, rate: VecDeque::new() }),
+            stop: Mutex::new(None),
+            stopping: AtomicBool::new(false),
+            complete: AtomicBool::new(complete),
+            next_scenario: AtomicU64::new(0),
+            started: Instant::now(),
+            cfg,
+            metrics,
+        }
+    }
+
+    pub fn request_stop(&self, why: StopReason) {
+        lock(&self.stop).get_or_insert(why);
+        self.stopping.store(true, Ordering::Release);
+        self.limiter.close();
+    }
+
+    pub fn stop_reason(&self) -> Option<StopReason> {
+        *lock(&self.stop)
+    }
+
+    pub fn is_complete(&self) -> bool {
+        self.complete.load(Ordering::Acquire)
+    }
+
+    /// The scenario index for the next worker assignment (round robin).
+    pub fn next_scenario(&self) -> u32 {
+        (self.next_scenario.fetch_add(1, Ordering::Relaxed) % self.cfg.env.scenarios.len() as u64) as u32
+    }
+
+    pub fn latest(&self) -> Option<Published> {
+        self.latest.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    pub fn latest_version(&self) -> u64 {
+        self.latest().map_or(0, |p| p.version)
+    }
+
+    /// A version still held, or `None`.
+    pub fn version(&self, v: u64) -> Option<Published> {
+        lock(&self.recent).iter().find(|p| p.version == v).cloned()
+    }
+
+    /// Publishes a new policy version to workers.
+    pub fn publish(&self, version: u64, weights: Vec<u8>) {
+        let p = Published { version, weights: Arc::new(weights) };
+        {
+            let mut r = lock(&self.recent);
+            r.push_back(p.clone());
+            while r.len() > 4 {
+                r.pop_front();
+            }
+        }
+        *self.latest.write().unwrap_or_else(|e| e.into_inner()) = Some(p);
+        self.versions.send_replace(version);
+        self.metrics.policy_version.set(version as i64);
+    }
+
+    pub fn in_warmup(&self) -> bool {
+        lock(&self.stats).c.env_steps < self.cfg.sac.warmup_steps
+    }
+
+    /// Validates `b` against the job, drops it if stale, waits on the rate limiter until
+    /// `deadline`, then stores it. Blocking.
+    pub fn ingest(&self, b: &TransitionBatch, deadline: Instant) -> Result<Ack, ServiceError> {
+        if self.stopping.load(Ordering::Acquire) {
+            return Err(ServiceError::FailedPrecondition(format!("job {} is stopping", self.id)));
+        }
+        if b.obs_len != self.obs_len || b.action_dim != self.action_dim {
+            return Err(ServiceError::InvalidArgument(format!(
+                "batch rows are {} observation floats and {} actions; job {} expects {} and {}",
+                b.obs_len, b.action_dim, self.id, self.obs_len, self.action_dim
+            )));
+        }
+        let n_maps = self.cfg.env.scenarios.len() as u32;
+        if let Some(m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
+            return Err(ServiceError::InvalidArgument(format!("map id {m} out of range: job {} has {n_maps} scenarios", self.id)));
+        }
+        let latest = self.latest_version();
+        if b.policy_version > latest {
+            return Err(ServiceError::InvalidArgument(format!("policy version {} was never published (latest {latest})", b.policy_version)));
+        }
+        let warm = self.in_warmup();
+        let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
+        let random = b.policy_version == 0;
+        let lag = latest.saturating_sub(b.policy_version);
+        if !random {
+            self.metrics.policy_lag.observe(lag as f64);
+        }
+        let stale = if random { !warm } else { lag > self.cfg.train.max_policy_lag };
+        if stale {
+            lock(&self.stats).c.dropped_stale += b.count as u64;
+            self.metrics.transitions_dropped.get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() }).inc_by(b.count as u64);
+            return Ok(ack(0, b.count));
+        }
+        let take = {
+            let mut s = lock(&self.stats);
+            let take = (b.count as u64).min(self.cfg.train.env_steps.saturating_sub(s.reserved));
+            s.reserved += take;
+            take as usize
+        };
+        if take > 0 {
+            loop {
+                let now = Instant::now();
+                if now >= deadline {
+                    self.unreserve(take);
+                    return Err(ServiceError::DeadlineExceeded("deadline passed waiting for the trainer (rate limiter)".into()));
+                }
+                match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250))) {
+                    Ok(()) => break,
+                    Err(RateLimitError::Timeout(_)) => continue,
+                    Err(RateLimitError::Closed) => {
+                        self.unreserve(take);
+                        return Err(ServiceError::FailedPrecondition(format!("job {} is stopping", self.id)));
+                    }
+                    Err(e @ RateLimitError::Invalid { .. }) => return Err(ServiceError::Internal(e.to_string())),
+                }
+            }
+            let mut r = lock(&self.replay);
+            let (ol, ad) = (self.obs_len, self.action_dim);
+            for i in 0..take {
+                r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i])
+                    .map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
+            }
+            self.metrics.replay_size.set(r.len() as i64);
+            self.metrics.replay_bytes.set((r.len() * r.bytes_per_transition()) as i64);
+        }
+        self.metrics.transitions_received.inc_by(take as u64);
+        self.metrics.env_steps.inc_by(b.sim_steps);
+        self.metrics.episodes.inc_by(b.episodes.len() as u64);
+        let mut s = lock(&self.stats);
+        s.c.env_steps += take as u64;
+        s.c.sim_steps += b.sim_steps;
+        s.c.episodes += b.episodes.len() as u64;
+        for e in &b.episodes {
+            s.window.push_back(e.clone());
+            if s.window.len() > self.cfg.train.window {
+                s.window.pop_front();
+            }
+        }
+        let now = Instant::now();
+        let steps = s.c.env_steps;
+        s.rate.push_back((now, steps));
+        while s.rate.len() > 2 && now.duration_since(s.rate[0].0) > Duration::from_secs(10) {
+            s.rate.pop_front();
+        }
+        if s.c.env_steps >= self.cfg.train.env_steps {
+            self.complete.store(true, Ordering::Release);
+        }
+        let (succ, safe, speed) = means(&s.window);
+        self.metrics.success.set(succ as f64);
+        self.metrics.safety.set(safe as f64);
+        self.metrics.speed.set(speed as f64);
+        Ok(ack(take, b.count - take))
+    }
+
+    fn unreserve(&self, n: usize) {
+        lock(&self.stats).reserved -= n as u64;
+    }
+
+    /// Called by the trainer after each update.
+    pub fn record_update(&self, updates: u64, l: Losses) {
+        let mut s = lock(&self.stats);
+        s.updates = updates;
+        s.losses = l;
+        self.metrics.updates.inc();
+        self.metrics.critic_loss.set(l.critic as f64);
+        self.metrics.actor_loss.set(l.actor as f64);
+        self.metrics.alpha.set(l.alpha as f64);
+    }
+
+    pub fn counters(&self) -> Counters {
+        let s = lock(&self.stats);
+        let mut c = s.c.clone();
+        c.wall_s += self.started.elapsed().as_secs_f64();
+        c
+    }
+
+    pub fn progress(&self) -> Progress {
+        let s = lock(&self.stats);
+        let (success, safety, speed) = means(&s.window);
+        let env_steps_per_s = match (s.rate.front(), s.rate.back()) {
+            (Some(a), Some(b)) if b.0 > a.0 => (b.1 - a.1) as f64 / b.0.duration_since(a.0).as_secs_f64(),
+            _ => 0.0,
+        };
+        Progress {
+            env_steps: s.c.env_steps,
+            target_env_steps: self.cfg.train.env_steps,
+            updates: s.updates,
+            policy_version: self.latest_version(),
+            episodes: s.c.episodes,
+            success,
+            safety,
+            speed,
+            critic_loss: s.losses.critic,
+            actor_loss: s.losses.actor,
+            alpha: s.losses.alpha,
+            env_steps_per_s,
+            wall_s: s.c.wall_s + self.started.elapsed().as_secs_f64(),
+            dropped_stale: s.c.dropped_stale,
+        }
+    }
+
+    pub fn state(&self) -> JobState {
+        JobState::Running
+    }
+}
+
+fn means(w: &VecDeque<EpisodeResult>) -> (f32, f32, f32) {
+    if w.is_empty() {
+        return (0.0, 0.0, 0.0);
+    }
+    let n = w.len() as f32;
+    (w.iter().map(|e| e.success).sum::<f32>() / n, w.iter().map(|e| e.safety).sum::<f32>() / n, w.iter().map(|e| e.speed).sum::<f32>() / n)
+}

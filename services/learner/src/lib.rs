@@ -1,0 +1,435 @@
+//! The learner: owns all training state and serves the job and experience APIs.
+//!
+//! Owns: [`LearnerConfig`] (validated before any port is bound), [`start`] (binds the gRPC and
+//! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
+//! behind the handlers: the job store, the one running job ([`job::ActiveJob`]), registered
+//! workers, metrics. The scheduler runs one job at a time — a RUNNING job left by a previous
+//! process first (auto-resume from its checkpoint), then QUEUED jobs in id order — on a
+//! dedicated trainer thread ([`trainer`]). Must not: expose wire types in its public API.
+//!
+//! Shutdown ([`RunningLearner::shutdown`], SIGTERM in the binary): the running job is asked to
+//! stop, its trainer writes a checkpoint, the job stays RUNNING in the store and resumes on the
+//! next start.
+
+pub mod cmd;
+pub mod job;
+pub mod metrics;
+pub mod service;
+pub mod store;
+pub mod trainer;
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use prometheus_client::registry::Registry;
+use serde::{Deserialize, Serialize};
+use sf_job::{JobConfig, JobRecord, JobState};
+use sf_proto::pb::experience_service_server::ExperienceServiceServer;
+use sf_proto::pb::job_service_server::JobServiceServer;
+use sf_sac::{setup, RateLimiter};
+use sf_sim::Map;
+use sf_svc::auth::{RequireToken, Token};
+use sf_svc::ServiceError;
+use tokio::sync::{oneshot, Notify};
+use tonic::service::interceptor::InterceptedService;
+
+use crate::job::{ActiveJob, StopReason};
+use crate::metrics::LearnerMetrics;
+use crate::store::Store;
+use crate::trainer::Outcome;
+
+/// The learner's deployment settings (`configs/learner.toml`).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnerConfig {
+    pub grpc_addr: SocketAddr,
+    pub admin_addr: SocketAddr,
+    /// Job store (`jobs.redb`) and per-job artifact directories (`jobs/<id>-<name>/`).
+    pub data_dir: PathBuf,
+    /// Scenario files `<name>.json`.
+    pub scenarios_dir: PathBuf,
+    pub max_message_bytes: usize,
+    /// Seconds a worker may go without a heartbeat before it is forgotten.
+    pub worker_timeout_s: u64,
+    /// Seconds the trainer gets to write its checkpoint on shutdown.
+    pub shutdown_grace_s: u64,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        Self {
+            grpc_addr: SocketAddr::from(([0, 0, 0, 0], 50051)),
+            admin_addr: SocketAddr::from(([0, 0, 0, 0], 9090)),
+            data_dir: PathBuf::from("runs/learner"),
+            scenarios_dir: PathBuf::from("configs/scenarios"),
+            max_message_bytes: sf_svc::MAX_MESSAGE_BYTES,
+            worker_timeout_s: 30,
+            shutdown_grace_s: 120,
+        }
+    }
+}
+
+impl LearnerConfig {
+    pub fn from_toml(text: &str, origin: &str) -> anyhow::Result<Self> {
+        let c: Self = toml::from_str(text).with_context(|| format!("learner config {origin}"))?;
+        c.validate().with_context(|| format!("learner config {origin}"))?;
+        Ok(c)
+    }
+
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(self.max_message_bytes >= 1 << 16, "field `max_message_bytes`: {} is below 65536", self.max_message_bytes);
+        anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
+        anyhow::ensure!(self.scenarios_dir.is_dir(), "field `scenarios_dir`: {} is not a directory", self.scenarios_dir.display());
+        Ok(())
+    }
+}
+
+struct WorkerInfo {
+    name: String,
+    last_seen: Instant,
+}
+
+/// State shared by the handlers, the scheduler and the trainer's completion task.
+pub struct Inner {
+    cfg: LearnerConfig,
+    store: Arc<Store>,
+    pub metrics: LearnerMetrics,
+    active: RwLock<Option<Arc<ActiveJob>>>,
+    wake: Notify,
+    idle: Notify,
+    workers: Mutex<HashMap<u64, WorkerInfo>>,
+    next_worker: AtomicU64,
+    assignments: AtomicU64,
+    shutting_down: AtomicBool,
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, store::StoreError> + Send + 'static) -> Result<T, ServiceError> {
+    match tokio::task::spawn_blocking(f).await {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(ServiceError::Internal(e.to_string())),
+        Err(e) => Err(ServiceError::Internal(format!("store task: {e}"))),
+    }
+}
+
+impl Inner {
+    pub fn active(&self) -> Option<Arc<ActiveJob>> {
+        self.active.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    fn set_active(&self, j: Option<Arc<ActiveJob>>) {
+        *self.active.write().unwrap_or_else(|p| p.into_inner()) = j;
+    }
+
+    fn load_map(&self, name: &str) -> Result<Arc<Map>, String> {
+        let p = self.cfg.scenarios_dir.join(format!("{name}.json"));
+        Map::load(&p).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}"))
+    }
+
+    /// Validates a config and queues it.
+    pub async fn submit(self: &Arc<Self>, toml_text: String) -> Result<JobRecord, ServiceError> {
+        if self.shutting_down.load(Ordering::Acquire) {
+            return Err(ServiceError::Unavailable("the learner is shutting down".into()));
+        }
+        let cfg = JobConfig::from_toml(&toml_text)?;
+        for s in &cfg.env.scenarios {
+            self.load_map(s).map_err(ServiceError::InvalidArgument)?;
+        }
+        sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
+        let store = Arc::clone(&self.store);
+        let root = self.cfg.data_dir.join("jobs");
+        let name = cfg.name.clone();
+        let target = cfg.train.env_steps;
+        let rec = blocking(move || store.create(&name, &toml_text, target, |id| root.join(format!("{id}-{name}")).display().to_string())).await?;
+        tracing::info!(job_id = rec.id, name = %rec.name, "job queued");
+        self.wake.notify_one();
+        Ok(rec)
+    }
+
+    /// A job with live progress if it is running.
+    pub async fn job(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
+        let store = Arc::clone(&self.store);
+        let mut rec = blocking(move || store.get(id)).await?.ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
+        if let Some(j) = self.active() {
+            if j.id == id && !rec.state.is_final() {
+                rec.progress = j.progress();
+                rec.state = JobState::Running;
+            }
+        }
+        Ok(rec)
+    }
+
+    pub async fn jobs(self: &Arc<Self>) -> Result<Vec<JobRecord>, ServiceError> {
+        let store = Arc::clone(&self.store);
+        let mut all = blocking(move || store.list()).await?;
+        if let Some(j) = self.active() {
+            for r in all.iter_mut().filter(|r| r.id == j.id && !r.state.is_final()) {
+                r.progress = j.progress();
+            }
+        }
+        Ok(all)
+    }
+
+    pub async fn cancel(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
+        let store = Arc::clone(&self.store);
+        let rec = blocking(move || {
+            store.update(id, |r| {
+                if !r.state.is_final() {
+                    r.state = JobState::Cancelled;
+                    r.message = "cancelled by request".into();
+                }
+            })
+        })
+        .await?
+        .ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
+        if let Some(j) = self.active() {
+            if j.id == id {
+                j.request_stop(StopReason::Cancelled);
+            }
+        }
+        tracing::info!(job_id = id, state = rec.state.as_str(), "cancel requested");
+        Ok(rec)
+    }
+
+    pub fn register_worker(&self, name: &str) -> u64 {
+        let id = self.next_worker.fetch_add(1, Ordering::Relaxed);
+        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now() });
+        self.metrics.workers.set(w.len() as i64);
+        tracing::info!(worker_id = id, name, "worker registered");
+        id
+    }
+
+    pub fn heartbeat(&self, id: u64) -> Result<(), ServiceError> {
+        self.touch_worker(id)
+    }
+
+    fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
+        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let timeout = Duration::from_secs(self.cfg.worker_timeout_s);
+        let before = w.len();
+        w.retain(|wid, info| {
+            let keep = *wid == id || info.last_seen.elapsed() < timeout;
+            if !keep {
+                tracing::info!(worker_id = *wid, name = %info.name, "worker timed out");
+            }
+            keep
+        });
+        if w.len() != before {
+            self.metrics.workers.set(w.len() as i64);
+        }
+        match w.get_mut(&id) {
+            Some(info) => {
+                info.last_seen = Instant::now();
+                Ok(())
+            }
+            None => Err(ServiceError::NotFound(format!("worker {id} is not registered (the learner may have restarted): register again"))),
+        }
+    }
+
+    /// Starts the next job if none is running.
+    async fn schedule_once(self: &Arc<Self>) {
+        if self.active().is_some() || self.shutting_down.load(Ordering::Acquire) {
+            return;
+        }
+        let all = match self.jobs().await {
+            Ok(a) => a,
+            Err(e) => {
+                tracing::error!(error = %e, "listing jobs");
+                return;
+            }
+        };
+        let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(|r| r.state == JobState::Queued));
+        if let Some(rec) = next.cloned() {
+            if let Err(msg) = self.start_job(&rec).await {
+                tracing::error!(job_id = rec.id, error = %msg, "job failed to start");
+                self.finish(rec.id, Outcome::Failed(msg), None).await;
+            }
+        }
+    }
+
+    async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
+        let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
+        let maps = cfg.env.scenarios.iter().map(|s| self.load_map(s)).collect::<Result<Vec<_>, _>>()?;
+        let dir = PathBuf::from(&rec.artifact_dir);
+        let dir2 = dir.clone();
+        let resume = tokio::task::spawn_blocking(move || trainer::load_state(&dir2)).await.map_err(|e| e.to_string())??;
+        let capacity = cfg.train.replay_capacity as u64;
+        let fill = if resume.is_some() { 4 * cfg.sac.batch_size as u64 } else { cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64) };
+        let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity).map_err(|e| e.to_string())?;
+        let obs_len = setup::obs_spec(&cfg).len;
+        let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
+        let job = Arc::new(ActiveJob::new(rec.id, cfg, obs_len, 2, limiter, counters, self.metrics.clone()));
+        let store = Arc::clone(&self.store);
+        let id = rec.id;
+        blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?;
+        self.set_active(Some(Arc::clone(&job)));
+        tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
+        let (tx, rx) = oneshot::channel();
+        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, dir, resume };
+        std::thread::Builder::new()
+            .name(format!("trainer-{id}"))
+            .spawn(move || {
+                let out = trainer::run(input);
+                let _ = tx.send(out);
+            })
+            .map_err(|e| format!("spawning the trainer thread: {e}"))?;
+        let me = Arc::clone(self);
+        tokio::spawn(async move {
+            let out = rx.await.unwrap_or_else(|_| Outcome::Failed("the trainer thread panicked".into()));
+            me.finish(id, out, Some(job)).await;
+        });
+        Ok(())
+    }
+
+    /// Records how a job ended and frees the slot.
+    async fn finish(self: &Arc<Self>, id: u64, out: Outcome, job: Option<Arc<ActiveJob>>) {
+        tracing::info!(job_id = id, outcome = ?out, "job stopped");
+        let progress = job.as_ref().map(|j| j.progress());
+        let store = Arc::clone(&self.store);
+        let r = blocking(move || {
+            store.update(id, |r| {
+                if let Some(p) = progress {
+                    r.progress = p;
+                }
+                match out {
+                    Outcome::Succeeded => r.state = JobState::Succeeded,
+                    Outcome::Cancelled => {
+                        r.state = JobState::Cancelled;
+                        if r.message.is_empty() {
+                            r.message = "cancelled by request".into();
+                        }
+                    }
+                    Outcome::Shutdown => {}
+                    Outcome::Failed(m) => {
+                        r.state = JobState::Failed;
+                        r.message = m;
+                    }
+                }
+            })
+        })
+        .await;
+        if let Err(e) = r {
+            tracing::error!(job_id = id, error = %e, "recording the job's end");
+        }
+        self.set_active(None);
+        self.idle.notify_waiters();
+        self.wake.notify_one();
+    }
+}
+
+/// A started learner.
+pub struct RunningLearner {
+    pub inner: Arc<Inner>,
+    pub grpc_addr: SocketAddr,
+    pub admin_addr: SocketAddr,
+    stop_server: Option<oneshot::Sender<()>>,
+    server: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+}
+
+/// Rewrites tonic's OUT_OF_RANGE for oversized messages into the protocol's RESOURCE_EXHAUSTED
+/// (trailers-only responses carry the status in headers).
+fn size_status<B>(mut res: http::Response<B>) -> http::Response<B> {
+    let h = res.headers_mut();
+    let oversized = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11") && h.get("grpc-message").is_some_and(|m| m.to_str().is_ok_and(|m| m.contains("message%20length%20too%20large") || m.contains("message length too large")));
+    if oversized {
+        h.insert("grpc-status", http::HeaderValue::from_static("8"));
+    }
+    res
+}
+
+/// Opens the store, binds both ports and starts serving and scheduling.
+pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLearner> {
+    cfg.validate()?;
+    std::fs::create_dir_all(cfg.data_dir.join("jobs")).with_context(|| format!("creating {}", cfg.data_dir.display()))?;
+    let store = Arc::new(Store::open(&cfg.data_dir.join("jobs.redb"))?);
+    let mut registry = Registry::default();
+    let metrics = LearnerMetrics::register(&mut registry);
+    let grpc = tokio::net::TcpListener::bind(cfg.grpc_addr).await.with_context(|| format!("binding gRPC port {}", cfg.grpc_addr))?;
+    let grpc_addr = grpc.local_addr()?;
+    let ready = Arc::new(AtomicBool::new(false));
+    let m2 = metrics.clone();
+    let admin_addr = sf_svc::admin::serve(cfg.admin_addr, Arc::new(registry), Arc::clone(&ready), Arc::new(move || m2.common.refresh())).await?;
+    let first_worker = (sf_job::now_unix_ms() % 1_000_000_000) * 1000;
+    let inner = Arc::new(Inner {
+        cfg: cfg.clone(),
+        store,
+        metrics: metrics.clone(),
+        active: RwLock::new(None),
+        wake: Notify::new(),
+        idle: Notify::new(),
+        workers: Mutex::new(HashMap::new()),
+        next_worker: AtomicU64::new(first_worker.max(1)),
+        assignments: AtomicU64::new(0),
+        shutting_down: AtomicBool::new(false),
+    });
+    let m3 = metrics.clone();
+    let auth = RequireToken::new(&token, move || m3.common.rpc("any", tonic::Code::Unauthenticated));
+    let max = cfg.max_message_bytes;
+    let jobs = JobServiceServer::new(service::Jobs(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
+    let exp = ExperienceServiceServer::new(service::Experience(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
+    let (health_reporter, health) = tonic_health::server::health_reporter();
+    health_reporter.set_serving::<JobServiceServer<service::Jobs>>().await;
+    health_reporter.set_serving::<ExperienceServiceServer<service::Experience>>().await;
+    let (stop_tx, stop_rx) = oneshot::channel::<()>();
+    let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
+    let server = tokio::spawn(
+        tonic::transport::Server::builder()
+            .layer(tower::util::MapResponseLayer::new(size_status))
+            .add_service(InterceptedService::new(jobs, auth.clone()))
+            .add_service(InterceptedService::new(exp, auth.clone()))
+            .add_service(InterceptedService::new(health, auth))
+            .serve_with_incoming_shutdown(incoming, async {
+                let _ = stop_rx.await;
+            }),
+    );
+    let sched = Arc::clone(&inner);
+    tokio::spawn(async move {
+        loop {
+            sched.schedule_once().await;
+            if sched.shutting_down.load(Ordering::Acquire) {
+                return;
+            }
+            tokio::select! {
+                _ = sched.wake.notified() => {}
+                _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+            }
+        }
+    });
+    ready.store(true, Ordering::Release);
+    tracing::info!(%grpc_addr, %admin_addr, data_dir = %cfg.data_dir.display(), "learner serving");
+    Ok(RunningLearner { inner, grpc_addr, admin_addr, stop_server: Some(stop_tx), server })
+}
+
+impl RunningLearner {
+    /// Checkpoints the running job (it stays RUNNING) and stops serving.
+    pub async fn shutdown(mut self) -> anyhow::Result<()> {
+        let inner = &self.inner;
+        inner.shutting_down.store(true, Ordering::Release);
+        if let Some(j) = inner.active() {
+            tracing::info!(job_id = j.id, "shutting down: checkpointing the running job");
+            let idle = inner.idle.notified();
+            j.request_stop(StopReason::Shutdown);
+            let grace = Duration::from_secs(inner.cfg.shutdown_grace_s);
+            if inner.active().is_some() && tokio::time::timeout(grace, idle).await.is_err() {
+                tracing::warn!("the trainer did not finish its checkpoint within the grace period");
+            }
+        }
+        if let Some(tx) = self.stop_server.take() {
+            let _ = tx.send(());
+        }
+        match tokio::time::timeout(Duration::from_secs(5), &mut self.server).await {
+            Ok(Ok(Ok(()))) | Err(_) => Ok(()),
+            Ok(Ok(Err(e))) => Err(e).context("gRPC server"),
+            Ok(Err(e)) => Err(e).context("gRPC server task"),
+        }
+    }
+
+    pub fn data_dir(&self) -> &Path {
+        &self.inner.cfg.data_dir
+    }
+}

@@ -1,0 +1,262 @@
+//! The learner's gRPC handlers: `JobService` and `ExperienceService`.
+//!
+//! Owns: request decoding (through `sf_proto`), the calls into [`crate::Inner`] and the mapping
+//! of results to responses; errors become statuses only through `sf_svc::ServiceError`.
+//! Must not: block the runtime (store IO and ingest go through `spawn_blocking`) or run
+//! tensor code.
+
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use sf_job::{Assignment, JobState};
+use sf_proto::pb::experience_service_server::ExperienceService;
+use sf_proto::pb::job_service_server::JobService;
+use sf_proto::{pb, WireError};
+use sf_svc::ServiceError;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Code, Request, Response, Status, Streaming};
+
+use crate::Inner;
+
+type Res<T> = Result<Response<T>, Status>;
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+/// How long one batch may wait on the rate limiter before the call fails.
+const INGEST_DEADLINE: Duration = Duration::from_secs(120);
+
+#[derive(Clone)]
+pub struct Jobs(pub Arc<Inner>);
+
+#[derive(Clone)]
+pub struct Experience(pub Arc<Inner>);
+
+/// Counts the outcome and converts the error.
+fn done<T>(inner: &Inner, method: &str, r: Result<T, ServiceError>) -> Res<T> {
+    match r {
+        Ok(v) => {
+            inner.metrics.common.rpc(method, Code::Ok);
+            Ok(Response::new(v))
+        }
+        Err(e) => {
+            inner.metrics.common.rpc(method, e.code());
+            Err(e.into())
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl JobService for Jobs {
+    async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Res<pb::Job> {
+        let r = self.0.submit(req.into_inner().config_toml).await;
+        done(&self.0, "SubmitJob", r.map(|j| sf_proto::job_to_wire(&j)))
+    }
+
+    async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Res<pb::Job> {
+        let r = self.0.job(req.into_inner().job_id).await;
+        done(&self.0, "GetJob", r.map(|j| sf_proto::job_to_wire(&j)))
+    }
+
+    async fn list_jobs(&self, _req: Request<pb::ListJobsRequest>) -> Res<pb::ListJobsResponse> {
+        let r = self.0.jobs().await;
+        done(&self.0, "ListJobs", r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(sf_proto::job_to_wire).collect() }))
+    }
+
+    async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Res<pb::Job> {
+        let r = self.0.cancel(req.into_inner().job_id).await;
+        done(&self.0, "CancelJob", r.map(|j| sf_proto::job_to_wire(&j)))
+    }
+
+    type WatchJobStream = BoxStream<pb::JobProgress>;
+
+    async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Res<Self::WatchJobStream> {
+        let id = req.into_inner().job_id;
+        let first = match self.0.job(id).await {
+            Ok(j) => j,
+            Err(e) => return done(&self.0, "WatchJob", Err(e)),
+        };
+        let (tx, rx) = mpsc::channel(4);
+        let inner = Arc::clone(&self.0);
+        tokio::spawn(async move {
+            let mut last = None;
+            let mut cur = first;
+            loop {
+                let msg = sf_proto::progress_to_wire(cur.id, cur.state, &cur.progress);
+                if last.as_ref() != Some(&msg) {
+                    if tx.send(Ok(msg.clone())).await.is_err() {
+                        return;
+                    }
+                    last = Some(msg);
+                }
+                if cur.state.is_final() {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(250)).await;
+                cur = match inner.job(id).await {
+                    Ok(j) => j,
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
+                        return;
+                    }
+                };
+            }
+        });
+        done(&self.0, "WatchJob", Ok(Box::pin(ReceiverStream::new(rx)) as Self::WatchJobStream))
+    }
+}
+
+#[tonic::async_trait]
+impl ExperienceService for Experience {
+    async fn register(&self, req: Request<pb::RegisterRequest>) -> Res<pb::RegisterResponse> {
+        let id = self.0.register_worker(&req.into_inner().name);
+        done(&self.0, "Register", Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }))
+    }
+
+    async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Res<pb::HeartbeatResponse> {
+        let r = self.0.heartbeat(req.into_inner().worker_id);
+        done(&self.0, "Heartbeat", r.map(|()| pb::HeartbeatResponse {}))
+    }
+
+    async fn get_assignment(&self, req: Request<pb::GetAssignmentRequest>) -> Res<pb::GetAssignmentResponse> {
+        let r = self.0.assignment(req.into_inner().worker_id);
+        let r = r.map(|a| match a {
+            Some(a) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: Some(sf_proto::assignment_to_wire(&a)) },
+            None => pb::GetAssignmentResponse { has_assignment: false, retry_after_ms: 1000, assignment: None },
+        });
+        done(&self.0, "GetAssignment", r)
+    }
+
+    type PushTransitionsStream = BoxStream<pb::PushAck>;
+
+    async fn push_transitions(&self, req: Request<Streaming<pb::TransitionBatch>>) -> Res<Self::PushTransitionsStream> {
+        let mut inbound = req.into_inner();
+        let (tx, rx) = mpsc::channel(2);
+        let inner = Arc::clone(&self.0);
+        tokio::spawn(async move {
+            loop {
+                let msg = match inbound.next().await {
+                    None => return,
+                    Some(Ok(m)) => m,
+                    Some(Err(s)) => {
+                        // tonic reports an oversized message as OUT_OF_RANGE; the protocol says
+                        // RESOURCE_EXHAUSTED.
+                        let s = if s.code() == Code::OutOfRange { Status::resource_exhausted(s.message().to_string()) } else { s };
+                        inner.metrics.common.rpc("PushTransitions", s.code());
+                        let _ = tx.send(Err(s)).await;
+                        return;
+                    }
+                };
+                let r = inner.ingest(msg).await;
+                let ok = r.is_ok();
+                let item = match r {
+                    Ok(a) => {
+                        inner.metrics.common.rpc("PushTransitions", Code::Ok);
+                        Ok(pb::PushAck { accepted: a.accepted, dropped_stale: a.dropped_stale, latest_policy_version: a.latest_policy_version, warmup: a.warmup })
+                    }
+                    Err(e) => {
+                        inner.metrics.common.rpc("PushTransitions", e.code());
+                        Err(Status::from(e))
+                    }
+                };
+                if tx.send(item).await.is_err() || !ok {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
+        let r = req.into_inner();
+        let out = self.0.policy(r.job_id, r.version).await;
+        done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
+    }
+
+    type WatchPolicyStream = BoxStream<pb::PolicyVersion>;
+
+    async fn watch_policy(&self, req: Request<pb::WatchPolicyRequest>) -> Res<Self::WatchPolicyStream> {
+        let job_id = req.into_inner().job_id;
+        let job = match self.0.running(job_id).await {
+            Ok(j) => j,
+            Err(e) => return done(&self.0, "WatchPolicy", Err(e)),
+        };
+        let stream = tokio_stream::wrappers::WatchStream::new(job.versions.subscribe()).map(move |v| Ok(pb::PolicyVersion { job_id, version: v }));
+        done(&self.0, "WatchPolicy", Ok(Box::pin(stream) as Self::WatchPolicyStream))
+    }
+}
+
+impl Inner {
+    /// Decodes, validates and stores one batch.
+    async fn ingest(self: &Arc<Self>, msg: pb::TransitionBatch) -> Result<crate::job::Ack, ServiceError> {
+        let worker = msg.worker_id;
+        let b = sf_proto::batch_from_wire(msg).map_err(|e: WireError| ServiceError::InvalidArgument(e.to_string()))?;
+        self.touch_worker(worker)?;
+        let job = self.running(b.job_id).await?;
+        let deadline = Instant::now() + INGEST_DEADLINE;
+        tokio::task::spawn_blocking(move || job.ingest(&b, deadline)).await.map_err(|e| ServiceError::Internal(format!("ingest task: {e}")))?
+    }
+
+    /// The running job with this id; NOT_FOUND for unknown ids, FAILED_PRECONDITION otherwise.
+    pub(crate) async fn running(self: &Arc<Self>, id: u64) -> Result<Arc<crate::job::ActiveJob>, ServiceError> {
+        if let Some(j) = self.active() {
+            if j.id == id {
+                return Ok(j);
+            }
+        }
+        let rec = self.job(id).await?;
+        Err(ServiceError::FailedPrecondition(format!("job {id} is {}, not running", rec.state.as_str())))
+    }
+
+    /// Policy weights by version (0 = latest) of the running job, or the final policy of a
+    /// succeeded one.
+    async fn policy(self: &Arc<Self>, job_id: u64, version: u64) -> Result<(u64, Arc<Vec<u8>>), ServiceError> {
+        match self.running(job_id).await {
+            Ok(j) => {
+                let p = if version == 0 { j.latest() } else { j.version(version) };
+                p.map(|p| (p.version, p.weights)).ok_or_else(|| ServiceError::NotFound(format!("job {job_id} holds no policy version {version}")))
+            }
+            Err(ServiceError::FailedPrecondition(m)) => {
+                let rec = self.job(job_id).await?;
+                if rec.state != JobState::Succeeded {
+                    return Err(ServiceError::FailedPrecondition(m));
+                }
+                let dir = std::path::PathBuf::from(&rec.artifact_dir);
+                let read = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), String> {
+                    let w = std::fs::read(dir.join("policy.bpk")).map_err(|e| e.to_string())?;
+                    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("policy.json")).map_err(|e| e.to_string())?).map_err(|e| e.to_string())?;
+                    Ok((meta["version"].as_u64().unwrap_or(0), w))
+                })
+                .await
+                .map_err(|e| ServiceError::Internal(e.to_string()))?
+                .map_err(|e| ServiceError::Internal(format!("reading the final policy of job {job_id}: {e}")))?;
+                if version != 0 && version != read.0 {
+                    return Err(ServiceError::NotFound(format!("job {job_id} finished at policy version {}; version {version} is gone", read.0)));
+                }
+                Ok((read.0, Arc::new(read.1)))
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    fn assignment(self: &Arc<Self>, worker_id: u64) -> Result<Option<Assignment>, ServiceError> {
+        self.touch_worker(worker_id)?;
+        let Some(j) = self.active() else { return Ok(None) };
+        if j.stop_reason().is_some() || j.is_complete() || j.latest().is_none() {
+            return Ok(None);
+        }
+        let scenario_index = j.next_scenario();
+        let seed = j.cfg.sac.seed.wrapping_mul(1_000_003).wrapping_add(worker_id.wrapping_mul(7919)).wrapping_add(self.assignments.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
+        Ok(Some(Assignment {
+                job_id: j.id,
+                config_toml: j.cfg.to_toml(),
+                scenario_index,
+                seed,
+                policy_version: j.latest_version(),
+                obs_len: j.obs_len as u32,
+                action_dim: j.action_dim as u32,
+                warmup: j.in_warmup(),
+        }))
+    }
+}

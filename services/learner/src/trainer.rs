@@ -1,0 +1,200 @@
+//! The trainer thread of the running job: SAC updates at the rate the limiter allows, policy
+//! publishing, learning-curve points, checkpoints and the job's artifacts.
+//!
+//! Owns: [`run`], which builds (or restores) the SAC state, loops `sample -> update ->
+//! publish` until the job has all its transitions and its owed updates, is cancelled, or the
+//! learner shuts down, and then writes the final checkpoint and artifacts. All tensor work of
+//! the learner happens here, never on the async runtime.
+//!
+//! Artifacts in the job directory: `config.toml` (resolved), `checkpoint/` (SAC state),
+//! `state.json` (counters, policy version, curve), `curve.csv`, `curve.png`, `policy.bpk`
+//! (the final actor) with `policy.json` (its version).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use sf_eval::plot::{line_chart, Series};
+use sf_sac::ego::CurvePoint;
+use sf_sac::rate_limiter::RateLimitError;
+use sf_sac::{checkpoint, setup, Batch, Sac};
+use sf_sim::obs::MapSegments;
+use sf_sim::Map;
+
+use crate::job::{ActiveJob, Counters, StopReason};
+
+/// How the trainer ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Outcome {
+    Succeeded,
+    Cancelled,
+    /// Learner shutdown: checkpoint written, the job stays RUNNING and resumes on next start.
+    Shutdown,
+    Failed(String),
+}
+
+/// What survives a restart besides the SAC checkpoint.
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
+pub struct JobState {
+    pub counters: Counters,
+    pub policy_version: u64,
+    pub curve: Vec<CurvePoint>,
+}
+
+pub fn state_path(dir: &Path) -> PathBuf {
+    dir.join("state.json")
+}
+
+/// Reads `state.json` if the job has one (a resumed job).
+pub fn load_state(dir: &Path) -> Result<Option<JobState>, String> {
+    let p = state_path(dir);
+    if !p.exists() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&p).map_err(|e| format!("reading {}: {e}", p.display()))?;
+    serde_json::from_str(&text).map(Some).map_err(|e| format!("{}: {e}", p.display()))
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| format!("renaming {}: {e}", path.display()))
+}
+
+pub struct TrainerInput {
+    pub job: Arc<ActiveJob>,
+    pub maps: Vec<Arc<Map>>,
+    pub dir: PathBuf,
+    pub resume: Option<JobState>,
+}
+
+/// Runs the job to an [`Outcome`]. Blocking; call on a dedicated thread.
+pub fn run(input: TrainerInput) -> Outcome {
+    match train(input) {
+        Ok(o) => o,
+        Err(e) => Outcome::Failed(e),
+    }
+}
+
+fn train(input: TrainerInput) -> Result<Outcome, String> {
+    let TrainerInput { job, maps, dir, resume } = input;
+    let cfg = &job.cfg;
+    let sim = setup::sim_config(cfg);
+    let segs: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
+    let seg_refs: Vec<&MapSegments> = segs.iter().collect();
+    let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(|e| format!("building SAC: {e}"))?;
+    let ckpt = dir.join("checkpoint");
+    let mut st = resume.unwrap_or_default();
+    if ckpt.exists() {
+        checkpoint::restore(&mut sac, &ckpt).map_err(|e| format!("restoring {}: {e}", ckpt.display()))?;
+        tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
+    }
+    std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+    write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
+    let mut version = st.policy_version;
+    let publish = |sac: &Sac, version: &mut u64| -> Result<(), String> {
+        *version += 1;
+        let bytes = sac.actor_bytes().map_err(|e| format!("serialising the actor: {e}"))?;
+        job.publish(*version, bytes);
+        Ok(())
+    };
+    publish(&sac, &mut version)?;
+    job.record_update(sac.updates, Default::default());
+
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.sac.seed ^ 0x7261_6e64 ^ sac.updates);
+    let mut batch = Batch::default();
+    let every = cfg.curve_every_steps();
+    let mut next_point = (st.counters.env_steps / every + 1) * every;
+    let mut last_ckpt = Instant::now();
+    let mut last_loss = Default::default();
+    let outcome = loop {
+        if let Some(why) = job.stop_reason() {
+            break match why {
+                StopReason::Cancelled => Outcome::Cancelled,
+                StopReason::Shutdown => Outcome::Shutdown,
+            };
+        }
+        if job.is_complete() && !job.limiter.can_sample() {
+            break Outcome::Succeeded;
+        }
+        match job.limiter.sample(Duration::from_millis(100)) {
+            Ok(()) => {
+                let sampled = {
+                    let r = job.replay.lock().unwrap_or_else(|p| p.into_inner());
+                    r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)
+                };
+                if sampled.is_ok() {
+                    last_loss = sac.update(&batch);
+                    job.record_update(sac.updates, last_loss);
+                    if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
+                        publish(&sac, &mut version)?;
+                    }
+                }
+            }
+            Err(RateLimitError::Timeout(_)) => {}
+            Err(RateLimitError::Closed) => continue,
+            Err(e) => return Err(e.to_string()),
+        }
+        let p = job.progress();
+        while p.env_steps >= next_point {
+            st.curve.push(CurvePoint {
+                env_steps: next_point.min(p.env_steps),
+                updates: p.updates,
+                episodes: p.episodes,
+                success: p.success,
+                safety: p.safety,
+                speed: p.speed,
+                critic_loss: last_loss.critic,
+                actor_loss: last_loss.actor,
+                alpha: last_loss.alpha,
+                entropy: last_loss.entropy,
+                wall_s: p.wall_s,
+            });
+            next_point += every;
+        }
+        if last_ckpt.elapsed() >= Duration::from_secs(cfg.train.checkpoint_every_s) {
+            save(&job, &sac, &dir, &mut st, version)?;
+            last_ckpt = Instant::now();
+        }
+    };
+    if outcome == Outcome::Succeeded {
+        publish(&sac, &mut version)?;
+    }
+    save(&job, &sac, &dir, &mut st, version)?;
+    if outcome == Outcome::Succeeded {
+        let bytes = sac.actor_bytes().map_err(|e| format!("serialising the actor: {e}"))?;
+        write_atomic(&dir.join("policy.bpk"), &bytes)?;
+        write_atomic(&dir.join("policy.json"), serde_json::json!({"version": version, "updates": sac.updates}).to_string().as_bytes())?;
+    }
+    Ok(outcome)
+}
+
+/// Checkpoint + state + curve files.
+fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64) -> Result<(), String> {
+    let t = Instant::now();
+    st.counters = job.counters();
+    st.policy_version = version;
+    checkpoint::save(sac, &dir.join("checkpoint")).map_err(|e| format!("checkpoint: {e}"))?;
+    write_atomic(&state_path(dir), serde_json::to_string(st).map_err(|e| e.to_string())?.as_bytes())?;
+    let mut csv = String::from(CurvePoint::CSV_HEADER);
+    csv.push('\n');
+    for p in &st.curve {
+        csv.push_str(&p.csv_row());
+        csv.push('\n');
+    }
+    write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
+    if st.curve.len() >= 2 {
+        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.success as f64)).collect();
+        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.safety as f64)).collect();
+        let series = [Series { name: "success", points: pts }, Series { name: "safety", points: safety }];
+        let title = format!("job {} ({})", job.id, job.cfg.name);
+        if let Err(e) = line_chart(&dir.join("curve.png"), &title, "learner transitions", "rolling fraction of episodes", &series, Some((0.0, 1.0)), (800, 500)) {
+            tracing::warn!(error = %e, "could not draw curve.png");
+        }
+    }
+    job.metrics.checkpoints.inc();
+    tracing::info!(job_id = job.id, updates = sac.updates, policy_version = version, ms = t.elapsed().as_millis() as u64, "checkpoint written");
+    Ok(())
+}

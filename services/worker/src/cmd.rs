@@ -1,0 +1,78 @@
+//! The `socialflow-worker` command line and process wiring (admin port, signals).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use clap::Parser;
+use prometheus_client::registry::Registry;
+use sf_svc::auth::Token;
+use tokio::sync::watch;
+
+use crate::{WorkerConfig, WorkerMetrics};
+
+#[derive(Parser, Debug, Clone)]
+#[command(name = "socialflow-worker", about = "A stateless socialflow rollout worker")]
+pub struct WorkerArgs {
+    /// The learner's gRPC URL.
+    #[arg(long, env = "SOCIALFLOW_LEARNER_URL", default_value = "http://127.0.0.1:50051")]
+    pub learner: String,
+    /// Name in the learner's logs (default: the host name).
+    #[arg(long, env = "SOCIALFLOW_WORKER_NAME")]
+    pub name: Option<String>,
+    /// Admin HTTP port (metrics, health); none if unset.
+    #[arg(long, env = "SOCIALFLOW_ADMIN_ADDR")]
+    pub admin_addr: Option<SocketAddr>,
+    #[arg(long, env = "SOCIALFLOW_SCENARIOS_DIR", default_value = "configs/scenarios")]
+    pub scenarios_dir: PathBuf,
+    /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
+    #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// Deadline of each unary call, seconds.
+    #[arg(long, default_value_t = 10)]
+    pub rpc_timeout_s: u64,
+    /// Longest reconnect delay, seconds.
+    #[arg(long, default_value_t = 10)]
+    pub max_backoff_s: u64,
+    #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
+    pub log_json: bool,
+}
+
+impl WorkerArgs {
+    pub fn resolve(&self) -> anyhow::Result<WorkerConfig> {
+        anyhow::ensure!(self.learner.starts_with("http://") || self.learner.starts_with("https://"), "--learner `{}` must start with http:// or https://", self.learner);
+        anyhow::ensure!(self.scenarios_dir.is_dir(), "--scenarios-dir {} is not a directory", self.scenarios_dir.display());
+        anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
+        let token = Token::load("SOCIALFLOW_TOKEN", self.token_file.as_deref())?;
+        let name = self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
+        Ok(WorkerConfig {
+            learner_url: self.learner.clone(),
+            name,
+            scenarios_dir: self.scenarios_dir.clone(),
+            token: Some(token),
+            rpc_timeout: Duration::from_secs(self.rpc_timeout_s),
+            max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),
+            threads: 0,
+        })
+    }
+}
+
+pub async fn run(args: WorkerArgs) -> anyhow::Result<()> {
+    sf_svc::logging::init(args.log_json);
+    let cfg = args.resolve()?;
+    let mut reg = Registry::default();
+    let metrics = WorkerMetrics::register(&mut reg);
+    if let Some(addr) = args.admin_addr {
+        let m = metrics.clone();
+        let bound = sf_svc::admin::serve(addr, Arc::new(reg), Arc::new(AtomicBool::new(true)), Arc::new(move || m.common.refresh())).await?;
+        tracing::info!(admin = %bound, "admin server");
+    }
+    let (stop_tx, stop_rx) = watch::channel(false);
+    tokio::spawn(async move {
+        sf_svc::signal::terminate().await;
+        let _ = stop_tx.send(true);
+    });
+    crate::run(cfg, metrics, stop_rx).await
+}

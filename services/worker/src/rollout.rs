@@ -1,0 +1,159 @@
+//! The rollout thread: K simulators stepped in parallel with batched CPU inference, transitions
+//! packed into batches stamped with the acting policy version.
+//!
+//! Owns: [`spawn`] and the loop it runs. The session hands it new policy weights and the
+//! warm-up flag through [`Control`]; it hands back wire batches through a bounded channel, so a
+//! back-pressured stream stops the simulators instead of growing memory. Must not: do network
+//! IO itself.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sf_job::{EpisodeResult, JobConfig, TransitionBatch};
+use sf_proto::pb;
+use sf_sac::inference::PolicyRunner;
+use sf_sac::setup;
+use sf_sim::env::{Controller, Termination};
+use sf_sim::obs::MapSegments;
+use sf_sim::vec_env::{VecEnv, VecEnvConfig};
+use sf_sim::{Action, Map, Mode};
+use tokio::sync::mpsc;
+
+use crate::WorkerMetrics;
+
+/// What the session tells the rollout thread.
+pub struct Control {
+    pub warmup: bool,
+    /// Latest weights `(version, bytes)`; the thread rebuilds its actor when the version changes.
+    pub policy: Option<(u64, Vec<u8>)>,
+    pub stop: bool,
+}
+
+pub struct RolloutSpec {
+    pub job: JobConfig,
+    pub map: Arc<Map>,
+    pub worker_id: u64,
+    pub job_id: u64,
+    pub scenario_index: u32,
+    pub seed: u64,
+    pub obs_len: usize,
+    pub threads: usize,
+}
+
+/// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
+pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
+    let sim = Arc::new(setup::sim_config(&spec.job));
+    let obs = setup::obs_spec(&spec.job);
+    if obs.len != spec.obs_len {
+        bail!("the learner expects {}-float observations; this worker's build makes {}", spec.obs_len, obs.len);
+    }
+    std::thread::Builder::new()
+        .name(format!("rollout-{}", spec.worker_id))
+        .spawn(move || {
+            if let Err(e) = rollout(spec, sim, control, tx, metrics) {
+                tracing::error!(error = %format!("{e:#}"), "rollout thread failed");
+            }
+        })
+        .context("spawning the rollout thread")
+}
+
+fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Control>>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
+    let job = &spec.job;
+    let net = setup::net_config(job);
+    let obs_spec = setup::obs_spec(job);
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
+    let segs = MapSegments::build(&spec.map, sim.obs.segment_points);
+    let mut venv = VecEnv::new(
+        Arc::clone(&spec.map),
+        Arc::clone(&sim),
+        VecEnvConfig { n_envs: job.worker.envs, mode: Mode::Ego { background: Controller::Idm }, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: spec.seed },
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
+    let len = obs_spec.len;
+    let mut runner: Option<PolicyRunner> = None;
+    let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, 2);
+    let mut batch_version = None;
+    loop {
+        let (stop, warmup, new_policy) = {
+            let c = control.lock().unwrap_or_else(|p| p.into_inner());
+            let newer = c.policy.as_ref().filter(|(v, _)| runner.as_ref().is_none_or(|r| r.version != *v)).cloned();
+            (c.stop, c.warmup, newer)
+        };
+        if stop {
+            return Ok(());
+        }
+        if let Some((v, bytes)) = new_policy {
+            runner = Some(PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &[&segs], &bytes, v, &device).with_context(|| format!("loading policy version {v}"))?);
+            metrics.policy_version.set(v as i64);
+        }
+        let acting = match (&runner, warmup) {
+            (Some(r), false) => Some(r),
+            _ => None,
+        };
+        let version = acting.map_or(0, |r| r.version);
+        if batch_version.is_some_and(|v| v != version) && batch.count > 0 {
+            send(&mut batch, batch_version.unwrap_or(0), &tx, &metrics)?;
+        }
+        batch_version = Some(version);
+        // Actions for live learner rows.
+        let alive = venv.alive();
+        let rows: Vec<usize> = (0..alive.len()).filter(|&r| alive[r] == 1.0).collect();
+        let mut actions = vec![Action::default(); alive.len()];
+        match acting {
+            None => {
+                for &r in &rows {
+                    actions[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0) };
+                }
+            }
+            Some(pol) if !rows.is_empty() => {
+                let mut obs = Vec::with_capacity(rows.len() * len);
+                for &r in &rows {
+                    obs.extend_from_slice(&venv.observations()[r * len..(r + 1) * len]);
+                }
+                let t = Instant::now();
+                let a = pol.sample(&obs, &vec![0; rows.len()], &mut rng);
+                metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
+                metrics.inference_obs.inc_by(rows.len() as u64);
+                for (j, &r) in rows.iter().enumerate() {
+                    actions[r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
+                }
+            }
+            Some(_) => {}
+        }
+        let before = venv.observations().to_vec();
+        venv.step(&actions);
+        batch.sim_steps += job.worker.envs as u64;
+        metrics.env_steps.inc_by(job.worker.envs as u64);
+        for &r in &rows {
+            let st = venv.row_steps()[r];
+            if !st.stepped {
+                continue;
+            }
+            let next = if st.ended.is_some() { &venv.final_observations()[r * len..(r + 1) * len] } else { &venv.observations()[r * len..(r + 1) * len] };
+            let act = [actions[r].ref_speed, actions[r].steer];
+            batch.push(&before[r * len..(r + 1) * len], &act, st.rewards.individual, next, st.ended.is_some_and(|t| t != Termination::Timeout), spec.scenario_index);
+        }
+        for m in venv.take_finished() {
+            metrics.episodes.inc();
+            batch.episodes.push(EpisodeResult { scenario_index: spec.scenario_index, success: m.success, safety: m.safety, speed: m.speed });
+        }
+        if batch.count >= job.worker.batch_transitions {
+            send(&mut batch, version, &tx, &metrics)?;
+        }
+    }
+}
+
+fn send(batch: &mut TransitionBatch, version: u64, tx: &mpsc::Sender<pb::TransitionBatch>, metrics: &WorkerMetrics) -> anyhow::Result<()> {
+    batch.policy_version = version;
+    let msg = sf_proto::batch_to_wire(batch);
+    metrics.transitions_sent.inc_by(batch.count as u64);
+    metrics.batches_sent.inc();
+    batch.clear();
+    if tx.blocking_send(msg).is_err() {
+        bail!("the transition stream closed");
+    }
+    Ok(())
+}

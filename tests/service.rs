@@ -1,0 +1,276 @@
+//! The actor-learner service as deployed: real `socialflow-learner` and `socialflow-worker`
+//! processes on loopback, driven through the gRPC job API.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use sf_proto::pb;
+use sf_proto::pb::experience_service_client::ExperienceServiceClient;
+use sf_proto::pb::job_service_client::JobServiceClient;
+use sf_svc::auth::{AttachToken, Token};
+use socialflow_e2e::{bin, free_port, scratch, wait_for, Proc};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+use tonic::Code;
+
+const TOKEN: &str = "e2e-test-token-0123";
+
+/// A job small enough for a debug build on 2 cores, big enough to train for a while.
+fn tiny_job(name: &str, env_steps: u64) -> String {
+    format!(
+        r#"name = "{name}"
+[env]
+scenarios = ["roundabout", "merge"]
+vehicles_min = 2
+vehicles_max = 3
+[net]
+width = 16
+[sac]
+batch_size = 32
+warmup_steps = 200
+[train]
+env_steps = {env_steps}
+samples_per_insert = 0.1
+replay_capacity = 20000
+publish_every_updates = 5
+checkpoint_every_s = 1
+max_policy_lag = 1000
+[worker]
+envs = 4
+batch_transitions = 64
+"#
+    )
+}
+
+struct Learner {
+    proc: Proc,
+    url: String,
+    admin: String,
+
+    cfg: PathBuf,
+    log: PathBuf,
+}
+
+fn start_learner(dir: &Path, max_message_bytes: usize) -> Learner {
+    let (g, a) = (free_port(), free_port());
+    let data = dir.join("data");
+    let cfg = dir.join("learner.toml");
+    std::fs::write(
+        &cfg,
+        format!("grpc_addr = \"127.0.0.1:{g}\"\nadmin_addr = \"127.0.0.1:{a}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nmax_message_bytes = {max_message_bytes}\nshutdown_grace_s = 60\n", data.display()),
+    )
+    .expect("learner config");
+    let log = dir.join("learner.log");
+    let proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
+    let l = Learner { proc, url: format!("http://127.0.0.1:{g}"), admin: format!("127.0.0.1:{a}"), cfg, log };
+    wait_for("learner readiness", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+    l
+}
+
+fn restart(l: &mut Learner) {
+    let log = l.log.clone();
+    l.proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &l.cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
+    wait_for("learner readiness after restart", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+}
+
+fn start_worker(l: &Learner, dir: &Path, k: usize) -> Proc {
+    Proc::spawn_logged(&bin("socialflow-worker"), &["--learner", &l.url, "--name", &format!("w{k}"), "--max-backoff-s", "1"], &[("SOCIALFLOW_TOKEN", TOKEN)], &dir.join(format!("worker{k}.log")))
+}
+
+/// A plain HTTP/1.0 GET on the admin port; `None` on any failure.
+fn http_get(addr: &str, path: &str) -> Option<String> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(s, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
+    let mut out = String::new();
+    s.read_to_string(&mut out).ok()?;
+    (out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200")).then_some(out)
+}
+
+fn metric(body: &str, name: &str) -> f64 {
+    body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime")
+}
+
+type Jobs = JobServiceClient<InterceptedService<Channel, AttachToken>>;
+type Exp = ExperienceServiceClient<InterceptedService<Channel, AttachToken>>;
+
+fn channel(rt: &tokio::runtime::Runtime, url: &str) -> Channel {
+    rt.block_on(async { tonic::transport::Endpoint::from_shared(url.to_string()).expect("url").connect().await }).expect("connect to the learner")
+}
+
+fn jobs(rt: &tokio::runtime::Runtime, url: &str, token: Option<&str>) -> Jobs {
+    let t = token.map(|t| Token::new(t, "test").expect("token"));
+    JobServiceClient::with_interceptor(channel(rt, url), AttachToken::new(t)).max_encoding_message_size(usize::MAX)
+}
+
+fn exp(rt: &tokio::runtime::Runtime, url: &str) -> Exp {
+    ExperienceServiceClient::with_interceptor(channel(rt, url), AttachToken::new(Some(Token::new(TOKEN, "test").expect("token")))).max_encoding_message_size(usize::MAX)
+}
+
+fn submit(rt: &tokio::runtime::Runtime, c: &mut Jobs, toml: String) -> pb::Job {
+    rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: toml })).expect("submit").into_inner()
+}
+
+fn get(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64) -> pb::Job {
+    rt.block_on(c.get_job(pb::GetJobRequest { job_id: id })).expect("get job").into_inner()
+}
+
+fn progress(j: &pb::Job) -> pb::JobProgress {
+    j.progress.clone().unwrap_or_default()
+}
+
+const SUCCEEDED: i32 = pb::JobState::Succeeded as i32;
+
+#[test]
+fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
+    let dir = scratch("complete");
+    let l = start_learner(&dir, 1 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+
+    // Authentication: nothing is created without the right token.
+    for bad in [None, Some("wrong-token-9876543")] {
+        let mut b = jobs(&rt, &l.url, bad);
+        let e = rt.block_on(b.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("nope", 100) })).expect_err("unauthenticated");
+        assert_eq!(e.code(), Code::Unauthenticated, "{e:?}");
+        let e = rt.block_on(b.list_jobs(pb::ListJobsRequest {})).expect_err("unauthenticated");
+        assert_eq!(e.code(), Code::Unauthenticated);
+    }
+    assert!(rt.block_on(c.list_jobs(pb::ListJobsRequest {})).expect("list").into_inner().jobs.is_empty(), "a refused call created a job");
+
+    // Malformed requests.
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("x", 100).replace("batch_size = 32", "batch_size = 0") })).expect_err("bad config");
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("sac.batch_size"), "{}", e.message());
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("x", 100).replace("\"merge\"", "\"atlantis\"") })).expect_err("unknown scenario");
+    assert_eq!(e.code(), Code::InvalidArgument);
+    let e = rt.block_on(c.get_job(pb::GetJobRequest { job_id: 4242 })).expect_err("unknown job");
+    assert_eq!(e.code(), Code::NotFound);
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: "#".repeat(2 << 20) })).expect_err("oversized");
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+
+    let job = submit(&rt, &mut c, tiny_job("two-workers", 1500));
+    let mut e = exp(&rt, &l.url);
+    let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into() })).expect("register").into_inner().worker_id;
+    let push = |e: &mut Exp, b: pb::TransitionBatch| -> tonic::Status {
+        rt.block_on(async {
+            let mut acks = e.push_transitions(tokio_stream::iter(vec![b])).await?.into_inner();
+            loop {
+                if acks.message().await?.is_none() {
+                    return Ok::<(), tonic::Status>(());
+                }
+            }
+        })
+        .expect_err("the learner must refuse this batch")
+    };
+    let good = || {
+        let obs_len = 8usize;
+        let mut b = sf_job::TransitionBatch::new(job.job_id, wid, obs_len, 2);
+        b.push(&[0.0; 8], &[0.0, 0.0], 0.0, &[0.0; 8], false, 0);
+        b
+    };
+    let mut short = sf_proto::batch_to_wire(&good());
+    short.obs_f16.truncate(3);
+    assert_eq!(push(&mut e, short).code(), Code::InvalidArgument);
+    let mut nan = sf_proto::batch_to_wire(&good());
+    nan.rewards[0] = f32::NAN;
+    assert_eq!(push(&mut e, nan).code(), Code::InvalidArgument);
+    let mut unknown = sf_proto::batch_to_wire(&good());
+    unknown.job_id = 777;
+    assert_eq!(push(&mut e, unknown).code(), Code::NotFound);
+    let wrong_width = sf_proto::batch_to_wire(&good());
+    let st = push(&mut e, wrong_width);
+    assert!(matches!(st.code(), Code::InvalidArgument | Code::FailedPrecondition), "{st:?}");
+    let mut huge = sf_proto::batch_to_wire(&good());
+    huge.obs_f16 = vec![0; 2 << 20];
+    assert_eq!(push(&mut e, huge).code(), Code::ResourceExhausted);
+
+    let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    let done = wait_for("the job to finish", Duration::from_secs(600), || {
+        let j = get(&rt, &mut c, job.job_id);
+        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+    });
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    let p = progress(&done);
+    assert_eq!(p.env_steps, 1500);
+    assert!(p.updates > 50, "updates {}", p.updates);
+    assert!(p.policy_version > 5, "policy version {}", p.policy_version);
+    let art = PathBuf::from(&done.artifact_dir);
+    for f in ["config.toml", "curve.csv", "state.json", "policy.bpk", "checkpoint/state.json"] {
+        assert!(art.join(f).exists(), "missing artifact {f} in {}", art.display());
+    }
+    let m = http_get(&l.admin, "/metrics").expect("metrics");
+    assert!(metric(&m, "socialflow_learner_updates_total") >= p.updates as f64);
+    assert!(metric(&m, "socialflow_learner_transitions_received_total") >= 1500.0);
+    assert!(m.contains("socialflow_learner_rpcs_total{method=\"PushTransitions\",code=\"invalid_argument\"}"), "rpc errors by code");
+    assert!(m.contains("# HELP socialflow_learner_replay_size_transitions"));
+    // Still serving after all of the above.
+    assert!(rt.block_on(c.list_jobs(pb::ListJobsRequest {})).is_ok());
+    let fetched = rt.block_on(e.get_policy(pb::GetPolicyRequest { job_id: job.job_id, version: 0 })).expect("final policy").into_inner();
+    assert!(!fetched.weights.is_empty());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_job_completes_after_a_worker_is_killed() {
+    let dir = scratch("killworker");
+    let l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let job = submit(&rt, &mut c, tiny_job("kill-worker", 1500));
+    let mut w0 = start_worker(&l, &dir, 0);
+    let _w1 = start_worker(&l, &dir, 1);
+    wait_for("training to start", Duration::from_secs(300), || (progress(&get(&rt, &mut c, job.job_id)).env_steps > 400).then_some(()));
+    w0.kill9();
+    let done = wait_for("the job to finish", Duration::from_secs(600), || {
+        let j = get(&rt, &mut c, job.job_id);
+        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+    });
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, 1500);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
+    let dir = scratch("killlearner");
+    let mut l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let queued = submit(&rt, &mut c, tiny_job("queued-behind", 300));
+    let _ = queued;
+    let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    // The first job runs; a second waits behind it.
+    let job = submit(&rt, &mut c, tiny_job("resume", 2500));
+    let mid = wait_for("a checkpoint of the second job", Duration::from_secs(600), || {
+        let j = get(&rt, &mut c, job.job_id);
+        let state = std::fs::read_to_string(Path::new(&j.artifact_dir).join("state.json")).ok()?;
+        let v: serde_json::Value = serde_json::from_str(&state).ok()?;
+        (v["counters"]["env_steps"].as_u64()? > 600 && v["policy_version"].as_u64()? > 3).then_some(v)
+    });
+    let version_before = mid["policy_version"].as_u64().expect("version");
+    l.proc.kill9();
+    drop(c);
+    restart(&mut l);
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let j = get(&rt, &mut c, job.job_id);
+    assert_eq!(j.state, pb::JobState::Running as i32, "the job is still running after the restart");
+    assert_eq!(j.name, "resume");
+    assert_eq!(get(&rt, &mut c, queued.job_id).state, SUCCEEDED, "the finished job kept its state");
+    let done = wait_for("the resumed job to finish", Duration::from_secs(600), || {
+        let j = get(&rt, &mut c, job.job_id);
+        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+    });
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    let p = progress(&done);
+    assert_eq!(p.env_steps, 2500);
+    assert!(p.policy_version > version_before, "policy version went from {version_before} to {}", p.policy_version);
+    let log = std::fs::read_to_string(&l.log).unwrap_or_default();
+    assert!(log.contains("resumed from checkpoint"), "the learner log does not show a resume");
+    let _ = std::fs::remove_dir_all(&dir);
+}
