@@ -19,6 +19,8 @@ add_with_libs() {
 
 rm -rf rootfs && mkdir -p rootfs/app/configs rootfs/tmp rootfs/data
 add_with_libs rootfs "$bin_dir/socialflow" /app/socialflow
+# Debug info is most of a dev build's size; the image does not need it.
+if command -v strip >/dev/null; then strip --strip-debug rootfs/app/socialflow; fi
 cp -r ../configs/scenarios ../configs/learner.toml ../configs/quickstart.toml rootfs/app/configs/
 chmod 1777 rootfs/tmp
 docker build -q -t socialflow:local -f Dockerfile . >/dev/null
@@ -26,7 +28,12 @@ echo "built socialflow:local"
 
 if ! docker image inspect socialflow-prometheus:local >/dev/null 2>&1; then
   tmp=$(mktemp -d)
-  (cd "$tmp" && apt-get download prometheus >/dev/null 2>&1 && dpkg -x prometheus_*.deb x) || { echo "could not fetch Debian's prometheus package" >&2; exit 1; }
+  fetch() { (cd "$tmp" && apt-get download prometheus >/dev/null 2>&1 && dpkg -x prometheus_*.deb x); }
+  if ! fetch && ! { apt-get update >/dev/null 2>&1 && fetch; }; then
+    echo "WARNING: could not fetch Debian's prometheus package; socialflow-prometheus:local not built" >&2
+    rm -rf "$tmp"
+    exit 0
+  fi
   rm -rf rootfs-prometheus && mkdir -p rootfs-prometheus/prometheus rootfs-prometheus/etc/prometheus rootfs-prometheus/tmp
   add_with_libs rootfs-prometheus "$tmp/x/usr/bin/prometheus" /usr/bin/prometheus
   cp prometheus.yml rootfs-prometheus/etc/prometheus/prometheus.yml

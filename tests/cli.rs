@@ -108,3 +108,42 @@ fn learn_ego_writes_curve_config_and_checkpoint() {
     assert!(dir.join("checkpoint/state.json").exists() && dir.join("config.json").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn train_runs_a_job_embedded_and_writes_its_artifacts() {
+    let dir = socialflow_e2e::scratch("train");
+    let cfg = dir.join("tiny.toml");
+    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny", 1000)).expect("config");
+    let data = dir.join("data");
+    let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &data.display().to_string(), "--quiet"], T));
+    assert_eq!(v["state"], "succeeded");
+    assert_eq!(v["progress"]["env_steps"], 1000);
+    assert!(v["progress"]["updates"].as_u64().unwrap_or(0) > 20, "{v}");
+    let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+    for f in ["curve.csv", "curve.png", "policy.bpk", "config.toml", "checkpoint/actor.bpk"] {
+        assert!(art.join(f).exists(), "missing {f}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn invalid_configs_are_refused_with_the_field_named() {
+    let dir = socialflow_e2e::scratch("badcfg");
+    let job = dir.join("bad.toml");
+    std::fs::write(&job, socialflow_e2e::tiny_job(r#""roundabout""#, "bad", 1000).replace("samples_per_insert = 0.1", "samples_per_insert = -1.0")).expect("config");
+    let out = socialflow(&["train", &job.display().to_string(), "--data-dir", &dir.join("d").display().to_string()], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("train.samples_per_insert"), "{err}");
+    assert!(!dir.join("d").exists(), "nothing may be created for an invalid config");
+    let learner = dir.join("learner.toml");
+    std::fs::write(&learner, "grpc_addr = \"127.0.0.1:0\"\nmax_message_bytes = 10\n").expect("config");
+    let out = socialflow(&["learner", "--config", &learner.display().to_string()], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("max_message_bytes"), "{err}");
+    std::fs::write(&learner, "grpc_port = 5\n").expect("config");
+    let out = socialflow(&["learner", "--config", &learner.display().to_string()], T);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("grpc_port"), "unknown fields are named");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -8,39 +8,13 @@ use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_proto::pb::job_service_client::JobServiceClient;
 use sf_svc::auth::{AttachToken, Token};
-use socialflow_e2e::{bin, free_port, scratch, wait_for, Proc};
+use socialflow_e2e::{bin, free_port, scratch, tiny_job, wait_for, Proc};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::Code;
 
 const TOKEN: &str = "e2e-test-token-0123";
-
-/// A job small enough for a debug build on 2 cores, big enough to train for a while.
-fn tiny_job(name: &str, env_steps: u64) -> String {
-    format!(
-        r#"name = "{name}"
-[env]
-scenarios = ["roundabout", "merge"]
-vehicles_min = 2
-vehicles_max = 3
-[net]
-width = 16
-[sac]
-batch_size = 32
-warmup_steps = 200
-[train]
-env_steps = {env_steps}
-samples_per_insert = 0.1
-replay_capacity = 20000
-publish_every_updates = 5
-checkpoint_every_s = 1
-max_policy_lag = 1000
-[worker]
-envs = 4
-batch_transitions = 64
-"#
-    )
-}
+const TWO_MAPS: &str = r#""roundabout", "merge""#;
 
 struct Learner {
     proc: Proc,
@@ -136,7 +110,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     // Authentication: nothing is created without the right token.
     for bad in [None, Some("wrong-token-9876543")] {
         let mut b = jobs(&rt, &l.url, bad);
-        let e = rt.block_on(b.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("nope", 100) })).expect_err("unauthenticated");
+        let e = rt.block_on(b.submit_job(pb::SubmitJobRequest { config_toml: tiny_job(TWO_MAPS, "nope", 100) })).expect_err("unauthenticated");
         assert_eq!(e.code(), Code::Unauthenticated, "{e:?}");
         let e = rt.block_on(b.list_jobs(pb::ListJobsRequest {})).expect_err("unauthenticated");
         assert_eq!(e.code(), Code::Unauthenticated);
@@ -144,17 +118,17 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     assert!(rt.block_on(c.list_jobs(pb::ListJobsRequest {})).expect("list").into_inner().jobs.is_empty(), "a refused call created a job");
 
     // Malformed requests.
-    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("x", 100).replace("batch_size = 32", "batch_size = 0") })).expect_err("bad config");
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job(TWO_MAPS, "x", 100).replace("batch_size = 32", "batch_size = 0") })).expect_err("bad config");
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().contains("sac.batch_size"), "{}", e.message());
-    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job("x", 100).replace("\"merge\"", "\"atlantis\"") })).expect_err("unknown scenario");
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job(TWO_MAPS, "x", 100).replace("\"merge\"", "\"atlantis\"") })).expect_err("unknown scenario");
     assert_eq!(e.code(), Code::InvalidArgument);
     let e = rt.block_on(c.get_job(pb::GetJobRequest { job_id: 4242 })).expect_err("unknown job");
     assert_eq!(e.code(), Code::NotFound);
     let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: "#".repeat(2 << 20) })).expect_err("oversized");
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
 
-    let job = submit(&rt, &mut c, tiny_job("two-workers", 1500));
+    let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "two-workers", 1500));
     let mut e = exp(&rt, &l.url);
     let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into() })).expect("register").into_inner().worker_id;
     let push = |e: &mut Exp, b: pb::TransitionBatch| -> tonic::Status {
@@ -222,7 +196,7 @@ fn a_job_completes_after_a_worker_is_killed() {
     let l = start_learner(&dir, 64 << 20);
     let rt = rt();
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
-    let job = submit(&rt, &mut c, tiny_job("kill-worker", 1500));
+    let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "kill-worker", 1500));
     let mut w0 = start_worker(&l, &dir, 0);
     let _w1 = start_worker(&l, &dir, 1);
     wait_for("training to start", Duration::from_secs(300), || (progress(&get(&rt, &mut c, job.job_id)).env_steps > 400).then_some(()));
@@ -242,11 +216,11 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     let mut l = start_learner(&dir, 64 << 20);
     let rt = rt();
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
-    let queued = submit(&rt, &mut c, tiny_job("queued-behind", 300));
+    let queued = submit(&rt, &mut c, tiny_job(TWO_MAPS, "queued-behind", 300));
     let _ = queued;
     let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
     // The first job runs; a second waits behind it.
-    let job = submit(&rt, &mut c, tiny_job("resume", 2500));
+    let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "resume", 2500));
     let mid = wait_for("a checkpoint of the second job", Duration::from_secs(600), || {
         let j = get(&rt, &mut c, job.job_id);
         let state = std::fs::read_to_string(Path::new(&j.artifact_dir).join("state.json")).ok()?;

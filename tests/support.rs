@@ -132,3 +132,31 @@ pub fn wait_for<T>(what: &str, deadline: Duration, mut f: impl FnMut() -> Option
         std::thread::sleep(Duration::from_millis(100));
     }
 }
+
+/// A job config small enough for a debug build on 2 cores that still trains for a while.
+/// `scenarios` is the inside of the TOML list, e.g. `"roundabout", "merge"`.
+pub fn tiny_job(scenarios: &str, name: &str, env_steps: u64) -> String {
+    format!(
+        r#"name = "{name}"
+[env]
+scenarios = [{scenarios}]
+vehicles_min = 2
+vehicles_max = 3
+[net]
+width = 16
+[sac]
+batch_size = 32
+warmup_steps = 200
+[train]
+env_steps = {env_steps}
+samples_per_insert = 0.1
+replay_capacity = 20000
+publish_every_updates = 5
+checkpoint_every_s = 1
+max_policy_lag = 1000
+[worker]
+envs = 4
+batch_transitions = 64
+"#
+    )
+}

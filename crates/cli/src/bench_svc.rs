@@ -31,6 +31,9 @@ pub struct SvcBenchArgs {
     /// Job config for `e2e` (its budget is raised so the job outlives the measurement).
     #[arg(long, default_value = "configs/quickstart.toml")]
     config: PathBuf,
+    /// `e2e`: override the job's replay ratio (a small value measures unthrottled workers).
+    #[arg(long)]
+    samples_per_insert: Option<f64>,
     /// Transitions per batch for `ingest`.
     #[arg(long, default_value_t = 256)]
     batch: usize,
@@ -135,6 +138,10 @@ pub fn e2e(scenarios: PathBuf, a: SvcBenchArgs) -> Result<()> {
     cfg.name = "bench-e2e".into();
     cfg.train.env_steps = 1 << 40;
     cfg.train.checkpoint_every_s = 100_000;
+    if let Some(spi) = a.samples_per_insert {
+        cfg.train.samples_per_insert = spi;
+    }
+    cfg.validate().context("job config after the benchmark's overrides")?;
     let dir = tmp_dir("e2e");
     let _ = std::fs::remove_dir_all(&dir);
     let out = runtime()?.block_on(async {

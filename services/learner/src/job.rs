@@ -199,6 +199,10 @@ impl ActiveJob {
         let take = {
             let mut s = lock(&self.stats);
             let take = (b.count as u64).min(self.cfg.train.env_steps.saturating_sub(s.reserved));
+            if take == 0 {
+                // Every transition the job needs is in; the trainer is finishing its updates.
+                return Err(ServiceError::FailedPrecondition(format!("job {} has all its transitions", self.id)));
+            }
             s.reserved += take;
             take as usize
         };
@@ -243,7 +247,9 @@ impl ActiveJob {
         }
         let now = Instant::now();
         let steps = s.c.env_steps;
-        s.rate.push_back((now, steps));
+        if take > 0 {
+            s.rate.push_back((now, steps));
+        }
         while s.rate.len() > 2 && now.duration_since(s.rate[0].0) > Duration::from_secs(10) {
             s.rate.pop_front();
         }

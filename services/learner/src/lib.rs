@@ -433,3 +433,26 @@ impl RunningLearner {
         &self.inner.cfg.data_dir
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every shipped config parses and validates: job configs as jobs, the learner's as such.
+    #[test]
+    fn every_shipped_config_file_is_valid() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+        files.push(root.join("deploy/smoke-job.toml"));
+        assert!(files.len() >= 3, "{files:?}");
+        for f in files {
+            let text = std::fs::read_to_string(&f).expect("readable");
+            if f.file_name().is_some_and(|n| n == "learner.toml") {
+                let c: LearnerConfig = toml::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+                assert!(c.max_message_bytes >= 1 << 16);
+            } else {
+                JobConfig::from_toml(&text).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+            }
+        }
+    }
+}

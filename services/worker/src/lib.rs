@@ -29,7 +29,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tonic::{Code, Request};
 
-use crate::rollout::{Control, RolloutSpec};
+use crate::rollout::{Control, Credits, RolloutSpec};
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -215,7 +215,8 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
     }
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
     let spec = RolloutSpec { job, map, worker_id, job_id: asg.job_id, scenario_index: asg.scenario_index, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
-    let rollout = rollout::spawn(spec, Arc::clone(&control), batch_tx, metrics.clone())?;
+    let credits = Arc::new(Credits::new(2));
+    let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
     let _stop_rollout = StopOnDrop(Arc::clone(&control));
     let mut acks = client.push_transitions(ReceiverStream::new(batch_rx)).await.map_err(|s| status_err("PushTransitions", s, metrics))?.into_inner();
     let mut held = asg.policy_version;
@@ -240,6 +241,7 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
             Err(s) => return Err(status_err("PushTransitions", s, metrics)),
         };
         metrics.common.rpc("PushTransitions", Code::Ok);
+        credits.grant();
         let warm = ack.warmup;
         let need = !warm && (ack.latest_policy_version > held || control.lock().unwrap_or_else(|p| p.into_inner()).policy.is_none());
         if need {

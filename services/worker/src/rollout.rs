@@ -24,12 +24,48 @@ use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
 
+const STREAM_CLOSED: &str = "the transition stream closed";
+
 /// What the session tells the rollout thread.
 pub struct Control {
     pub warmup: bool,
     /// Latest weights `(version, bytes)`; the thread rebuilds its actor when the version changes.
     pub policy: Option<(u64, Vec<u8>)>,
     pub stop: bool,
+}
+
+/// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
+/// flight, and so its policy lag, when the learner's rate limiter holds workers back.
+pub struct Credits {
+    n: Mutex<u32>,
+    changed: std::sync::Condvar,
+}
+
+impl Credits {
+    pub fn new(n: u32) -> Self {
+        Self { n: Mutex::new(n), changed: std::sync::Condvar::new() }
+    }
+
+    /// One acknowledgement arrived.
+    pub fn grant(&self) {
+        *self.n.lock().unwrap_or_else(|p| p.into_inner()) += 1;
+        self.changed.notify_all();
+    }
+
+    /// Waits for a credit; `false` if `stop` turned true first.
+    fn take(&self, control: &Mutex<Control>) -> bool {
+        let mut n = self.n.lock().unwrap_or_else(|p| p.into_inner());
+        loop {
+            if *n > 0 {
+                *n -= 1;
+                return true;
+            }
+            if control.lock().unwrap_or_else(|p| p.into_inner()).stop {
+                return false;
+            }
+            n = self.changed.wait_timeout(n, std::time::Duration::from_millis(100)).unwrap_or_else(|p| p.into_inner()).0;
+        }
+    }
 }
 
 pub struct RolloutSpec {
@@ -44,7 +80,7 @@ pub struct RolloutSpec {
 }
 
 /// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
-pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
+pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
     let sim = Arc::new(setup::sim_config(&spec.job));
     let obs = setup::obs_spec(&spec.job);
     if obs.len != spec.obs_len {
@@ -53,14 +89,20 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, tx: mpsc::Sender<p
     std::thread::Builder::new()
         .name(format!("rollout-{}", spec.worker_id))
         .spawn(move || {
-            if let Err(e) = rollout(spec, sim, control, tx, metrics) {
-                tracing::error!(error = %format!("{e:#}"), "rollout thread failed");
+            let stop = Arc::clone(&control);
+            if let Err(e) = rollout(spec, sim, control, &credits, tx, metrics) {
+                // The session closes the stream when it ends; only other failures are errors.
+                if stop.lock().unwrap_or_else(|p| p.into_inner()).stop || e.to_string() == STREAM_CLOSED {
+                    tracing::debug!(error = %format!("{e:#}"), "rollout thread stopped");
+                } else {
+                    tracing::error!(error = %format!("{e:#}"), "rollout thread failed");
+                }
             }
         })
         .context("spawning the rollout thread")
 }
 
-fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Control>>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
+fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Control>>, credits: &Credits, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
     let job = &spec.job;
     let net = setup::net_config(job);
     let obs_spec = setup::obs_spec(job);
@@ -95,6 +137,9 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         };
         let version = acting.map_or(0, |r| r.version);
         if batch_version.is_some_and(|v| v != version) && batch.count > 0 {
+            if !credits.take(&control) {
+                return Ok(());
+            }
             send(&mut batch, batch_version.unwrap_or(0), &tx, &metrics)?;
         }
         batch_version = Some(version);
@@ -141,6 +186,9 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             batch.episodes.push(EpisodeResult { scenario_index: spec.scenario_index, success: m.success, safety: m.safety, speed: m.speed });
         }
         if batch.count >= job.worker.batch_transitions {
+            if !credits.take(&control) {
+                return Ok(());
+            }
             send(&mut batch, version, &tx, &metrics)?;
         }
     }
@@ -153,7 +201,7 @@ fn send(batch: &mut TransitionBatch, version: u64, tx: &mpsc::Sender<pb::Transit
     metrics.batches_sent.inc();
     batch.clear();
     if tx.blocking_send(msg).is_err() {
-        bail!("the transition stream closed");
+        bail!(STREAM_CLOSED);
     }
     Ok(())
 }
