@@ -8,7 +8,7 @@ use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_proto::pb::job_service_client::JobServiceClient;
 use sf_svc::auth::{AttachToken, Token};
-use socialflow_e2e::{bin, free_port, scratch, tiny_job, wait_for, Proc};
+use socialflow_e2e::{bin, free_port, scratch, socialflow_env, tiny_job, wait_for, Proc};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::Code;
@@ -26,12 +26,17 @@ struct Learner {
 }
 
 fn start_learner(dir: &Path, max_message_bytes: usize) -> Learner {
+    start_learner_with(dir, max_message_bytes, "")
+}
+
+/// `extra`: more lines of learner config (TOML).
+fn start_learner_with(dir: &Path, max_message_bytes: usize, extra: &str) -> Learner {
     let (g, a) = (free_port(), free_port());
     let data = dir.join("data");
     let cfg = dir.join("learner.toml");
     std::fs::write(
         &cfg,
-        format!("grpc_addr = \"127.0.0.1:{g}\"\nadmin_addr = \"127.0.0.1:{a}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nmax_message_bytes = {max_message_bytes}\nshutdown_grace_s = 60\n", data.display()),
+        format!("grpc_addr = \"127.0.0.1:{g}\"\nadmin_addr = \"127.0.0.1:{a}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nmax_message_bytes = {max_message_bytes}\nshutdown_grace_s = 60\n{extra}", data.display()),
     )
     .expect("learner config");
     let log = dir.join("learner.log");
@@ -246,5 +251,37 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     assert!(p.policy_version > version_before, "policy version went from {version_before} to {}", p.policy_version);
     let log = std::fs::read_to_string(&l.log).unwrap_or_default();
     assert!(log.contains("resumed from checkpoint"), "the learner log does not show a resume");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_tls_learner_serves_only_clients_that_trust_its_certificate() {
+    let dir = scratch("tls");
+    let ck = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).expect("test certificate");
+    let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert, ck.cert.pem()).expect("cert");
+    std::fs::write(&key, ck.signing_key.serialize_pem()).expect("key");
+    let l = start_learner_with(&dir, 64 << 20, &format!("tls_cert_file = \"{}\"\ntls_key_file = \"{}\"\n", cert.display(), key.display()));
+    let port = l.url.rsplit(':').next().expect("port");
+    let https = format!("https://localhost:{port}");
+    let env = [("SOCIALFLOW_TOKEN", TOKEN)];
+    let t = Duration::from_secs(60);
+    let ca = cert.display().to_string();
+    let job = dir.join("job.toml");
+    std::fs::write(&job, tiny_job(r#""merge""#, "over-tls", 600)).expect("job");
+    let out = socialflow_env(&["submit", &job.display().to_string(), "--learner", &https, "--tls-ca-file", &ca], &env, t);
+    assert!(out.status.success(), "submit over TLS: {}", String::from_utf8_lossy(&out.stderr));
+    // Without the CA, or in plain text, nothing gets through.
+    let out = socialflow_env(&["status", "--learner", &https], &env, t);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--tls-ca-file"));
+    let out = socialflow_env(&["status", "--learner", &format!("http://127.0.0.1:{port}")], &env, t);
+    assert!(!out.status.success(), "a plain-text client must not be served");
+    let _w = Proc::spawn_logged(&bin("socialflow-worker"), &["--learner", &https, "--tls-ca-file", &ca, "--max-backoff-s", "1"], &env, &dir.join("worker.log"));
+    wait_for("the job over TLS to finish", Duration::from_secs(300), || {
+        let out = socialflow_env(&["status", "1", "--json", "--learner", &https, "--tls-ca-file", &ca], &env, t);
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).ok()?;
+        (v["state"] == "succeeded").then_some(())
+    });
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -59,15 +59,17 @@ impl Drop for Proc {
 
 /// Runs `socialflow` with `args` in the repository root; fails the test past `deadline`.
 pub fn socialflow(args: &[&str], deadline: Duration) -> Output {
-    let child = Command::new(bin("socialflow"))
-        .args(args)
-        .current_dir(repo())
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn socialflow");
-    Proc::new(child).output(&format!("socialflow {args:?}"), deadline)
+    socialflow_env(args, &[], deadline)
+}
+
+/// [`socialflow`] with extra environment variables.
+pub fn socialflow_env(args: &[&str], envs: &[(&str, &str)], deadline: Duration) -> Output {
+    let mut c = Command::new(bin("socialflow"));
+    c.args(args).current_dir(repo()).env("RUST_LOG", "warn").stdout(Stdio::piped()).stderr(Stdio::piped());
+    for (k, v) in envs {
+        c.env(k, v);
+    }
+    Proc::new(c.spawn().expect("spawn socialflow")).output(&format!("socialflow {args:?}"), deadline)
 }
 
 /// A free TCP port on 127.0.0.1 (bound and released; good enough for tests).

@@ -13,7 +13,7 @@ use sf_proto::pb;
 use sf_proto::pb::job_service_client::JobServiceClient;
 use sf_svc::auth::{AttachToken, Token};
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 
 pub type JobsClient = JobServiceClient<InterceptedService<Channel, AttachToken>>;
 
@@ -25,6 +25,9 @@ pub struct Conn {
     /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
     #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
+    /// CA certificate (PEM) for an https:// learner.
+    #[arg(long, env = "SOCIALFLOW_TLS_CA_FILE")]
+    pub tls_ca_file: Option<PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -60,13 +63,8 @@ pub enum RemoteCmd {
     },
 }
 
-pub async fn jobs_client(url: &str, token: Option<Token>) -> Result<JobsClient> {
-    let ch = Endpoint::from_shared(url.to_string())
-        .with_context(|| format!("learner url `{url}`"))?
-        .connect_timeout(Duration::from_secs(5))
-        .connect()
-        .await
-        .with_context(|| format!("connecting to the learner at {url}"))?;
+pub async fn jobs_client(url: &str, ca: Option<&std::path::Path>, token: Option<Token>) -> Result<JobsClient> {
+    let ch = sf_svc::tls::endpoint(url, ca)?.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
     Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
 }
 
@@ -147,7 +145,7 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
             RemoteCmd::Submit { config, conn, watch: w } => {
                 let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
                 sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
-                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
                 let j = submit(&mut c, text).await?;
                 println!("{}", job_json(&j));
                 if w {
@@ -159,7 +157,7 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                 Ok(())
             }
             RemoteCmd::Status { job_id, conn, json: as_json } => {
-                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
                 let jobs = match job_id {
                     Some(id) => vec![sf_proto::job_from_wire(&c.get_job(deadline(pb::GetJobRequest { job_id: id })).await.map_err(status_err)?.into_inner())?],
                     None => list(&mut c).await?,
@@ -175,13 +173,13 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                 Ok(())
             }
             RemoteCmd::Watch { job_id, conn } => {
-                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
                 let (state, p) = watch(&mut c, job_id, false).await?;
                 println!("{}", json!({"job_id": job_id, "state": state.as_str(), "progress": p}));
                 Ok(())
             }
             RemoteCmd::Cancel { job_id, conn } => {
-                let mut c = jobs_client(&conn.learner, Some(token(&conn)?)).await?;
+                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
                 let j = c.cancel_job(deadline(pb::CancelJobRequest { job_id })).await.map_err(status_err)?.into_inner();
                 println!("{}", job_json(&sf_proto::job_from_wire(&j)?));
                 Ok(())

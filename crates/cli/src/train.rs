@@ -63,6 +63,7 @@ impl Embedded {
                 rpc_timeout: Duration::from_secs(30),
                 max_backoff: Duration::from_secs(2),
                 threads: 0,
+                tls_ca_file: None,
             };
             let metrics = WorkerMetrics::register(&mut Registry::default());
             workers.push(tokio::spawn(sf_worker::run(wc, metrics, stop_rx.clone())));
@@ -71,7 +72,7 @@ impl Embedded {
     }
 
     pub async fn client(&self) -> Result<remote::JobsClient> {
-        remote::jobs_client(&self.url, Some(self.token.clone())).await
+        remote::jobs_client(&self.url, None, Some(self.token.clone())).await
     }
 
     /// Stops the workers, then the learner (checkpointing a running job).

@@ -3,7 +3,7 @@
 //! Owns: the one table from domain errors to gRPC status codes ([`error`]), bearer-token auth
 //! on both ends ([`auth`]), the admin HTTP server with Prometheus metrics, liveness and
 //! readiness ([`admin`]), RPC counters and process gauges ([`metrics`]), bounded backoff
-//! ([`backoff`]) and logging set-up ([`logging`]). Must not: hold learner or worker logic.
+//! ([`backoff`]), logging set-up ([`logging`]) and optional TLS ([`tls`]). Must not: hold learner or worker logic.
 
 pub mod admin;
 pub mod auth;
@@ -12,6 +12,7 @@ pub mod error;
 pub mod logging;
 pub mod metrics;
 pub mod signal;
+pub mod tls;
 
 pub use error::ServiceError;
 

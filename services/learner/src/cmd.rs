@@ -27,6 +27,11 @@ pub struct LearnerArgs {
     /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
     #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
+    /// PEM certificate chain and key: serve TLS only.
+    #[arg(long, env = "SOCIALFLOW_TLS_CERT_FILE", requires = "tls_key_file")]
+    pub tls_cert_file: Option<PathBuf>,
+    #[arg(long, env = "SOCIALFLOW_TLS_KEY_FILE", requires = "tls_cert_file")]
+    pub tls_key_file: Option<PathBuf>,
     /// Log JSON lines (for containers).
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,
@@ -53,6 +58,10 @@ impl LearnerArgs {
         }
         if let Some(d) = &self.scenarios_dir {
             cfg.scenarios_dir = d.clone();
+        }
+        if self.tls_cert_file.is_some() {
+            cfg.tls_cert_file = self.tls_cert_file.clone();
+            cfg.tls_key_file = self.tls_key_file.clone();
         }
         cfg.validate()?;
         let token = Token::load("SOCIALFLOW_TOKEN", self.token_file.as_deref())?;

@@ -58,6 +58,9 @@ pub struct LearnerConfig {
     pub worker_timeout_s: u64,
     /// Seconds the trainer gets to write its checkpoint on shutdown.
     pub shutdown_grace_s: u64,
+    /// PEM certificate chain and key: serve TLS only (both or neither).
+    pub tls_cert_file: Option<PathBuf>,
+    pub tls_key_file: Option<PathBuf>,
 }
 
 impl Default for LearnerConfig {
@@ -70,6 +73,8 @@ impl Default for LearnerConfig {
             max_message_bytes: sf_svc::MAX_MESSAGE_BYTES,
             worker_timeout_s: 30,
             shutdown_grace_s: 120,
+            tls_cert_file: None,
+            tls_key_file: None,
         }
     }
 }
@@ -85,6 +90,14 @@ impl LearnerConfig {
         anyhow::ensure!(self.max_message_bytes >= 1 << 16, "field `max_message_bytes`: {} is below 65536", self.max_message_bytes);
         anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
         anyhow::ensure!(self.scenarios_dir.is_dir(), "field `scenarios_dir`: {} is not a directory", self.scenarios_dir.display());
+        match (&self.tls_cert_file, &self.tls_key_file) {
+            (Some(c), Some(k)) => {
+                anyhow::ensure!(c.is_file(), "field `tls_cert_file`: {} is not a file", c.display());
+                anyhow::ensure!(k.is_file(), "field `tls_key_file`: {} is not a file", k.display());
+            }
+            (None, None) => {}
+            _ => anyhow::bail!("fields `tls_cert_file` and `tls_key_file` go together"),
+        }
         Ok(())
     }
 }
@@ -377,8 +390,12 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     health_reporter.set_serving::<ExperienceServiceServer<service::Experience>>().await;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
+    let mut builder = tonic::transport::Server::builder();
+    if let (Some(c), Some(k)) = (&cfg.tls_cert_file, &cfg.tls_key_file) {
+        builder = builder.tls_config(sf_svc::tls::server(c, k)?).context("TLS server configuration")?;
+    }
     let server = tokio::spawn(
-        tonic::transport::Server::builder()
+        builder
             .layer(tower::util::MapResponseLayer::new(size_status))
             .add_service(InterceptedService::new(jobs, auth.clone()))
             .add_service(InterceptedService::new(exp, auth.clone()))
@@ -401,7 +418,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         }
     });
     ready.store(true, Ordering::Release);
-    tracing::info!(%grpc_addr, %admin_addr, data_dir = %cfg.data_dir.display(), "learner serving");
+    tracing::info!(%grpc_addr, %admin_addr, tls = cfg.tls_cert_file.is_some(), data_dir = %cfg.data_dir.display(), "learner serving");
     Ok(RunningLearner { inner, grpc_addr, admin_addr, stop_server: Some(stop_tx), server })
 }
 

@@ -30,6 +30,9 @@ pub struct WorkerArgs {
     /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
     #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
+    /// CA certificate (PEM) for an https:// learner.
+    #[arg(long, env = "SOCIALFLOW_TLS_CA_FILE")]
+    pub tls_ca_file: Option<PathBuf>,
     /// Deadline of each unary call, seconds.
     #[arg(long, default_value_t = 10)]
     pub rpc_timeout_s: u64,
@@ -55,6 +58,7 @@ impl WorkerArgs {
             rpc_timeout: Duration::from_secs(self.rpc_timeout_s),
             max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),
             threads: 0,
+            tls_ca_file: self.tls_ca_file.clone(),
         })
     }
 }

@@ -26,7 +26,7 @@ use sf_svc::metrics::CommonMetrics;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 use tonic::{Code, Request};
 
 use crate::rollout::{Control, Credits, RolloutSpec};
@@ -43,6 +43,8 @@ pub struct WorkerConfig {
     pub max_backoff: Duration,
     /// Rayon threads for stepping simulators (0 = rayon's default).
     pub threads: usize,
+    /// Trust root for an `https://` learner.
+    pub tls_ca_file: Option<PathBuf>,
 }
 
 #[derive(Clone)]
@@ -131,13 +133,7 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
 }
 
 async fn connect(cfg: &WorkerConfig) -> anyhow::Result<Client> {
-    let ch = Endpoint::from_shared(cfg.learner_url.clone())
-        .with_context(|| format!("learner url `{}`", cfg.learner_url))?
-        .connect_timeout(Duration::from_secs(5))
-        .tcp_nodelay(true)
-        .connect()
-        .await
-        .with_context(|| format!("connecting to {}", cfg.learner_url))?;
+    let ch = sf_svc::tls::endpoint(&cfg.learner_url, cfg.tls_ca_file.as_deref())?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
     Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone()))
         .max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES)
         .max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
