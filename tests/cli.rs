@@ -147,3 +147,20 @@ fn invalid_configs_are_refused_with_the_field_named() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("grpc_port"), "unknown fields are named");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn stage_one_flows_train_through_the_service() {
+    for kind in ["macad", "socialcomm"] {
+        let dir = socialflow_e2e::scratch(&format!("flow-{kind}"));
+        let cfg = dir.join("flow.toml");
+        let text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1);
+        std::fs::write(&cfg, text).expect("config");
+        let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "1", "--data-dir", &dir.join("data").display().to_string(), "--quiet"], T));
+        assert_eq!(v["state"], "succeeded", "{kind}");
+        assert_eq!(v["progress"]["env_steps"], 1200);
+        assert!(v["progress"]["episodes"].as_u64().unwrap_or(0) > 0, "{kind}: {v}");
+        let resolved = std::fs::read_to_string(std::path::Path::new(v["artifact_dir"].as_str().expect("dir")).join("config.toml")).expect("resolved config");
+        assert!(resolved.contains(&format!("kind = \"{kind}\"")), "{resolved}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -26,6 +26,42 @@ pub enum JobKind {
     /// An ego policy (no SVO input) among frozen background traffic.
     #[default]
     Ego,
+    /// MACAD traffic flow: every vehicle a learner of one shared policy, no SVO, individual
+    /// reward (Stage 1, independent learning).
+    Macad,
+    /// CoPO Stage 1: each vehicle sees its own SVO (uniform in [0, 90] deg per agent and
+    /// episode) and is rewarded with the SVO-composed reward.
+    Copo,
+    /// SocialComm Stage 1: SVOs of self and neighbours visible, SVO-composed reward.
+    Socialcomm,
+}
+
+/// Whose SVO a policy sees.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SvoSeen {
+    None,
+    Own,
+    All,
+}
+
+impl JobKind {
+    /// Every vehicle is a learner (a traffic flow), rather than one ego among background.
+    pub fn multi_agent(self) -> bool {
+        !matches!(self, Self::Ego)
+    }
+
+    pub fn svo_seen(self) -> SvoSeen {
+        match self {
+            Self::Ego | Self::Macad => SvoSeen::None,
+            Self::Copo => SvoSeen::Own,
+            Self::Socialcomm => SvoSeen::All,
+        }
+    }
+
+    /// Trained on the SVO-composed reward rather than the individual one.
+    pub fn composed_reward(self) -> bool {
+        matches!(self, Self::Copo | Self::Socialcomm)
+    }
 }
 
 /// Who drives the vehicles that are not the ego.

@@ -4,11 +4,13 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, Encoder, NetPreset};
+use sf_job::config::{Device, Encoder, NetPreset, SvoSeen};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
-use sf_nn::{EncoderKind, NetConfig};
-use sf_sim::{Layout, ObsSpec, SimConfig};
+use sf_nn::{EncoderKind, NetConfig, SvoInput};
+use sf_sim::config::SvoVisibility;
+use sf_sim::env::Controller;
+use sf_sim::{Layout, Mode, ObsSpec, SimConfig};
 
 use crate::{RateLimiterConfig, SacConfig};
 
@@ -30,7 +32,31 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
         n.set_hidden = w;
         n.head_hidden = 2 * w;
     }
+    n.svo = match job.kind.svo_seen() {
+        SvoSeen::None => SvoInput::None,
+        SvoSeen::Own => SvoInput::Own,
+        SvoSeen::All => SvoInput::All,
+    };
     n
+}
+
+/// How the job's simulators run: every vehicle a learner for a flow, one ego among IDM cars
+/// otherwise.
+pub fn mode(job: &JobConfig) -> Mode {
+    if job.kind.multi_agent() {
+        Mode::MultiAgent
+    } else {
+        Mode::Ego { background: Controller::Idm }
+    }
+}
+
+/// The reward a transition carries for this job.
+pub fn reward(job: &JobConfig, r: &sf_sim::env::Rewards) -> f32 {
+    if job.kind.composed_reward() {
+        r.composed
+    } else {
+        r.individual
+    }
 }
 
 /// Simulator settings: digest defaults with the observation layout the encoder reads.
@@ -39,6 +65,11 @@ pub fn sim_config(job: &JobConfig) -> SimConfig {
     s.obs.layout = match net_config(job).encoder {
         EncoderKind::EgoFrame => Layout::EgoFrame,
         EncoderKind::QueryCentric => Layout::QueryCentric,
+    };
+    s.obs.svo = match job.kind.svo_seen() {
+        SvoSeen::None => SvoVisibility::None,
+        SvoSeen::Own => SvoVisibility::Own,
+        SvoSeen::All => SvoVisibility::All,
     };
     s
 }
@@ -80,4 +111,31 @@ pub fn rate_limiter(job: &JobConfig, min_size: u64) -> RateLimiterConfig {
     let spi = job.train.samples_per_insert;
     let batch = job.worker.batch_transitions as f64;
     RateLimiterConfig { samples_per_insert: spi, min_size_to_sample: min_size.max(1), error_buffer: (spi * batch).max(spi).max(1.0) * 2.0 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(kind: &str) -> JobConfig {
+        JobConfig::from_toml(&format!("name = \"t\"\nkind = \"{kind}\"\n[env]\nscenarios = [\"merge\"]\n[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\n")).expect("valid")
+    }
+
+    /// The network consumes exactly the SVO channels the observation fills, per flow.
+    #[test]
+    fn each_kind_sees_and_is_rewarded_as_the_paper_says() {
+        let r = sf_sim::env::Rewards { individual: 1.0, composed: 2.0, failmaker: 3.0 };
+        for (kind, svo, vis, multi, composed) in [
+            ("ego", SvoInput::None, SvoVisibility::None, false, false),
+            ("macad", SvoInput::None, SvoVisibility::None, true, false),
+            ("copo", SvoInput::Own, SvoVisibility::Own, true, true),
+            ("socialcomm", SvoInput::All, SvoVisibility::All, true, true),
+        ] {
+            let j = job(kind);
+            assert_eq!(net_config(&j).svo, svo, "{kind}");
+            assert_eq!(sim_config(&j).obs.svo, vis, "{kind}");
+            assert_eq!(mode(&j) == Mode::MultiAgent, multi, "{kind}");
+            assert_eq!(reward(&j, &r), if composed { 2.0 } else { 1.0 }, "{kind}");
+        }
+    }
 }

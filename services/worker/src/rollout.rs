@@ -16,10 +16,10 @@ use sf_job::{EpisodeResult, JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_sac::inference::PolicyRunner;
 use sf_sac::setup;
-use sf_sim::env::{Controller, Termination};
+use sf_sim::env::Termination;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
-use sf_sim::{Action, Map, Mode};
+use sf_sim::{Action, Map};
 use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
@@ -111,7 +111,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
     let mut venv = VecEnv::new(
         Arc::clone(&spec.map),
         Arc::clone(&sim),
-        VecEnvConfig { n_envs: job.worker.envs, mode: Mode::Ego { background: Controller::Idm }, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: spec.seed },
+        VecEnvConfig { n_envs: job.worker.envs, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: spec.seed },
     );
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
@@ -179,7 +179,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             }
             let next = if st.ended.is_some() { &venv.final_observations()[r * len..(r + 1) * len] } else { &venv.observations()[r * len..(r + 1) * len] };
             let act = [actions[r].ref_speed, actions[r].steer];
-            batch.push(&before[r * len..(r + 1) * len], &act, st.rewards.individual, next, st.ended.is_some_and(|t| t != Termination::Timeout), spec.scenario_index);
+            batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), next, st.ended.is_some_and(|t| t != Termination::Timeout), spec.scenario_index);
         }
         for m in venv.take_finished() {
             metrics.episodes.inc();
