@@ -161,6 +161,17 @@ fn stage_one_flows_train_through_the_service() {
         assert!(v["progress"]["episodes"].as_u64().unwrap_or(0) > 0, "{kind}: {v}");
         let resolved = std::fs::read_to_string(std::path::Path::new(v["artifact_dir"].as_str().expect("dir")).join("config.toml")).expect("resolved config");
         assert!(resolved.contains(&format!("kind = \"{kind}\"")), "{resolved}");
+        // The learned flow drives every vehicle of stored cases; same seeds, same numbers.
+        let art = v["artifact_dir"].as_str().expect("dir").to_string();
+        let eval = || json_of(&socialflow(&["eval-flow", "--policy", &art, "--scenario", "merge", "--cases", "2", "--seeds", "2", "--json"], T));
+        let e = eval();
+        assert_eq!(e["flow"], kind);
+        assert_eq!(e["episodes"], 4);
+        for k in ["success", "safety", "speed"] {
+            let m = e[k]["mean"].as_f64().expect("mean");
+            assert!((0.0..=1.0).contains(&m), "{k} {m}");
+        }
+        assert_eq!(eval(), e, "an evaluation with the same policy, cases and seeds is reproducible");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -1,4 +1,9 @@
 //! `socialflow eval-flow`: a flow's Success, Safety and Speed over the stored cases.
+//!
+//! The all-IDM flow needs nothing; a learned flow (MACAD, CoPO Stage 1, SocialComm) is read
+//! from a finished job's artifact directory (`config.toml` + `policy.bpk`) and drives every
+//! vehicle of the stored case, actions sampled with the seed (or the mean with
+//! `--deterministic`).
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -13,8 +18,15 @@ use crate::Flow;
 
 #[derive(Args, Debug)]
 pub struct EvalFlowArgs {
-    #[arg(long, value_enum)]
-    flow: Flow,
+    /// A flow that needs no trained policy (`idm`).
+    #[arg(long, value_enum, required_unless_present = "policy", conflicts_with = "policy")]
+    flow: Option<Flow>,
+    /// A trained flow: the artifact directory of a finished flow job.
+    #[arg(long)]
+    policy: Option<std::path::PathBuf>,
+    /// Mean actions instead of samples (learned flows).
+    #[arg(long)]
+    deterministic: bool,
     #[arg(long)]
     scenario: String,
     /// Number of stored cases to run (the first N).
@@ -37,8 +49,74 @@ pub fn flow_mode(flow: Flow) -> Result<Mode> {
     }
 }
 
+/// A learned flow loaded from a job's artifacts.
+struct Learned {
+    job: sf_job::JobConfig,
+    weights: Vec<u8>,
+}
+
+fn load_learned(dir: &std::path::Path) -> Result<Learned> {
+    let cfg = dir.join("config.toml");
+    let text = std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
+    let job = sf_job::JobConfig::from_toml(&text).with_context(|| cfg.display().to_string())?;
+    if !job.kind.multi_agent() {
+        bail!("{} is a `{:?}` job, not a traffic flow", dir.display(), job.kind);
+    }
+    let p = dir.join("policy.bpk");
+    let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
+    Ok(Learned { job, weights })
+}
+
+/// One episode of a stored case with every vehicle driven by the learned policy.
+fn learned_episode(l: &Learned, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim::Case, vehicles: Option<usize>, seed: u64, deterministic: bool, runner: &sf_sac::inference::PolicyRunner) -> Result<EpisodeMetrics> {
+    use rand::SeedableRng;
+    let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&l.job));
+    let mut env = Env::new(map.clone(), sim.clone());
+    env.reset(case, Mode::MultiAgent, vehicles).context("resetting a stored case")?;
+    let mut obs = sf_sim::Observer::new(map, &sim);
+    let len = obs.spec.len;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut rows = Vec::new();
+    let mut ids = Vec::new();
+    env.run_episode(
+        |env, actions| {
+            obs.prepare(env);
+            rows.clear();
+            ids.clear();
+            for (i, a) in env.agents().iter().enumerate() {
+                if a.alive && a.role == sf_sim::Role::Learner {
+                    let start = rows.len();
+                    rows.resize(start + len, 0.0);
+                    obs.write(env, i, &mut rows[start..]);
+                    ids.push(i);
+                }
+            }
+            if ids.is_empty() {
+                return;
+            }
+            let zeros = vec![0u32; ids.len()];
+            let act = if deterministic { runner.mean(&rows, &zeros) } else { runner.sample(&rows, &zeros, &mut rng) };
+            for (j, &i) in ids.iter().enumerate() {
+                actions[i] = sf_sim::Action { ref_speed: act[2 * j], steer: act[2 * j + 1] };
+            }
+        },
+        |_| {},
+    )?;
+    Ok(EpisodeMetrics::from_outcomes(env.outcomes(), false))
+}
+
 pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
-    let mode = flow_mode(a.flow)?;
+    let learned = a.policy.as_deref().map(load_learned).transpose()?;
+    let flow_name = match (&learned, a.flow) {
+        (Some(l), _) => format!("{:?}", l.job.kind).to_lowercase(),
+        (None, Some(f)) => format!("{f:?}").to_lowercase(),
+        (None, None) => bail!("give --flow or --policy"),
+    };
+    let mode = match (&learned, a.flow) {
+        (Some(_), _) => Mode::MultiAgent,
+        (None, Some(f)) => flow_mode(f)?,
+        (None, None) => bail!("give --flow or --policy"),
+    };
     let map = ctx.map(&a.scenario)?;
     let cases = ctx.cases(&map)?;
     if a.cases as usize > cases.cases.len() {
@@ -46,16 +124,26 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
     }
     let cfg = std::sync::Arc::new(SimConfig::default());
     let jobs: Vec<(usize, u32)> = (0..a.cases as usize).flat_map(|c| (0..a.seeds).map(move |s| (c, s))).collect();
-    let results: Vec<EpisodeMetrics> = jobs
-        .par_iter()
-        .map(|&(c, _seed)| {
-            // The all-IDM flow is deterministic: the seed only matters for stochastic flows.
-            let mut env = Env::new(map.clone(), cfg.clone());
-            env.reset(&cases.cases[c], mode, a.vehicles).context("resetting a stored case")?;
-            env.run_episode(|_, _| {}, |_| {})?;
-            Ok(EpisodeMetrics::from_outcomes(env.outcomes(), false))
-        })
-        .collect::<Result<_>>()?;
+    let results: Vec<EpisodeMetrics> = match &learned {
+        None => jobs
+            .par_iter()
+            .map(|&(c, _seed)| {
+                // The all-IDM flow is deterministic: the seed only matters for stochastic flows.
+                let mut env = Env::new(map.clone(), cfg.clone());
+                env.reset(&cases.cases[c], mode, a.vehicles).context("resetting a stored case")?;
+                env.run_episode(|_, _| {}, |_| {})?;
+                Ok(EpisodeMetrics::from_outcomes(env.outcomes(), false))
+            })
+            .collect::<Result<_>>()?,
+        Some(l) => {
+            let sim = sf_sac::setup::sim_config(&l.job);
+            let segs = sf_sim::obs::MapSegments::build(&map, sim.obs.segment_points);
+            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
+            let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&l.job), &sf_sac::setup::obs_spec(&l.job), sim.dt_s, &[&segs], &l.weights, 0, &device)
+                .context("loading policy.bpk")?;
+            jobs.iter().map(|&(c, seed)| learned_episode(l, &map, &cases.cases[c], a.vehicles, 1_000_003 * c as u64 + seed as u64, a.deterministic, &runner)).collect::<Result<_>>()?
+        }
+    };
     let col = |f: fn(&EpisodeMetrics) -> f32| Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>());
     let (success, safety, speed) = (col(|m| m.success), col(|m| m.safety), col(|m| m.speed));
     let failures = json!({
@@ -69,7 +157,8 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
     if a.json {
         let s = |x: Summary| json!({"mean": x.mean, "ci95": x.ci95});
         let out = json!({
-            "flow": format!("{:?}", a.flow).to_lowercase(),
+            "flow": flow_name,
+            "policy": a.policy,
             "scenario": a.scenario,
             "cases": a.cases,
             "seeds": a.seeds,
@@ -82,7 +171,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         println!("{out}");
     } else {
         let p = |x: Summary| format!("{:5.1}% +- {:.1}", 100.0 * x.mean, 100.0 * x.ci95);
-        println!("{:?} flow in {} over {} episodes", a.flow, a.scenario, results.len());
+        println!("{flow_name} flow in {} over {} episodes", a.scenario, results.len());
         println!("  success {}\n  safety  {}\n  speed   {}", p(success), p(safety), p(speed));
         println!("  failures {failures}");
     }
