@@ -133,7 +133,8 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: "#".repeat(2 << 20) })).expect_err("oversized");
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
 
-    let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "two-workers", 1500));
+    // Three scenarios, two workers: every worker simulates every scenario of the job.
+    let job = submit(&rt, &mut c, tiny_job(r#""roundabout", "merge", "bottleneck""#, "two-workers", 1500));
     let mut e = exp(&rt, &l.url);
     let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into() })).expect("register").into_inner().worker_id;
     let push = |e: &mut Exp, b: pb::TransitionBatch| -> tonic::Status {
@@ -188,6 +189,9 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     assert!(metric(&m, "socialflow_learner_transitions_received_total") >= 1500.0);
     assert!(m.contains("socialflow_learner_rpcs_total{method=\"PushTransitions\",code=\"invalid_argument\"}"), "rpc errors by code");
     assert!(m.contains("# HELP socialflow_learner_replay_size_transitions"));
+    for scenario in ["roundabout", "merge", "bottleneck"] {
+        assert!(metric(&m, &format!("socialflow_learner_episodes_total{{scenario=\"{scenario}\"}}")) > 0.0, "no episodes of {scenario}");
+    }
     // Still serving after all of the above.
     assert!(rt.block_on(c.list_jobs(pb::ListJobsRequest {})).is_ok());
     let fetched = rt.block_on(e.get_policy(pb::GetPolicyRequest { job_id: job.job_id, version: 0 })).expect("final policy").into_inner();

@@ -234,7 +234,10 @@ impl ActiveJob {
         }
         self.metrics.transitions_received.inc_by(take as u64);
         self.metrics.env_steps.inc_by(b.sim_steps);
-        self.metrics.episodes.inc_by(b.episodes.len() as u64);
+        for e in &b.episodes {
+            let scenario = self.cfg.env.scenarios.get(e.scenario_index as usize).cloned().unwrap_or_else(|| "unknown".into());
+            self.metrics.episodes.get_or_create(&crate::metrics::ScenarioLabel { scenario }).inc();
+        }
         let mut s = lock(&self.stats);
         s.c.env_steps += take as u64;
         s.c.sim_steps += b.sim_steps;

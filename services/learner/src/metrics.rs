@@ -15,6 +15,11 @@ pub struct ReasonLabel {
     pub reason: String,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ScenarioLabel {
+    pub scenario: String,
+}
+
 type FGauge = Gauge<f64, AtomicU64>;
 
 #[derive(Clone)]
@@ -24,7 +29,7 @@ pub struct LearnerMetrics {
     pub transitions_dropped: Family<ReasonLabel, Counter>,
     pub env_steps: Counter,
     pub updates: Counter,
-    pub episodes: Counter,
+    pub episodes: Family<ScenarioLabel, Counter>,
     pub replay_size: Gauge,
     pub replay_bytes: Gauge,
     pub policy_version: Gauge,
@@ -47,7 +52,7 @@ impl LearnerMetrics {
             transitions_dropped: Family::default(),
             env_steps: Counter::default(),
             updates: Counter::default(),
-            episodes: Counter::default(),
+            episodes: Family::default(),
             replay_size: Gauge::default(),
             replay_bytes: Gauge::default(),
             policy_version: Gauge::default(),
@@ -65,7 +70,7 @@ impl LearnerMetrics {
         reg.register("socialflow_learner_transitions_dropped", "Transitions dropped, by reason (stale: over the policy lag)", m.transitions_dropped.clone());
         reg.register("socialflow_learner_env_steps", "Vehicle decision steps simulated by workers", m.env_steps.clone());
         reg.register("socialflow_learner_updates", "SAC updates (critic, actor, alpha, Polyak)", m.updates.clone());
-        reg.register("socialflow_learner_episodes", "Episodes finished by workers", m.episodes.clone());
+        reg.register("socialflow_learner_episodes", "Episodes finished by workers, by scenario", m.episodes.clone());
         reg.register("socialflow_learner_replay_size_transitions", "Transitions held in the replay buffer", m.replay_size.clone());
         reg.register("socialflow_learner_replay_bytes", "Bytes the replay buffer holds", m.replay_bytes.clone());
         reg.register("socialflow_learner_policy_version", "Latest published policy version of the running job", m.policy_version.clone());

@@ -190,9 +190,13 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
         }
     };
     let job = sf_job::JobConfig::from_toml(&asg.config_toml).context("job config in the assignment")?;
-    let scenario = job.env.scenarios.get(asg.scenario_index as usize).cloned().ok_or_else(|| anyhow!("assignment scenario index {} out of range", asg.scenario_index))?;
-    tracing::info!(worker_id, job_id = asg.job_id, scenario = %scenario, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
-    let map = Arc::new(sf_sim::Map::load(&cfg.scenarios_dir.join(format!("{scenario}.json"))).with_context(|| format!("scenario `{scenario}`"))?);
+    tracing::info!(worker_id, job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
+    let maps = job
+        .env
+        .scenarios
+        .iter()
+        .map(|s| sf_sim::Map::load(&cfg.scenarios_dir.join(format!("{s}.json"))).map(Arc::new).with_context(|| format!("scenario `{s}`")))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     let policy_client = client.clone();
     let fetch = |version: u64| {
         let mut c = policy_client.clone();
@@ -210,7 +214,7 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
         control.lock().unwrap_or_else(|p| p.into_inner()).policy = Some((v, w));
     }
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-    let spec = RolloutSpec { job, map, worker_id, job_id: asg.job_id, scenario_index: asg.scenario_index, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
+    let spec = RolloutSpec { job, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
     let credits = Arc::new(Credits::new(2));
     let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
     let _stop_rollout = StopOnDrop(Arc::clone(&control));

@@ -1,5 +1,6 @@
-//! The rollout thread: K simulators stepped in parallel with batched CPU inference, transitions
-//! packed into batches stamped with the acting policy version.
+//! The rollout thread: K simulators spread over every scenario of the job, stepped in parallel
+//! with one batched CPU inference per step, transitions packed into batches stamped with the
+//! acting policy version.
 //!
 //! Owns: [`spawn`] and the loop it runs. The session hands it new policy weights and the
 //! warm-up flag through [`Control`]; it hands back wire batches through a bounded channel, so a
@@ -70,10 +71,10 @@ impl Credits {
 
 pub struct RolloutSpec {
     pub job: JobConfig,
-    pub map: Arc<Map>,
+    /// The job's scenarios in config order (index = map id).
+    pub maps: Vec<Arc<Map>>,
     pub worker_id: u64,
     pub job_id: u64,
-    pub scenario_index: u32,
     pub seed: u64,
     pub obs_len: usize,
     pub threads: usize,
@@ -107,12 +108,19 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
     let net = setup::net_config(job);
     let obs_spec = setup::obs_spec(job);
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
-    let segs = MapSegments::build(&spec.map, sim.obs.segment_points);
-    let mut venv = VecEnv::new(
-        Arc::clone(&spec.map),
-        Arc::clone(&sim),
-        VecEnvConfig { n_envs: job.worker.envs, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: spec.seed },
-    );
+    let segs: Vec<MapSegments> = spec.maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
+    let seg_refs: Vec<&MapSegments> = segs.iter().collect();
+    // Every scenario of the job, environments split evenly; map id = scenario index.
+    let per_map = job.worker.envs.div_ceil(spec.maps.len()).max(1);
+    let mut venvs: Vec<VecEnv> = spec
+        .maps
+        .iter()
+        .enumerate()
+        .map(|(k, m)| {
+            let seed = spec.seed.wrapping_add(k as u64 * 0x9e37_79b9);
+            VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
+        })
+        .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
     let mut runner: Option<PolicyRunner> = None;
@@ -128,7 +136,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             return Ok(());
         }
         if let Some((v, bytes)) = new_policy {
-            runner = Some(PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &[&segs], &bytes, v, &device).with_context(|| format!("loading policy version {v}"))?);
+            runner = Some(PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &seg_refs, &bytes, v, &device).with_context(|| format!("loading policy version {v}"))?);
             metrics.policy_version.set(v as i64);
         }
         let acting = match (&runner, warmup) {
@@ -143,47 +151,59 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             send(&mut batch, batch_version.unwrap_or(0), &tx, &metrics)?;
         }
         batch_version = Some(version);
-        // Actions for live learner rows.
-        let alive = venv.alive();
-        let rows: Vec<usize> = (0..alive.len()).filter(|&r| alive[r] == 1.0).collect();
-        let mut actions = vec![Action::default(); alive.len()];
+        // Live learner rows of every scenario, acted on in one batch.
+        let rows: Vec<Vec<usize>> = venvs.iter().map(|v| (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0).collect()).collect();
+        let mut actions: Vec<Vec<Action>> = venvs.iter().map(|v| vec![Action::default(); v.alive().len()]).collect();
+        let n_live: usize = rows.iter().map(Vec::len).sum();
         match acting {
             None => {
-                for &r in &rows {
-                    actions[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0) };
+                for (acts, rs) in actions.iter_mut().zip(&rows) {
+                    for &r in rs {
+                        acts[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0) };
+                    }
                 }
             }
-            Some(pol) if !rows.is_empty() => {
-                let mut obs = Vec::with_capacity(rows.len() * len);
-                for &r in &rows {
-                    obs.extend_from_slice(&venv.observations()[r * len..(r + 1) * len]);
+            Some(pol) if n_live > 0 => {
+                let mut obs = Vec::with_capacity(n_live * len);
+                let mut ids = Vec::with_capacity(n_live);
+                for (k, (v, rs)) in venvs.iter().zip(&rows).enumerate() {
+                    for &r in rs {
+                        obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
+                        ids.push(k as u32);
+                    }
                 }
                 let t = Instant::now();
-                let a = pol.sample(&obs, &vec![0; rows.len()], &mut rng);
+                let a = pol.sample(&obs, &ids, &mut rng);
                 metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
-                metrics.inference_obs.inc_by(rows.len() as u64);
-                for (j, &r) in rows.iter().enumerate() {
-                    actions[r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
+                metrics.inference_obs.inc_by(n_live as u64);
+                let mut j = 0;
+                for (acts, rs) in actions.iter_mut().zip(&rows) {
+                    for &r in rs {
+                        acts[r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
+                        j += 1;
+                    }
                 }
             }
             Some(_) => {}
         }
-        let before = venv.observations().to_vec();
-        venv.step(&actions);
-        batch.sim_steps += job.worker.envs as u64;
-        metrics.env_steps.inc_by(job.worker.envs as u64);
-        for &r in &rows {
-            let st = venv.row_steps()[r];
-            if !st.stepped {
-                continue;
+        for (k, ((v, rs), acts)) in venvs.iter_mut().zip(&rows).zip(&actions).enumerate() {
+            let before = v.observations().to_vec();
+            v.step(acts);
+            batch.sim_steps += v.n_envs() as u64;
+            metrics.env_steps.inc_by(v.n_envs() as u64);
+            for &r in rs {
+                let st = v.row_steps()[r];
+                if !st.stepped {
+                    continue;
+                }
+                let next = if st.ended.is_some() { &v.final_observations()[r * len..(r + 1) * len] } else { &v.observations()[r * len..(r + 1) * len] };
+                let act = [acts[r].ref_speed, acts[r].steer];
+                batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), next, st.ended.is_some_and(|t| t != Termination::Timeout), k as u32);
             }
-            let next = if st.ended.is_some() { &venv.final_observations()[r * len..(r + 1) * len] } else { &venv.observations()[r * len..(r + 1) * len] };
-            let act = [actions[r].ref_speed, actions[r].steer];
-            batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), next, st.ended.is_some_and(|t| t != Termination::Timeout), spec.scenario_index);
-        }
-        for m in venv.take_finished() {
-            metrics.episodes.inc();
-            batch.episodes.push(EpisodeResult { scenario_index: spec.scenario_index, success: m.success, safety: m.safety, speed: m.speed });
+            for m in v.take_finished() {
+                metrics.episodes.inc();
+                batch.episodes.push(EpisodeResult { scenario_index: k as u32, success: m.success, safety: m.safety, speed: m.speed });
+            }
         }
         if batch.count >= job.worker.batch_transitions {
             if !credits.take(&control) {
