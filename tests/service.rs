@@ -289,3 +289,42 @@ fn a_tls_learner_serves_only_clients_that_trust_its_certificate() {
     });
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
+    let dir = scratch("pipeline");
+    let l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let flow = submit(&rt, &mut c, tiny_job(r#""merge""#, "flow-socialcomm", 1500).replacen('\n', "\nkind = \"socialcomm\"\n", 1));
+    let ego_cfg = |dep: u64| tiny_job(r#""merge""#, "ego-in-flow", 800).replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\nbackground_job = {dep}\n"), 1);
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: ego_cfg(99) })).expect_err("unknown dependency");
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("env.background_job"), "{}", e.message());
+    let ego = submit(&rt, &mut c, ego_cfg(flow.job_id));
+    let _w = start_worker(&l, &dir, 0);
+    // The ego job stays queued while its flow trains.
+    let flow_done = wait_for("the flow job to finish", Duration::from_secs(600), || {
+        let f = get(&rt, &mut c, flow.job_id);
+        if f.state != SUCCEEDED {
+            assert_eq!(get(&rt, &mut c, ego.job_id).state, pb::JobState::Queued as i32, "the ego job ran before its flow finished");
+            return None;
+        }
+        Some(f)
+    });
+    let frozen = std::fs::read(Path::new(&flow_done.artifact_dir).join("policy.bpk")).expect("flow policy");
+    let done = wait_for("the ego job to finish", Duration::from_secs(600), || {
+        let j = get(&rt, &mut c, ego.job_id);
+        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+    });
+    assert_eq!(done.state, SUCCEEDED, "ego job ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, 800);
+    // The flow stayed frozen: same bytes on disk and over the API.
+    assert_eq!(std::fs::read(Path::new(&flow_done.artifact_dir).join("policy.bpk")).expect("flow policy"), frozen);
+    let mut e = exp(&rt, &l.url);
+    let served = rt.block_on(e.get_policy(pb::GetPolicyRequest { job_id: flow.job_id, version: 0 })).expect("flow policy").into_inner();
+    assert_eq!(served.weights, frozen);
+    let log = std::fs::read_to_string(dir.join("worker0.log")).unwrap_or_default();
+    assert!(log.contains("background flow policy"), "the worker did not load the frozen flow");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -126,6 +126,10 @@ pub struct EnvSection {
     pub vehicles_max: u32,
     #[serde(default)]
     pub background: Background,
+    /// Ego jobs: drive the background with the final policy of this (flow) job instead of
+    /// IDM. The job waits until that one has succeeded (a pipeline dependency).
+    #[serde(default)]
+    pub background_job: Option<u64>,
 }
 fn d_vmin() -> u32 {
     8
@@ -270,6 +274,12 @@ impl JobConfig {
         }
         if self.env.vehicles_min == 0 || self.env.vehicles_min > self.env.vehicles_max {
             return bad("env.vehicles_min", format!("{} must be in 1..=vehicles_max ({})", self.env.vehicles_min, self.env.vehicles_max));
+        }
+        if self.env.background_job.is_some() && self.kind.multi_agent() {
+            return bad("env.background_job", "only ego jobs drive a frozen flow; a flow job trains every vehicle");
+        }
+        if self.env.background_job == Some(0) {
+            return bad("env.background_job", "job ids start at 1");
         }
         if self.env.vehicles_max > 64 {
             return bad("env.vehicles_max", format!("{} exceeds 64", self.env.vehicles_max));

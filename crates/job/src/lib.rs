@@ -90,6 +90,8 @@ pub struct Assignment {
     pub action_dim: u32,
     /// The job is in its random-action warm-up.
     pub warmup: bool,
+    /// The frozen flow driving the background (job id and its config), if any.
+    pub background: Option<(u64, String)>,
 }
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).

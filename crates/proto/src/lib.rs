@@ -132,6 +132,8 @@ pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
+        background_job_id: a.background.as_ref().map_or(0, |b| b.0),
+        background_config_toml: a.background.as_ref().map(|b| b.1.clone()).unwrap_or_default(),
     }
 }
 
@@ -151,6 +153,11 @@ pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError>
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
+        background: match (a.background_job_id, a.background_config_toml.is_empty()) {
+            (0, true) => None,
+            (id, false) if id > 0 => Some((id, a.background_config_toml.clone())),
+            _ => return wire("assignment.background_job_id", "job id and config go together"),
+        },
     })
 }
 

@@ -45,6 +45,8 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
 pub fn mode(job: &JobConfig) -> Mode {
     if job.kind.multi_agent() {
         Mode::MultiAgent
+    } else if job.env.background_job.is_some() {
+        Mode::Ego { background: Controller::External }
     } else {
         Mode::Ego { background: Controller::Idm }
     }
@@ -67,6 +69,9 @@ pub fn sim_config(job: &JobConfig) -> SimConfig {
         EncoderKind::QueryCentric => Layout::QueryCentric,
     };
     s.obs.svo = match job.kind.svo_seen() {
+        // A frozen flow in the background may read SVOs; every network zeroes the SVO channels
+        // it does not consume (`ObsBatch::from_rows`), so the ego still sees none.
+        SvoSeen::None if job.env.background_job.is_some() => SvoVisibility::All,
         SvoSeen::None => SvoVisibility::None,
         SvoSeen::Own => SvoVisibility::Own,
         SvoSeen::All => SvoVisibility::All,

@@ -4,7 +4,9 @@
 //! `[K * max_agents, spec.len]` reused every step (no per-step allocation once warm),
 //! random resets from a seeded generator per environment, finished-episode metrics.
 //! Must not: choose actions. Environment `k`'s agent `i` is row `k * max_agents + i`;
-//! rows of absent or ended agents are zero with `alive = 0`.
+//! rows of absent or ended agents are zero with `alive = 0`. In `Mode::Ego` with an
+//! externally driven background (a frozen learned flow), live background agents' rows are
+//! observed too and flagged in [`VecEnv::background`] (their actions come from the caller).
 //!
 //! Run inside a rayon pool of the wanted size (`ThreadPool::install`); results do not depend
 //! on the thread count.
@@ -17,7 +19,7 @@ use rayon::prelude::*;
 
 use crate::case::random_case;
 use crate::config::SimConfig;
-use crate::env::{Env, Mode, Rewards, Role, Termination};
+use crate::env::{Controller, Env, Mode, Rewards, Role, Termination};
 use crate::map::Map;
 use crate::metrics::EpisodeMetrics;
 use crate::obs::{MapSegments, ObsSpec, Observer};
@@ -59,6 +61,8 @@ pub struct VecEnv {
     pub max_agents: usize,
     obs: Vec<f32>,
     alive: Vec<f32>,
+    /// 1 where the row holds a live externally driven background agent's observation.
+    background: Vec<f32>,
     /// Per row, the last step's outcome (see [`RowStep`]) and the final observation of rows
     /// that ended on it (before any reset).
     steps: Vec<RowStep>,
@@ -86,6 +90,7 @@ impl VecEnv {
         let mut v = Self {
             obs: vec![0.0; rows * spec.len],
             alive: vec![0.0; rows],
+            background: vec![0.0; rows],
             steps: vec![RowStep::default(); rows],
             final_obs: vec![0.0; rows * spec.len],
             spec,
@@ -100,9 +105,10 @@ impl VecEnv {
             .par_iter_mut()
             .zip(v.obs.par_chunks_mut(max_agents * spec_len))
             .zip(v.alive.par_chunks_mut(max_agents))
-            .for_each(|((s, obs), alive)| {
+            .zip(v.background.par_chunks_mut(max_agents))
+            .for_each(|(((s, obs), alive), bg)| {
                 s.reset(mode, vehicles);
-                s.observe(obs, alive, spec_len);
+                s.observe(obs, alive, bg, spec_len);
             });
         v
     }
@@ -115,6 +121,12 @@ impl VecEnv {
     /// 1 where the row holds a live learner's observation.
     pub fn alive(&self) -> &[f32] {
         &self.alive
+    }
+
+    /// 1 where the row holds a live externally driven background agent's observation
+    /// (`Mode::Ego { background: Controller::External }`; all zero otherwise).
+    pub fn background(&self) -> &[f32] {
+        &self.background
     }
 
     pub fn n_envs(&self) -> usize {
@@ -157,10 +169,11 @@ impl VecEnv {
             .par_iter_mut()
             .zip(self.obs.par_chunks_mut(max_agents * spec_len))
             .zip(self.alive.par_chunks_mut(max_agents))
+            .zip(self.background.par_chunks_mut(max_agents))
             .zip(actions.par_chunks(max_agents))
             .zip(self.steps.par_chunks_mut(max_agents))
             .zip(self.final_obs.par_chunks_mut(max_agents * spec_len))
-            .map(|(((((s, obs), alive), acts), steps), finals)| {
+            .map(|((((((s, obs), alive), bg), acts), steps), finals)| {
                 let n = s.env.len();
                 let stepped = s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count() as u64;
                 s.env.step(&acts[..n]).expect("a live episode with one action per agent");
@@ -169,7 +182,7 @@ impl VecEnv {
                     s.finished.push(EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only));
                     s.reset(mode, vehicles);
                 }
-                s.observe(obs, alive, spec_len);
+                s.observe(obs, alive, bg, spec_len);
                 stepped
             })
             .sum();
@@ -207,16 +220,22 @@ impl Slot {
         self.env.reset(&case, mode, None).expect("generated cases are valid for their map");
     }
 
-    fn observe(&mut self, obs: &mut [f32], alive: &mut [f32], spec_len: usize) {
+    fn observe(&mut self, obs: &mut [f32], alive: &mut [f32], bg: &mut [f32], spec_len: usize) {
         self.observer.prepare(&self.env);
-        for (i, (row, live)) in obs.chunks_mut(spec_len).zip(alive.iter_mut()).enumerate() {
+        for (i, ((row, live), back)) in obs.chunks_mut(spec_len).zip(alive.iter_mut()).zip(bg.iter_mut()).enumerate() {
             let a = self.env.agents().get(i);
             if a.is_some_and(|a| a.alive && a.role == Role::Learner) {
                 self.observer.write(&self.env, i, row);
                 *live = 1.0;
-            } else if *live != 0.0 {
+                *back = 0.0;
+            } else if a.is_some_and(|a| a.alive && a.role == Role::Background && a.controller == Controller::External) {
+                self.observer.write(&self.env, i, row);
+                *live = 0.0;
+                *back = 1.0;
+            } else if *live != 0.0 || *back != 0.0 {
                 row.fill(0.0);
                 *live = 0.0;
+                *back = 0.0;
             }
         }
     }

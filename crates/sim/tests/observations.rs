@@ -160,3 +160,32 @@ fn visibility_none_hides_svo() {
     assert_eq!(row[ob.spec.agents_mask.start], 1.0);
     assert_eq!(row[ob.spec.agents_ctx.start + 4], 0.0);
 }
+
+/// A frozen learned flow drives the background: its rows are observed and flagged apart from
+/// the ego's, and with IDM background they never are.
+#[test]
+fn externally_driven_background_rows_are_observed_and_flagged() {
+    use sf_sim::vec_env::{VecEnv, VecEnvConfig};
+    use sf_sim::Controller;
+    let m = common::map("merge");
+    let cfg = Arc::new(SimConfig::default());
+    let mut v = VecEnv::new(m.clone(), cfg.clone(), VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::External }, vehicles: (4, 6), seed: 1 });
+    let per = v.max_agents;
+    for _ in 0..5 {
+        for k in 0..v.n_envs() {
+            let env = v.env(k);
+            for i in 0..per {
+                let row = k * per + i;
+                let a = env.agents().get(i);
+                assert_eq!(v.alive()[row] == 1.0, i == 0 && a.is_some_and(|a| a.alive), "ego row {row}");
+                assert_eq!(v.background()[row] == 1.0, i > 0 && a.is_some_and(|a| a.alive), "background row {row}");
+                let filled = v.observations()[row * v.spec.len..(row + 1) * v.spec.len].iter().any(|&x| x != 0.0);
+                assert_eq!(filled, v.alive()[row] == 1.0 || v.background()[row] == 1.0, "row {row} filled iff observed");
+            }
+        }
+        let acts = vec![Action { ref_speed: 0.5, steer: 0.0 }; v.alive().len()];
+        v.step(&acts);
+    }
+    let idm = VecEnv::new(m, cfg, VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 1 });
+    assert!(idm.background().iter().all(|&b| b == 0.0), "IDM background is not observed");
+}

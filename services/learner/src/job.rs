@@ -66,6 +66,8 @@ pub struct Ack {
 pub struct ActiveJob {
     pub id: u64,
     pub cfg: JobConfig,
+    /// The frozen flow driving the background: its job id and config.
+    pub background: Option<(u64, String)>,
     pub obs_len: usize,
     pub action_dim: usize,
     pub replay: Mutex<Replay>,
@@ -89,11 +91,13 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl ActiveJob {
-    pub fn new(id: u64, cfg: JobConfig, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(id: u64, cfg: JobConfig, background: Option<(u64, String)>, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
         let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
         let complete = restored.env_steps >= cfg.train.env_steps;
         Self {
             id,
+            background,
             obs_len,
             action_dim,
             replay: Mutex::new(replay),

@@ -153,6 +153,16 @@ impl Inner {
             self.load_map(s).map_err(ServiceError::InvalidArgument)?;
         }
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
+        if let Some(dep) = cfg.env.background_job {
+            let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} does not exist")))?;
+            let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
+            if !dep_cfg.kind.multi_agent() {
+                return Err(ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} is an ego job, not a traffic flow")));
+            }
+            if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
+                return Err(ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} is {}", rec.state.as_str())));
+            }
+        }
         let store = Arc::clone(&self.store);
         let root = self.cfg.data_dir.join("jobs");
         let name = cfg.name.clone();
@@ -256,7 +266,19 @@ impl Inner {
                 return;
             }
         };
-        let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(|r| r.state == JobState::Queued));
+        // A job whose background flow is not finished waits; one whose flow failed fails.
+        let dep_state = |r: &JobRecord| -> Option<JobState> {
+            let dep = JobConfig::from_toml(&r.config_toml).ok()?.env.background_job?;
+            Some(all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state))
+        };
+        for r in all.iter().filter(|r| r.state == JobState::Queued) {
+            if let Some(s @ (JobState::Failed | JobState::Cancelled)) = dep_state(r) {
+                let msg = format!("its background flow job ended {}", s.as_str());
+                self.finish(r.id, Outcome::Failed(msg), None).await;
+            }
+        }
+        let ready = |r: &&JobRecord| r.state == JobState::Queued && dep_state(r).is_none_or(|s| s == JobState::Succeeded);
+        let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
         if let Some(rec) = next.cloned() {
             if let Err(msg) = self.start_job(&rec).await {
                 tracing::error!(job_id = rec.id, error = %msg, "job failed to start");
@@ -276,7 +298,17 @@ impl Inner {
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity).map_err(|e| e.to_string())?;
         let obs_len = setup::obs_spec(&cfg).len;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
-        let job = Arc::new(ActiveJob::new(rec.id, cfg, obs_len, 2, limiter, counters, self.metrics.clone()));
+        let background = match cfg.env.background_job {
+            None => None,
+            Some(dep) => {
+                let d = self.job(dep).await.map_err(|e| format!("background flow job {dep}: {e}"))?;
+                if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
+                    return Err(format!("background flow job {dep} has no final policy ({})", d.state.as_str()));
+                }
+                Some((dep, d.config_toml))
+            }
+        };
+        let job = Arc::new(ActiveJob::new(rec.id, cfg, background, obs_len, 2, limiter, counters, self.metrics.clone()));
         let store = Arc::clone(&self.store);
         let id = rec.id;
         blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?;

@@ -71,6 +71,8 @@ impl Credits {
 
 pub struct RolloutSpec {
     pub job: JobConfig,
+    /// A frozen flow driving the background: its config and weights.
+    pub background: Option<(JobConfig, Vec<u8>)>,
     /// The job's scenarios in config order (index = map id).
     pub maps: Vec<Arc<Map>>,
     pub worker_id: u64,
@@ -123,6 +125,14 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
+    let frozen = match &spec.background {
+        None => None,
+        Some((bg, bytes)) => {
+            let bg_spec = setup::obs_spec(bg);
+            anyhow::ensure!(bg_spec.len == len, "background flow observations are {} floats, the ego's {len}", bg_spec.len);
+            Some(PolicyRunner::from_bytes(&setup::net_config(bg), &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).context("loading the background flow's policy")?)
+        }
+    };
     let mut runner: Option<PolicyRunner> = None;
     let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, 2);
     let mut batch_version = None;
@@ -185,6 +195,24 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
                 }
             }
             Some(_) => {}
+        }
+        if let Some(bg) = &frozen {
+            let mut obs = Vec::new();
+            let mut ids = Vec::new();
+            let mut at = Vec::new();
+            for (k, v) in venvs.iter().enumerate() {
+                for r in (0..v.background().len()).filter(|&r| v.background()[r] == 1.0) {
+                    obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
+                    ids.push(k as u32);
+                    at.push((k, r));
+                }
+            }
+            if !ids.is_empty() {
+                let a = bg.sample(&obs, &ids, &mut rng);
+                for (j, &(k, r)) in at.iter().enumerate() {
+                    actions[k][r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
+                }
+            }
         }
         for (k, ((v, rs), acts)) in venvs.iter_mut().zip(&rows).zip(&actions).enumerate() {
             let before = v.observations().to_vec();
