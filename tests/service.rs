@@ -105,6 +105,14 @@ fn progress(j: &pb::Job) -> pb::JobProgress {
 
 const SUCCEEDED: i32 = pb::JobState::Succeeded as i32;
 
+/// Polls a job until it succeeds or fails.
+fn wait_final(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64, what: &str) -> pb::Job {
+    wait_for(what, Duration::from_secs(600), || {
+        let j = get(rt, c, id);
+        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+    })
+}
+
 #[test]
 fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     let dir = scratch("complete");
@@ -171,10 +179,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     assert_eq!(push(&mut e, huge).code(), Code::ResourceExhausted);
 
     let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
-    let done = wait_for("the job to finish", Duration::from_secs(600), || {
-        let j = get(&rt, &mut c, job.job_id);
-        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
-    });
+    let done = wait_final(&rt, &mut c, job.job_id, "the job to finish");
     assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
     let p = progress(&done);
     assert_eq!(p.env_steps, 1500);
@@ -210,10 +215,7 @@ fn a_job_completes_after_a_worker_is_killed() {
     let _w1 = start_worker(&l, &dir, 1);
     wait_for("training to start", Duration::from_secs(300), || (progress(&get(&rt, &mut c, job.job_id)).env_steps > 400).then_some(()));
     w0.kill9();
-    let done = wait_for("the job to finish", Duration::from_secs(600), || {
-        let j = get(&rt, &mut c, job.job_id);
-        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
-    });
+    let done = wait_final(&rt, &mut c, job.job_id, "the job to finish");
     assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
     assert_eq!(progress(&done).env_steps, 1500);
     let _ = std::fs::remove_dir_all(&dir);
@@ -245,10 +247,7 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     assert_eq!(j.state, pb::JobState::Running as i32, "the job is still running after the restart");
     assert_eq!(j.name, "resume");
     assert_eq!(get(&rt, &mut c, queued.job_id).state, SUCCEEDED, "the finished job kept its state");
-    let done = wait_for("the resumed job to finish", Duration::from_secs(600), || {
-        let j = get(&rt, &mut c, job.job_id);
-        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
-    });
+    let done = wait_final(&rt, &mut c, job.job_id, "the resumed job to finish");
     assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
     let p = progress(&done);
     assert_eq!(p.env_steps, 2500);
@@ -313,10 +312,7 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
         Some(f)
     });
     let frozen = std::fs::read(Path::new(&flow_done.artifact_dir).join("policy.bpk")).expect("flow policy");
-    let done = wait_for("the ego job to finish", Duration::from_secs(600), || {
-        let j = get(&rt, &mut c, ego.job_id);
-        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
-    });
+    let done = wait_final(&rt, &mut c, ego.job_id, "the ego job to finish");
     assert_eq!(done.state, SUCCEEDED, "ego job ended: {}", done.message);
     assert_eq!(progress(&done).env_steps, 800);
     // The flow stayed frozen: same bytes on disk and over the API.
