@@ -150,7 +150,7 @@ fn invalid_configs_are_refused_with_the_field_named() {
 
 #[test]
 fn stage_one_flows_train_through_the_service() {
-    for kind in ["macad", "socialcomm"] {
+    for kind in ["macad", "copo", "socialcomm"] {
         let dir = socialflow_e2e::scratch(&format!("flow-{kind}"));
         let cfg = dir.join("flow.toml");
         let text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1);
@@ -172,6 +172,16 @@ fn stage_one_flows_train_through_the_service() {
             assert!((0.0..=1.0).contains(&m), "{k} {m}");
         }
         assert_eq!(eval(), e, "an evaluation with the same policy, cases and seeds is reproducible");
+        if kind == "copo" {
+            // CoPO Stage 2 on the frozen Stage-1 flow: a fitted Gaussian over SVO, written beside it.
+            let c = json_of(&socialflow(&["copo-coordinator", "--policy", &art, "--scenario", "merge", "--iterations", "2", "--population", "4"], T));
+            let m = c["mean_deg"].as_f64().expect("mean");
+            assert!((0.0..=90.0).contains(&m) && c["history"].as_array().map(Vec::len) == Some(2), "{c}");
+            assert!(std::path::Path::new(&art).join("coordinator-merge.json").exists());
+        } else {
+            let out = socialflow(&["copo-coordinator", "--policy", &art, "--scenario", "merge"], T);
+            assert!(!out.status.success(), "the coordinator needs a CoPO flow");
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -69,11 +69,33 @@ fn load_learned(dir: &std::path::Path) -> Result<Learned> {
 
 /// One episode of a stored case with every vehicle driven by the learned policy.
 fn learned_episode(l: &Learned, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim::Case, vehicles: Option<usize>, seed: u64, deterministic: bool, runner: &sf_sac::inference::PolicyRunner) -> Result<EpisodeMetrics> {
+    Ok(learned_episode_with(l, map, case, vehicles, seed, deterministic, runner, None)?.0)
+}
+
+/// [`learned_episode`] with every agent's SVO set to `svo_deg` (if given); also returns the
+/// mean individual reward per agent-step.
+#[allow(clippy::too_many_arguments)]
+fn learned_episode_with(
+    l: &Learned,
+    map: &std::sync::Arc<sf_sim::Map>,
+    case: &sf_sim::Case,
+    vehicles: Option<usize>,
+    seed: u64,
+    deterministic: bool,
+    runner: &sf_sac::inference::PolicyRunner,
+    svo_deg: Option<f32>,
+) -> Result<(EpisodeMetrics, f32)> {
     use rand::SeedableRng;
     let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&l.job));
     let mut env = Env::new(map.clone(), sim.clone());
     env.reset(case, Mode::MultiAgent, vehicles).context("resetting a stored case")?;
+    if let Some(svo) = svo_deg {
+        for i in 0..env.len() {
+            env.set_svo(i, svo);
+        }
+    }
     let mut obs = sf_sim::Observer::new(map, &sim);
+    let (mut reward_sum, mut reward_n, mut first) = (0.0f64, 0u64, true);
     let len = obs.spec.len;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut rows = Vec::new();
@@ -100,9 +122,85 @@ fn learned_episode(l: &Learned, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim
                 actions[i] = sf_sim::Action { ref_speed: act[2 * j], steer: act[2 * j + 1] };
             }
         },
-        |_| {},
+        |env| {
+            // Called once after the reset (no rewards yet), then after every step: count the
+            // agents that acted on that step (still alive, or ended on it).
+            if std::mem::take(&mut first) {
+                return;
+            }
+            for (i, (a, r)) in env.agents().iter().zip(env.rewards()).enumerate() {
+                if a.alive || env.ended_now().get(i).copied().unwrap_or(false) {
+                    reward_sum += r.individual as f64;
+                    reward_n += 1;
+                }
+            }
+        },
     )?;
-    Ok(EpisodeMetrics::from_outcomes(env.outcomes(), false))
+    Ok((EpisodeMetrics::from_outcomes(env.outcomes(), false), (reward_sum / reward_n.max(1) as f64) as f32))
+}
+
+#[derive(Args, Debug)]
+pub struct CoordinatorArgs {
+    /// A finished CoPO Stage-1 job's artifact directory (the frozen policy).
+    #[arg(long)]
+    policy: std::path::PathBuf,
+    #[arg(long)]
+    scenario: String,
+    #[arg(long, default_value_t = 10)]
+    iterations: u32,
+    /// Candidate SVOs per iteration (one episode each, on successive stored cases).
+    #[arg(long, default_value_t = 16)]
+    population: u32,
+    #[arg(long, default_value_t = 0.25)]
+    elite: f32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Where to write the fitted Gaussian (default: `<policy>/coordinator-<scenario>.json`).
+    #[arg(long)]
+    out: Option<std::path::PathBuf>,
+}
+
+/// CoPO Stage 2: fits the scenario's SVO Gaussian by the cross-entropy method, each candidate
+/// scored by the frozen Stage-1 flow's mean individual reward with every agent at that SVO.
+pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
+    use rand::SeedableRng;
+    let l = load_learned(&a.policy)?;
+    if l.job.kind != sf_job::config::JobKind::Copo {
+        bail!("{} is a `{:?}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), l.job.kind);
+    }
+    if a.population == 0 || a.iterations == 0 || !(a.elite > 0.0 && a.elite <= 1.0) {
+        bail!("--population and --iterations must be positive and --elite in (0, 1]");
+    }
+    let map = ctx.map(&a.scenario)?;
+    let cases = ctx.cases(&map)?;
+    let sim = sf_sac::setup::sim_config(&l.job);
+    let segs = sf_sim::obs::MapSegments::build(&map, sim.obs.segment_points);
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
+    let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&l.job), &sf_sac::setup::obs_spec(&l.job), sim.dt_s, &[&segs], &l.weights, 0, &device)
+        .context("loading policy.bpk")?;
+    let mut coord = sf_sac::coordinator::Coordinator::default();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
+    let mut history = Vec::new();
+    let mut case_k = 0usize;
+    for it in 0..a.iterations {
+        let cand = coord.propose(&mut rng, a.population as usize);
+        let mut scores = Vec::with_capacity(cand.len());
+        for &svo in &cand {
+            let case = &cases.cases[case_k % cases.cases.len()];
+            let (_, r) = learned_episode_with(&l, &map, case, None, a.seed ^ case_k as u64, false, &runner, Some(svo))?;
+            scores.push(r);
+            case_k += 1;
+        }
+        coord.update(&cand, &scores, a.elite);
+        let mean_score = scores.iter().sum::<f32>() / scores.len() as f32;
+        eprintln!("iteration {it}: mean {:.1} deg, std {:.1} deg, mean reward {mean_score:.4}", coord.mean_deg, coord.std_deg);
+        history.push(json!({"iteration": it, "mean_deg": coord.mean_deg, "std_deg": coord.std_deg, "mean_reward": mean_score}));
+    }
+    let out = a.out.unwrap_or_else(|| a.policy.join(format!("coordinator-{}.json", a.scenario)));
+    let v = json!({"scenario": a.scenario, "mean_deg": coord.mean_deg, "std_deg": coord.std_deg, "history": history});
+    std::fs::write(&out, serde_json::to_string_pretty(&v)?).with_context(|| format!("writing {}", out.display()))?;
+    println!("{v}");
+    Ok(())
 }
 
 pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {

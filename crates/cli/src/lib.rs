@@ -50,6 +50,8 @@ enum Cmd {
     },
     /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
     EvalFlow(evalflow::EvalFlowArgs),
+    /// CoPO Stage 2: fits a scenario's SVO Gaussian on a frozen CoPO Stage-1 flow (CEM).
+    CopoCoordinator(evalflow::CoordinatorArgs),
     /// Trains an ego policy with SAC among IDM traffic (single process) and writes its curve.
     LearnEgo(learn::LearnArgs),
     /// Overlays learning curves (CSV) of several runs in one PNG.
@@ -121,6 +123,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
+        Cmd::CopoCoordinator(a) => evalflow::coordinator(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),
         Cmd::LearnEgo(a) => learn::run(&ctx, a),
         Cmd::PlotCurves(a) => learn::plot_curves(a),

@@ -5,6 +5,7 @@
 //! ([`checkpoint`]). Must not: do IO on the update path or know about gRPC.
 
 pub mod checkpoint;
+pub mod coordinator;
 pub mod ego;
 pub mod inference;
 pub mod rate_limiter;
