@@ -185,3 +185,35 @@ fn stage_one_flows_train_through_the_service() {
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
+
+#[test]
+fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
+    let dir = socialflow_e2e::scratch("pipeline");
+    let graph = dir.join("graph");
+    std::fs::create_dir_all(&graph).expect("dir");
+    let job = |name: &str, extra_top: &str, extra_env: &str, steps: u64| {
+        socialflow_e2e::tiny_job(r#""merge""#, name, steps).replacen('\n', &format!("\n{extra_top}"), 1).replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\n{extra_env}"), 1)
+    };
+    std::fs::write(graph.join("a-ego.toml"), job("ego-in-flow", "", "background_from = \"flow\"\n", 600)).expect("config");
+    std::fs::write(graph.join("b-flow.toml"), job("flow", "kind = \"macad\"\n", "", 900)).expect("config");
+    let data = dir.join("data").display().to_string();
+    let args = ["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data];
+    let out = socialflow(&args, T);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
+    assert_eq!(lines.len(), 2);
+    assert!(lines.iter().all(|v| v["state"] == "succeeded"), "{lines:?}");
+    let id = |n: &str| lines.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("job id");
+    assert!(id("flow") < id("ego-in-flow"), "the flow is submitted first although its file sorts last");
+    // Rerun: nothing new is submitted.
+    let again = socialflow(&args, T);
+    assert!(again.status.success());
+    let err = String::from_utf8_lossy(&again.stderr);
+    assert_eq!(err.matches("already on the learner").count(), 2, "{err}");
+    // A dangling reference is refused before anything starts.
+    std::fs::write(graph.join("c-bad.toml"), job("bad", "", "background_from = \"nowhere\"\n", 100)).expect("config");
+    let bad = socialflow(&args, T);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

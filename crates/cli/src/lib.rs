@@ -14,6 +14,7 @@ mod bench_sac;
 mod bench_svc;
 mod evalflow;
 mod learn;
+mod pipeline;
 mod remote;
 mod render;
 mod scenarios;
@@ -39,6 +40,9 @@ enum Cmd {
     Train(train::TrainArgs),
     #[command(flatten)]
     Remote(remote::RemoteCmd),
+    /// Submits a directory of job configs as one graph (dependencies first) and follows it;
+    /// rerun, it resumes where it stopped.
+    Pipeline(pipeline::PipelineArgs),
     /// Runs the learner service (same as the `socialflow-learner` binary).
     Learner(sf_learner::cmd::LearnerArgs),
     /// Runs a rollout worker (same as the `socialflow-worker` binary).
@@ -119,6 +123,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Train(a) => train::run(ctx.scenarios.clone(), a),
         Cmd::Remote(c) => remote::run(c),
+        Cmd::Pipeline(a) => pipeline::run(ctx.scenarios.clone(), a),
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),

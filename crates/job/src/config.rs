@@ -130,6 +130,10 @@ pub struct EnvSection {
     /// IDM. The job waits until that one has succeeded (a pipeline dependency).
     #[serde(default)]
     pub background_job: Option<u64>,
+    /// In a pipeline directory: the background flow by job name; `socialflow pipeline` turns it
+    /// into `background_job` when it submits (the learner accepts only ids).
+    #[serde(default)]
+    pub background_from: Option<String>,
 }
 fn d_vmin() -> u32 {
     8
@@ -277,6 +281,9 @@ impl JobConfig {
         }
         if self.env.background_job.is_some() && self.kind.multi_agent() {
             return bad("env.background_job", "only ego jobs drive a frozen flow; a flow job trains every vehicle");
+        }
+        if self.env.background_from.is_some() && (self.kind.multi_agent() || self.env.background_job.is_some()) {
+            return bad("env.background_from", "only for ego jobs, and not together with env.background_job");
         }
         if self.env.background_job == Some(0) {
             return bad("env.background_job", "job ids start at 1");

@@ -153,6 +153,9 @@ impl Inner {
             self.load_map(s).map_err(ServiceError::InvalidArgument)?;
         }
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
+        if let Some(name) = &cfg.env.background_from {
+            return Err(ServiceError::InvalidArgument(format!("job config field `env.background_from` (`{name}`) is resolved by `socialflow pipeline`; submit with `env.background_job = <id>`")));
+        }
         if let Some(dep) = cfg.env.background_job {
             let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} does not exist")))?;
             let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
@@ -493,6 +496,9 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
         files.push(root.join("deploy/smoke-job.toml"));
+        for sub in ["configs/paper-small"] {
+            files.extend(std::fs::read_dir(root.join(sub)).expect("pipeline dir").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")));
+        }
         assert!(files.len() >= 3, "{files:?}");
         for f in files {
             let text = std::fs::read_to_string(&f).expect("readable");
