@@ -230,8 +230,15 @@ impl ActiveJob {
             let mut r = lock(&self.replay);
             let (ol, ad) = (self.obs_len, self.action_dim);
             for i in 0..take {
-                r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i])
-                    .map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
+                // Decoding validated shapes and values, so this cannot fail; if it did, the rows
+                // already stored stay and the rest is released so the job can still complete.
+                if let Err(e) = r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i]) {
+                    drop(r);
+                    let mut s = lock(&self.stats);
+                    s.reserved -= (take - i) as u64;
+                    s.c.env_steps += i as u64;
+                    return Err(ServiceError::InvalidArgument(e.to_string()));
+                }
             }
             self.metrics.replay_size.set(r.len() as i64);
             self.metrics.replay_bytes.set((r.len() * r.bytes_per_transition()) as i64);
