@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use burn::tensor::{Tensor, TensorData};
-use sf_sim::env::{Controller, Termination};
+use sf_sim::env::Controller;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Map, Mode, SimConfig};
 
@@ -135,16 +135,14 @@ pub fn train_ego(sim: &Arc<SimConfig>, sac: &mut Sac, run: &EgoRun, mut on_point
                 if !st.stepped {
                     continue;
                 }
-                let ended = st.ended;
-                let next = if ended.is_some() { &v.final_observations()[r * spec.len..(r + 1) * spec.len] } else { &v.observations()[r * spec.len..(r + 1) * spec.len] };
                 let act = [actions[r].ref_speed, actions[r].steer];
                 replay
                     .push(Transition {
                         obs: &before[r * spec.len..(r + 1) * spec.len],
                         action: &act,
                         reward: st.rewards.individual,
-                        next_obs: next,
-                        terminal: ended.is_some_and(|t| t != Termination::Timeout),
+                        next_obs: v.next_observation(r),
+                        terminal: st.terminal(),
                         map_id: k as u32,
                     })
                     .expect("simulator observations are finite and well-shaped");

@@ -45,6 +45,14 @@ pub struct RowStep {
     pub ended: Option<Termination>,
 }
 
+impl RowStep {
+    /// The step ended the agent's episode by a failure or its destination: no bootstrapping
+    /// from the next observation. Timeouts are not terminal.
+    pub fn terminal(&self) -> bool {
+        self.ended.is_some_and(|t| t != Termination::Timeout)
+    }
+}
+
 struct Slot {
     env: Env,
     observer: Observer,
@@ -142,10 +150,13 @@ impl VecEnv {
         &self.steps
     }
 
-    /// Per row: the observation at the end of the last step for rows that ended on it
-    /// (the bootstrap observation of a timeout); other rows hold stale data.
-    pub fn final_observations(&self) -> &[f32] {
-        &self.final_obs
+    /// The observation that follows row `r`'s last step: the observation at the end of that
+    /// step if the agent's episode ended on it (the bootstrap observation of a timeout; the row
+    /// itself is already reset), else its current row.
+    pub fn next_observation(&self, r: usize) -> &[f32] {
+        let len = self.spec.len;
+        let src = if self.steps[r].ended.is_some() { &self.final_obs } else { &self.obs };
+        &src[r * len..(r + 1) * len]
     }
 
     /// Decision steps taken, summed over environments, and learner steps taken.

@@ -17,7 +17,6 @@ use sf_job::{EpisodeResult, JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_sac::inference::PolicyRunner;
 use sf_sac::setup;
-use sf_sim::env::Termination;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Map};
@@ -224,9 +223,8 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
                 if !st.stepped {
                     continue;
                 }
-                let next = if st.ended.is_some() { &v.final_observations()[r * len..(r + 1) * len] } else { &v.observations()[r * len..(r + 1) * len] };
                 let act = [acts[r].ref_speed, acts[r].steer];
-                batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), next, st.ended.is_some_and(|t| t != Termination::Timeout), k as u32);
+                batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
             }
             for m in v.take_finished() {
                 metrics.episodes.inc();
