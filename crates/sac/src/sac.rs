@@ -46,22 +46,9 @@ pub struct SacConfig {
 }
 
 impl Default for SacConfig {
+    /// The paper's table, kept once in `sf_job::config::SacSection`, with rewards unscaled.
     fn default() -> Self {
-        Self {
-            gamma: 0.9,
-            tau: 0.005,
-            lr_actor: 1e-4,
-            lr_critic: 5e-4,
-            lr_alpha: 1e-4,
-            batch_size: 128,
-            initial_alpha: 1.0,
-            target_entropy: None,
-            reward_scale: 1.0,
-            warmup_steps: 30_000,
-            seed: 0,
-            device: DeviceKind::Cpu,
-            reuse_critic_features: true,
-        }
+        Self { reward_scale: 1.0, ..crate::setup::sac_from_section(&sf_job::config::SacSection::default()) }
     }
 }
 

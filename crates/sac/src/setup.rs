@@ -4,7 +4,7 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, Encoder, NetPreset, SvoSeen};
+use sf_job::config::{Device, Encoder, NetPreset, SacSection, SvoSeen};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
 use sf_nn::{EncoderKind, NetConfig, SvoInput};
@@ -84,7 +84,11 @@ pub fn obs_spec(job: &JobConfig) -> ObsSpec {
 }
 
 pub fn sac_config(job: &JobConfig) -> SacConfig {
-    let s = &job.sac;
+    sac_from_section(&job.sac)
+}
+
+/// A job config's `[sac]` section as the SAC crate's config.
+pub fn sac_from_section(s: &SacSection) -> SacConfig {
     SacConfig {
         gamma: s.gamma,
         tau: s.tau,
@@ -142,5 +146,19 @@ mod tests {
             assert_eq!(mode(&j) == Mode::MultiAgent, multi, "{kind}");
             assert_eq!(reward(&j, &r), if composed { 2.0 } else { 1.0 }, "{kind}");
         }
+    }
+}
+
+#[cfg(test)]
+mod defaults {
+    use super::*;
+
+    /// The paper's table (gamma 0.9, batch 128, Adam 1e-4 / 5e-4 / 1e-4, tau 0.005, alpha 1).
+    #[test]
+    fn sac_defaults_are_the_papers() {
+        let c = SacConfig::default();
+        assert_eq!((c.gamma, c.tau, c.batch_size, c.initial_alpha, c.reward_scale), (0.9, 0.005, 128, 1.0, 1.0));
+        assert_eq!((c.lr_actor, c.lr_critic, c.lr_alpha), (1e-4, 5e-4, 1e-4));
+        assert_eq!((c.warmup_steps, c.target_entropy, c.reuse_critic_features), (30_000, None, true));
     }
 }
