@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use std::time::{Duration, Instant};
 
-use sf_job::{EpisodeResult, JobConfig, JobState, Progress, TransitionBatch};
+use sf_job::{EpisodeResult, JobConfig, Progress, TransitionBatch};
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::{Losses, RateLimiter, Replay};
 use sf_svc::ServiceError;
@@ -322,10 +322,6 @@ impl ActiveJob {
             wall_s: s.c.wall_s + self.started.elapsed().as_secs_f64(),
             dropped_stale: s.c.dropped_stale,
         }
-    }
-
-    pub fn state(&self) -> JobState {
-        JobState::Running
     }
 }
 

@@ -480,10 +480,6 @@ impl RunningLearner {
             Ok(Err(e)) => Err(e).context("gRPC server task"),
         }
     }
-
-    pub fn data_dir(&self) -> &Path {
-        &self.inner.cfg.data_dir
-    }
 }
 
 #[cfg(test)]

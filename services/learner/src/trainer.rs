@@ -164,9 +164,10 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
     }
     save(&job, &sac, &dir, &mut st, version)?;
     if outcome == Outcome::Succeeded {
-        let bytes = sac.actor_bytes().map_err(|e| format!("serialising the actor: {e}"))?;
-        write_atomic(&dir.join("policy.bpk"), &bytes)?;
-        write_atomic(&dir.join("policy.json"), serde_json::json!({"version": version, "updates": sac.updates}).to_string().as_bytes())?;
+        // The final policy is the version just published: write those bytes.
+        let last = job.latest().expect("a version was published above");
+        write_atomic(&dir.join("policy.bpk"), &last.weights)?;
+        write_atomic(&dir.join("policy.json"), serde_json::json!({"version": last.version, "updates": sac.updates}).to_string().as_bytes())?;
     }
     Ok(outcome)
 }
