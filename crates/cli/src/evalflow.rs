@@ -49,94 +49,94 @@ pub fn flow_mode(flow: Flow) -> Result<Mode> {
     }
 }
 
-/// A learned flow loaded from a job's artifacts.
-struct Learned {
-    job: sf_job::JobConfig,
-    weights: Vec<u8>,
+/// A learned flow loaded from a job's artifacts, ready to drive one map: its simulator settings,
+/// the map's segments and the policy (built once, reused by every episode).
+struct LearnedFlow {
+    sim: std::sync::Arc<SimConfig>,
+    segments: std::sync::Arc<sf_sim::obs::MapSegments>,
+    runner: sf_sac::inference::PolicyRunner,
 }
 
-fn load_learned(dir: &std::path::Path) -> Result<Learned> {
-    let cfg = dir.join("config.toml");
-    let text = std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
-    let job = sf_job::JobConfig::from_toml(&text).with_context(|| cfg.display().to_string())?;
-    if !job.kind.multi_agent() {
-        bail!("{} is a `{:?}` job, not a traffic flow", dir.display(), job.kind);
-    }
-    let p = dir.join("policy.bpk");
-    let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
-    Ok(Learned { job, weights })
-}
-
-/// One episode of a stored case with every vehicle driven by the learned policy.
-fn learned_episode(l: &Learned, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim::Case, vehicles: Option<usize>, seed: u64, deterministic: bool, runner: &sf_sac::inference::PolicyRunner) -> Result<EpisodeMetrics> {
-    Ok(learned_episode_with(l, map, case, vehicles, seed, deterministic, runner, None)?.0)
-}
-
-/// [`learned_episode`] with every agent's SVO set to `svo_deg` (if given); also returns the
-/// mean individual reward per agent-step.
-#[allow(clippy::too_many_arguments)]
-fn learned_episode_with(
-    l: &Learned,
-    map: &std::sync::Arc<sf_sim::Map>,
-    case: &sf_sim::Case,
-    vehicles: Option<usize>,
-    seed: u64,
-    deterministic: bool,
-    runner: &sf_sac::inference::PolicyRunner,
-    svo_deg: Option<f32>,
-) -> Result<(EpisodeMetrics, f32)> {
-    use rand::SeedableRng;
-    let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&l.job));
-    let mut env = Env::new(map.clone(), sim.clone());
-    env.reset(case, Mode::MultiAgent, vehicles).context("resetting a stored case")?;
-    if let Some(svo) = svo_deg {
-        for i in 0..env.len() {
-            env.set_svo(i, svo);
+impl LearnedFlow {
+    /// The config of a flow job's artifact directory (refused if it is not a flow).
+    fn config(dir: &std::path::Path) -> Result<sf_job::JobConfig> {
+        let cfg = dir.join("config.toml");
+        let text = std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
+        let job = sf_job::JobConfig::from_toml(&text).with_context(|| cfg.display().to_string())?;
+        if !job.kind.multi_agent() {
+            bail!("{} is a `{:?}` job, not a traffic flow", dir.display(), job.kind);
         }
+        Ok(job)
     }
-    let mut obs = sf_sim::Observer::new(map, &sim);
-    let (mut reward_sum, mut reward_n, mut first) = (0.0f64, 0u64, true);
-    let len = obs.spec.len;
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let mut rows = Vec::new();
-    let mut ids = Vec::new();
-    env.run_episode(
-        |env, actions| {
-            obs.prepare(env);
-            rows.clear();
-            ids.clear();
-            for (i, a) in env.agents().iter().enumerate() {
-                if a.alive && a.role == sf_sim::Role::Learner {
-                    let start = rows.len();
-                    rows.resize(start + len, 0.0);
-                    obs.write(env, i, &mut rows[start..]);
-                    ids.push(i);
+
+    fn load(dir: &std::path::Path, job: sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
+        let p = dir.join("policy.bpk");
+        let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
+        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&job));
+        let segments = std::sync::Arc::new(sf_sim::obs::MapSegments::build(map, sim.obs.segment_points));
+        let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&job), &sf_sac::setup::obs_spec(&job), sim.dt_s, &[&segments], &weights, 0, &device)
+            .with_context(|| format!("loading {}", p.display()))?;
+        Ok(Self { sim, segments, runner })
+    }
+
+    /// One episode of a stored case with every vehicle driven by the policy, every agent's SVO
+    /// set to `svo_deg` if given; returns the metrics and the mean individual reward per
+    /// agent-step.
+    fn episode(&self, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim::Case, vehicles: Option<usize>, seed: u64, deterministic: bool, svo_deg: Option<f32>) -> Result<(EpisodeMetrics, f32)> {
+        use rand::SeedableRng;
+        let mut env = Env::new(map.clone(), self.sim.clone());
+        env.reset(case, Mode::MultiAgent, vehicles).context("resetting a stored case")?;
+        if let Some(svo) = svo_deg {
+            for i in 0..env.len() {
+                env.set_svo(i, svo);
+            }
+        }
+        let mut obs = sf_sim::Observer::with_segments(self.segments.clone(), &self.sim);
+        let (mut reward_sum, mut reward_n, mut first) = (0.0f64, 0u64, true);
+        let len = obs.spec.len;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut rows = Vec::new();
+        let mut ids = Vec::new();
+        let runner = &self.runner;
+        env.run_episode(
+            |env, actions| {
+                obs.prepare(env);
+                rows.clear();
+                ids.clear();
+                for (i, a) in env.agents().iter().enumerate() {
+                    if a.alive && a.role == sf_sim::Role::Learner {
+                        let start = rows.len();
+                        rows.resize(start + len, 0.0);
+                        obs.write(env, i, &mut rows[start..]);
+                        ids.push(i);
+                    }
                 }
-            }
-            if ids.is_empty() {
-                return;
-            }
-            let zeros = vec![0u32; ids.len()];
-            let act = if deterministic { runner.mean(&rows, &zeros) } else { runner.sample(&rows, &zeros, &mut rng) };
-            for (j, &i) in ids.iter().enumerate() {
-                actions[i] = sf_sim::Action { ref_speed: act[2 * j], steer: act[2 * j + 1] };
-            }
-        },
-        |env| {
-            // Called once after the reset (no rewards yet), then after every step: count the
-            // agents that acted on that step (still alive, or ended on it).
-            if std::mem::take(&mut first) {
-                return;
-            }
-            for (i, (a, r)) in env.agents().iter().zip(env.rewards()).enumerate() {
-                if a.alive || env.ended_now().get(i).copied().unwrap_or(false) {
-                    reward_sum += r.individual as f64;
-                    reward_n += 1;
+                if ids.is_empty() {
+                    return;
                 }
-            }
-        },
-    )?;
-    Ok((EpisodeMetrics::from_outcomes(env.outcomes(), false), (reward_sum / reward_n.max(1) as f64) as f32))
+                let zeros = vec![0u32; ids.len()];
+                let act = if deterministic { runner.mean(&rows, &zeros) } else { runner.sample(&rows, &zeros, &mut rng) };
+                for (j, &i) in ids.iter().enumerate() {
+                    actions[i] = sf_sim::Action { ref_speed: act[2 * j], steer: act[2 * j + 1] };
+                }
+            },
+            |env| {
+                // Called once after the reset (no rewards yet), then after every step: count the
+                // agents that acted on that step (still alive, or ended on it).
+                if std::mem::take(&mut first) {
+                    return;
+                }
+                for (i, (a, r)) in env.agents().iter().zip(env.rewards()).enumerate() {
+                    if a.alive || env.ended_now().get(i).copied().unwrap_or(false) {
+                        reward_sum += r.individual as f64;
+                        reward_n += 1;
+                    }
+                }
+            },
+        )?;
+        Ok((EpisodeMetrics::from_outcomes(env.outcomes(), false), (reward_sum / reward_n.max(1) as f64) as f32))
+    }
 }
 
 #[derive(Args, Debug)]
@@ -164,20 +164,16 @@ pub struct CoordinatorArgs {
 /// scored by the frozen Stage-1 flow's mean individual reward with every agent at that SVO.
 pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
     use rand::SeedableRng;
-    let l = load_learned(&a.policy)?;
-    if l.job.kind != sf_job::config::JobKind::Copo {
-        bail!("{} is a `{:?}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), l.job.kind);
+    let job = LearnedFlow::config(&a.policy)?;
+    if job.kind != sf_job::config::JobKind::Copo {
+        bail!("{} is a `{:?}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), job.kind);
     }
     if a.population == 0 || a.iterations == 0 || !(a.elite > 0.0 && a.elite <= 1.0) {
         bail!("--population and --iterations must be positive and --elite in (0, 1]");
     }
     let map = ctx.map(&a.scenario)?;
     let cases = ctx.cases(&map)?;
-    let sim = sf_sac::setup::sim_config(&l.job);
-    let segs = sf_sim::obs::MapSegments::build(&map, sim.obs.segment_points);
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-    let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&l.job), &sf_sac::setup::obs_spec(&l.job), sim.dt_s, &[&segs], &l.weights, 0, &device)
-        .context("loading policy.bpk")?;
+    let flow = LearnedFlow::load(&a.policy, job, &map)?;
     let mut coord = sf_sac::coordinator::Coordinator::default();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
     let mut history = Vec::new();
@@ -187,7 +183,7 @@ pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
         let mut scores = Vec::with_capacity(cand.len());
         for &svo in &cand {
             let case = &cases.cases[case_k % cases.cases.len()];
-            let (_, r) = learned_episode_with(&l, &map, case, None, a.seed ^ case_k as u64, false, &runner, Some(svo))?;
+            let (_, r) = flow.episode(&map, case, None, a.seed ^ case_k as u64, false, Some(svo))?;
             scores.push(r);
             case_k += 1;
         }
@@ -204,9 +200,9 @@ pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
 }
 
 pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
-    let learned = a.policy.as_deref().map(load_learned).transpose()?;
+    let learned = a.policy.as_deref().map(|dir| LearnedFlow::config(dir).map(|job| (dir, job))).transpose()?;
     let flow_name = match (&learned, a.flow) {
-        (Some(l), _) => format!("{:?}", l.job.kind).to_lowercase(),
+        (Some((_, job)), _) => format!("{:?}", job.kind).to_lowercase(),
         (None, Some(f)) => format!("{f:?}").to_lowercase(),
         (None, None) => bail!("give --flow or --policy"),
     };
@@ -222,7 +218,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
     }
     let cfg = std::sync::Arc::new(SimConfig::default());
     let jobs: Vec<(usize, u32)> = (0..a.cases as usize).flat_map(|c| (0..a.seeds).map(move |s| (c, s))).collect();
-    let results: Vec<EpisodeMetrics> = match &learned {
+    let results: Vec<EpisodeMetrics> = match learned {
         None => jobs
             .par_iter()
             .map(|&(c, _seed)| {
@@ -233,13 +229,9 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
                 Ok(EpisodeMetrics::from_outcomes(env.outcomes(), false))
             })
             .collect::<Result<_>>()?,
-        Some(l) => {
-            let sim = sf_sac::setup::sim_config(&l.job);
-            let segs = sf_sim::obs::MapSegments::build(&map, sim.obs.segment_points);
-            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-            let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&l.job), &sf_sac::setup::obs_spec(&l.job), sim.dt_s, &[&segs], &l.weights, 0, &device)
-                .context("loading policy.bpk")?;
-            jobs.iter().map(|&(c, seed)| learned_episode(l, &map, &cases.cases[c], a.vehicles, 1_000_003 * c as u64 + seed as u64, a.deterministic, &runner)).collect::<Result<_>>()?
+        Some((dir, job)) => {
+            let flow = LearnedFlow::load(dir, job, &map)?;
+            jobs.iter().map(|&(c, seed)| Ok(flow.episode(&map, &cases.cases[c], a.vehicles, 1_000_003 * c as u64 + seed as u64, a.deterministic, None)?.0)).collect::<Result<_>>()?
         }
     };
     let col = |f: fn(&EpisodeMetrics) -> f32| Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>());
