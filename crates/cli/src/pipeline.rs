@@ -144,8 +144,7 @@ pub fn run(scenarios_dir: PathBuf, a: PipelineArgs) -> Result<()> {
                 }
             }
             None => {
-                let token = sf_svc::auth::Token::load("SOCIALFLOW_TOKEN", a.conn.token_file.as_deref()).context("the learner's bearer token")?;
-                let mut c = remote::jobs_client(&a.conn.learner, a.conn.tls_ca_file.as_deref(), Some(token)).await?;
+                let mut c = remote::connect(&a.conn).await?;
                 let ids = submit_all(&mut c, &jobs).await?;
                 follow(&mut c, &ids).await
             }

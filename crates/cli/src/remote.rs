@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
-use clap::{Args, Subcommand};
+use clap::Subcommand;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use sf_job::{JobRecord, JobState, Progress};
@@ -17,18 +17,7 @@ use tonic::transport::Channel;
 
 pub type JobsClient = JobServiceClient<InterceptedService<Channel, AttachToken>>;
 
-#[derive(Args, Debug, Clone)]
-pub struct Conn {
-    /// The learner's gRPC URL.
-    #[arg(long, env = "SOCIALFLOW_LEARNER_URL", default_value = "http://127.0.0.1:50051")]
-    pub learner: String,
-    /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
-    #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
-    pub token_file: Option<PathBuf>,
-    /// CA certificate (PEM) for an https:// learner.
-    #[arg(long, env = "SOCIALFLOW_TLS_CA_FILE")]
-    pub tls_ca_file: Option<PathBuf>,
-}
+pub use sf_svc::conn::LearnerConn as Conn;
 
 #[derive(Subcommand, Debug)]
 pub enum RemoteCmd {
@@ -63,8 +52,13 @@ pub enum RemoteCmd {
     },
 }
 
-pub async fn jobs_client(url: &str, ca: Option<&std::path::Path>, token: Option<Token>) -> Result<JobsClient> {
-    let ch = sf_svc::tls::endpoint(url, ca)?.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
+/// A job-API client for `conn` with its token.
+pub async fn connect(conn: &Conn) -> Result<JobsClient> {
+    jobs_client(conn.endpoint()?, &conn.learner, Some(conn.token()?)).await
+}
+
+pub async fn jobs_client(endpoint: tonic::transport::Endpoint, url: &str, token: Option<Token>) -> Result<JobsClient> {
+    let ch = endpoint.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
     Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
 }
 
@@ -140,12 +134,11 @@ pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobS
 pub fn run(cmd: RemoteCmd) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting the async runtime")?;
     rt.block_on(async move {
-        let token = |c: &Conn| Token::load("SOCIALFLOW_TOKEN", c.token_file.as_deref()).context("the learner's bearer token");
         match cmd {
             RemoteCmd::Submit { config, conn, watch: w } => {
                 let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
                 sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
-                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
+                let mut c = connect(&conn).await?;
                 let j = submit(&mut c, text).await?;
                 println!("{}", job_json(&j));
                 if w {
@@ -157,7 +150,7 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                 Ok(())
             }
             RemoteCmd::Status { job_id, conn, json: as_json } => {
-                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
+                let mut c = connect(&conn).await?;
                 let jobs = match job_id {
                     Some(id) => vec![sf_proto::job_from_wire(&c.get_job(deadline(pb::GetJobRequest { job_id: id })).await.map_err(status_err)?.into_inner())?],
                     None => list(&mut c).await?,
@@ -173,13 +166,13 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                 Ok(())
             }
             RemoteCmd::Watch { job_id, conn } => {
-                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
+                let mut c = connect(&conn).await?;
                 let (state, p) = watch(&mut c, job_id, false).await?;
                 println!("{}", json!({"job_id": job_id, "state": state.as_str(), "progress": p}));
                 Ok(())
             }
             RemoteCmd::Cancel { job_id, conn } => {
-                let mut c = jobs_client(&conn.learner, conn.tls_ca_file.as_deref(), Some(token(&conn)?)).await?;
+                let mut c = connect(&conn).await?;
                 let j = c.cancel_job(deadline(pb::CancelJobRequest { job_id })).await.map_err(status_err)?.into_inner();
                 println!("{}", job_json(&sf_proto::job_from_wire(&j)?));
                 Ok(())

@@ -72,7 +72,7 @@ impl Embedded {
     }
 
     pub async fn client(&self) -> Result<remote::JobsClient> {
-        remote::jobs_client(&self.url, None, Some(self.token.clone())).await
+        remote::jobs_client(sf_svc::tls::endpoint(&self.url, None)?, &self.url, Some(self.token.clone())).await
     }
 
     /// Stops the workers, then the learner (checkpointing a running job).

@@ -10,6 +10,9 @@ use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 use tonic::{Request, Status};
 
+/// The environment variable that holds the bearer token.
+pub const TOKEN_ENV: &str = "SOCIALFLOW_TOKEN";
+
 /// A shared secret. Never printed.
 #[derive(Clone)]
 pub struct Token(Arc<str>);

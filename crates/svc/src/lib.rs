@@ -1,13 +1,14 @@
 //! Service plumbing shared by the learner and the worker.
 //!
 //! Owns: the one table from domain errors to gRPC status codes ([`error`]), bearer-token auth
-//! on both ends ([`auth`]), the admin HTTP server with Prometheus metrics, liveness and
+//! on both ends ([`auth`]), the clients' learner connection flags ([`conn`]), the admin HTTP server with Prometheus metrics, liveness and
 //! readiness ([`admin`]), RPC counters and process gauges ([`metrics`]), bounded backoff
 //! ([`backoff`]), logging set-up ([`logging`]) and optional TLS ([`tls`]). Must not: hold learner or worker logic.
 
 pub mod admin;
 pub mod auth;
 pub mod backoff;
+pub mod conn;
 pub mod error;
 pub mod logging;
 pub mod metrics;

@@ -64,7 +64,7 @@ impl LearnerArgs {
             cfg.tls_key_file = self.tls_key_file.clone();
         }
         cfg.validate()?;
-        let token = Token::load("SOCIALFLOW_TOKEN", self.token_file.as_deref())?;
+        let token = Token::load(sf_svc::auth::TOKEN_ENV, self.token_file.as_deref())?;
         Ok((cfg, token))
     }
 }

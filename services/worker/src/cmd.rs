@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use clap::Parser;
 use prometheus_client::registry::Registry;
-use sf_svc::auth::Token;
+use sf_svc::conn::LearnerConn;
 use tokio::sync::watch;
 
 use crate::{WorkerConfig, WorkerMetrics};
@@ -16,9 +16,8 @@ use crate::{WorkerConfig, WorkerMetrics};
 #[derive(Parser, Debug, Clone)]
 #[command(name = "socialflow-worker", about = "A stateless socialflow rollout worker")]
 pub struct WorkerArgs {
-    /// The learner's gRPC URL.
-    #[arg(long, env = "SOCIALFLOW_LEARNER_URL", default_value = "http://127.0.0.1:50051")]
-    pub learner: String,
+    #[command(flatten)]
+    pub conn: LearnerConn,
     /// Name in the learner's logs (default: the host name).
     #[arg(long, env = "SOCIALFLOW_WORKER_NAME")]
     pub name: Option<String>,
@@ -27,12 +26,6 @@ pub struct WorkerArgs {
     pub admin_addr: Option<SocketAddr>,
     #[arg(long, env = "SOCIALFLOW_SCENARIOS_DIR", default_value = "configs/scenarios")]
     pub scenarios_dir: PathBuf,
-    /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
-    #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
-    pub token_file: Option<PathBuf>,
-    /// CA certificate (PEM) for an https:// learner.
-    #[arg(long, env = "SOCIALFLOW_TLS_CA_FILE")]
-    pub tls_ca_file: Option<PathBuf>,
     /// Deadline of each unary call, seconds.
     #[arg(long, default_value_t = 10)]
     pub rpc_timeout_s: u64,
@@ -45,20 +38,20 @@ pub struct WorkerArgs {
 
 impl WorkerArgs {
     pub fn resolve(&self) -> anyhow::Result<WorkerConfig> {
-        anyhow::ensure!(self.learner.starts_with("http://") || self.learner.starts_with("https://"), "--learner `{}` must start with http:// or https://", self.learner);
+        anyhow::ensure!(self.conn.learner.starts_with("http://") || self.conn.learner.starts_with("https://"), "--learner `{}` must start with http:// or https://", self.conn.learner);
         anyhow::ensure!(self.scenarios_dir.is_dir(), "--scenarios-dir {} is not a directory", self.scenarios_dir.display());
         anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
-        let token = Token::load("SOCIALFLOW_TOKEN", self.token_file.as_deref())?;
+        let token = self.conn.token()?;
         let name = self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
         Ok(WorkerConfig {
-            learner_url: self.learner.clone(),
+            learner_url: self.conn.learner.clone(),
             name,
             scenarios_dir: self.scenarios_dir.clone(),
             token: Some(token),
             rpc_timeout: Duration::from_secs(self.rpc_timeout_s),
             max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),
             threads: 0,
-            tls_ca_file: self.tls_ca_file.clone(),
+            tls_ca_file: self.conn.tls_ca_file.clone(),
         })
     }
 }
