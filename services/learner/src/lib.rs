@@ -138,9 +138,18 @@ impl Inner {
         *self.active.write().unwrap_or_else(|p| p.into_inner()) = j;
     }
 
-    fn load_map(&self, name: &str) -> Result<Arc<Map>, String> {
-        let p = self.cfg.scenarios_dir.join(format!("{name}.json"));
-        Map::load(&p).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}"))
+    /// Loads and validates the job's scenario files off the async runtime (file IO).
+    async fn load_maps(&self, names: &[String]) -> Result<Vec<Arc<Map>>, String> {
+        let dir = self.cfg.scenarios_dir.clone();
+        let names = names.to_vec();
+        tokio::task::spawn_blocking(move || {
+            names
+                .iter()
+                .map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}")))
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .await
+        .map_err(|e| format!("scenario loading task: {e}"))?
     }
 
     /// Validates a config and queues it.
@@ -149,9 +158,7 @@ impl Inner {
             return Err(ServiceError::Unavailable("the learner is shutting down".into()));
         }
         let cfg = JobConfig::from_toml(&toml_text)?;
-        for s in &cfg.env.scenarios {
-            self.load_map(s).map_err(ServiceError::InvalidArgument)?;
-        }
+        self.load_maps(&cfg.env.scenarios).await.map_err(ServiceError::InvalidArgument)?;
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
         if let Some(name) = &cfg.env.background_from {
             return Err(ServiceError::InvalidArgument(format!("job config field `env.background_from` (`{name}`) is resolved by `socialflow pipeline`; submit with `env.background_job = <id>`")));
@@ -292,7 +299,7 @@ impl Inner {
 
     async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
         let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
-        let maps = cfg.env.scenarios.iter().map(|s| self.load_map(s)).collect::<Result<Vec<_>, _>>()?;
+        let maps = self.load_maps(&cfg.env.scenarios).await?;
         let dir = PathBuf::from(&rec.artifact_dir);
         let dir2 = dir.clone();
         let resume = tokio::task::spawn_blocking(move || trainer::load_state(&dir2)).await.map_err(|e| e.to_string())??;
