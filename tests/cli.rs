@@ -217,3 +217,101 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// FNV-1a (64-bit) checksum of a file's bytes: enough to see any change.
+fn checksum(p: &std::path::Path) -> u64 {
+    let bytes = std::fs::read(p).unwrap_or_else(|e| panic!("reading {}: {e}", p.display()));
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// The paper's two RARL pipelines at a tiny budget, on top of a Stage-1 flow: FailMaker
+/// (background trained against the frozen RL/IDM ego, then the ego continued against it) and
+/// SocialCommAdv (the adversary trained against the frozen RL/SocialComm ego over the frozen
+/// SocialComm flow, then the ego continued against both). Frozen policies stay bit-identical.
+#[test]
+fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
+    let dir = socialflow_e2e::scratch("rarl");
+    let graph = dir.join("graph");
+    std::fs::create_dir_all(&graph).expect("dir");
+    let job = |file: &str, name: &str, kind: &str, env: &str, train: &str, steps: u64| {
+        let text = socialflow_e2e::tiny_job(r#""merge""#, name, steps)
+            .replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1)
+            .replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\n{env}"), 1)
+            .replacen("max_policy_lag = 1000\n", &format!("max_policy_lag = 1000\n{train}"), 1);
+        std::fs::write(graph.join(file), text).expect("config");
+    };
+    job("flow-sc.toml", "flow-sc", "socialcomm", "", "", 900);
+    job("ego-idm.toml", "ego-idm", "ego", "", "", 600);
+    job("ego-sc.toml", "ego-sc", "ego", "background_from = \"flow-sc\"\n", "", 600);
+    let data = dir.join("data").display().to_string();
+    let args = ["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data];
+    let run = || {
+        let out = socialflow(&args, 4 * T);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("JSON line")).collect::<Vec<_>>()
+    };
+    let first = run();
+    let art = |lines: &[serde_json::Value], n: &str| std::path::PathBuf::from(lines.iter().find(|v| v["name"] == n).and_then(|v| v["artifact_dir"].as_str()).unwrap_or_else(|| panic!("{n} missing")));
+    let frozen = ["flow-sc", "ego-idm", "ego-sc"];
+    let sums: Vec<u64> = frozen.iter().map(|n| checksum(&art(&first, n).join("policy.bpk"))).collect();
+    // Round 1 of each RARL pipeline, added to the same graph: the finished jobs are reused.
+    job("fm-1.toml", "fm-1", "failmaker", "ego_from = \"ego-idm\"\n", "", 600);
+    job("ego-fm-1.toml", "ego-fm-1", "ego", "background_from = \"fm-1\"\n", "init_from = \"ego-idm\"\n", 600);
+    job("adv-1.toml", "adv-1", "socialcomm-adv", "background_from = \"flow-sc\"\nego_from = \"ego-sc\"\n", "", 600);
+    job("ego-adv-1.toml", "ego-adv-1", "ego", "background_from = \"adv-1\"\n", "init_from = \"ego-sc\"\n", 600);
+    let second = run();
+    assert_eq!(second.len(), 7);
+    assert!(second.iter().all(|v| v["state"] == "succeeded"), "{second:?}");
+    for (n, s) in frozen.iter().zip(&sums) {
+        assert_eq!(checksum(&art(&second, n).join("policy.bpk")), *s, "{n}'s policy changed while others trained against it");
+    }
+    let id = |n: &str| second.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("id");
+    assert!(id("ego-sc") < id("adv-1") && id("adv-1") < id("ego-adv-1") && id("fm-1") < id("ego-fm-1"), "dependencies first: {second:?}");
+    for n in ["fm-1", "adv-1", "ego-fm-1", "ego-adv-1"] {
+        let v = second.iter().find(|v| v["name"] == n).expect("job");
+        assert_eq!(v["progress"]["env_steps"], 600, "{n}");
+        assert!(v["progress"]["episodes"].as_u64().unwrap_or(0) > 0, "{n}: {v}");
+    }
+    // The resolved configs carry the ids the names became.
+    let cfg = std::fs::read_to_string(art(&second, "ego-adv-1").join("config.toml")).expect("config");
+    assert!(cfg.contains(&format!("background_job = {}", id("adv-1"))) && cfg.contains(&format!("init_job = {}", id("ego-sc"))), "{cfg}");
+
+    // The evaluation grid on these jobs: reproducible, resumable, and a report builds from it.
+    let eval_cfg = |out: &str| {
+        format!(
+            r#"runs = "{data}"
+out = "{out}"
+scenarios = ["merge"]
+cases = 2
+seeds = 2
+envs = 4
+ours = "RARL/SCA"
+flows = [{{ name = "IDM", job = "idm" }}, {{ name = "SocialComm", job = "flow-sc" }}, {{ name = "SocialCommAdv", job = "adv-1" }}, {{ name = "FailMaker", job = "fm-1" }}]
+egos = [{{ name = "RL/IDM", job = "ego-idm", trained_in = "IDM" }}, {{ name = "RL/SocialComm", job = "ego-sc", trained_in = "SocialComm" }}, {{ name = "RARL/FailMaker", job = "ego-fm-1", trained_in = "FailMaker" }}, {{ name = "RARL/SCA", job = "ego-adv-1", trained_in = "SocialCommAdv" }}]
+[experiments]
+flow_quality = ["IDM", "SocialComm"]
+cross_validation = ["IDM", "SocialComm"]
+svo_sweep = {{ flows = ["SocialComm"], values = 2, scenarios = ["merge"] }}
+density = {{ scenario = "merge", flows = ["SocialComm"], vehicles = [2, 3] }}
+adversary = {{ egos = ["RL/IDM", "RL/SocialComm"], flows = ["SocialComm", "SocialCommAdv", "FailMaker"] }}
+"#,
+            out = dir.join(out).display()
+        )
+    };
+    for out in ["eval-a", "eval-b"] {
+        std::fs::write(dir.join(format!("{out}.toml")), eval_cfg(out)).expect("eval config");
+        let o = socialflow(&["eval", &dir.join(format!("{out}.toml")).display().to_string()], 4 * T);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let a = std::fs::read_to_string(dir.join("eval-a/episodes.csv")).expect("results");
+    assert_eq!(a.lines().count(), 1 + (2 + 8 + 2 + 2 + 6) * 4, "one line per episode of each cell");
+    assert_eq!(a, std::fs::read_to_string(dir.join("eval-b/episodes.csv")).expect("results"), "same policies, cases and seeds: same numbers");
+    let again = socialflow(&["eval", &dir.join("eval-a.toml").display().to_string()], 4 * T);
+    assert!(String::from_utf8_lossy(&again.stderr).contains("0 cells to run"), "{}", String::from_utf8_lossy(&again.stderr));
+    assert_eq!(std::fs::read_to_string(dir.join("eval-a/episodes.csv")).expect("results"), a, "a rerun keeps what is stored");
+    let report = dir.join("report");
+    let r = json_of(&socialflow(&["report", &dir.join("eval-a").display().to_string(), "--out", &report.display().to_string()], T));
+    assert_eq!(r["experiments"].as_array().map(Vec::len), Some(5), "{r}");
+    assert!(report.join("report.html").exists() && report.join("cross-success-merge.png").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

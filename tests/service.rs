@@ -321,6 +321,6 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     let served = rt.block_on(e.get_policy(pb::GetPolicyRequest { job_id: flow.job_id, version: 0 })).expect("flow policy").into_inner();
     assert_eq!(served.weights, frozen);
     let log = std::fs::read_to_string(dir.join("worker0.log")).unwrap_or_default();
-    assert!(log.contains("background flow policy"), "the worker did not load the frozen flow");
+    assert!(log.contains("frozen policy") && log.contains("Background"), "the worker did not load the frozen flow");
     let _ = std::fs::remove_dir_all(&dir);
 }

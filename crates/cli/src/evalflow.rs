@@ -64,7 +64,7 @@ impl LearnedFlow {
         let text = std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
         let job = sf_job::JobConfig::from_toml(&text).with_context(|| cfg.display().to_string())?;
         if !job.kind.multi_agent() {
-            bail!("{} is a `{:?}` job, not a traffic flow", dir.display(), job.kind);
+            bail!("{} is a `{}` job, not a Stage-1 traffic flow", dir.display(), job.kind.as_str());
         }
         Ok(job)
     }
@@ -72,7 +72,7 @@ impl LearnedFlow {
     fn load(dir: &std::path::Path, job: sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
         let p = dir.join("policy.bpk");
         let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
-        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&job));
+        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&job, None));
         let segments = std::sync::Arc::new(sf_sim::obs::MapSegments::build(map, sim.obs.segment_points));
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
         let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&job), &sf_sac::setup::obs_spec(&job), sim.dt_s, &[&segments], &weights, 0, &device)

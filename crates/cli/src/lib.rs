@@ -12,6 +12,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 mod bench;
 mod bench_sac;
 mod bench_svc;
+mod eval;
 mod evalflow;
 mod learn;
 mod pipeline;
@@ -52,6 +53,11 @@ enum Cmd {
         #[command(subcommand)]
         what: bench::BenchCmd,
     },
+    /// The paper's evaluation grid (egos x flows x scenarios, sweeps) over stored cases and
+    /// seeds; per-episode results appended to `<out>/episodes.csv` (a rerun skips stored cells).
+    Eval(eval::EvalArgs),
+    /// Builds the reproduction report (markdown + self-contained HTML) from `eval` results.
+    Report(eval::ReportArgs),
     /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
     EvalFlow(evalflow::EvalFlowArgs),
     /// CoPO Stage 2: fits a scenario's SVO Gaussian on a frozen CoPO Stage-1 flow (CEM).
@@ -127,6 +133,8 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),
+        Cmd::Eval(a) => eval::run(&ctx, a),
+        Cmd::Report(a) => eval::report(a),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::CopoCoordinator(a) => evalflow::coordinator(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),

@@ -1,8 +1,9 @@
 //! `socialflow pipeline <dir>`: submits a directory of job configs as one graph, dependencies
 //! first, and follows it to the end; rerun, it resumes where it stopped.
 //!
-//! Owns: name-based references between the configs of a directory (`env.background_from =
-//! "<job name>"`, turned into `env.background_job = <id>` at submission), the submission order,
+//! Owns: name-based references between the configs of a directory (`env.background_from`,
+//! `env.ego_from`, `train.init_from` = "<job name>", turned into the `*_job = <id>` fields at
+//! submission), the submission order (dependencies first: a topological order),
 //! reuse of jobs the learner already has under the same name (unless they failed or were
 //! cancelled), and the final summary. Must not: schedule (the learner runs queued jobs in order
 //! once their dependency has succeeded).
@@ -14,7 +15,8 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
-use sf_job::{JobConfig, JobState};
+use sf_job::config::JobKind;
+use sf_job::{DepRole, JobConfig, JobState};
 
 use crate::remote::{self, Conn, JobsClient};
 use crate::train::{runtime, Embedded};
@@ -54,18 +56,35 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
         jobs.insert(cfg.name.clone(), (f, cfg, text));
     }
     for (path, cfg, _) in jobs.values() {
-        if let Some(dep) = &cfg.env.background_from {
-            match jobs.get(dep) {
-                None => bail!("{}: env.background_from names `{dep}`, which no config in {} defines", path.display(), dir.display()),
-                Some((_, d, _)) if !d.kind.multi_agent() => bail!("{}: env.background_from names `{dep}`, an ego job, not a flow", path.display()),
-                Some(_) => {}
+        for (role, dep) in cfg.deps_by_name() {
+            let Some((_, d, _)) = jobs.get(dep) else {
+                bail!("{}: {} names `{dep}`, which no config in {} defines", path.display(), role.field(), dir.display());
+            };
+            let fits = match role {
+                DepRole::Background => d.kind.is_flow(),
+                DepRole::Ego => d.kind == JobKind::Ego,
+                DepRole::Init => d.kind == cfg.kind,
+            };
+            if !fits {
+                bail!("{}: {} names `{dep}`, a {} job, which cannot serve there", path.display(), role.field(), d.kind.as_str());
             }
         }
     }
-    // Flows (no dependency) first, then the jobs that depend on them, each group by name.
-    let (mut first, mut then): (Vec<_>, Vec<_>) = jobs.into_values().partition(|(_, c, _)| c.env.background_from.is_none());
-    first.append(&mut then);
-    Ok(first)
+    // Dependencies first; among jobs ready at the same time, by name.
+    let mut order = Vec::with_capacity(jobs.len());
+    let mut placed = std::collections::BTreeSet::new();
+    while order.len() < jobs.len() {
+        let ready: Vec<String> = jobs.iter().filter(|(n, (_, c, _))| !placed.contains(*n) && c.deps_by_name().iter().all(|(_, d)| placed.contains(*d))).map(|(n, _)| n.clone()).collect();
+        if ready.is_empty() {
+            let left: Vec<&String> = jobs.keys().filter(|n| !placed.contains(*n)).collect();
+            bail!("{}: the jobs {left:?} depend on each other in a cycle", dir.display());
+        }
+        for n in ready {
+            placed.insert(n.clone());
+            order.push(n);
+        }
+    }
+    Ok(order.into_iter().filter_map(|n| jobs.remove(&n)).collect())
 }
 
 /// Submits what the learner does not have yet; returns (name, job id) in submission order.
@@ -82,9 +101,7 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
             }
             None => {
                 let mut cfg = cfg.clone();
-                if let Some(dep) = cfg.env.background_from.take() {
-                    cfg.env.background_job = Some(*ids.get(&dep).with_context(|| format!("{}: dependency `{dep}` was not submitted", path.display()))?);
-                }
+                cfg.resolve_names(|n| ids.get(n).copied()).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
                 let j = remote::submit(c, cfg.to_toml()).await.with_context(|| path.display().to_string())?;
                 eprintln!("{}: submitted as job {}", cfg.name, j.id);
                 j.id
@@ -166,5 +183,36 @@ mod tests {
             assert_eq!(jobs[pos(&format!("ego-{k}"))].1.env.background_from.as_deref(), Some(format!("flow-{k}").as_str()));
         }
         assert!(jobs[pos("ego-idm")].1.env.background_from.is_none());
+        // RARL: each phase after the frozen side it acts against and the phase it continues.
+        for (job, after) in [("flow-failmaker", "ego-idm"), ("ego-failmaker", "flow-failmaker"), ("flow-socialcomm-adv", "ego-socialcomm"), ("flow-socialcomm-adv", "flow-socialcomm"), ("ego-socialcomm-adv", "flow-socialcomm-adv")] {
+            assert!(pos(after) < pos(job), "{after} before {job}");
+        }
+        assert_eq!(jobs[pos("ego-failmaker")].1.train.init_from.as_deref(), Some("ego-idm"));
+    }
+
+    /// The paper graph chains five rounds: every phase continues its side's previous phase.
+    #[test]
+    fn the_paper_graph_alternates_rarl_phases_in_order() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper");
+        let jobs = load(&dir).expect("a valid pipeline");
+        let pos = |n: &str| jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"));
+        let chain = ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "failmaker-3", "ego-failmaker-3", "failmaker-4", "ego-failmaker-4", "flow-failmaker", "ego-failmaker"];
+        for w in chain.windows(2) {
+            assert!(pos(w[0]) < pos(w[1]), "{} before {}", w[0], w[1]);
+        }
+        assert_eq!(jobs[pos("failmaker-3")].1.train.init_from.as_deref(), Some("failmaker-2"));
+        assert_eq!(jobs[pos("failmaker-3")].1.env.ego_from.as_deref(), Some("ego-failmaker-2"));
+    }
+
+    #[test]
+    fn a_dependency_cycle_is_refused() {
+        let dir = std::env::temp_dir().join(format!("sf-cycle-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let job = |name: &str, init: &str| format!("name = \"{name}\"\n[env]\nscenarios = [\"merge\"]\n[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\ninit_from = \"{init}\"\n");
+        std::fs::write(dir.join("a.toml"), job("a", "b")).expect("write");
+        std::fs::write(dir.join("b.toml"), job("b", "a")).expect("write");
+        let e = load(&dir).expect_err("a cycle");
+        assert!(e.to_string().contains("cycle"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -1,10 +1,11 @@
 //! socialflow-eval: the statistics of the paper's evaluation protocol.
 //!
-//! Owns: [`Summary`] (mean with a Student-t 95% confidence interval) and [`paired_t_test`].
-//! Must not: run simulations; callers pass per-episode values. Grows into the evaluation
-//! grid, tables and plots (issue 6).
+//! Owns: [`Summary`] (mean with a Student-t 95% confidence interval), [`paired_t_test`], the
+//! charts ([`plot`]) and the reproduction report built from stored per-episode results
+//! ([`report`]). Must not: run simulations; callers pass per-episode values.
 
 pub mod plot;
+pub mod report;
 
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, StudentsT};

@@ -34,6 +34,16 @@ pub enum JobKind {
     Copo,
     /// SocialComm Stage 1: SVOs of self and neighbours visible, SVO-composed reward.
     Socialcomm,
+    /// FailMaker: the background vehicles learn one shared policy on `cos(c) R_i + sin(c)
+    /// R_ego` (c uniform in [-90, 90] deg, seen as the own SVO; no collision penalty in R_i),
+    /// with the ego flagged in their observations; the ego is the frozen policy of
+    /// `env.ego_job`. One RARL phase: alternate with ego jobs through `train.init_job`.
+    Failmaker,
+    /// SocialCommAdv Stage 2: the adversary's upper-level policy (1-dim action: the ego's SVO
+    /// that background agents within the ego's radius are told), conditioned on the ego's
+    /// observation, trained on `-R_ego`. The background is the frozen SocialComm flow of
+    /// `env.background_job`, the ego the frozen policy of `env.ego_job`. One RARL phase.
+    SocialcommAdv,
 }
 
 /// Whose SVO a policy sees.
@@ -45,15 +55,25 @@ pub enum SvoSeen {
 }
 
 impl JobKind {
-    /// Every vehicle is a learner (a traffic flow), rather than one ego among background.
+    /// Every vehicle is a learner of the job's policy (Stage 1 flows).
     pub fn multi_agent(self) -> bool {
+        matches!(self, Self::Macad | Self::Copo | Self::Socialcomm)
+    }
+
+    /// The job's final policy is a traffic flow an ego can train or be evaluated against.
+    pub fn is_flow(self) -> bool {
         !matches!(self, Self::Ego)
+    }
+
+    /// A RARL phase: needs a frozen ego (`env.ego_job`) to act against.
+    pub fn needs_ego(self) -> bool {
+        matches!(self, Self::Failmaker | Self::SocialcommAdv)
     }
 
     pub fn svo_seen(self) -> SvoSeen {
         match self {
-            Self::Ego | Self::Macad => SvoSeen::None,
-            Self::Copo => SvoSeen::Own,
+            Self::Ego | Self::Macad | Self::SocialcommAdv => SvoSeen::None,
+            Self::Copo | Self::Failmaker => SvoSeen::Own,
             Self::Socialcomm => SvoSeen::All,
         }
     }
@@ -61,6 +81,26 @@ impl JobKind {
     /// Trained on the SVO-composed reward rather than the individual one.
     pub fn composed_reward(self) -> bool {
         matches!(self, Self::Copo | Self::Socialcomm)
+    }
+
+    /// Size of the policy's action: the adversary says one SVO, drivers steer and set speed.
+    pub fn action_dim(self) -> usize {
+        if self == Self::SocialcommAdv {
+            1
+        } else {
+            2
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ego => "ego",
+            Self::Macad => "macad",
+            Self::Copo => "copo",
+            Self::Socialcomm => "socialcomm",
+            Self::Failmaker => "failmaker",
+            Self::SocialcommAdv => "socialcomm-adv",
+        }
     }
 }
 
@@ -134,6 +174,13 @@ pub struct EnvSection {
     /// into `background_job` when it submits (the learner accepts only ids).
     #[serde(default)]
     pub background_from: Option<String>,
+    /// FailMaker and SocialCommAdv jobs: the ego job whose final policy drives the ego (a
+    /// dependency, like `background_job`).
+    #[serde(default)]
+    pub ego_job: Option<u64>,
+    /// In a pipeline directory: `ego_job` by job name.
+    #[serde(default)]
+    pub ego_from: Option<String>,
 }
 fn d_vmin() -> u32 {
     8
@@ -211,6 +258,13 @@ pub struct TrainSection {
     /// Finished episodes averaged in rolling statistics.
     #[serde(default = "d_window")]
     pub window: usize,
+    /// Start from the final SAC state (actor, critics, alpha, optimizers) of this job, of the
+    /// same kind and network, instead of from scratch: how RARL phases continue each other.
+    #[serde(default)]
+    pub init_job: Option<u64>,
+    /// In a pipeline directory: `init_job` by job name.
+    #[serde(default)]
+    pub init_from: Option<String>,
 }
 fn d_spi() -> f64 {
     0.25
@@ -246,7 +300,51 @@ impl Default for WorkerSection {
     }
 }
 
+/// A job another one needs (it waits until that one has succeeded).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepRole {
+    /// The frozen flow in the background (`env.background_job`).
+    Background,
+    /// The frozen ego (`env.ego_job`).
+    Ego,
+    /// The job whose final state this one starts from (`train.init_job`).
+    Init,
+}
+
+impl DepRole {
+    pub fn field(self) -> &'static str {
+        match self {
+            Self::Background => "env.background_job",
+            Self::Ego => "env.ego_job",
+            Self::Init => "train.init_job",
+        }
+    }
+}
+
 impl JobConfig {
+    /// The jobs this one depends on, by id.
+    pub fn deps(&self) -> Vec<(DepRole, u64)> {
+        [(DepRole::Background, self.env.background_job), (DepRole::Ego, self.env.ego_job), (DepRole::Init, self.train.init_job)].into_iter().filter_map(|(r, id)| id.map(|id| (r, id))).collect()
+    }
+
+    /// The jobs this one depends on, by name (a pipeline directory).
+    pub fn deps_by_name(&self) -> Vec<(DepRole, &str)> {
+        [(DepRole::Background, &self.env.background_from), (DepRole::Ego, &self.env.ego_from), (DepRole::Init, &self.train.init_from)].into_iter().filter_map(|(r, n)| n.as_deref().map(|n| (r, n))).collect()
+    }
+
+    /// Replaces the name references by ids (`id_of` answers for a name).
+    pub fn resolve_names(&mut self, mut id_of: impl FnMut(&str) -> Option<u64>) -> Result<(), String> {
+        let mut one = |name: &mut Option<String>, id: &mut Option<u64>, field: &str| -> Result<(), String> {
+            if let Some(n) = name.take() {
+                *id = Some(id_of(&n).ok_or_else(|| format!("{field}: no job named `{n}`"))?);
+            }
+            Ok(())
+        };
+        one(&mut self.env.background_from, &mut self.env.background_job, "env.background_from")?;
+        one(&mut self.env.ego_from, &mut self.env.ego_job, "env.ego_from")?;
+        one(&mut self.train.init_from, &mut self.train.init_job, "train.init_from")
+    }
+
     /// Parses and validates.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
         let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string().trim_end().to_string()))?;
@@ -279,14 +377,33 @@ impl JobConfig {
         if self.env.vehicles_min == 0 || self.env.vehicles_min > self.env.vehicles_max {
             return bad("env.vehicles_min", format!("{} must be in 1..=vehicles_max ({})", self.env.vehicles_min, self.env.vehicles_max));
         }
-        if self.env.background_job.is_some() && self.kind.multi_agent() {
-            return bad("env.background_job", "only ego jobs drive a frozen flow; a flow job trains every vehicle");
+        let frozen_bg = matches!(self.kind, JobKind::Ego | JobKind::SocialcommAdv);
+        let e = &self.env;
+        if e.background_job.is_some() && !frozen_bg {
+            return bad("env.background_job", format!("a {} job trains its background; only ego and socialcomm-adv jobs drive a frozen flow", self.kind.as_str()));
         }
-        if self.env.background_from.is_some() && (self.kind.multi_agent() || self.env.background_job.is_some()) {
-            return bad("env.background_from", "only for ego jobs, and not together with env.background_job");
+        if e.background_from.is_some() && (!frozen_bg || e.background_job.is_some()) {
+            return bad("env.background_from", "only for ego and socialcomm-adv jobs, and not together with env.background_job");
         }
-        if self.env.background_job == Some(0) {
-            return bad("env.background_job", "job ids start at 1");
+        if self.kind == JobKind::SocialcommAdv && e.background_job.is_none() && e.background_from.is_none() {
+            return bad("env.background_job", "a socialcomm-adv job needs the frozen SocialComm flow (env.background_job or env.background_from)");
+        }
+        if (e.ego_job.is_some() || e.ego_from.is_some()) && !self.kind.needs_ego() {
+            return bad("env.ego_job", format!("only failmaker and socialcomm-adv jobs act against a frozen ego, not {}", self.kind.as_str()));
+        }
+        if e.ego_job.is_some() && e.ego_from.is_some() {
+            return bad("env.ego_from", "not together with env.ego_job");
+        }
+        if self.kind.needs_ego() && e.ego_job.is_none() && e.ego_from.is_none() {
+            return bad("env.ego_job", format!("a {} job needs the frozen ego it acts against (env.ego_job or env.ego_from)", self.kind.as_str()));
+        }
+        if self.train.init_job.is_some() && self.train.init_from.is_some() {
+            return bad("train.init_from", "not together with train.init_job");
+        }
+        for (f, v) in [("env.background_job", e.background_job), ("env.ego_job", e.ego_job), ("train.init_job", self.train.init_job)] {
+            if v == Some(0) {
+                return bad(f, "job ids start at 1");
+            }
         }
         if self.env.vehicles_max > 64 {
             return bad("env.vehicles_max", format!("{} exceeds 64", self.env.vehicles_max));

@@ -10,7 +10,7 @@ pub mod batch;
 pub mod config;
 
 pub use batch::{BatchError, EpisodeResult, TransitionBatch};
-pub use config::{ConfigError, JobConfig};
+pub use config::{ConfigError, DepRole, JobConfig};
 
 use serde::{Deserialize, Serialize};
 
@@ -90,8 +90,28 @@ pub struct Assignment {
     pub action_dim: u32,
     /// The job is in its random-action warm-up.
     pub warmup: bool,
-    /// The frozen flow driving the background (job id and its config), if any.
-    pub background: Option<(u64, String)>,
+    /// The frozen policies the job acts with besides its own.
+    pub frozen: Vec<Frozen>,
+}
+
+/// What a frozen policy drives in a job's simulators.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FrozenRole {
+    /// The externally driven background vehicles.
+    Background,
+    /// Agent 0, the ego (FailMaker and SocialCommAdv phases).
+    Ego,
+    /// The ego's SVO told to background vehicles near it (SocialCommAdv).
+    Adversary,
+}
+
+/// A finished job's final policy that another job acts with.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frozen {
+    pub role: FrozenRole,
+    pub job_id: u64,
+    pub config_toml: String,
 }
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).

@@ -1,6 +1,6 @@
 //! Device selection: the one place that turns configuration into a burn [`Device`].
 
-use burn::tensor::Device;
+pub use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 /// Where tensors live.

@@ -7,7 +7,7 @@
 //! types); hold service logic.
 
 use half::f16;
-use sf_job::{Assignment, EpisodeResult, JobRecord, JobState, Progress, TransitionBatch};
+use sf_job::{Assignment, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Progress, TransitionBatch};
 
 #[allow(clippy::all, missing_docs)]
 pub mod pb {
@@ -132,8 +132,19 @@ pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
-        background_job_id: a.background.as_ref().map_or(0, |b| b.0),
-        background_config_toml: a.background.as_ref().map(|b| b.1.clone()).unwrap_or_default(),
+        frozen: a
+            .frozen
+            .iter()
+            .map(|f| pb::FrozenPolicy {
+                role: match f.role {
+                    FrozenRole::Background => pb::FrozenRole::Background,
+                    FrozenRole::Ego => pb::FrozenRole::Ego,
+                    FrozenRole::Adversary => pb::FrozenRole::Adversary,
+                } as i32,
+                job_id: f.job_id,
+                config_toml: f.config_toml.clone(),
+            })
+            .collect(),
     }
 }
 
@@ -153,11 +164,22 @@ pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError>
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
-        background: match (a.background_job_id, a.background_config_toml.is_empty()) {
-            (0, true) => None,
-            (id, false) if id > 0 => Some((id, a.background_config_toml.clone())),
-            _ => return wire("assignment.background_job_id", "job id and config go together"),
-        },
+        frozen: a
+            .frozen
+            .iter()
+            .map(|f| {
+                let role = match pb::FrozenRole::try_from(f.role) {
+                    Ok(pb::FrozenRole::Background) => FrozenRole::Background,
+                    Ok(pb::FrozenRole::Ego) => FrozenRole::Ego,
+                    Ok(pb::FrozenRole::Adversary) => FrozenRole::Adversary,
+                    _ => return wire("assignment.frozen.role", format!("{} is not a frozen-policy role", f.role)),
+                };
+                if f.job_id == 0 || f.config_toml.is_empty() {
+                    return wire("assignment.frozen.job_id", "a frozen policy names its job and config");
+                }
+                Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone() })
+            })
+            .collect::<Result<_, _>>()?,
     })
 }
 

@@ -109,6 +109,17 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
     Ok(())
 }
 
+/// Starts a new run from another run's checkpoint (a RARL phase continuing the previous one of
+/// its side): weights, target, alpha and optimizer states are restored; this run's SAC
+/// settings are kept and its update counter starts at 0.
+pub fn warm_start(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
+    let cfg = sac.cfg.clone();
+    restore(sac, dir)?;
+    sac.cfg = cfg;
+    sac.updates = 0;
+    Ok(())
+}
+
 fn sibling(dir: &Path, suffix: &str) -> PathBuf {
     let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_else(|| "checkpoint".into());
     dir.with_file_name(format!(".{name}.{suffix}"))

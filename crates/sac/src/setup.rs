@@ -4,7 +4,7 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, Encoder, NetPreset, SacSection, SvoSeen};
+use sf_job::config::{Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
 use sf_nn::{EncoderKind, NetConfig, SvoInput};
@@ -37,32 +37,44 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
         SvoSeen::Own => SvoInput::Own,
         SvoSeen::All => SvoInput::All,
     };
+    n.ego_flag = job.kind == JobKind::Failmaker;
+    n.action_dim = job.kind.action_dim();
     n
 }
 
-/// How the job's simulators run: every vehicle a learner for a flow, one ego among IDM cars
-/// otherwise.
+/// How the job's simulators run: every vehicle a learner for a Stage-1 flow; otherwise agent 0
+/// is the ego (the learner of ego jobs, the frozen ego of RARL phases, whose episode decides
+/// the episode's end) among IDM cars or an externally driven background.
 pub fn mode(job: &JobConfig) -> Mode {
     if job.kind.multi_agent() {
         Mode::MultiAgent
-    } else if job.env.background_job.is_some() {
+    } else if job.env.background_job.is_some() || job.kind == JobKind::Failmaker {
         Mode::Ego { background: Controller::External }
     } else {
         Mode::Ego { background: Controller::Idm }
     }
 }
 
-/// The reward a transition carries for this job.
+/// The reward a transition carries for this job: the adversary's is exactly `-R_ego` (the
+/// learner applies `sac.reward_scale` to every reward alike).
 pub fn reward(job: &JobConfig, r: &sf_sim::env::Rewards) -> f32 {
-    if job.kind.composed_reward() {
-        r.composed
-    } else {
-        r.individual
+    match job.kind {
+        JobKind::Failmaker => r.failmaker,
+        JobKind::SocialcommAdv => -r.individual,
+        k if k.composed_reward() => r.composed,
+        _ => r.individual,
     }
 }
 
+/// The adversary's action in [-1, 1] as the SVO it communicates, degrees in [0, 90].
+pub fn adversary_svo_deg(action: f32) -> f32 {
+    (action.clamp(-1.0, 1.0) + 1.0) * 45.0
+}
+
 /// Simulator settings: digest defaults with the observation layout the encoder reads.
-pub fn sim_config(job: &JobConfig) -> SimConfig {
+/// `background` is the kind of the job named in `env.background_job` (the frozen flow), which
+/// decides what the background's observations must carry.
+pub fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
     let mut s = SimConfig::default();
     s.obs.layout = match net_config(job).encoder {
         EncoderKind::EgoFrame => Layout::EgoFrame,
@@ -71,16 +83,22 @@ pub fn sim_config(job: &JobConfig) -> SimConfig {
     s.obs.svo = match job.kind.svo_seen() {
         // A frozen flow in the background may read SVOs; every network zeroes the SVO channels
         // it does not consume (`ObsBatch::from_rows`), so the ego still sees none.
-        SvoSeen::None if job.env.background_job.is_some() => SvoVisibility::All,
+        SvoSeen::None if background.is_some() => SvoVisibility::All,
         SvoSeen::None => SvoVisibility::None,
         SvoSeen::Own => SvoVisibility::Own,
         SvoSeen::All => SvoVisibility::All,
     };
+    // FailMaker's agents tell the ego apart and carry c in [-90, 90] as their SVO.
+    if job.kind == JobKind::Failmaker || background == Some(JobKind::Failmaker) {
+        s.obs.ego_flag = true;
+        s.svo_range_deg = [-90.0, 90.0];
+    }
     s
 }
 
+/// The observation layout (independent of the background: only SVO and flag values vary).
 pub fn obs_spec(job: &JobConfig) -> ObsSpec {
-    ObsSpec::new(&sim_config(job).obs)
+    ObsSpec::new(&sim_config(job, None).obs)
 }
 
 pub fn sac_config(job: &JobConfig) -> SacConfig {
@@ -127,25 +145,50 @@ mod tests {
     use super::*;
 
     fn job(kind: &str) -> JobConfig {
-        JobConfig::from_toml(&format!("name = \"t\"\nkind = \"{kind}\"\n[env]\nscenarios = [\"merge\"]\n[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\n")).expect("valid")
+        let deps = match kind {
+            "failmaker" => "ego_job = 1\n",
+            "socialcomm-adv" => "ego_job = 1\nbackground_job = 2\n",
+            _ => "",
+        };
+        JobConfig::from_toml(&format!("name = \"t\"\nkind = \"{kind}\"\n[env]\nscenarios = [\"merge\"]\n{deps}[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\n")).expect("valid")
     }
 
     /// The network consumes exactly the SVO channels the observation fills, per flow.
     #[test]
     fn each_kind_sees_and_is_rewarded_as_the_paper_says() {
         let r = sf_sim::env::Rewards { individual: 1.0, composed: 2.0, failmaker: 3.0 };
-        for (kind, svo, vis, multi, composed) in [
-            ("ego", SvoInput::None, SvoVisibility::None, false, false),
-            ("macad", SvoInput::None, SvoVisibility::None, true, false),
-            ("copo", SvoInput::Own, SvoVisibility::Own, true, true),
-            ("socialcomm", SvoInput::All, SvoVisibility::All, true, true),
+        for (kind, svo, vis, multi, want) in [
+            ("ego", SvoInput::None, SvoVisibility::None, false, 1.0),
+            ("macad", SvoInput::None, SvoVisibility::None, true, 1.0),
+            ("copo", SvoInput::Own, SvoVisibility::Own, true, 2.0),
+            ("socialcomm", SvoInput::All, SvoVisibility::All, true, 2.0),
+            ("failmaker", SvoInput::Own, SvoVisibility::Own, false, 3.0),
+            ("socialcomm-adv", SvoInput::None, SvoVisibility::All, false, -1.0),
         ] {
             let j = job(kind);
+            let bg = (kind == "socialcomm-adv").then_some(JobKind::Socialcomm);
             assert_eq!(net_config(&j).svo, svo, "{kind}");
-            assert_eq!(sim_config(&j).obs.svo, vis, "{kind}");
+            assert_eq!(sim_config(&j, bg).obs.svo, vis, "{kind}");
             assert_eq!(mode(&j) == Mode::MultiAgent, multi, "{kind}");
-            assert_eq!(reward(&j, &r), if composed { 2.0 } else { 1.0 }, "{kind}");
+            assert_eq!(reward(&j, &r), want, "{kind}");
+            assert_eq!(net_config(&j).action_dim, if kind == "socialcomm-adv" { 1 } else { 2 }, "{kind}");
+            assert_eq!(net_config(&j).ego_flag, kind == "failmaker", "{kind}");
         }
+    }
+
+    /// FailMaker's background tells the ego apart and draws c from [-90, 90], also when an ego
+    /// trains against it; other flows keep [0, 90] and no flag.
+    #[test]
+    fn failmaker_observations_flag_the_ego_and_widen_the_svo_range() {
+        let ego = job("ego");
+        for (bg, flag, lo) in [(None, false, 0.0), (Some(JobKind::Socialcomm), false, 0.0), (Some(JobKind::Failmaker), true, -90.0)] {
+            let s = sim_config(&ego, bg);
+            assert_eq!((s.obs.ego_flag, s.svo_range_deg[0]), (flag, lo), "{bg:?}");
+        }
+        let s = sim_config(&job("failmaker"), None);
+        assert_eq!((s.obs.ego_flag, s.svo_range_deg), (true, [-90.0, 90.0]));
+        assert_eq!(adversary_svo_deg(-1.0), 0.0);
+        assert_eq!(adversary_svo_deg(1.0), 90.0);
     }
 }
 

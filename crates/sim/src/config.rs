@@ -108,6 +108,9 @@ pub struct SimConfig {
     pub idm: IdmParams,
     pub obs: ObsConfig,
     pub reward: RewardConfig,
+    /// The range a case's SVO (stored in [0, 90] deg) is mapped onto linearly at reset.
+    /// FailMaker's background uses [-90, 90]: `c < 0` makes an agent want the ego to lose.
+    pub svo_range_deg: [f32; 2],
 }
 
 impl Default for SimConfig {
@@ -124,6 +127,7 @@ impl Default for SimConfig {
             idm: IdmParams::default(),
             obs: ObsConfig::default(),
             reward: RewardConfig::default(),
+            svo_range_deg: [0.0, 90.0],
         }
     }
 }
@@ -169,6 +173,10 @@ impl SimConfig {
         pos("idm.comfort_decel_mps2", self.idm.comfort_decel_mps2)?;
         pos("obs.radius_m", self.obs.radius_m)?;
         at_least("substeps", self.substeps as usize, 1)?;
+        let [lo, hi] = self.svo_range_deg;
+        if !(lo.is_finite() && hi.is_finite() && -90.0 <= lo && lo <= hi && hi <= 90.0) {
+            return Err(ConfigError { field: "svo_range_deg", reason: format!("[{lo}, {hi}] must lie in [-90, 90], low first") });
+        }
         at_least("horizon", self.horizon as usize, 1)?;
         at_least("obs.history", self.obs.history, 1)?;
         at_least("obs.route_points", self.obs.route_points, 1)?;

@@ -205,6 +205,7 @@ impl Env {
         case.check(&self.map).map_err(|(field, reason)| EnvError::BadCase { case: case.id, field, reason })?;
         let n = max_vehicles.map_or(case.vehicles.len(), |m| m.min(case.vehicles.len()));
         let h = self.cfg.obs.history;
+        let [svo_lo, svo_hi] = self.cfg.svo_range_deg;
         self.agents.clear();
         for (i, cv) in case.vehicles[..n].iter().enumerate() {
             let sp = &self.map.spawns[cv.spawn as usize];
@@ -223,7 +224,7 @@ impl Env {
                 s_m: pr.s_m,
                 seg: pr.seg,
                 lateral_m: pr.lateral_m,
-                svo_deg: cv.svo_deg,
+                svo_deg: svo_lo + (svo_hi - svo_lo) * cv.svo_deg / 90.0,
                 controller,
                 role,
                 alive: true,

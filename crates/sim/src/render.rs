@@ -6,7 +6,8 @@
 
 use std::io::Write;
 
-use tiny_skia::{Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform};
+pub use tiny_skia::Pixmap;
+use tiny_skia::{Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Stroke, StrokeDash, Transform};
 
 use crate::env::{Env, Role};
 use crate::geom::P2;
@@ -181,6 +182,22 @@ impl Renderer {
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
+}
+
+/// Frames of equal height placed left to right with a 4-pixel white gap (comparisons of the
+/// same case under different flows). `None` if there are no frames or a size is invalid.
+pub fn side_by_side(frames: &[&Pixmap]) -> Option<Pixmap> {
+    let gap = 4;
+    let w = frames.iter().map(|f| f.width()).sum::<u32>() + gap * frames.len().saturating_sub(1) as u32;
+    let h = frames.iter().map(|f| f.height()).max()?;
+    let mut out = Pixmap::new(w, h)?;
+    out.fill(tiny_skia::Color::WHITE);
+    let mut x = 0i32;
+    for f in frames {
+        out.draw_pixmap(x, 0, f.as_ref(), &tiny_skia::PixmapPaint::default(), Transform::identity(), None);
+        x += (f.width() + gap) as i32;
+    }
+    Some(out)
 }
 
 /// Writes one frame as PNG.

@@ -17,7 +17,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::case::random_case;
+use crate::case::{random_case, Case};
 use crate::config::SimConfig;
 use crate::env::{Controller, Env, Mode, Rewards, Role, Termination};
 use crate::map::Map;
@@ -43,6 +43,9 @@ pub struct RowStep {
     pub rewards: Rewards,
     /// Set when the agent's episode ended on this step.
     pub ended: Option<Termination>,
+    /// The episode ended on this step (its learners are done) while this row's agent was still
+    /// driving: a cut, not a terminal state (externally driven background rows).
+    pub truncated: bool,
 }
 
 impl RowStep {
@@ -53,12 +56,26 @@ impl RowStep {
     }
 }
 
+/// One stored episode to run (evaluation): a case, optionally truncated to `vehicles`, with
+/// every agent's SVO set to `svo_deg` if given; `tag` comes back with its metrics.
+#[derive(Clone, Debug)]
+pub struct EpisodeSpec {
+    pub case: Case,
+    pub vehicles: Option<usize>,
+    pub svo_deg: Option<f32>,
+    pub tag: u64,
+}
+
 struct Slot {
     env: Env,
     observer: Observer,
     rng: ChaCha8Rng,
     episodes: u32,
-    finished: Vec<EpisodeMetrics>,
+    /// Tag of the running episode (a counter for random resets).
+    tag: u64,
+    /// Queue mode: no episode left for this slot; its rows are zero.
+    idle: bool,
+    finished: Vec<(u64, EpisodeMetrics)>,
 }
 
 /// K environments stepped together.
@@ -77,10 +94,83 @@ pub struct VecEnv {
     final_obs: Vec<f32>,
     env_steps: u64,
     agent_steps: u64,
+    /// Stored episodes still to run (evaluation); `None`: endless random resets (training).
+    queue: Option<std::collections::VecDeque<EpisodeSpec>>,
 }
 
 impl VecEnv {
+    /// Runs the given stored episodes, `n_envs` at a time, each exactly once, in order: a slot
+    /// that finishes takes the next one (slots in index order, so results do not depend on
+    /// thread timing). Rows of slots with nothing left stay zero; [`VecEnv::is_finished`] tells
+    /// when all are done and [`VecEnv::take_finished_tagged`] returns their metrics by tag.
+    pub fn from_episodes(map: Arc<Map>, sim: Arc<SimConfig>, mode: Mode, n_envs: usize, episodes: Vec<EpisodeSpec>) -> Result<Self, String> {
+        for e in &episodes {
+            e.case.check(&map).map_err(|(field, reason)| format!("case {}: {field}: {reason}", e.case.id))?;
+        }
+        let most = episodes.iter().map(|e| e.vehicles.unwrap_or(usize::MAX).min(e.case.vehicles.len())).max().unwrap_or(1);
+        let cfg = VecEnvConfig { n_envs: n_envs.max(1), mode, vehicles: (1, most.max(1) as u32), seed: 0 };
+        let mut v = Self::build(map, sim, cfg);
+        v.queue = Some(episodes.into());
+        for s in &mut v.slots {
+            s.idle = true;
+        }
+        v.refill();
+        Ok(v)
+    }
+
+    /// Queue mode: every stored episode has run.
+    pub fn is_finished(&self) -> bool {
+        self.queue.as_ref().is_some_and(|q| q.is_empty()) && self.slots.iter().all(|s| s.idle)
+    }
+
+    /// Drains `(tag, metrics)` of episodes finished since the last call.
+    pub fn take_finished_tagged(&mut self) -> Vec<(u64, EpisodeMetrics)> {
+        self.slots.iter_mut().flat_map(|s| s.finished.drain(..)).collect()
+    }
+
+    /// Queue mode: idle slots start the next stored episodes, in slot order.
+    fn refill(&mut self) {
+        let Some(q) = self.queue.as_mut() else { return };
+        let (len, per, mode) = (self.spec.len, self.max_agents, self.cfg.mode);
+        for (k, s) in self.slots.iter_mut().enumerate().filter(|(_, s)| s.idle) {
+            let (obs, alive, bg) = (&mut self.obs[k * per * len..(k + 1) * per * len], &mut self.alive[k * per..(k + 1) * per], &mut self.background[k * per..(k + 1) * per]);
+            match q.pop_front() {
+                Some(ep) => {
+                    s.env.reset(&ep.case, mode, ep.vehicles).expect("stored cases were checked against the map");
+                    if let Some(svo) = ep.svo_deg {
+                        for i in 0..s.env.len() {
+                            s.env.set_svo(i, svo);
+                        }
+                    }
+                    s.tag = ep.tag;
+                    s.idle = false;
+                    s.observe(obs, alive, bg, len);
+                }
+                None => {
+                    obs.fill(0.0);
+                    alive.fill(0.0);
+                    bg.fill(0.0);
+                }
+            }
+        }
+    }
+
     pub fn new(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
+        let mut v = Self::build(map, sim, cfg);
+        let (spec_len, mode, vehicles, max_agents) = (v.spec.len, v.cfg.mode, v.cfg.vehicles, v.max_agents);
+        v.slots
+            .par_iter_mut()
+            .zip(v.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(v.alive.par_chunks_mut(max_agents))
+            .zip(v.background.par_chunks_mut(max_agents))
+            .for_each(|(((s, obs), alive), bg)| {
+                s.reset(mode, vehicles);
+                s.observe(obs, alive, bg, spec_len);
+            });
+        v
+    }
+
+    fn build(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
         let base = Observer::new(&map, &sim);
         let segments: Arc<MapSegments> = Arc::clone(&base.segments);
         let spec = base.spec.clone();
@@ -91,11 +181,13 @@ impl VecEnv {
                 observer: Observer::with_segments(Arc::clone(&segments), &sim),
                 rng: ChaCha8Rng::seed_from_u64(cfg.seed.wrapping_add(k as u64 * 0x9E37_79B9)),
                 episodes: 0,
+                tag: 0,
+                idle: false,
                 finished: Vec::new(),
             })
             .collect();
         let rows = cfg.n_envs * max_agents;
-        let mut v = Self {
+        Self {
             obs: vec![0.0; rows * spec.len],
             alive: vec![0.0; rows],
             background: vec![0.0; rows],
@@ -107,18 +199,8 @@ impl VecEnv {
             slots,
             env_steps: 0,
             agent_steps: 0,
-        };
-        let (spec_len, mode, vehicles) = (v.spec.len, v.cfg.mode, v.cfg.vehicles);
-        v.slots
-            .par_iter_mut()
-            .zip(v.obs.par_chunks_mut(max_agents * spec_len))
-            .zip(v.alive.par_chunks_mut(max_agents))
-            .zip(v.background.par_chunks_mut(max_agents))
-            .for_each(|(((s, obs), alive), bg)| {
-                s.reset(mode, vehicles);
-                s.observe(obs, alive, bg, spec_len);
-            });
-        v
+            queue: None,
+        }
     }
 
     /// Observation rows, `[n_envs * max_agents, spec.len]` flattened.
@@ -145,6 +227,36 @@ impl VecEnv {
         &self.slots[k].env
     }
 
+    /// Tells background agents of environment `k` within the observation radius of the ego
+    /// (agent 0) that the ego's SVO is `svo_deg[k]` (the adversary's message; `None`: the
+    /// genuine one), everyone else the genuine SVO, and rewrites the externally driven
+    /// background rows so their observations carry it. Agents' own SVOs and what they see of
+    /// each other are unchanged.
+    pub fn communicate_ego_svo(&mut self, svo_deg: &[Option<f32>]) {
+        assert_eq!(svo_deg.len(), self.slots.len(), "one message per environment");
+        let (spec_len, max_agents) = (self.spec.len, self.max_agents);
+        self.slots
+            .par_iter_mut()
+            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(self.background.par_chunks(max_agents))
+            .zip(svo_deg.par_iter())
+            .for_each(|(((s, obs), bg), &msg)| {
+                let env = &mut s.env;
+                let Some(ego) = env.agents().first().filter(|a| a.alive).map(|a| a.state.pos()) else {
+                    return;
+                };
+                let r2 = env.cfg.obs.radius_m * env.cfg.obs.radius_m;
+                for i in 1..env.len() {
+                    let near = crate::geom::dist2(env.agents()[i].state.pos(), ego) <= r2;
+                    env.set_seen_ego_svo(i, msg.filter(|_| near));
+                }
+                s.observer.prepare(&s.env);
+                for (i, row) in obs.chunks_mut(spec_len).enumerate().filter(|&(i, _)| bg.get(i) == Some(&1.0)) {
+                    s.observer.write(&s.env, i, row);
+                }
+            });
+    }
+
     /// Per row: what the last step did.
     pub fn row_steps(&self) -> &[RowStep] {
         &self.steps
@@ -155,7 +267,7 @@ impl VecEnv {
     /// itself is already reset), else its current row.
     pub fn next_observation(&self, r: usize) -> &[f32] {
         let len = self.spec.len;
-        let src = if self.steps[r].ended.is_some() { &self.final_obs } else { &self.obs };
+        let src = if self.steps[r].ended.is_some() || self.steps[r].truncated { &self.final_obs } else { &self.obs };
         &src[r * len..(r + 1) * len]
     }
 
@@ -166,7 +278,7 @@ impl VecEnv {
 
     /// Drains the metrics of episodes finished since the last call.
     pub fn take_finished(&mut self) -> Vec<EpisodeMetrics> {
-        self.slots.iter_mut().flat_map(|s| s.finished.drain(..)).collect()
+        self.slots.iter_mut().flat_map(|s| s.finished.drain(..).map(|(_, m)| m)).collect()
     }
 
     /// Steps every environment; `actions` has one entry per row. Finished episodes are
@@ -175,6 +287,7 @@ impl VecEnv {
         assert_eq!(actions.len(), self.alive.len(), "one action per observation row");
         let (spec_len, max_agents, mode, vehicles) = (self.spec.len, self.max_agents, self.cfg.mode, self.cfg.vehicles);
         let learners_only = matches!(mode, Mode::Ego { .. });
+        let queued = self.queue.is_some();
         let agent_steps: u64 = self
             .slots
             .par_iter_mut()
@@ -185,12 +298,20 @@ impl VecEnv {
             .zip(self.steps.par_chunks_mut(max_agents))
             .zip(self.final_obs.par_chunks_mut(max_agents * spec_len))
             .map(|((((((s, obs), alive), bg), acts), steps), finals)| {
+                if s.idle {
+                    steps.fill(RowStep::default());
+                    return 0;
+                }
                 let n = s.env.len();
                 let stepped = s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count() as u64;
                 s.env.step(&acts[..n]).expect("a live episode with one action per agent");
-                s.record(steps, finals, alive, spec_len);
+                s.record(steps, finals, alive, bg, spec_len);
                 if s.env.done() {
-                    s.finished.push(EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only));
+                    s.finished.push((s.tag, EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only)));
+                    if queued {
+                        s.idle = true;
+                        return stepped;
+                    }
                     s.reset(mode, vehicles);
                 }
                 s.observe(obs, alive, bg, spec_len);
@@ -199,22 +320,27 @@ impl VecEnv {
             .sum();
         self.env_steps += self.slots.len() as u64;
         self.agent_steps += agent_steps;
+        self.refill();
     }
 }
 
 impl Slot {
-    /// Fills per-row step results and final observations of rows that ended.
-    fn record(&mut self, steps: &mut [RowStep], finals: &mut [f32], alive: &[f32], spec_len: usize) {
+    /// Fills per-row step results (learner and externally driven background rows) and the
+    /// final observations of rows that ended, or were cut by the episode's end.
+    fn record(&mut self, steps: &mut [RowStep], finals: &mut [f32], alive: &[f32], bg: &[f32], spec_len: usize) {
         let mut prepared = false;
+        let done = self.env.done();
         for (i, st) in steps.iter_mut().enumerate() {
             *st = RowStep::default();
-            if alive[i] == 0.0 || i >= self.env.len() {
+            if (alive[i] == 0.0 && bg[i] == 0.0) || i >= self.env.len() {
                 continue;
             }
             st.stepped = true;
             st.rewards = self.env.rewards()[i];
-            if self.env.ended_now()[i] {
-                st.ended = self.env.agents()[i].termination;
+            let ended = self.env.ended_now()[i];
+            st.truncated = done && !ended;
+            if ended || st.truncated {
+                st.ended = if ended { self.env.agents()[i].termination } else { None };
                 if !prepared {
                     self.observer.prepare(&self.env);
                     prepared = true;
@@ -227,6 +353,7 @@ impl Slot {
     fn reset(&mut self, mode: Mode, vehicles: (u32, u32)) {
         let n = self.rng.random_range(vehicles.0..=vehicles.1) as usize;
         let case = random_case(&self.env.map, &mut self.rng, self.episodes, n);
+        self.tag = self.episodes as u64;
         self.episodes += 1;
         self.env.reset(&case, mode, None).expect("generated cases are valid for their map");
     }

@@ -189,3 +189,77 @@ fn externally_driven_background_rows_are_observed_and_flagged() {
     let idm = VecEnv::new(m, cfg, VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 1 });
     assert!(idm.background().iter().all(|&b| b == 0.0), "IDM background is not observed");
 }
+
+/// SocialCommAdv: the adversary's message reaches only background agents within the ego's
+/// radius, and only as what they are told of the ego's SVO; everyone's genuine SVO and what
+/// agents see of each other are unchanged; `None` restores the genuine SVO.
+#[test]
+fn the_adversary_message_reaches_only_background_agents_near_the_ego_as_the_egos_svo() {
+    use sf_sim::vec_env::{VecEnv, VecEnvConfig};
+    use sf_sim::Controller;
+    let m = common::map("intersection");
+    let mut sim = SimConfig::default();
+    sim.obs.svo = SvoVisibility::All;
+    sim.obs.ego_flag = true;
+    sim.obs.radius_m = 30.0;
+    let sim = Arc::new(sim);
+    let mut v = VecEnv::new(m, sim.clone(), VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::External }, vehicles: (12, 12), seed: 7 });
+    let (per, len) = (v.max_agents, v.spec.len);
+    let genuine: Vec<Vec<f32>> = (0..3).map(|k| v.env(k).agents().iter().map(|a| a.svo_deg).collect()).collect();
+    v.communicate_ego_svo(&[Some(77.0), None, Some(5.0)]);
+    let (mut near, mut far) = (0, 0);
+    for (k, msg) in [(0, Some(77.0)), (1, None), (2, Some(5.0))] {
+        let env = v.env(k);
+        let ego = env.agents()[0].state.pos();
+        assert_eq!(env.agents().iter().map(|a| a.svo_deg).collect::<Vec<_>>(), genuine[k], "genuine SVOs untouched");
+        for i in 1..env.len() {
+            let within = sf_sim::geom::dist(env.agents()[i].state.pos(), ego) <= sim.obs.radius_m;
+            let told = env.communicated_svo_deg(i, 0);
+            match msg {
+                Some(s) if within => {
+                    near += 1;
+                    assert_eq!(told, s, "env {k} agent {i} is within the radius");
+                }
+                _ => {
+                    far += usize::from(msg.is_some());
+                    assert_eq!(told, genuine[k][0], "env {k} agent {i} sees the genuine SVO");
+                }
+            }
+            for j in 1..env.len() {
+                assert_eq!(env.communicated_svo_deg(i, j), genuine[k][j], "others' SVOs as they are");
+            }
+            assert_eq!(env.communicated_svo_deg(0, i), genuine[k][i], "the ego is told nothing");
+            // The observation row carries it in the ego's neighbour entry (the flagged one).
+            let row = &v.observations()[(k * per + i) * len..][..len];
+            for j in 0..v.spec.neighbours {
+                let c = &row[v.spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
+                if row[v.spec.agents_mask.start + j] == 1.0 && c[5] == 1.0 {
+                    assert!((c[4] - told / 90.0).abs() < 1e-6, "env {k} agent {i}: row shows {} not {}", c[4] * 90.0, told);
+                }
+            }
+        }
+    }
+    assert!(near > 0 && far > 0, "the case must put agents on both sides of the radius ({near} near, {far} far)");
+}
+
+/// FailMaker draws c from [-90, 90]: a case's stored SVO in [0, 90] maps linearly onto the
+/// configured range at reset, and the observation carries c / 90.
+#[test]
+fn the_svo_range_maps_stored_svos_linearly() {
+    let m = common::map("merge");
+    let mut cfg = SimConfig::default();
+    cfg.svo_range_deg = [-90.0, 90.0];
+    cfg.obs.svo = SvoVisibility::Own;
+    let cfg = Arc::new(cfg);
+    let c = common::case(&[(common::spawn_for(&m, 0, 0), 0, 0.0), (common::spawn_for(&m, 0, 1), 0, 45.0), (common::spawn_for(&m, 0, 2), 0, 90.0)]);
+    let mut env = Env::new(m.clone(), cfg.clone());
+    env.reset(&c, Mode::MultiAgent, None).expect("reset");
+    assert_eq!(env.agents().iter().map(|a| a.svo_deg).collect::<Vec<_>>(), vec![-90.0, 0.0, 90.0]);
+    let mut ob = Observer::new(&m, &cfg);
+    ob.prepare(&env);
+    let mut row = vec![0.0; ob.spec.len];
+    ob.write(&env, 0, &mut row);
+    assert_eq!(row[ob.spec.ego_ctx.start], -1.0);
+    let bad = SimConfig { svo_range_deg: [10.0, -10.0], ..SimConfig::default() };
+    assert_eq!(bad.validate().expect_err("reversed").field, "svo_range_deg");
+}

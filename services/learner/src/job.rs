@@ -66,8 +66,8 @@ pub struct Ack {
 pub struct ActiveJob {
     pub id: u64,
     pub cfg: JobConfig,
-    /// The frozen flow driving the background: its job id and config.
-    pub background: Option<(u64, String)>,
+    /// The frozen policies the job acts with (background flow, ego, adversary).
+    pub frozen: Vec<sf_job::Frozen>,
     pub obs_len: usize,
     pub action_dim: usize,
     pub replay: Mutex<Replay>,
@@ -92,12 +92,12 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 impl ActiveJob {
     #[allow(clippy::too_many_arguments)]
-    pub fn new(id: u64, cfg: JobConfig, background: Option<(u64, String)>, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
+    pub fn new(id: u64, cfg: JobConfig, frozen: Vec<sf_job::Frozen>, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
         let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
         let complete = restored.env_steps >= cfg.train.env_steps;
         Self {
             id,
-            background,
+            frozen,
             obs_len,
             action_dim,
             replay: Mutex::new(replay),

@@ -28,7 +28,8 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use prometheus_client::registry::Registry;
 use serde::{Deserialize, Serialize};
-use sf_job::{JobConfig, JobRecord, JobState};
+use sf_job::config::JobKind;
+use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobState};
 use sf_proto::pb::experience_service_server::ExperienceServiceServer;
 use sf_proto::pb::job_service_server::JobServiceServer;
 use sf_sac::{setup, RateLimiter};
@@ -160,17 +161,16 @@ impl Inner {
         let cfg = JobConfig::from_toml(&toml_text)?;
         self.load_maps(&cfg.env.scenarios).await.map_err(ServiceError::InvalidArgument)?;
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
-        if let Some(name) = &cfg.env.background_from {
-            return Err(ServiceError::InvalidArgument(format!("job config field `env.background_from` (`{name}`) is resolved by `socialflow pipeline`; submit with `env.background_job = <id>`")));
+        if let Some((_, name)) = cfg.deps_by_name().first() {
+            return Err(ServiceError::InvalidArgument(format!("job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids")));
         }
-        if let Some(dep) = cfg.env.background_job {
-            let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} does not exist")))?;
+        for (role, dep) in cfg.deps() {
+            let field = role.field();
+            let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} does not exist")))?;
             let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
-            if !dep_cfg.kind.multi_agent() {
-                return Err(ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} is an ego job, not a traffic flow")));
-            }
+            check_dep(&cfg, role, &dep_cfg).map_err(|e| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} {e}")))?;
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
-                return Err(ServiceError::InvalidArgument(format!("job config field `env.background_job`: job {dep} is {}", rec.state.as_str())));
+                return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is {}", rec.state.as_str())));
             }
         }
         let store = Arc::clone(&self.store);
@@ -276,18 +276,24 @@ impl Inner {
                 return;
             }
         };
-        // A job whose background flow is not finished waits; one whose flow failed fails.
-        let dep_state = |r: &JobRecord| -> Option<JobState> {
-            let dep = JobConfig::from_toml(&r.config_toml).ok()?.env.background_job?;
-            Some(all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state))
+        // A job waits until every job it depends on has succeeded; it fails if one did not.
+        let dep_state = |r: &JobRecord| -> Option<(u64, JobState)> {
+            let deps = JobConfig::from_toml(&r.config_toml).ok()?.deps();
+            let states = deps.iter().map(|&(_, dep)| (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state)));
+            // The worst: a failed one, else an unfinished one, else succeeded.
+            states.max_by_key(|(_, s)| match s {
+                JobState::Succeeded => 0,
+                JobState::Queued | JobState::Running => 1,
+                JobState::Failed | JobState::Cancelled => 2,
+            })
         };
         for r in all.iter().filter(|r| r.state == JobState::Queued) {
-            if let Some(s @ (JobState::Failed | JobState::Cancelled)) = dep_state(r) {
-                let msg = format!("its background flow job ended {}", s.as_str());
+            if let Some((dep, s @ (JobState::Failed | JobState::Cancelled))) = dep_state(r) {
+                let msg = format!("job {dep}, which it depends on, ended {}", s.as_str());
                 self.finish(r.id, Outcome::Failed(msg), None).await;
             }
         }
-        let ready = |r: &&JobRecord| r.state == JobState::Queued && dep_state(r).is_none_or(|s| s == JobState::Succeeded);
+        let ready = |r: &&JobRecord| r.state == JobState::Queued && dep_state(r).is_none_or(|(_, s)| s == JobState::Succeeded);
         let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
         if let Some(rec) = next.cloned() {
             if let Err(msg) = self.start_job(&rec).await {
@@ -308,24 +314,39 @@ impl Inner {
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity).map_err(|e| e.to_string())?;
         let obs_len = setup::obs_spec(&cfg).len;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
-        let background = match cfg.env.background_job {
-            None => None,
-            Some(dep) => {
-                let d = self.job(dep).await.map_err(|e| format!("background flow job {dep}: {e}"))?;
-                if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
-                    return Err(format!("background flow job {dep} has no final policy ({})", d.state.as_str()));
-                }
-                Some((dep, d.config_toml))
+        let mut frozen = Vec::new();
+        let mut init_dir = None;
+        for (role, dep) in cfg.deps() {
+            let d = self.job(dep).await.map_err(|e| format!("job {dep} ({}): {e}", role.field()))?;
+            if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
+                return Err(format!("job {dep} ({}) has no final policy ({})", role.field(), d.state.as_str()));
             }
-        };
-        let job = Arc::new(ActiveJob::new(rec.id, cfg, background, obs_len, 2, limiter, counters, self.metrics.clone()));
+            match role {
+                DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
+                DepRole::Ego => frozen.push(Frozen { role: FrozenRole::Ego, job_id: dep, config_toml: d.config_toml }),
+                DepRole::Background => {
+                    let dc = JobConfig::from_toml(&d.config_toml).map_err(|e| format!("stored config of job {dep}: {e}"))?;
+                    if dc.kind == JobKind::SocialcommAdv {
+                        // Against SocialCommAdv: its SocialComm flow drives, its adversary talks.
+                        let flow = dc.env.background_job.ok_or_else(|| format!("socialcomm-adv job {dep} has no background flow"))?;
+                        let f = self.job(flow).await.map_err(|e| format!("job {flow} (the flow of job {dep}): {e}"))?;
+                        frozen.push(Frozen { role: FrozenRole::Background, job_id: flow, config_toml: f.config_toml });
+                        frozen.push(Frozen { role: FrozenRole::Adversary, job_id: dep, config_toml: d.config_toml });
+                    } else {
+                        frozen.push(Frozen { role: FrozenRole::Background, job_id: dep, config_toml: d.config_toml });
+                    }
+                }
+            }
+        }
+        let action_dim = setup::net_config(&cfg).action_dim;
+        let job = Arc::new(ActiveJob::new(rec.id, cfg, frozen, obs_len, action_dim, limiter, counters, self.metrics.clone()));
         let store = Arc::clone(&self.store);
         let id = rec.id;
         blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?;
         self.set_active(Some(Arc::clone(&job)));
         tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
         let (tx, rx) = oneshot::channel();
-        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, dir, resume };
+        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, dir, resume, init_dir };
         std::thread::Builder::new()
             .name(format!("trainer-{id}"))
             .spawn(move || {
@@ -489,6 +510,24 @@ impl RunningLearner {
     }
 }
 
+/// Whether `dep` can serve `job` in `role`; the error completes "job N ...".
+fn check_dep(job: &JobConfig, role: DepRole, dep: &JobConfig) -> Result<(), String> {
+    let layout = |c: &JobConfig| setup::obs_spec(c).layout;
+    match role {
+        DepRole::Background if job.kind == JobKind::SocialcommAdv && dep.kind != JobKind::Socialcomm => return Err(format!("is a {} job; the adversary talks to a SocialComm flow", dep.kind.as_str())),
+        DepRole::Background if !dep.kind.is_flow() => return Err("is an ego job, not a traffic flow".into()),
+        DepRole::Ego if dep.kind != JobKind::Ego => return Err(format!("is a {} job, not an ego policy", dep.kind.as_str())),
+        DepRole::Init if dep.kind != job.kind || setup::net_config(dep) != setup::net_config(job) => {
+            return Err(format!("is a {} job with network {:?}; a job starts only from one of its own kind and network", dep.kind.as_str(), setup::net_config(dep)))
+        }
+        _ => {}
+    }
+    if layout(dep) != layout(job) {
+        return Err(format!("observes in the {:?} layout, this job in {:?}", layout(dep), layout(job)));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -499,7 +538,7 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
         files.push(root.join("deploy/smoke-job.toml"));
-        for sub in ["configs/paper-small"] {
+        for sub in ["configs/paper-small", "configs/paper"] {
             files.extend(std::fs::read_dir(root.join(sub)).expect("pipeline dir").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")));
         }
         assert!(files.len() >= 3, "{files:?}");
@@ -514,3 +553,4 @@ mod tests {
         }
     }
 }
+

@@ -257,7 +257,7 @@ impl Inner {
                 obs_len: j.obs_len as u32,
                 action_dim: j.action_dim as u32,
                 warmup: j.in_warmup(),
-                background: j.background.clone(),
+                frozen: j.frozen.clone(),
         }))
     }
 }

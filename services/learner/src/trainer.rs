@@ -68,6 +68,8 @@ pub struct TrainerInput {
     pub maps: Vec<Arc<Map>>,
     pub dir: PathBuf,
     pub resume: Option<JobState>,
+    /// `train.init_job`'s checkpoint: the SAC state a fresh job starts from.
+    pub init_dir: Option<PathBuf>,
 }
 
 /// Runs the job to an [`Outcome`]. Blocking; call on a dedicated thread.
@@ -79,9 +81,9 @@ pub fn run(input: TrainerInput) -> Outcome {
 }
 
 fn train(input: TrainerInput) -> Result<Outcome, String> {
-    let TrainerInput { job, maps, dir, resume } = input;
+    let TrainerInput { job, maps, dir, resume, init_dir } = input;
     let cfg = &job.cfg;
-    let sim = setup::sim_config(cfg);
+    let sim = setup::sim_config(cfg, None);
     let segs: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let seg_refs: Vec<&MapSegments> = segs.iter().collect();
     let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(|e| format!("building SAC: {e}"))?;
@@ -90,6 +92,9 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
     if ckpt.exists() {
         checkpoint::restore(&mut sac, &ckpt).map_err(|e| format!("restoring {}: {e}", ckpt.display()))?;
         tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
+    } else if let Some(init) = &init_dir {
+        checkpoint::warm_start(&mut sac, init).map_err(|e| format!("starting from {}: {e}", init.display()))?;
+        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's final state");
     }
     std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;

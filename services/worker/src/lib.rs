@@ -208,25 +208,24 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
             anyhow::Ok((p.version, p.weights))
         }
     };
-    // A frozen learned flow in the background: its network and final weights, fetched once.
-    let background = match &asg.background {
-        None => None,
-        Some((bg_id, bg_toml)) => {
-            let bg_job = sf_job::JobConfig::from_toml(bg_toml).with_context(|| format!("config of background flow job {bg_id}"))?;
-            let mut c = client.clone();
-            let p = c.get_policy(req(pb::GetPolicyRequest { job_id: *bg_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
-            metrics.common.rpc("GetPolicy", Code::Ok);
-            tracing::info!(worker_id, background_job = bg_id, version = p.version, "background flow policy");
-            Some((bg_job, p.weights))
-        }
-    };
+    // Frozen policies (background flow, ego, adversary): their networks and final weights,
+    // fetched once per assignment.
+    let mut frozen = Vec::new();
+    for f in &asg.frozen {
+        let fj = sf_job::JobConfig::from_toml(&f.config_toml).with_context(|| format!("config of frozen job {}", f.job_id))?;
+        let mut c = client.clone();
+        let p = c.get_policy(req(pb::GetPolicyRequest { job_id: f.job_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
+        metrics.common.rpc("GetPolicy", Code::Ok);
+        tracing::info!(worker_id, frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
+        frozen.push((f.role, fj, p.weights));
+    }
     let control = Arc::new(Mutex::new(Control { warmup: asg.warmup, policy: None, stop: false }));
     if !asg.warmup {
         let (v, w) = fetch(0).await?;
         control.lock().unwrap_or_else(|p| p.into_inner()).policy = Some((v, w));
     }
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-    let spec = RolloutSpec { job, background, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
+    let spec = RolloutSpec { job, frozen, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
     let credits = Arc::new(Credits::new(2));
     let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
     let _stop_rollout = StopOnDrop(Arc::clone(&control));

@@ -11,15 +11,17 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_job::{EpisodeResult, JobConfig, TransitionBatch};
+use sf_job::config::JobKind;
+use sf_job::{EpisodeResult, FrozenRole, JobConfig, TransitionBatch};
 use sf_proto::pb;
+use sf_sac::drive::{self, Actor, Drivers};
 use sf_sac::inference::PolicyRunner;
 use sf_sac::setup;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
-use sf_sim::{Action, Map};
+use sf_sim::Map;
 use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
@@ -70,8 +72,8 @@ impl Credits {
 
 pub struct RolloutSpec {
     pub job: JobConfig,
-    /// A frozen flow driving the background: its config and weights.
-    pub background: Option<(JobConfig, Vec<u8>)>,
+    /// Frozen policies the job acts with: role, config and weights.
+    pub frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>,
     /// The job's scenarios in config order (index = map id).
     pub maps: Vec<Arc<Map>>,
     pub worker_id: u64,
@@ -83,7 +85,8 @@ pub struct RolloutSpec {
 
 /// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
 pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
-    let sim = Arc::new(setup::sim_config(&spec.job));
+    let bg_kind = spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
+    let sim = Arc::new(setup::sim_config(&spec.job, bg_kind));
     let obs = setup::obs_spec(&spec.job);
     if obs.len != spec.obs_len {
         bail!("the learner expects {}-float observations; this worker's build makes {}", spec.obs_len, obs.len);
@@ -124,16 +127,21 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
-    let frozen = match &spec.background {
-        None => None,
-        Some((bg, bytes)) => {
-            let bg_spec = setup::obs_spec(bg);
-            anyhow::ensure!(bg_spec.len == len, "background flow observations are {} floats, the ego's {len}", bg_spec.len);
-            Some(PolicyRunner::from_bytes(&setup::net_config(bg), &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).context("loading the background flow's policy")?)
-        }
-    };
+    let mut frozen: [Option<PolicyRunner>; 3] = [None, None, None];
+    for (role, cfg, bytes) in &spec.frozen {
+        let fs = setup::obs_spec(cfg);
+        anyhow::ensure!(fs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fs.len);
+        let runner = PolicyRunner::from_bytes(&setup::net_config(cfg), &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).with_context(|| format!("loading the frozen {role:?} policy"))?;
+        frozen[role_slot(*role)] = Some(runner);
+    }
+    let [frozen_bg, frozen_ego, frozen_adv] = &frozen;
+    let kind = job.kind;
+    if kind == JobKind::Failmaker || kind == JobKind::SocialcommAdv {
+        anyhow::ensure!(frozen_ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
+    }
+    let act_dim = kind.action_dim();
     let mut runner: Option<PolicyRunner> = None;
-    let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, 2);
+    let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim);
     let mut batch_version = None;
     loop {
         let (stop, warmup, new_policy) = {
@@ -160,71 +168,38 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             send(&mut batch, batch_version.unwrap_or(0), &tx, &metrics)?;
         }
         batch_version = Some(version);
-        // Live learner rows of every scenario, acted on in one batch.
-        let rows: Vec<Vec<usize>> = venvs.iter().map(|v| (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0).collect()).collect();
-        let mut actions: Vec<Vec<Action>> = venvs.iter().map(|v| vec![Action::default(); v.alive().len()]).collect();
-        let n_live: usize = rows.iter().map(Vec::len).sum();
-        match acting {
-            None => {
-                for (acts, rs) in actions.iter_mut().zip(&rows) {
-                    for &r in rs {
-                        acts[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0) };
-                    }
-                }
-            }
-            Some(pol) if n_live > 0 => {
-                let mut obs = Vec::with_capacity(n_live * len);
-                let mut ids = Vec::with_capacity(n_live);
-                for (k, (v, rs)) in venvs.iter().zip(&rows).enumerate() {
-                    for &r in rs {
-                        obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
-                        ids.push(k as u32);
-                    }
-                }
-                let t = Instant::now();
-                let a = pol.sample(&obs, &ids, &mut rng);
-                metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
-                metrics.inference_obs.inc_by(n_live as u64);
-                let mut j = 0;
-                for (acts, rs) in actions.iter_mut().zip(&rows) {
-                    for &r in rs {
-                        acts[r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
-                        j += 1;
-                    }
-                }
-            }
-            Some(_) => {}
+        // The job's own policy plays its role; frozen policies the others.
+        let own = acting.map_or(Actor::Random, Actor::sampled);
+        let (f_bg, f_ego, f_adv) = (frozen_bg.as_ref().map(Actor::sampled), frozen_ego.as_ref().map(Actor::sampled), frozen_adv.as_ref().map(Actor::sampled));
+        let drivers = match kind {
+            JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random), background: Some(own), adversary: None },
+            JobKind::SocialcommAdv => Drivers { alive: f_ego.unwrap_or(Actor::Random), background: f_bg, adversary: Some(own) },
+            _ => Drivers { alive: own, background: f_bg, adversary: f_adv },
+        };
+        let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
+        let t = Instant::now();
+        let d = drive::decide(&mut venvs, &drivers, &mut rng);
+        if d.inferred_rows > 0 {
+            metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
+            metrics.inference_obs.inc_by(d.inferred_rows as u64);
         }
-        if let Some(bg) = &frozen {
-            let mut obs = Vec::new();
-            let mut ids = Vec::new();
-            let mut at = Vec::new();
-            for (k, v) in venvs.iter().enumerate() {
-                for r in (0..v.background().len()).filter(|&r| v.background()[r] == 1.0) {
-                    obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
-                    ids.push(k as u32);
-                    at.push((k, r));
-                }
-            }
-            if !ids.is_empty() {
-                let a = bg.sample(&obs, &ids, &mut rng);
-                for (j, &(k, r)) in at.iter().enumerate() {
-                    actions[k][r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
-                }
-            }
-        }
-        for (k, ((v, rs), acts)) in venvs.iter_mut().zip(&rows).zip(&actions).enumerate() {
-            let before = v.observations().to_vec();
-            v.step(acts);
+        drive::apply(&mut venvs, &d);
+        // The rows the job learns from and the actions its policy took there.
+        let (trained_rows, trained_actions) = match kind {
+            JobKind::Failmaker => (&d.background_rows, &d.background_actions),
+            JobKind::SocialcommAdv => (&d.alive_rows, &d.adversary_actions),
+            _ => (&d.alive_rows, &d.alive_actions),
+        };
+        for (k, v) in venvs.iter_mut().enumerate() {
             batch.sim_steps += v.n_envs() as u64;
             metrics.env_steps.inc_by(v.n_envs() as u64);
-            for &r in rs {
+            for (j, &r) in trained_rows[k].iter().enumerate() {
                 let st = v.row_steps()[r];
                 if !st.stepped {
                     continue;
                 }
-                let act = [acts[r].ref_speed, acts[r].steer];
-                batch.push(&before[r * len..(r + 1) * len], &act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
+                let act = &trained_actions[k][j * act_dim..(j + 1) * act_dim];
+                batch.push(&before[k][r * len..(r + 1) * len], act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
             }
             for m in v.take_finished() {
                 metrics.episodes.inc();
@@ -237,6 +212,14 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             }
             send(&mut batch, version, &tx, &metrics)?;
         }
+    }
+}
+
+fn role_slot(role: FrozenRole) -> usize {
+    match role {
+        FrozenRole::Background => 0,
+        FrozenRole::Ego => 1,
+        FrozenRole::Adversary => 2,
     }
 }
 
