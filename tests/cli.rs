@@ -294,6 +294,7 @@ cross_validation = ["IDM", "SocialComm"]
 svo_sweep = {{ flows = ["SocialComm"], values = 2, scenarios = ["merge"] }}
 density = {{ scenario = "merge", flows = ["SocialComm"], vehicles = [2, 3] }}
 adversary = {{ egos = ["RL/IDM", "RL/SocialComm"], flows = ["SocialComm", "SocialCommAdv", "FailMaker"] }}
+gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenarios = ["merge"] }}
 "#,
             out = dir.join(out).display()
         )
@@ -313,5 +314,8 @@ adversary = {{ egos = ["RL/IDM", "RL/SocialComm"], flows = ["SocialComm", "Socia
     let r = json_of(&socialflow(&["report", &dir.join("eval-a").display().to_string(), "--out", &report.display().to_string()], T));
     assert_eq!(r["experiments"].as_array().map(Vec::len), Some(5), "{r}");
     assert!(report.join("report.html").exists() && report.join("cross-success-merge.png").exists());
+    let gif = std::fs::read(report.join("gif-merge.gif")).expect("the side-by-side GIF is in the report");
+    assert!(gif.starts_with(b"GIF89a") && gif.len() > 10_000, "{} bytes", gif.len());
+    assert!(std::fs::read_to_string(report.join("report.html")).expect("html").contains("data:image/gif;base64,"));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -547,8 +547,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     if new_file {
         writeln!(file, "{EPISODES_HEADER}")?;
     }
-    let bar = indicatif::ProgressBar::new(todo.len() as u64);
-    for cell in &todo {
+    for (k, cell) in todo.iter().enumerate() {
         let (map, cases) = maps.get(&cell.scenario).context("scenario loaded")?;
         let t = std::time::Instant::now();
         let rows = run_cell(cell, &cfg, map, cases, &flows, &egos, &mut runners).with_context(|| format!("cell {}", cell.key()))?;
@@ -557,10 +556,8 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         file.write_all(text.as_bytes())?;
         file.flush()?;
         let s = rows.iter().map(|r| r.success as f64).sum::<f64>() / rows.len().max(1) as f64;
-        bar.println(format!("{:<60} success {:5.1}%  ({:.1} s)", cell.key(), 100.0 * s, t.elapsed().as_secs_f64()));
-        bar.inc(1);
+        eprintln!("[{}/{}] {:<64} success {:5.1}%  ({:.1} s)", k + 1, todo.len(), cell.key(), 100.0 * s, t.elapsed().as_secs_f64());
     }
-    bar.finish_and_clear();
     eprintln!("wrote {}", path.display());
     if let Some(g) = &cfg.experiments.gifs {
         for s in &g.scenarios {
