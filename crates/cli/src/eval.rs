@@ -455,7 +455,7 @@ fn run_cell(cell: &Cell, cfg: &EvalConfig, map: &Arc<Map>, cases: &sf_sim::CaseF
 fn render_gif(g: &Gifs, scenario: &str, map: &Arc<Map>, cases: &sf_sim::CaseFile, flows: &BTreeMap<String, FlowDef>, egos: &BTreeMap<String, Trained>, runners: &mut Runners, path: &Path) -> Result<()> {
     use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
     let case = cases.cases.get(g.case as usize).with_context(|| format!("experiments.gifs.case {} is not stored for {scenario}", g.case))?;
-    let renderer = Renderer::new(map, 420, ColourBy::Svo)?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo)?;
     let mut films = Vec::new();
     for f in &g.flows {
         let cell = Cell { experiment: "gif".into(), ego: g.ego.clone(), flow: f.clone(), scenario: scenario.into(), svo_deg: None, vehicles: None };

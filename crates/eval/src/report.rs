@@ -420,7 +420,7 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
             let (sc, sca, fm) = (summary(&pooled(&flows[0]), |r| r.success).mean, summary(&pooled(&flows[1]), |r| r.success).mean, summary(&pooled(&flows[2]), |r| r.success).mean);
             let p = paired_across_flows(&pooled(&flows[1]), &pooled(&flows[0]), |r| r.success).map(|t| t.p_value);
             found.checks.push((format!("Egos succeed less in {} than in {} (pooled)", flows[1], flows[0]), sca < sc && p.is_some_and(|p| p < 0.05), p));
-            found.checks.push((format!("{} degrades egos more than {} (pooled success {:.1} vs {:.1} vs {:.1})", flows[2], flows[1], 100.0 * fm, 100.0 * sca, 100.0 * sc), sc - fm > sc - sca, None));
+            found.checks.push((format!("{} degrades egos more than {} (pooled success: {} {:.1}, {} {:.1}, {} {:.1})", flows[2], flows[1], flows[0], 100.0 * sc, flows[1], 100.0 * sca, flows[2], 100.0 * fm), sc - fm > sc - sca, None));
         }
     }
 
