@@ -139,6 +139,15 @@ pub fn stars(p: f64) -> &'static str {
     }
 }
 
+/// A p-value as text; below what a double's `1 - cdf` resolves it reads "< 1e-15".
+pub fn fmt_p(p: f64) -> String {
+    if p < 1e-15 {
+        "< 1e-15".into()
+    } else {
+        format!("{p:.2e}")
+    }
+}
+
 type Metric = fn(&EpisodeRow) -> f32;
 const METRICS: [(&str, Metric); 3] = [("Success", |r| r.success), ("Safety", |r| r.safety), ("Speed", |r| r.speed)];
 
@@ -343,7 +352,7 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
                 let a = by(rows, |r| r.experiment == "svo_sweep" && r.flow == flows[1] && &r.scenario == s);
                 let b = by(rows, |r| r.experiment == "svo_sweep" && r.flow == flows[0] && &r.scenario == s);
                 if let Some(t) = paired_across_flows(&a, &b, |r| r.success) {
-                    doc.p(&format!("{s}: {} - {} success = {:+.1} points over all SVOs, p = {:.2e} {}", flows[1], flows[0], 100.0 * t.mean_diff, t.p_value, stars(t.p_value)));
+                    doc.p(&format!("{s}: {} - {} success = {:+.1} points over all SVOs, p = {} {}", flows[1], flows[0], 100.0 * t.mean_diff, fmt_p(t.p_value), stars(t.p_value)));
                     if flows[1] == "SocialComm" {
                         found.checks.push((format!("SocialComm beats CoPO Stage 1 over the SVO sweep in {s}"), t.mean_diff > 0.0 && t.p_value < 0.05, Some(t.p_value)));
                     }
@@ -406,7 +415,7 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
                         let v = summary(&cell(f), m);
                         row.push(if k == 0 { pct(v) } else { format!("{} ({:+.1})", pct(v), 100.0 * (v.mean - base)) });
                     }
-                    let p = if flows.len() >= 2 { paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| format!("{:.2e} {}", t.p_value, stars(t.p_value))) } else { None };
+                    let p = if flows.len() >= 2 { paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| format!("{} {}", fmt_p(t.p_value), stars(t.p_value))) } else { None };
                     row.push(p.unwrap_or_else(|| "-".into()));
                     row.push(paper.get(&(e.as_str(), s.as_str())).map(|v| format!("{:.1} / {:.1} / {:.1}", v[0], v[1], v[2])).unwrap_or_else(|| "-".into()));
                     table.push(row);
@@ -460,7 +469,7 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
                         if let Some(t) = paired(&pooled(ours), &pooled(e), m) {
                             let k = egos.iter().position(|x| x == e).unwrap_or(0);
                             bars[k].stars = stars(t.p_value).to_string();
-                            lines.push(format!("{s}: {ours} - {e} {mname} = {:+.1} points, p = {:.2e} {}", 100.0 * t.mean_diff, t.p_value, stars(t.p_value)));
+                            lines.push(format!("{s}: {ours} - {e} {mname} = {:+.1} points, p = {} {}", 100.0 * t.mean_diff, fmt_p(t.p_value), stars(t.p_value)));
                             if mname == "Success" {
                                 found.checks.push((format!("{ours} transfers better than {e} in {s} (success)"), t.mean_diff > 0.0 && t.p_value < 0.05, Some(t.p_value)));
                             }
@@ -492,7 +501,7 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
 
     if !found.checks.is_empty() {
         doc.h(2, "The paper's findings at this budget");
-        let table: Vec<Vec<String>> = found.checks.iter().map(|(c, ok, p)| vec![c.clone(), if *ok { "holds".into() } else { "does not hold".into() }, p.map(|p| format!("{p:.2e}")).unwrap_or_else(|| "-".into())]).collect();
+        let table: Vec<Vec<String>> = found.checks.iter().map(|(c, ok, p)| vec![c.clone(), if *ok { "holds".into() } else { "does not hold".into() }, p.map(fmt_p).unwrap_or_else(|| "-".into())]).collect();
         doc.table(&["Finding".into(), "Here".into(), "p".into()], &table);
     }
     let md_path = out.join("report.md");
@@ -559,6 +568,7 @@ mod tests {
     #[test]
     fn stars_follow_the_paper() {
         assert_eq!((stars(1e-5), stars(5e-4), stars(5e-3), stars(0.03), stars(0.2)), ("****", "***", "**", "*", "n.s."));
+        assert_eq!((fmt_p(0.0), fmt_p(0.0123)), ("< 1e-15".to_string(), "1.23e-2".to_string()));
     }
 
     /// A tiny stored result set builds the whole report, and a clearly better ego is found
