@@ -213,6 +213,11 @@ struct Cell {
 }
 
 impl Cell {
+    /// The cell a stored episode belongs to.
+    fn of(r: &EpisodeRow) -> Self {
+        Self { experiment: r.experiment.clone(), ego: r.ego.clone(), flow: r.flow.clone(), scenario: r.scenario.clone(), svo_deg: r.svo_deg, vehicles: r.vehicles }
+    }
+
     fn key(&self) -> String {
         format!("{}|{}|{}|{}|{}|{}", self.experiment, self.ego, self.flow, self.scenario, opt(self.svo_deg), opt(self.vehicles))
     }
@@ -276,30 +281,31 @@ struct Trained {
     dir: PathBuf,
 }
 
-/// The newest `jobs/<id>-<name>/` with a final policy.
-fn find_job(runs: &Path, name: &str) -> Result<Trained> {
+/// Every `jobs/<id>-<name>/` directory of a learner's data directory as `(id, name, dir)`.
+fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
     let jobs = runs.join("jobs");
-    let mut best: Option<(u64, PathBuf)> = None;
+    let mut out = Vec::new();
     for e in std::fs::read_dir(&jobs).with_context(|| format!("reading {}", jobs.display()))?.flatten() {
         let file = e.file_name().to_string_lossy().to_string();
-        let Some((id, rest)) = file.split_once('-') else { continue };
-        let Ok(id) = id.parse::<u64>() else { continue };
-        if rest == name && e.path().join("policy.bpk").exists() && best.as_ref().is_none_or(|(b, _)| id > *b) {
-            best = Some((id, e.path()));
+        if let Some((id, name)) = file.split_once('-').and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name.to_string()))) {
+            out.push((id, name, e.path()));
         }
     }
-    let (_, dir) = best.with_context(|| format!("no finished job named `{name}` under {}", jobs.display()))?;
+    Ok(out)
+}
+
+/// The newest `jobs/<id>-<name>/` with a final policy.
+fn find_job(runs: &Path, name: &str) -> Result<Trained> {
+    let best = job_dirs(runs)?.into_iter().filter(|(_, n, dir)| n == name && dir.join("policy.bpk").exists()).max_by_key(|(id, _, _)| *id);
+    let (_, _, dir) = best.with_context(|| format!("no finished job named `{name}` under {}", runs.join("jobs").display()))?;
     load_job(&dir)
 }
 
 fn find_job_by_id(runs: &Path, id: u64) -> Result<Trained> {
-    let jobs = runs.join("jobs");
-    for e in std::fs::read_dir(&jobs).with_context(|| format!("reading {}", jobs.display()))?.flatten() {
-        if e.file_name().to_string_lossy().split_once('-').is_some_and(|(i, _)| i == id.to_string()) {
-            return load_job(&e.path());
-        }
+    match job_dirs(runs)?.into_iter().find(|(i, _, _)| *i == id) {
+        Some((_, _, dir)) => load_job(&dir),
+        None => bail!("job {id} has no directory under {}", runs.join("jobs").display()),
     }
-    bail!("job {id} has no directory under {}", jobs.display())
 }
 
 fn load_job(dir: &Path) -> Result<Trained> {
@@ -365,6 +371,7 @@ impl Acting {
         match (&self.ego, &self.background) {
             (Some(e), bg) => Drivers { alive: Actor::mean(e), background: bg.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) },
             (None, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
+            // The all-IDM flow: its vehicles' controllers ignore these actions.
             (None, None) => Drivers { alive: Actor::Random, background: None, adversary: None },
         }
     }
@@ -418,13 +425,8 @@ fn run_cell(cell: &Cell, cfg: &EvalConfig, map: &Arc<Map>, cases: &sf_sim::CaseF
         let drivers = acting.drivers();
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
         while !venvs[0].is_finished() {
-            if matches!(mode, Mode::AllIdm) {
-                let n = venvs[0].alive().len();
-                venvs[0].step(&vec![sf_sim::Action::default(); n]);
-            } else {
-                let d = drive::decide(&mut venvs, &drivers, &mut rng);
-                drive::apply(&mut venvs, &d);
-            }
+            let d = drive::decide(&mut venvs, &drivers, &mut rng);
+            drive::apply(&mut venvs, &d);
             for (tag, m) in venvs[0].take_finished_tagged() {
                 done[tag as usize] = Some(m);
             }
@@ -539,7 +541,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     std::fs::write(&meta_path, serde_json::to_string_pretty(&meta)?).with_context(|| format!("writing {}", meta_path.display()))?;
     let path = cfg.out.join("episodes.csv");
     let stored = sf_eval::report::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
-    let have: BTreeSet<String> = stored.iter().map(|r| format!("{}|{}|{}|{}|{}|{}", r.experiment, r.ego, r.flow, r.scenario, opt(r.svo_deg), opt(r.vehicles))).collect();
+    let have: BTreeSet<String> = stored.iter().map(|r| Cell::of(r).key()).collect();
     let todo: Vec<Cell> = cells(&cfg).into_iter().filter(|c| !have.contains(&c.key())).collect();
     eprintln!("{} cells to run ({} stored), {} episodes each", todo.len(), have.len(), cfg.cases * cfg.seeds);
     let new_file = !path.exists();

@@ -15,8 +15,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
-use sf_job::config::JobKind;
-use sf_job::{DepRole, JobConfig, JobState};
+use sf_job::{JobConfig, JobState};
 
 use crate::remote::{self, Conn, JobsClient};
 use crate::train::{runtime, Embedded};
@@ -60,13 +59,8 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
             let Some((_, d, _)) = jobs.get(dep) else {
                 bail!("{}: {} names `{dep}`, which no config in {} defines", path.display(), role.field(), dir.display());
             };
-            let fits = match role {
-                DepRole::Background => d.kind.is_flow(),
-                DepRole::Ego => d.kind == JobKind::Ego,
-                DepRole::Init => d.kind == cfg.kind,
-            };
-            if !fits {
-                bail!("{}: {} names `{dep}`, a {} job, which cannot serve there", path.display(), role.field(), d.kind.as_str());
+            if let Err(why) = role.accepts(cfg.kind, d.kind) {
+                bail!("{}: {} names `{dep}`, which {why}", path.display(), role.field());
             }
         }
     }

@@ -312,6 +312,19 @@ pub enum DepRole {
 }
 
 impl DepRole {
+    /// Whether a `dep`-kind job can serve a `job`-kind job in this role, by kind alone (the
+    /// learner also compares networks and observation layouts). The error completes
+    /// "job N ...".
+    pub fn accepts(self, job: JobKind, dep: JobKind) -> Result<(), String> {
+        match self {
+            Self::Background if job == JobKind::SocialcommAdv && dep != JobKind::Socialcomm => Err(format!("is a {} job; the adversary talks to a SocialComm flow", dep.as_str())),
+            Self::Background if !dep.is_flow() => Err("is an ego job, not a traffic flow".into()),
+            Self::Ego if dep != JobKind::Ego => Err(format!("is a {} job, not an ego policy", dep.as_str())),
+            Self::Init if dep != job => Err(format!("is a {} job; a job starts only from one of its own kind", dep.as_str())),
+            _ => Ok(()),
+        }
+    }
+
     pub fn field(self) -> &'static str {
         match self {
             Self::Background => "env.background_job",
@@ -493,5 +506,18 @@ mod tests {
         assert!(e.to_string().contains("bogus"), "{e}");
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 5000\n").replace("env_steps = 1000", "env_steps = 1000\nreplay_capacity = 1000")).expect_err("warm-up");
         assert!(e.to_string().contains("sac.warmup_steps"), "{e}");
+    }
+
+    #[test]
+    fn dependencies_serve_only_in_roles_their_kind_fits() {
+        use JobKind::*;
+        assert!(DepRole::Background.accepts(Ego, Failmaker).is_ok());
+        assert!(DepRole::Background.accepts(Ego, Ego).expect_err("ego").contains("not a traffic flow"));
+        assert!(DepRole::Background.accepts(SocialcommAdv, Copo).expect_err("not socialcomm").contains("SocialComm"));
+        assert!(DepRole::Background.accepts(SocialcommAdv, Socialcomm).is_ok());
+        assert!(DepRole::Ego.accepts(Failmaker, Macad).is_err());
+        assert!(DepRole::Ego.accepts(Failmaker, Ego).is_ok());
+        assert!(DepRole::Init.accepts(Ego, Failmaker).is_err());
+        assert!(DepRole::Init.accepts(Failmaker, Failmaker).is_ok());
     }
 }

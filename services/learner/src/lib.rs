@@ -510,18 +510,14 @@ impl RunningLearner {
     }
 }
 
-/// Whether `dep` can serve `job` in `role`; the error completes "job N ...".
+/// Whether `dep` can serve `job` in `role`: its kind (`DepRole::accepts`), for `train.init_job`
+/// the same network, and the same observation layout. The error completes "job N ...".
 fn check_dep(job: &JobConfig, role: DepRole, dep: &JobConfig) -> Result<(), String> {
-    let layout = |c: &JobConfig| setup::obs_spec(c).layout;
-    match role {
-        DepRole::Background if job.kind == JobKind::SocialcommAdv && dep.kind != JobKind::Socialcomm => return Err(format!("is a {} job; the adversary talks to a SocialComm flow", dep.kind.as_str())),
-        DepRole::Background if !dep.kind.is_flow() => return Err("is an ego job, not a traffic flow".into()),
-        DepRole::Ego if dep.kind != JobKind::Ego => return Err(format!("is a {} job, not an ego policy", dep.kind.as_str())),
-        DepRole::Init if dep.kind != job.kind || setup::net_config(dep) != setup::net_config(job) => {
-            return Err(format!("is a {} job with network {:?}; a job starts only from one of its own kind and network", dep.kind.as_str(), setup::net_config(dep)))
-        }
-        _ => {}
+    role.accepts(job.kind, dep.kind)?;
+    if role == DepRole::Init && setup::net_config(dep) != setup::net_config(job) {
+        return Err(format!("has network {:?}; a job starts only from one of its own kind and network", setup::net_config(dep)));
     }
+    let layout = |c: &JobConfig| setup::obs_spec(c).layout;
     if layout(dep) != layout(job) {
         return Err(format!("observes in the {:?} layout, this job in {:?}", layout(dep), layout(job)));
     }

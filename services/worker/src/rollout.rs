@@ -127,14 +127,17 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
-    let mut frozen: [Option<PolicyRunner>; 3] = [None, None, None];
+    let (mut frozen_bg, mut frozen_ego, mut frozen_adv) = (None, None, None);
     for (role, cfg, bytes) in &spec.frozen {
         let fs = setup::obs_spec(cfg);
         anyhow::ensure!(fs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fs.len);
         let runner = PolicyRunner::from_bytes(&setup::net_config(cfg), &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).with_context(|| format!("loading the frozen {role:?} policy"))?;
-        frozen[role_slot(*role)] = Some(runner);
+        *match role {
+            FrozenRole::Background => &mut frozen_bg,
+            FrozenRole::Ego => &mut frozen_ego,
+            FrozenRole::Adversary => &mut frozen_adv,
+        } = Some(runner);
     }
-    let [frozen_bg, frozen_ego, frozen_adv] = &frozen;
     let kind = job.kind;
     if kind == JobKind::Failmaker || kind == JobKind::SocialcommAdv {
         anyhow::ensure!(frozen_ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
@@ -212,14 +215,6 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             }
             send(&mut batch, version, &tx, &metrics)?;
         }
-    }
-}
-
-fn role_slot(role: FrozenRole) -> usize {
-    match role {
-        FrozenRole::Background => 0,
-        FrozenRole::Ego => 1,
-        FrozenRole::Adversary => 2,
     }
 }
 
