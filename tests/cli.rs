@@ -153,7 +153,10 @@ fn stage_one_flows_train_through_the_service() {
     for kind in ["macad", "copo", "socialcomm"] {
         let dir = socialflow_e2e::scratch(&format!("flow-{kind}"));
         let cfg = dir.join("flow.toml");
-        let text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1);
+        let mut text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1);
+        if kind == "copo" {
+            text.push_str("[coordinator]\niterations = 2\npopulation = 4\nenvs = 4\n");
+        }
         std::fs::write(&cfg, text).expect("config");
         let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "1", "--data-dir", &dir.join("data").display().to_string(), "--quiet"], T));
         assert_eq!(v["state"], "succeeded", "{kind}");
@@ -173,11 +176,20 @@ fn stage_one_flows_train_through_the_service() {
         }
         assert_eq!(eval(), e, "an evaluation with the same policy, cases and seeds is reproducible");
         if kind == "copo" {
-            // CoPO Stage 2 on the frozen Stage-1 flow: a fitted Gaussian over SVO, written beside it.
-            let c = json_of(&socialflow(&["copo-coordinator", "--policy", &art, "--scenario", "merge", "--iterations", "2", "--population", "4"], T));
-            let m = c["mean_deg"].as_f64().expect("mean");
-            assert!((0.0..=90.0).contains(&m) && c["history"].as_array().map(Vec::len) == Some(2), "{c}");
-            assert!(std::path::Path::new(&art).join("coordinator-merge.json").exists());
+            // CoPO Stage 2: the job fitted its coordinator on its frozen Stage-1 policy by itself
+            // (a Gaussian over SVO per scenario, two CEM iterations as configured).
+            let text = std::fs::read_to_string(std::path::Path::new(&art).join("coordinator.json")).expect("the copo job wrote coordinator.json");
+            let c: serde_json::Value = serde_json::from_str(&text).expect("json");
+            let merge = &c["scenarios"][0];
+            assert_eq!(merge["scenario"], "merge", "{c}");
+            let m = merge["gaussian"]["mean_deg"].as_f64().expect("mean");
+            assert!((0.0..=90.0).contains(&m) && merge["history"].as_array().map(Vec::len) == Some(2), "{c}");
+            // The same on demand, to another file; a Stage-2 evaluation differs from Stage 1's.
+            let other = dir.join("coord.json").display().to_string();
+            let c = json_of(&socialflow(&["copo-coordinator", "--policy", &art, "--iterations", "1", "--population", "3", "--envs", "3", "--out", &other], T));
+            assert_eq!(c["scenarios"][0]["history"].as_array().map(Vec::len), Some(1), "{c}");
+            let stage1 = json_of(&socialflow(&["eval-flow", "--policy", &art, "--scenario", "merge", "--cases", "2", "--seeds", "2", "--json", "--stage1"], T));
+            assert_eq!(stage1["episodes"], 4);
         } else {
             let out = socialflow(&["copo-coordinator", "--policy", &art, "--scenario", "merge"], T);
             assert!(!out.status.success(), "the coordinator needs a CoPO flow");

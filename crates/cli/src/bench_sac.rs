@@ -13,6 +13,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 use sf_nn::NetConfig;
+use sf_sac::inference::PolicyRunner;
 use sf_sac::{Replay, Sac, SacConfig, Transition};
 use sf_sim::obs::MapSegments;
 use sf_sim::policy::route_follower;
@@ -32,7 +33,7 @@ pub enum Size {
 pub struct SacArgs {
     #[arg(long, value_enum, default_value = "default")]
     size: Size,
-    /// Seconds spent timing updates (inference gets a third of it).
+    /// Seconds spent timing updates (inference gets a third of it, half with shared histories).
     #[arg(long, default_value_t = 20.0)]
     seconds: f64,
     #[arg(long, default_value_t = 128)]
@@ -75,6 +76,14 @@ pub fn size_config(size: Size) -> (SimConfig, NetConfig) {
     (sim, net)
 }
 
+fn sac_device(d: DeviceArg) -> sf_nn::device::DeviceKind {
+    match d {
+        DeviceArg::Cpu => sf_nn::device::DeviceKind::Cpu,
+        DeviceArg::Ndarray => sf_nn::device::DeviceKind::Ndarray,
+        DeviceArg::Cuda => sf_nn::device::DeviceKind::Cuda,
+    }
+}
+
 pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let (sim, net) = size_config(a.size);
     let sim = Arc::new(sim);
@@ -105,11 +114,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let segs = MapSegments::build(&map, sim.obs.segment_points);
     // paper and compact follow the reference update exactly (fresh critic features).
     let reuse = matches!(a.size, Size::Default);
-    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: match a.device {
-        DeviceArg::Cpu => sf_nn::device::DeviceKind::Cpu,
-        DeviceArg::Ndarray => sf_nn::device::DeviceKind::Ndarray,
-        DeviceArg::Cuda => sf_nn::device::DeviceKind::Cuda,
-    }, ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
+    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
     for b in batches.iter().take(2) {
@@ -124,20 +129,31 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     }
     let update_median = median(&mut times);
 
-    // Inference: the worker's step, 20 observations through the actor (batch building included).
-    let (actor, table) = sac.policy();
-    let rows: Vec<f32> = batches[0].obs[..20 * spec.len].to_vec();
+    // Inference: the worker's step, 20 observations of one step through the worker's
+    // `PolicyRunner` (batch building included): the live agents of the simulators' current step,
+    // each agent's history encoded once for all its observers (query-centric), and the same rows
+    // with a copy per observation for comparison.
+    let (actor, _) = sac.policy();
+    let device = sf_nn::device::device(sac_device(a.device))?;
+    let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], 0, &device);
+    let live: Vec<usize> = (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
+    anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());
+    let rows: Vec<f32> = live.iter().flat_map(|&r| venv.observations()[r * spec.len..(r + 1) * spec.len].iter().copied()).collect();
     let ids = vec![0u32; 20];
-    let mut inf = Vec::new();
-    let start = Instant::now();
-    while start.elapsed().as_secs_f64() < a.seconds / 3.0 || inf.len() < 20 {
-        let t = Instant::now();
-        let obs = sac.obs_batch(&rows, &ids);
-        let out = actor.act_mean(&obs, table.as_ref());
-        let _: Vec<f32> = out.into_data().try_to_vec().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        inf.push(t.elapsed().as_secs_f64());
-    }
-    let infer_median = median(&mut inf);
+    let time_inference = |shared: bool| {
+        let mut inf = Vec::new();
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < a.seconds / 6.0 || inf.len() < 20 {
+            let t = Instant::now();
+            let obs = if shared { runner.batch(&rows, &ids) } else { runner.batch_unshared(&rows, &ids) };
+            let _ = runner.mean_of(&obs);
+            inf.push(t.elapsed().as_secs_f64());
+        }
+        median(&mut inf)
+    };
+    let infer_median = time_inference(true);
+    let unshared_median = time_inference(false);
+    let encoded = runner.batch(&rows, &ids).histories.encoded_histories();
     let out = json!({
         "size": format!("{:?}", a.size).to_lowercase(),
         "batch": a.batch,
@@ -146,6 +162,8 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         "updates_timed": times.len(),
         "inference_obs_per_s": 20.0 / infer_median,
         "inference_batch": 20,
+        "inference_unshared_obs_per_s": 20.0 / unshared_median,
+        "inference_histories_encoded": encoded,
         "encoder": net.encoder,
         "d_model": net.d_model,
         "set_hidden": net.set_hidden,

@@ -279,6 +279,8 @@ struct Trained {
     cfg: JobConfig,
     weights: Arc<Vec<u8>>,
     dir: PathBuf,
+    /// A CoPO flow's Stage-2 coordinator (`coordinator.json`), if it was fitted.
+    coordinator: Option<sf_sac::coordinator::CoordinatorFile>,
 }
 
 /// Every `jobs/<id>-<name>/` directory of a learner's data directory as `(id, name, dir)`.
@@ -312,7 +314,8 @@ fn load_job(dir: &Path) -> Result<Trained> {
     let text = std::fs::read_to_string(dir.join("config.toml")).with_context(|| format!("reading {}/config.toml", dir.display()))?;
     let cfg = JobConfig::from_toml(&text).with_context(|| format!("{}/config.toml", dir.display()))?;
     let weights = std::fs::read(dir.join("policy.bpk")).with_context(|| format!("reading {}/policy.bpk", dir.display()))?;
-    Ok(Trained { cfg, weights: Arc::new(weights), dir: dir.to_path_buf() })
+    let coordinator = sf_sac::coordinator::CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
+    Ok(Trained { cfg, weights: Arc::new(weights), dir: dir.to_path_buf(), coordinator })
 }
 
 /// What drives a flow: IDM, or a learned background (with its adversary for SocialCommAdv).
@@ -363,6 +366,9 @@ struct Acting {
     ego: Option<Arc<PolicyRunner>>,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
+    /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
+    /// (not in cells that fix every SVO, the SVO sweep).
+    svo_gaussian: Option<sf_sim::SvoGaussian>,
 }
 
 impl Acting {
@@ -405,7 +411,17 @@ fn cell_setup(cell: &Cell, flow: &FlowDef, ego: Option<&Trained>, runners: &mut 
         FlowDef::Idm => (None, None),
         FlowDef::Learned { background, adversary, .. } => (Some(runners.get(background, &cell.scenario, &sim)?), adversary.as_ref().map(|a| runners.get(a, &cell.scenario, &sim)).transpose()?),
     };
-    Ok((Arc::new(sim), mode, Acting { ego, background, adversary }))
+    let svo_gaussian = match flow {
+        FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.coordinator.as_ref().and_then(|c| c.gaussian(&cell.scenario)),
+        _ => None,
+    };
+    Ok((Arc::new(sim), mode, Acting { ego, background, adversary, svo_gaussian }))
+}
+
+/// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
+/// Stage 2's SVOs, follow the tag, so each seed gets its own).
+fn episode_tag(seed: u32, case: usize) -> u64 {
+    (seed as u64) << 32 | case as u64
 }
 
 /// Runs one cell; rows in (case, seed) order.
@@ -419,17 +435,13 @@ fn run_cell(cell: &Cell, cfg: &EvalConfig, map: &Arc<Map>, cases: &sf_sim::CaseF
     }
     let mut rows = Vec::with_capacity(n_cases * cfg.seeds as usize);
     for seed in 0..cfg.seeds {
-        let eps: Vec<EpisodeSpec> = (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: c as u64 }).collect();
-        let mut venvs = vec![VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, cfg.envs, eps).map_err(anyhow::Error::msg)?];
+        let eps: Vec<EpisodeSpec> = (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: episode_tag(seed, c) }).collect();
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, cfg.envs, eps).map_err(anyhow::Error::msg)?;
+        v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
-        let drivers = acting.drivers();
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
-        while !venvs[0].is_finished() {
-            let d = drive::decide(&mut venvs, &drivers, &mut rng);
-            drive::apply(&mut venvs, &d);
-            for (tag, m) in venvs[0].take_finished_tagged() {
-                done[tag as usize] = Some(m);
-            }
+        for (tag, m) in drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |_, _| {}) {
+            done[(tag & 0xffff_ffff) as usize] = Some(m);
         }
         for (c, m) in done.into_iter().enumerate() {
             let m = m.with_context(|| format!("case {c} did not finish"))?;
@@ -464,14 +476,11 @@ fn render_gif(g: &Gifs, scenario: &str, map: &Arc<Map>, cases: &sf_sim::CaseFile
         let flow = flows.get(f).context("flow")?;
         let ego = egos.get(&g.ego).context("ego")?;
         let (sim, mode, acting) = cell_setup(&cell, flow, Some(ego), runners)?;
-        let mut venvs = vec![VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(anyhow::Error::msg)?];
+        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(anyhow::Error::msg)?;
+        v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let mut frames = vec![renderer.frame(venvs[0].env(0))];
-        while !venvs[0].is_finished() {
-            let d = drive::decide(&mut venvs, &acting.drivers(), &mut rng);
-            drive::apply(&mut venvs, &d);
-            frames.push(renderer.frame(venvs[0].env(0)));
-        }
+        let mut frames = vec![renderer.frame(v.env(0))];
+        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| frames.push(renderer.frame(v.env(0))));
         films.push(frames);
     }
     let len = films.iter().map(Vec::len).max().unwrap_or(0);

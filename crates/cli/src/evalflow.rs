@@ -3,14 +3,20 @@
 //! The all-IDM flow needs nothing; a learned flow (MACAD, CoPO Stage 1, SocialComm) is read
 //! from a finished job's artifact directory (`config.toml` + `policy.bpk`) and drives every
 //! vehicle of the stored case, actions sampled with the seed (or the mean with
-//! `--deterministic`).
+//! `--deterministic`); a CoPO flow with a fitted coordinator runs as Stage 2 (SVOs redrawn
+//! from its Gaussian every step) unless `--stage1`. Also `copo-coordinator`, CoPO Stage 2 on
+//! a finished CoPO flow.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use rayon::prelude::*;
 use serde_json::json;
+use rand::SeedableRng;
 use sf_eval::Summary;
+use sf_sac::coordinator::CoordinatorFile;
+use sf_sac::drive::{Actor, Drivers};
 use sf_sim::metrics::EpisodeMetrics;
+use sf_sim::vec_env::{EpisodeSpec, VecEnv};
 use sf_sim::{Env, Mode, SimConfig};
 
 use crate::scenarios::Ctx;
@@ -27,6 +33,9 @@ pub struct EvalFlowArgs {
     /// Mean actions instead of samples (learned flows).
     #[arg(long)]
     deterministic: bool,
+    /// A CoPO flow past Stage 2: keep the cases' SVOs instead of its coordinator's Gaussian.
+    #[arg(long)]
+    stage1: bool,
     #[arg(long)]
     scenario: String,
     /// Number of stored cases to run (the first N).
@@ -50,11 +59,12 @@ pub fn flow_mode(flow: Flow) -> Result<Mode> {
 }
 
 /// A learned flow loaded from a job's artifacts, ready to drive one map: its simulator settings,
-/// the map's segments and the policy (built once, reused by every episode).
+/// the policy (built once, reused by every episode) and, for a CoPO flow past Stage 2, its
+/// coordinator.
 struct LearnedFlow {
     sim: std::sync::Arc<SimConfig>,
-    segments: std::sync::Arc<sf_sim::obs::MapSegments>,
     runner: sf_sac::inference::PolicyRunner,
+    coordinator: Option<CoordinatorFile>,
 }
 
 impl LearnedFlow {
@@ -69,73 +79,16 @@ impl LearnedFlow {
         Ok(job)
     }
 
-    fn load(dir: &std::path::Path, job: sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
+    fn load(dir: &std::path::Path, job: &sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
         let p = dir.join("policy.bpk");
         let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
-        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(&job, None));
-        let segments = std::sync::Arc::new(sf_sim::obs::MapSegments::build(map, sim.obs.segment_points));
+        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(job, None));
+        let segments = sf_sim::obs::MapSegments::build(map, sim.obs.segment_points);
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(&job), &sf_sac::setup::obs_spec(&job), sim.dt_s, &[&segments], &weights, 0, &device)
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(job), &sf_sac::setup::obs_spec(job), sim.dt_s, &[&segments], &weights, 0, &device)
             .with_context(|| format!("loading {}", p.display()))?;
-        Ok(Self { sim, segments, runner })
-    }
-
-    /// One episode of a stored case with every vehicle driven by the policy, every agent's SVO
-    /// set to `svo_deg` if given; returns the metrics and the mean individual reward per
-    /// agent-step.
-    fn episode(&self, map: &std::sync::Arc<sf_sim::Map>, case: &sf_sim::Case, vehicles: Option<usize>, seed: u64, deterministic: bool, svo_deg: Option<f32>) -> Result<(EpisodeMetrics, f32)> {
-        use rand::SeedableRng;
-        let mut env = Env::new(map.clone(), self.sim.clone());
-        env.reset(case, Mode::MultiAgent, vehicles).context("resetting a stored case")?;
-        if let Some(svo) = svo_deg {
-            for i in 0..env.len() {
-                env.set_svo(i, svo);
-            }
-        }
-        let mut obs = sf_sim::Observer::with_segments(self.segments.clone(), &self.sim);
-        let (mut reward_sum, mut reward_n, mut first) = (0.0f64, 0u64, true);
-        let len = obs.spec.len;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let mut rows = Vec::new();
-        let mut ids = Vec::new();
-        let runner = &self.runner;
-        env.run_episode(
-            |env, actions| {
-                obs.prepare(env);
-                rows.clear();
-                ids.clear();
-                for (i, a) in env.agents().iter().enumerate() {
-                    if a.alive && a.role == sf_sim::Role::Learner {
-                        let start = rows.len();
-                        rows.resize(start + len, 0.0);
-                        obs.write(env, i, &mut rows[start..]);
-                        ids.push(i);
-                    }
-                }
-                if ids.is_empty() {
-                    return;
-                }
-                let zeros = vec![0u32; ids.len()];
-                let act = if deterministic { runner.mean(&rows, &zeros) } else { runner.sample(&rows, &zeros, &mut rng) };
-                for (j, &i) in ids.iter().enumerate() {
-                    actions[i] = sf_sim::Action { ref_speed: act[2 * j], steer: act[2 * j + 1] };
-                }
-            },
-            |env| {
-                // Called once after the reset (no rewards yet), then after every step: count the
-                // agents that acted on that step (still alive, or ended on it).
-                if std::mem::take(&mut first) {
-                    return;
-                }
-                for (i, (a, r)) in env.agents().iter().zip(env.rewards()).enumerate() {
-                    if a.alive || env.ended_now().get(i).copied().unwrap_or(false) {
-                        reward_sum += r.individual as f64;
-                        reward_n += 1;
-                    }
-                }
-            },
-        )?;
-        Ok((EpisodeMetrics::from_outcomes(env.outcomes(), false), (reward_sum / reward_n.max(1) as f64) as f32))
+        let coordinator = CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
+        Ok(Self { sim, runner, coordinator })
     }
 }
 
@@ -144,58 +97,67 @@ pub struct CoordinatorArgs {
     /// A finished CoPO Stage-1 job's artifact directory (the frozen policy).
     #[arg(long)]
     policy: std::path::PathBuf,
+    /// Scenarios to fit (default: every scenario of the job).
     #[arg(long)]
-    scenario: String,
-    #[arg(long, default_value_t = 10)]
+    scenario: Vec<String>,
+    #[arg(long, default_value_t = 6)]
     iterations: u32,
-    /// Candidate SVOs per iteration (one episode each, on successive stored cases).
-    #[arg(long, default_value_t = 16)]
+    /// Candidate SVOs per iteration.
+    #[arg(long, default_value_t = 12)]
     population: u32,
+    /// Generated episodes scoring each candidate.
+    #[arg(long, default_value_t = 1)]
+    episodes: u32,
     #[arg(long, default_value_t = 0.25)]
     elite: f32,
+    /// Simulators stepped together.
+    #[arg(long, default_value_t = 12)]
+    envs: usize,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Where to write the fitted Gaussian (default: `<policy>/coordinator-<scenario>.json`).
+    /// Where to write the fitted Gaussians (default: `<policy>/coordinator.json`, which ego
+    /// jobs and evaluation read).
     #[arg(long)]
     out: Option<std::path::PathBuf>,
 }
 
-/// CoPO Stage 2: fits the scenario's SVO Gaussian by the cross-entropy method, each candidate
-/// scored by the frozen Stage-1 flow's mean individual reward with every agent at that SVO.
+/// CoPO Stage 2 on a finished CoPO flow (what a CoPO job does by itself after Stage 1):
+/// fits each scenario's SVO Gaussian by the cross-entropy method, each candidate scored by the
+/// frozen Stage-1 flow's mean individual reward with every agent at that SVO.
 pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
-    use rand::SeedableRng;
+    use sf_sac::coordinator::{fit_scenario, FitSettings, ScenarioFit};
     let job = LearnedFlow::config(&a.policy)?;
     if job.kind != sf_job::config::JobKind::Copo {
-        bail!("{} is a `{:?}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), job.kind);
+        bail!("{} is a `{}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), job.kind.as_str());
     }
-    if a.population == 0 || a.iterations == 0 || !(a.elite > 0.0 && a.elite <= 1.0) {
-        bail!("--population and --iterations must be positive and --elite in (0, 1]");
+    if a.population == 0 || a.iterations == 0 || a.episodes == 0 || a.envs == 0 || !(a.elite > 0.0 && a.elite <= 1.0) {
+        bail!("--population, --iterations, --episodes and --envs must be positive and --elite in (0, 1]");
     }
-    let map = ctx.map(&a.scenario)?;
-    let cases = ctx.cases(&map)?;
-    let flow = LearnedFlow::load(&a.policy, job, &map)?;
-    let mut coord = sf_sac::coordinator::Coordinator::default();
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
-    let mut history = Vec::new();
-    let mut case_k = 0usize;
-    for it in 0..a.iterations {
-        let cand = coord.propose(&mut rng, a.population as usize);
-        let mut scores = Vec::with_capacity(cand.len());
-        for &svo in &cand {
-            let case = &cases.cases[case_k % cases.cases.len()];
-            let (_, r) = flow.episode(&map, case, None, a.seed ^ case_k as u64, false, Some(svo))?;
-            scores.push(r);
-            case_k += 1;
-        }
-        coord.update(&cand, &scores, a.elite);
-        let mean_score = scores.iter().sum::<f32>() / scores.len() as f32;
-        eprintln!("iteration {it}: mean {:.1} deg, std {:.1} deg, mean reward {mean_score:.4}", coord.mean_deg, coord.std_deg);
-        history.push(json!({"iteration": it, "mean_deg": coord.mean_deg, "std_deg": coord.std_deg, "mean_reward": mean_score}));
+    let scenarios = if a.scenario.is_empty() { job.env.scenarios.clone() } else { a.scenario.clone() };
+    let mut fits = Vec::new();
+    for (k, scenario) in scenarios.iter().enumerate() {
+        let map = ctx.map(scenario)?;
+        let flow = LearnedFlow::load(&a.policy, &job, &map)?;
+        let settings = FitSettings {
+            iterations: a.iterations,
+            population: a.population,
+            episodes: a.episodes,
+            elite_frac: a.elite,
+            envs: a.envs,
+            vehicles: (job.env.vehicles_min, job.env.vehicles_max),
+            seed: a.seed ^ k as u64,
+        };
+        let (coord, history) = fit_scenario(&map, &flow.sim, &flow.runner, &settings, |l| {
+            eprintln!("{scenario} iteration {}: mean {:.1} deg, std {:.1} deg, mean reward {:.4}", l.iteration, l.mean_deg, l.std_deg, l.mean_reward);
+        })
+        .map_err(anyhow::Error::msg)?;
+        fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
     }
-    let out = a.out.unwrap_or_else(|| a.policy.join(format!("coordinator-{}.json", a.scenario)));
-    let v = json!({"scenario": a.scenario, "mean_deg": coord.mean_deg, "std_deg": coord.std_deg, "history": history});
-    std::fs::write(&out, serde_json::to_string_pretty(&v)?).with_context(|| format!("writing {}", out.display()))?;
-    println!("{v}");
+    let file = CoordinatorFile { scenarios: fits };
+    let out = a.out.unwrap_or_else(|| a.policy.join(CoordinatorFile::FILE));
+    let text = serde_json::to_string_pretty(&file)?;
+    std::fs::write(&out, &text).with_context(|| format!("writing {}", out.display()))?;
+    println!("{}", serde_json::to_string(&file)?);
     Ok(())
 }
 
@@ -230,8 +192,22 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
             })
             .collect::<Result<_>>()?,
         Some((dir, job)) => {
-            let flow = LearnedFlow::load(dir, job, &map)?;
-            jobs.iter().map(|&(c, seed)| Ok(flow.episode(&map, &cases.cases[c], a.vehicles, 1_000_003 * c as u64 + seed as u64, a.deterministic, None)?.0)).collect::<Result<_>>()?
+            // Every vehicle driven by the flow; one sampling stream per seed, as in `eval`.
+            let flow = LearnedFlow::load(dir, &job, &map)?;
+            let gaussian = if a.stage1 { None } else { flow.coordinator.as_ref().and_then(|c| c.gaussian(&a.scenario)) };
+            let actor = if a.deterministic { Actor::mean(&flow.runner) } else { Actor::sampled(&flow.runner) };
+            let drivers = Drivers { alive: actor, background: None, adversary: None };
+            let mut out = Vec::with_capacity(jobs.len());
+            for seed in 0..a.seeds {
+                let eps = (0..a.cases as usize).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: a.vehicles, svo_deg: None, tag: (seed as u64) << 32 | c as u64 }).collect();
+                let mut v = VecEnv::from_episodes(map.clone(), flow.sim.clone(), Mode::MultiAgent, 16, eps).map_err(anyhow::Error::msg)?;
+                v.set_svo_gaussian(gaussian);
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed as u64);
+                let mut done = sf_sac::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
+                done.sort_by_key(|(tag, _)| *tag);
+                out.extend(done.into_iter().map(|(_, m)| m));
+            }
+            out
         }
     };
     let col = |f: fn(&EpisodeMetrics) -> f32| Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>());

@@ -152,6 +152,34 @@ pub struct JobConfig {
     pub train: TrainSection,
     #[serde(default)]
     pub worker: WorkerSection,
+    /// CoPO Stage 2 (copo jobs only): how the coordinator's per-scenario SVO Gaussians are
+    /// fitted once Stage 1 has all its transitions. Absent: the defaults below.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coordinator: Option<CoordinatorSection>,
+}
+
+/// CoPO's Stage-2 coordinator: the cross-entropy method over a Gaussian on the SVO, per
+/// scenario, each candidate SVO scored by the frozen Stage-1 flow's mean individual reward
+/// with every agent at that SVO (generated cases of the job's vehicle range).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CoordinatorSection {
+    /// CEM iterations per scenario; 0 leaves the flow at Stage 1 (SVOs uniform in [0, 90]).
+    pub iterations: u32,
+    /// Candidate SVOs per iteration.
+    pub population: u32,
+    /// Episodes scoring each candidate.
+    pub episodes: u32,
+    /// Fraction of the candidates the Gaussian is refitted to.
+    pub elite_frac: f32,
+    /// Simulators stepped together while scoring.
+    pub envs: usize,
+}
+
+impl Default for CoordinatorSection {
+    fn default() -> Self {
+        Self { iterations: 6, population: 12, episodes: 1, elite_frac: 0.25, envs: 12 }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -370,6 +398,12 @@ impl JobConfig {
         toml::to_string(self).expect("a job config always serialises to TOML")
     }
 
+    /// CoPO Stage 2's settings: `None` for other kinds and for a copo job that stays at Stage 1.
+    pub fn coordinator(&self) -> Option<CoordinatorSection> {
+        let c = (self.kind == JobKind::Copo).then(|| self.coordinator.clone().unwrap_or_default())?;
+        (c.iterations > 0).then_some(c)
+    }
+
     pub fn curve_every_steps(&self) -> u64 {
         self.train.curve_every_steps.unwrap_or((self.train.env_steps / 50).max(100))
     }
@@ -478,6 +512,25 @@ impl JobConfig {
         if self.worker.batch_transitions == 0 || self.worker.batch_transitions > 8192 {
             return bad("worker.batch_transitions", format!("{} must be in 1..=8192", self.worker.batch_transitions));
         }
+        if let Some(c) = &self.coordinator {
+            if self.kind != JobKind::Copo {
+                return bad("coordinator", format!("only copo jobs fit a Stage-2 coordinator, not {}", self.kind.as_str()));
+            }
+            if c.iterations > 1000 {
+                return bad("coordinator.iterations", format!("{} must be at most 1000", c.iterations));
+            }
+            for (f, v) in [("coordinator.population", c.population), ("coordinator.episodes", c.episodes)] {
+                if v == 0 || v > 10_000 {
+                    return bad(f, format!("{v} must be in 1..=10000"));
+                }
+            }
+            if !(c.elite_frac > 0.0 && c.elite_frac <= 1.0) {
+                return bad("coordinator.elite_frac", format!("{} must be in (0, 1]", c.elite_frac));
+            }
+            if c.envs == 0 || c.envs > 256 {
+                return bad("coordinator.envs", format!("{} must be in 1..=256", c.envs));
+            }
+        }
         Ok(())
     }
 }
@@ -506,6 +559,13 @@ mod tests {
         assert!(e.to_string().contains("bogus"), "{e}");
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 5000\n").replace("env_steps = 1000", "env_steps = 1000\nreplay_capacity = 1000")).expect_err("warm-up");
         assert!(e.to_string().contains("sac.warmup_steps"), "{e}");
+        let e = JobConfig::from_toml(&format!("{MIN}[coordinator]\niterations = 2\n")).expect_err("not copo");
+        assert!(e.to_string().contains("coordinator"), "{e}");
+        let copo = format!("kind = \"copo\"\n{MIN}[sac]\nwarmup_steps = 100\n");
+        let e = JobConfig::from_toml(&format!("{copo}[coordinator]\nelite_frac = 0.0\n")).expect_err("elite");
+        assert!(e.to_string().contains("coordinator.elite_frac"), "{e}");
+        assert_eq!(JobConfig::from_toml(&copo).expect("copo").coordinator(), Some(CoordinatorSection::default()), "copo fits one by default");
+        assert_eq!(JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n")).expect("stage 1 only").coordinator(), None);
     }
 
     #[test]

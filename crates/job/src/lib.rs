@@ -6,6 +6,7 @@
 //! [`TransitionBatch`] with its shape and finiteness checks. Must not: depend on burn, tokio or
 //! the wire format (`sf_proto` converts to and from these types).
 
+pub use sf_sim::SvoGaussian;
 pub mod batch;
 pub mod config;
 
@@ -112,6 +113,19 @@ pub struct Frozen {
     pub role: FrozenRole,
     pub job_id: u64,
     pub config_toml: String,
+    /// CoPO Stage 2: per scenario, the Gaussian the background's SVOs are redrawn from every
+    /// step (empty: the cases' SVOs).
+    pub svo_gaussians: Vec<(String, SvoGaussian)>,
+}
+
+impl Frozen {
+    pub fn new(role: FrozenRole, job_id: u64, config_toml: String) -> Self {
+        Self { role, job_id, config_toml, svo_gaussians: Vec::new() }
+    }
+
+    pub fn svo_gaussian(&self, scenario: &str) -> Option<SvoGaussian> {
+        self.svo_gaussians.iter().find(|(s, _)| s == scenario).map(|(_, g)| *g)
+    }
 }
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).

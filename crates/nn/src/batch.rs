@@ -22,17 +22,47 @@ pub enum MapInput {
     QueryCentric { ids: Tensor<1, Int>, pose: Tensor<3> },
 }
 
+/// Agent histories of a batch (the observer's own and its neighbours').
+#[derive(Clone, Debug)]
+pub enum AgentInput {
+    /// Every observation carries its own copies: own history `ego: [B, 1, H, 5]`, neighbours'
+    /// `agents: [B, N, H, 5]` with vector mask `vmask: [B, N, H]`.
+    PerObservation { ego: Tensor<4>, agents: Tensor<4>, vmask: Tensor<3> },
+    /// Each distinct history once (`hist: [1, U, H, 5]`, `vmask: [1, U, H]`), referenced by
+    /// row: `ego_idx: [B]` (own history), `agent_idx: [B * N]` (neighbour slots). In the
+    /// query-centric layout an agent's history is in its own frame, identical for every
+    /// observer of the same step, so a rollout step encodes each agent once instead of once
+    /// per observer that sees it.
+    Shared { hist: Tensor<4>, vmask: Tensor<3>, ego_idx: Tensor<1, Int>, agent_idx: Tensor<1, Int> },
+}
+
+impl AgentInput {
+    /// Distinct histories the encoder runs its agent DeepSet on.
+    pub fn encoded_histories(&self) -> usize {
+        match self {
+            Self::PerObservation { ego, agents, .. } => ego.dims()[0] + agents.dims()[0] * agents.dims()[1],
+            Self::Shared { hist, .. } => hist.dims()[1],
+        }
+    }
+}
+
+/// Whether [`ObsBatch::from_rows`] gives each distinct agent history one encoding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Histories {
+    /// One copy per observation (training batches: rows from different steps share nothing).
+    PerObservation,
+    /// Identical histories shared (rollout steps in the query-centric layout).
+    Shared,
+}
+
 /// A batch of observations as tensors. Token order: ego, N agents, route, map pieces.
 #[derive(Clone, Debug)]
 pub struct ObsBatch {
     pub batch: usize,
-    /// `[B, 1, H, 5]`
-    pub ego: Tensor<4>,
+    /// Own and neighbours' histories.
+    pub histories: AgentInput,
     /// `[B, 2]`: own SVO (if consumed), ego flag (if consumed).
     pub ego_ctx: Tensor<2>,
-    /// `[B, N, H, 5]` and its vector mask `[B, N, H]`.
-    pub agents: Tensor<4>,
-    pub agents_vmask: Tensor<3>,
     /// `[B, N, 6]`: pose in the observer's frame, SVO, ego flag (unconsumed channels zero).
     pub agents_ctx: Tensor<3>,
     /// `[B, 1, R, 5]` and `[B, 1, R]`.
@@ -50,6 +80,9 @@ fn tensor<const D: usize>(v: Vec<f32>, shape: [usize; D], device: &Device) -> Te
 impl ObsBatch {
     /// Builds a batch from `B` flat observation rows. `map_offsets[k]` is the first row of map
     /// `k` in the segment table and `map_ids[b]` the map of row `b` (query-centric only).
+    /// `histories`: see [`Histories`]; sharing is exact (histories are compared bit for bit,
+    /// time channel and mask included), so it never changes what the network computes.
+    #[allow(clippy::too_many_arguments)]
     pub fn from_rows(
         rows: &[f32],
         spec: &ObsSpec,
@@ -57,6 +90,7 @@ impl ObsBatch {
         frame_dt_s: f32,
         map_ids: &[u32],
         map_offsets: &[u32],
+        histories: Histories,
         device: &Device,
     ) -> Self {
         let b = rows.len() / spec.len;
@@ -78,10 +112,21 @@ impl ObsBatch {
         let time = |k: usize| (h - 1 - k) as f32 * frame_dt_s / TIME_SCALE_S;
         let svo_own = cfg.svo != SvoInput::None;
         let svo_all = cfg.svo == SvoInput::All;
+        let shared = histories == Histories::Shared;
+        let mut table = SharedHistories::default();
+        let mut hist = vec![0f32; h * AGENT_IN];
+        let mut hist_mask = vec![0f32; h];
         for (bi, row) in rows.chunks_exact(spec.len).enumerate() {
             for k in 0..h {
-                ego.extend_from_slice(&row[spec.ego_hist.start + k * AGENT_FEATS..][..AGENT_FEATS]);
-                ego.push(time(k));
+                hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&row[spec.ego_hist.start + k * AGENT_FEATS..][..AGENT_FEATS]);
+                hist[k * AGENT_IN + AGENT_FEATS] = time(k);
+            }
+            if shared {
+                hist_mask.fill(1.0);
+                let k = table.index(&hist, &hist_mask);
+                table.ego_idx.push(k);
+            } else {
+                ego.extend_from_slice(&hist);
             }
             let ec = &row[spec.ego_ctx.clone()];
             ego_ctx.extend_from_slice(&[if svo_own { ec[0] } else { 0.0 }, if cfg.ego_flag { ec[1] } else { 0.0 }]);
@@ -89,9 +134,16 @@ impl ObsBatch {
             for j in 0..n {
                 let valid = row[spec.agents_mask.start + j];
                 for k in 0..h {
-                    agents.extend_from_slice(&row[spec.agents_hist.start + (j * h + k) * AGENT_FEATS..][..AGENT_FEATS]);
-                    agents.push(valid * time(k));
-                    agents_vmask.push(valid);
+                    hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&row[spec.agents_hist.start + (j * h + k) * AGENT_FEATS..][..AGENT_FEATS]);
+                    hist[k * AGENT_IN + AGENT_FEATS] = valid * time(k);
+                }
+                hist_mask.fill(valid);
+                if shared {
+                    let k = table.index(&hist, &hist_mask);
+                    table.agent_idx.push(k);
+                } else {
+                    agents.extend_from_slice(&hist);
+                    agents_vmask.extend_from_slice(&hist_mask);
                 }
                 let c = &row[spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
                 agents_ctx.extend_from_slice(&[c[0], c[1], c[2], c[3], if svo_all { c[4] } else { 0.0 }, if cfg.ego_flag { c[5] } else { 0.0 }]);
@@ -133,17 +185,46 @@ impl ObsBatch {
                 pose: tensor(pose, [b, m, SEG_POSE], device),
             },
         };
+        let histories = if shared {
+            let u = table.ids.len();
+            let idx = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device);
+            AgentInput::Shared { hist: tensor(table.hist, [1, u, h, AGENT_IN], device), vmask: tensor(table.vmask, [1, u, h], device), ego_idx: idx(table.ego_idx), agent_idx: idx(table.agent_idx) }
+        } else {
+            AgentInput::PerObservation { ego: tensor(ego, [b, 1, h, AGENT_IN], device), agents: tensor(agents, [b, n, h, AGENT_IN], device), vmask: tensor(agents_vmask, [b, n, h], device) }
+        };
         Self {
             batch: b,
-            ego: tensor(ego, [b, 1, h, AGENT_IN], device),
+            histories,
             ego_ctx: tensor(ego_ctx, [b, EGO_CTX], device),
-            agents: tensor(agents, [b, n, h, AGENT_IN], device),
-            agents_vmask: tensor(agents_vmask, [b, n, h], device),
             agents_ctx: tensor(agents_ctx, [b, n, AGENT_CTX], device),
             route: tensor(route, [b, 1, r, STATIC_IN], device),
             route_mask: tensor(route_mask, [b, 1, r], device),
             map,
             pad: Tensor::from_data(TensorData::new(pad, [b, t]), device),
         }
+    }
+}
+
+/// Distinct agent histories of a batch, each stored once, keyed by their exact bits.
+#[derive(Default)]
+struct SharedHistories {
+    ids: std::collections::HashMap<Vec<u32>, i64>,
+    hist: Vec<f32>,
+    vmask: Vec<f32>,
+    ego_idx: Vec<i64>,
+    agent_idx: Vec<i64>,
+}
+
+impl SharedHistories {
+    /// The row of this history (with its mask), added if new.
+    fn index(&mut self, hist: &[f32], mask: &[f32]) -> i64 {
+        let key: Vec<u32> = hist.iter().chain(mask).map(|x| x.to_bits()).collect();
+        let next = self.ids.len() as i64;
+        let k = *self.ids.entry(key).or_insert(next);
+        if k == next {
+            self.hist.extend_from_slice(hist);
+            self.vmask.extend_from_slice(mask);
+        }
+        k
     }
 }

@@ -5,7 +5,7 @@ use burn::nn::Linear;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use sf_sim::obs::{MapSegments, AGENT_CTX, EGO_CTX, MAP_FEATS, SEG_POSE};
 
-use crate::batch::{MapInput, ObsBatch, AGENT_IN, STATIC_IN};
+use crate::batch::{AgentInput, MapInput, ObsBatch, AGENT_IN, STATIC_IN};
 use crate::config::{EncoderKind, NetConfig};
 use crate::layers::{DeepSet, EgoAttention, Init, Mlp};
 
@@ -105,11 +105,21 @@ impl Encoder {
 
     /// `obs -> [B, D]`. Query-centric batches need the segment table of their maps.
     pub fn forward(&self, obs: &ObsBatch, table: Option<&SegmentTable>) -> Tensor<2> {
-        let b = obs.batch;
-        let [_, n, _, _] = obs.agents.dims();
-        let ego_mask = Tensor::<3>::ones([b, 1, obs.ego.dims()[2]], &obs.ego.device());
-        let ego = self.agent_set.forward(obs.ego.clone(), ego_mask).reshape([b, self.d()]) + self.ego_ctx.forward(obs.ego_ctx.clone());
-        let agents = self.agent_set.forward(obs.agents.clone(), obs.agents_vmask.clone()) + self.agent_ctx.forward(obs.agents_ctx.clone());
+        let (b, d) = (obs.batch, self.d());
+        let [_, n, _] = obs.agents_ctx.dims();
+        let (ego_hist, agents_hist) = match &obs.histories {
+            AgentInput::PerObservation { ego, agents, vmask } => {
+                let ego_mask = Tensor::<3>::ones([b, 1, ego.dims()[2]], &ego.device());
+                (self.agent_set.forward(ego.clone(), ego_mask).reshape([b, d]), self.agent_set.forward(agents.clone(), vmask.clone()))
+            }
+            AgentInput::Shared { hist, vmask, ego_idx, agent_idx } => {
+                let u = hist.dims()[1];
+                let table = self.agent_set.forward(hist.clone(), vmask.clone()).reshape([u, d]);
+                (table.clone().select(0, ego_idx.clone()), table.select(0, agent_idx.clone()).reshape([b, n, d]))
+            }
+        };
+        let ego = ego_hist + self.ego_ctx.forward(obs.ego_ctx.clone());
+        let agents = agents_hist + self.agent_ctx.forward(obs.agents_ctx.clone());
         let route = self.static_set.forward(obs.route.clone(), obs.route_mask.clone());
         let map = match &obs.map {
             MapInput::EgoFrame { pts, mask } => self.static_set.forward(pts.clone(), mask.clone()),

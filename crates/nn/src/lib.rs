@@ -19,6 +19,6 @@ pub mod layers;
 pub mod policy;
 pub mod weights;
 
-pub use batch::ObsBatch;
+pub use batch::{AgentInput, Histories, ObsBatch};
 pub use config::{EncoderKind, NetConfig, SvoInput};
 pub use policy::{Actor, Critic};

@@ -143,6 +143,7 @@ pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
                 } as i32,
                 job_id: f.job_id,
                 config_toml: f.config_toml.clone(),
+                svo_gaussians: f.svo_gaussians.iter().map(|(s, g)| pb::ScenarioSvo { scenario: s.clone(), mean_deg: g.mean_deg, std_deg: g.std_deg }).collect(),
             })
             .collect(),
     }
@@ -177,7 +178,16 @@ pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError>
                 if f.job_id == 0 || f.config_toml.is_empty() {
                     return wire("assignment.frozen.job_id", "a frozen policy names its job and config");
                 }
-                Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone() })
+                let mut svo_gaussians = Vec::with_capacity(f.svo_gaussians.len());
+                for g in &f.svo_gaussians {
+                    let gauss = sf_job::SvoGaussian { mean_deg: g.mean_deg, std_deg: g.std_deg };
+                    if g.scenario.is_empty() {
+                        return wire("assignment.frozen.svo_gaussians.scenario", "must be set");
+                    }
+                    gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e })?;
+                    svo_gaussians.push((g.scenario.clone(), gauss));
+                }
+                Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })
             })
             .collect::<Result<_, _>>()?,
     })
@@ -283,6 +293,33 @@ mod tests {
         let mut m = batch_to_wire(&b);
         m.obs_f16[0..2].copy_from_slice(&f16::NAN.to_bits().to_le_bytes());
         assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));
+    }
+
+    #[test]
+    fn an_assignment_carries_its_frozen_policies_and_coordinator_gaussians() {
+        let mut bg = Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into());
+        bg.svo_gaussians = vec![("merge".into(), sf_job::SvoGaussian { mean_deg: 45.0, std_deg: 4.5 })];
+        let a = Assignment {
+            job_id: 5,
+            config_toml: "name = \"ego\"".into(),
+            scenario_index: 0,
+            seed: 9,
+            policy_version: 3,
+            obs_len: 10,
+            action_dim: 2,
+            warmup: false,
+            frozen: vec![bg, Frozen::new(FrozenRole::Ego, 4, "name = \"e\"".into())],
+        };
+        let back = assignment_from_wire(&assignment_to_wire(&a)).expect("round trip");
+        assert_eq!(back, a);
+        assert_eq!(back.frozen[0].svo_gaussian("merge").map(|g| g.mean_deg), Some(45.0));
+        assert_eq!(back.frozen[0].svo_gaussian("intersection"), None);
+        let mut m = assignment_to_wire(&a);
+        m.frozen[0].svo_gaussians[0].mean_deg = 120.0;
+        assert_eq!(assignment_from_wire(&m).expect_err("out of range").field, "assignment.frozen.svo_gaussians");
+        let mut m = assignment_to_wire(&a);
+        m.frozen[0].svo_gaussians[0].std_deg = f32::NAN;
+        assert!(assignment_from_wire(&m).is_err());
     }
 
     #[test]

@@ -3,11 +3,12 @@
 //! scenario's environments.
 //!
 //! Owns: [`Drivers`] (the actor of each role), [`decide`] (the adversary's message first,
-//! communicated before anyone drives, then the driving actions) and [`apply`] (steps the
-//! environments with them). Shared by rollout workers and evaluation, so both run a flow the
+//! communicated before anyone drives, then the driving actions), [`apply`] (steps the
+//! environments with them) and [`run_episodes`] (stored episodes to their end). Shared by rollout workers and evaluation, so both run a flow the
 //! same way. Must not: record transitions or choose which role is being trained.
 
 use rand::Rng;
+use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::VecEnv;
 use sf_sim::Action;
 
@@ -135,4 +136,21 @@ pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
         }
         v.step(&acts);
     }
+}
+
+/// Runs the stored episodes of `v` (`VecEnv::from_episodes`) to their end with `d`.
+/// `after_step(v, tags)` sees every step's results (`VecEnv::row_steps`, the environments)
+/// with the tags of the episodes that took it, per environment (`None`: idle). Returns every
+/// episode's `(tag, metrics)` in the order they finished.
+pub fn run_episodes(v: &mut VecEnv, d: &Drivers, rng: &mut impl Rng, mut after_step: impl FnMut(&VecEnv, &[Option<u64>])) -> Vec<(u64, EpisodeMetrics)> {
+    let mut out = Vec::new();
+    let venvs = std::slice::from_mut(v);
+    while !venvs[0].is_finished() {
+        let tags: Vec<Option<u64>> = (0..venvs[0].n_envs()).map(|k| venvs[0].tag(k)).collect();
+        let decision = decide(venvs, d, rng);
+        apply(venvs, &decision);
+        after_step(&venvs[0], &tags);
+        out.extend(venvs[0].take_finished_tagged());
+    }
+    out
 }

@@ -7,7 +7,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use rand::Rng;
 use rand_distr::StandardNormal;
 use sf_nn::encoder::{SegmentInput, SegmentTable};
-use sf_nn::{weights, Actor, NetConfig, ObsBatch};
+use sf_nn::{weights, Actor, Histories, NetConfig, ObsBatch};
 use sf_sim::obs::{MapSegments, ObsSpec};
 use sf_sim::Layout;
 
@@ -40,8 +40,28 @@ impl PolicyRunner {
         Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
     }
 
-    fn batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
-        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, &self.device)
+    /// Rows of one step: in the query-centric layout each agent's history is encoded once for
+    /// all its observers ([`Histories::Shared`]).
+    pub fn batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
+        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, self.histories(), &self.device)
+    }
+
+    fn histories(&self) -> Histories {
+        if self.spec.layout == Layout::QueryCentric {
+            Histories::Shared
+        } else {
+            Histories::PerObservation
+        }
+    }
+
+    /// The same step without sharing (benchmarks and tests compare the two).
+    pub fn batch_unshared(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
+        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, Histories::PerObservation, &self.device)
+    }
+
+    /// Mean actions of a prepared batch.
+    pub fn mean_of(&self, batch: &ObsBatch) -> Vec<f32> {
+        self.actor.act_mean(batch, self.table.as_ref()).into_data().try_to_vec::<f32>().expect("actions are f32")
     }
 
     /// Stochastic actions `[B * A]` (row-major) for `B` observation rows.
@@ -56,6 +76,6 @@ impl PolicyRunner {
 
     /// Deterministic actions (evaluation).
     pub fn mean(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
-        self.actor.act_mean(&self.batch(rows, map_ids), self.table.as_ref()).into_data().try_to_vec::<f32>().expect("actions are f32")
+        self.mean_of(&self.batch(rows, map_ids))
     }
 }

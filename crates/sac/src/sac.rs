@@ -15,7 +15,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use sf_nn::device::{self, DeviceKind};
 use sf_nn::encoder::{SegmentInput, SegmentTable};
-use sf_nn::{Actor, Critic, NetConfig, ObsBatch};
+use sf_nn::{Actor, Critic, Histories, NetConfig, ObsBatch};
 use sf_sim::obs::{MapSegments, ObsSpec};
 
 use crate::replay::Batch;
@@ -137,7 +137,7 @@ impl Sac {
 
     fn batch_on(&self, rows: &[f32], map_ids: &[u32], device: &Device) -> ObsBatch {
         let offsets = self.seg_plain.as_ref().map_or(&[][..], |s| &s.offsets[..]);
-        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, offsets, device)
+        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, offsets, Histories::PerObservation, device)
     }
 
     fn noise(&mut self, b: usize, device: &Device) -> Tensor<2> {

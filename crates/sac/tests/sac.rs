@@ -173,3 +173,43 @@ fn checkpoint_restore_continues_exactly() {
     assert_eq!(flat(&b.critic), before);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A rollout step's observations (query-centric) share each agent's own-frame history among
+/// all observers: the worker encodes every agent once per step, and the actions are those of
+/// encoding each observation's copies.
+#[test]
+fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
+    let sim = Arc::new(SimConfig::default());
+    let m = map();
+    let mut v = VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (10, 12), seed: 5 });
+    let spec = v.spec.clone();
+    assert_eq!(spec.layout, sf_sim::Layout::QueryCentric);
+    let mut acts = vec![Action::default(); v.alive().len()];
+    for _ in 0..12 {
+        for (i, a) in acts.iter_mut().enumerate() {
+            *a = route_follower(&spec, &v.observations()[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.5);
+        }
+        v.step(&acts);
+    }
+    let (mut rows, mut ids) = (Vec::new(), Vec::new());
+    for r in (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0) {
+        rows.extend_from_slice(&v.observations()[r * spec.len..(r + 1) * spec.len]);
+        ids.push(0u32);
+    }
+    let b = ids.len();
+    assert!(b >= 16, "two environments of 10-12 live vehicles ({b})");
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu");
+    let actor = sf_nn::Actor::new(&tiny_net(), 7, &device);
+    let runner = sf_sac::inference::PolicyRunner::new(actor, &tiny_net(), &spec, sim.dt_s, &[&segs], 1, &device);
+    let (shared, copies) = (runner.batch(&rows, &ids), runner.batch_unshared(&rows, &ids));
+    assert!(matches!(shared.histories, sf_nn::AgentInput::Shared { .. }));
+    let n = spec.neighbours;
+    assert_eq!(copies.histories.encoded_histories(), b * (n + 1));
+    // Each live agent once, plus at most one empty neighbour slot.
+    assert!(shared.histories.encoded_histories() <= b + 1, "{} distinct histories for {b} agents", shared.histories.encoded_histories());
+    let (a, c) = (runner.mean_of(&shared), runner.mean_of(&copies));
+    let diff = a.iter().zip(&c).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(diff < 1e-5, "shared and per-observation encodings act differently: {diff}");
+    assert!(a.iter().any(|x| x.abs() > 1e-3), "the actions are not all zero");
+}

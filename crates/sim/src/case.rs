@@ -1,14 +1,15 @@
 //! Evaluation cases: who spawns where, on which route, with which SVO.
 //!
 //! Owns: [`Case`], the seeded generator used both for the stored evaluation sets and for
-//! random training resets, and the versioned case file ([`CaseFile`]) with its validating
-//! loader. Must not: step vehicles. A case plus a seed fully determines an episode.
+//! random training resets, the versioned case file ([`CaseFile`]) with its validating
+//! loader, and [`SvoGaussian`] (a per-scenario SVO distribution). Must not: step vehicles. A case plus a seed fully determines an episode.
 
 use std::path::Path;
 
 use rand::seq::index::sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rand_distr::Distribution;
 use serde::{Deserialize, Serialize};
 
 use crate::map::Map;
@@ -19,6 +20,33 @@ pub const CASES_VERSION: u32 = 1;
 pub const DEFAULT_VEHICLES: (u32, u32) = (8, 20);
 /// SVO range of a case, degrees; flows with other ranges map it linearly.
 pub const SVO_RANGE_DEG: (f32, f32) = (0.0, 90.0);
+
+/// A Gaussian over the SVO (CoPO's Stage-2 coordinator, per scenario), degrees. Draws are
+/// clamped to [`SVO_RANGE_DEG`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SvoGaussian {
+    pub mean_deg: f32,
+    pub std_deg: f32,
+}
+
+impl SvoGaussian {
+    /// Checks the parameters; names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if !self.mean_deg.is_finite() || !(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1).contains(&self.mean_deg) {
+            return Err(format!("mean_deg {} must lie in [0, 90]", self.mean_deg));
+        }
+        if !self.std_deg.is_finite() || self.std_deg < 0.0 {
+            return Err(format!("std_deg {} must be finite and >= 0", self.std_deg));
+        }
+        Ok(())
+    }
+
+    pub fn sample(&self, rng: &mut impl Rng) -> f32 {
+        let z: f32 = rand_distr::StandardNormal.sample(rng);
+        (self.mean_deg + self.std_deg * z).clamp(SVO_RANGE_DEG.0, SVO_RANGE_DEG.1)
+    }
+}
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]

@@ -25,7 +25,7 @@ pub mod scenarios;
 pub mod vec_env;
 pub mod vehicle;
 
-pub use case::{Case, CaseFile};
+pub use case::{Case, CaseFile, SvoGaussian};
 pub use config::{Layout, ObsConfig, SimConfig, SvoVisibility};
 pub use env::{Controller, Env, Mode, Role, Termination};
 pub use map::Map;

@@ -17,7 +17,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::case::{random_case, Case};
+use crate::case::{random_case, Case, SvoGaussian};
 use crate::config::SimConfig;
 use crate::env::{Controller, Env, Mode, Rewards, Role, Termination};
 use crate::map::Map;
@@ -96,6 +96,9 @@ pub struct VecEnv {
     agent_steps: u64,
     /// Stored episodes still to run (evaluation); `None`: endless random resets (training).
     queue: Option<std::collections::VecDeque<EpisodeSpec>>,
+    /// CoPO Stage 2: every flow-driven agent's SVO is redrawn from this at every reset and
+    /// after every step (`None`: SVOs stay as the case gives them).
+    svo_gaussian: Option<SvoGaussian>,
 }
 
 impl VecEnv {
@@ -141,6 +144,11 @@ impl VecEnv {
                         for i in 0..s.env.len() {
                             s.env.set_svo(i, svo);
                         }
+                    }
+                    // A stored episode's random draws depend on its tag, not on its slot.
+                    s.rng = ChaCha8Rng::seed_from_u64(ep.tag.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5356_4f47);
+                    if ep.svo_deg.is_none() {
+                        s.redraw_svos(self.svo_gaussian, mode);
                     }
                     s.tag = ep.tag;
                     s.idle = false;
@@ -200,6 +208,7 @@ impl VecEnv {
             env_steps: 0,
             agent_steps: 0,
             queue: None,
+            svo_gaussian: None,
         }
     }
 
@@ -225,6 +234,30 @@ impl VecEnv {
 
     pub fn env(&self, k: usize) -> &Env {
         &self.slots[k].env
+    }
+
+    /// The tag of environment `k`'s running stored episode (`None` when idle).
+    pub fn tag(&self, k: usize) -> Option<u64> {
+        self.slots.get(k).filter(|s| !s.idle).map(|s| s.tag)
+    }
+
+    /// CoPO Stage 2: from now on, every agent the flow drives (all agents, or every
+    /// background agent in `Mode::Ego`) gets an SVO drawn from `g` at every reset and after
+    /// every step, before it observes; the running episodes are redrawn and re-observed at
+    /// once. `None` keeps the cases' SVOs. Draws come from each environment's own generator.
+    pub fn set_svo_gaussian(&mut self, g: Option<SvoGaussian>) {
+        self.svo_gaussian = g;
+        let (spec_len, max_agents, mode) = (self.spec.len, self.max_agents, self.cfg.mode);
+        self.slots
+            .par_iter_mut()
+            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(self.alive.par_chunks_mut(max_agents))
+            .zip(self.background.par_chunks_mut(max_agents))
+            .filter(|(((s, _), _), _)| !s.idle)
+            .for_each(|(((s, obs), alive), bg)| {
+                s.redraw_svos(g, mode);
+                s.observe(obs, alive, bg, spec_len);
+            });
     }
 
     /// Tells background agents of environment `k` within the observation radius of the ego
@@ -288,6 +321,7 @@ impl VecEnv {
         let (spec_len, max_agents, mode, vehicles) = (self.spec.len, self.max_agents, self.cfg.mode, self.cfg.vehicles);
         let learners_only = matches!(mode, Mode::Ego { .. });
         let queued = self.queue.is_some();
+        let svo_gaussian = self.svo_gaussian;
         let agent_steps: u64 = self
             .slots
             .par_iter_mut()
@@ -314,6 +348,7 @@ impl VecEnv {
                     }
                     s.reset(mode, vehicles);
                 }
+                s.redraw_svos(svo_gaussian, mode);
                 s.observe(obs, alive, bg, spec_len);
                 stepped
             })
@@ -325,6 +360,16 @@ impl VecEnv {
 }
 
 impl Slot {
+    /// Draws a new SVO from `g` for every agent the flow drives (not the ego of `Mode::Ego`).
+    fn redraw_svos(&mut self, g: Option<SvoGaussian>, mode: Mode) {
+        let Some(g) = g else { return };
+        let first = usize::from(matches!(mode, Mode::Ego { .. }));
+        for i in first..self.env.len() {
+            let svo = g.sample(&mut self.rng);
+            self.env.set_svo(i, svo);
+        }
+    }
+
     /// Fills per-row step results (learner and externally driven background rows) and the
     /// final observations of rows that ended, or were cut by the episode's end.
     fn record(&mut self, steps: &mut [RowStep], finals: &mut [f32], alive: &[f32], bg: &[f32], spec_len: usize) {

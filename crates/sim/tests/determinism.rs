@@ -119,3 +119,48 @@ fn stored_episodes_run_once_each_and_score_as_alone() {
         assert!(v.alive().iter().all(|&x| x == 0.0), "finished: no live rows");
     }
 }
+
+/// CoPO Stage 2: with a coordinator's Gaussian set, every agent the flow drives gets a fresh SVO
+/// from it after every step (within [0, 90], around the mean), the ego of `Mode::Ego` keeps
+/// its own, stored episodes draw the same SVOs whatever the batch width, and `None` stops it.
+#[test]
+fn a_coordinator_gaussian_redraws_flow_svos_every_step_but_not_the_egos() {
+    use sf_sim::vec_env::EpisodeSpec;
+    use sf_sim::{Controller, SvoGaussian};
+    let m = common::map("roundabout");
+    let cases = CaseFile::load(&common::configs().join("cases/roundabout.v1.json"), &m).expect("cases");
+    let cfg = Arc::new(SimConfig::default());
+    let g = SvoGaussian { mean_deg: 72.0, std_deg: 4.5 };
+    let mode = Mode::Ego { background: Controller::Idm };
+    let eps: Vec<EpisodeSpec> = (0..4).map(|k| EpisodeSpec { case: cases.cases[k].clone(), vehicles: None, svo_deg: None, tag: k as u64 }).collect();
+    let run = |width: usize| {
+        let mut v = VecEnv::from_episodes(m.clone(), cfg.clone(), mode, width, eps.clone()).expect("valid cases");
+        v.set_svo_gaussian(Some(g));
+        let ego_svo = v.env(0).agents()[0].svo_deg;
+        assert_eq!(ego_svo, cases.cases[0].vehicles[0].svo_deg, "the ego keeps the case's SVO");
+        let mut per_step: Vec<Vec<u32>> = Vec::new();
+        let mut draws = Vec::new();
+        for _ in 0..5 {
+            let svos: Vec<f32> = v.env(0).agents().iter().skip(1).map(|a| a.svo_deg).collect();
+            assert!(svos.iter().all(|s| (0.0..=90.0).contains(s)));
+            draws.extend_from_slice(&svos);
+            per_step.push(svos.iter().map(|s| s.to_bits()).collect());
+            assert_eq!(v.env(0).agents()[0].svo_deg, ego_svo, "the ego's SVO is not redrawn");
+            v.step(&vec![Action::default(); v.alive().len()]);
+        }
+        assert!(per_step.windows(2).all(|w| w[0] != w[1]), "SVOs are redrawn every step");
+        (per_step, draws, v)
+    };
+    let (a, draws, mut v) = run(1);
+    let (b, _, _) = run(3);
+    assert_eq!(a, b, "draws of a stored episode do not depend on the batch width");
+    let mean = draws.iter().sum::<f32>() / draws.len() as f32;
+    assert!((mean - 72.0).abs() < 3.0, "mean of the draws {mean}");
+    let case_svos: Vec<f32> = cases.cases[0].vehicles.iter().skip(1).map(|c| c.svo_deg).collect();
+    assert!(case_svos.iter().any(|s| (s - 72.0).abs() > 15.0), "the case's own SVOs are spread, so the test can tell them apart");
+    v.set_svo_gaussian(None);
+    let before: Vec<f32> = v.env(0).agents().iter().map(|a| a.svo_deg).collect();
+    v.step(&vec![Action::default(); v.alive().len()]);
+    let after: Vec<f32> = v.env(0).agents().iter().map(|a| a.svo_deg).collect();
+    assert_eq!(before, after, "without a Gaussian SVOs stay put");
+}

@@ -323,17 +323,23 @@ impl Inner {
             }
             match role {
                 DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
-                DepRole::Ego => frozen.push(Frozen { role: FrozenRole::Ego, job_id: dep, config_toml: d.config_toml }),
+                DepRole::Ego => frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml)),
                 DepRole::Background => {
                     let dc = JobConfig::from_toml(&d.config_toml).map_err(|e| format!("stored config of job {dep}: {e}"))?;
                     if dc.kind == JobKind::SocialcommAdv {
                         // Against SocialCommAdv: its SocialComm flow drives, its adversary talks.
                         let flow = dc.env.background_job.ok_or_else(|| format!("socialcomm-adv job {dep} has no background flow"))?;
                         let f = self.job(flow).await.map_err(|e| format!("job {flow} (the flow of job {dep}): {e}"))?;
-                        frozen.push(Frozen { role: FrozenRole::Background, job_id: flow, config_toml: f.config_toml });
-                        frozen.push(Frozen { role: FrozenRole::Adversary, job_id: dep, config_toml: d.config_toml });
+                        frozen.push(Frozen::new(FrozenRole::Background, flow, f.config_toml));
+                        frozen.push(Frozen::new(FrozenRole::Adversary, dep, d.config_toml));
                     } else {
-                        frozen.push(Frozen { role: FrozenRole::Background, job_id: dep, config_toml: d.config_toml });
+                        // A CoPO flow past Stage 2 brings its coordinator's Gaussians.
+                        let mut f = Frozen::new(FrozenRole::Background, dep, d.config_toml);
+                        let dir = PathBuf::from(&d.artifact_dir);
+                        if let Some(c) = tokio::task::spawn_blocking(move || sf_sac::coordinator::CoordinatorFile::load(&dir)).await.map_err(|e| e.to_string())?? {
+                            f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
+                        }
+                        frozen.push(f);
                     }
                 }
             }

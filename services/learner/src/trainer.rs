@@ -8,7 +8,8 @@
 //!
 //! Artifacts in the job directory: `config.toml` (resolved), `checkpoint/` (SAC state),
 //! `state.json` (counters, policy version, curve), `curve.csv`, `curve.png`, `policy.bpk`
-//! (the final actor) with `policy.json` (its version).
+//! (the final actor) with `policy.json` (its version); CoPO jobs then fit their Stage-2
+//! coordinator on that final actor and add `coordinator.json`.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -173,8 +174,44 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
         let last = job.latest().expect("a version was published above");
         write_atomic(&dir.join("policy.bpk"), &last.weights)?;
         write_atomic(&dir.join("policy.json"), serde_json::json!({"version": last.version, "updates": sac.updates}).to_string().as_bytes())?;
+        if let Some(c) = cfg.coordinator() {
+            fit_coordinator(&job, &maps, &segs, sim, &c, &last.weights, &dir)?;
+        }
     }
     Ok(outcome)
+}
+
+/// CoPO Stage 2: fits the coordinator's Gaussian of every scenario of the job on its frozen
+/// final policy and writes `coordinator.json` (what ego jobs and evaluation read).
+fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[MapSegments], sim: sf_sim::SimConfig, c: &sf_job::config::CoordinatorSection, weights: &[u8], dir: &Path) -> Result<(), String> {
+    use sf_sac::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
+    let cfg = &job.cfg;
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
+    let sim = Arc::new(sim);
+    let t = Instant::now();
+    let mut fits = Vec::new();
+    for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
+        let scenario = &cfg.env.scenarios[k];
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[seg], weights, 0, &device).map_err(|e| format!("loading the final policy: {e}"))?;
+        let settings = FitSettings {
+            iterations: c.iterations,
+            population: c.population,
+            episodes: c.episodes,
+            elite_frac: c.elite_frac,
+            envs: c.envs,
+            vehicles: (cfg.env.vehicles_min, cfg.env.vehicles_max),
+            seed: cfg.sac.seed ^ 0x636f_6f72 ^ k as u64,
+        };
+        let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
+            tracing::info!(job_id = job.id, scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
+        })
+        .map_err(|e| format!("fitting the coordinator of {scenario}: {e}"))?;
+        fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
+    }
+    let file = CoordinatorFile { scenarios: fits };
+    write_atomic(&dir.join(CoordinatorFile::FILE), serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?.as_bytes())?;
+    tracing::info!(job_id = job.id, s = t.elapsed().as_secs_f32(), "CoPO Stage 2: coordinator fitted");
+    Ok(())
 }
 
 /// Checkpoint + state + curve files.

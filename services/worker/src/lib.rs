@@ -108,19 +108,23 @@ enum SessionEnd {
 /// Runs sessions until `stop` turns true. Errors are logged and retried with backoff.
 pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Receiver<bool>) -> anyhow::Result<()> {
     let mut backoff = Backoff::new(Duration::from_millis(200), cfg.max_backoff);
+    // Registered id and heartbeat interval, kept from one job to the next (a new registration
+    // per job would leave the learner a stale worker to time out); dropped after an error.
+    let mut registration: Option<(u64, Duration)> = None;
     loop {
         if *stop.borrow() {
             return Ok(());
         }
         metrics.sessions.inc();
         let r = tokio::select! {
-            r = session(&cfg, &metrics) => r,
+            r = session(&cfg, &metrics, &mut registration) => r,
             _ = stop.changed() => Ok(SessionEnd::Stop),
         };
         match r {
             Ok(SessionEnd::Stop) => return Ok(()),
             Ok(SessionEnd::JobEnded) => backoff.reset(),
             Err(e) => {
+                registration = None;
                 let d = backoff.next_delay();
                 tracing::warn!(error = %format!("{e:#}"), retry_ms = d.as_millis() as u64, "session ended");
                 tokio::select! {
@@ -144,17 +148,25 @@ fn status_err(what: &str, s: tonic::Status, metrics: &WorkerMetrics) -> anyhow::
     anyhow!("{what}: {} ({})", s.message(), sf_svc::error::code_label(s.code()))
 }
 
-async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<SessionEnd> {
+async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut Option<(u64, Duration)>) -> anyhow::Result<SessionEnd> {
     let mut client = connect(cfg).await?;
     let t = cfg.rpc_timeout;
-    let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone() }, t)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
-    metrics.common.rpc("Register", Code::Ok);
-    let worker_id = reg.worker_id;
-    tracing::info!(worker_id, learner = %cfg.learner_url, "registered");
+    let (worker_id, hb_every) = match *registration {
+        Some(r) => r,
+        None => {
+            let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone() }, t)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
+            metrics.common.rpc("Register", Code::Ok);
+            tracing::info!(worker_id = reg.worker_id, learner = %cfg.learner_url, "registered");
+            let r = (reg.worker_id, Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64));
+            *registration = Some(r);
+            r
+        }
+    };
     // Heartbeats on the side; a NOT_FOUND or repeated failure ends the session.
     let (hb_tx, mut hb_rx) = watch::channel(false);
-    let mut hb_client = client.clone();
-    let hb_every = Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64);
+    // Their own connection: on the shared one, a transition stream the learner is not reading
+    // (its rate limiter holds inserts) fills HTTP/2's connection window and starves them.
+    let mut hb_client = connect(cfg).await?;
     let hb_metrics = metrics.clone();
     let hb = tokio::spawn(async move {
         let mut fails = 0;
@@ -225,7 +237,10 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<
         control.lock().unwrap_or_else(|p| p.into_inner()).policy = Some((v, w));
     }
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-    let spec = RolloutSpec { job, frozen, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
+    // CoPO Stage 2 in the background: each scenario's coordinator Gaussian, if it has one.
+    let bg = asg.frozen.iter().find(|f| f.role == sf_job::FrozenRole::Background);
+    let svo_gaussians = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
+    let spec = RolloutSpec { job, frozen, svo_gaussians, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
     let credits = Arc::new(Credits::new(2));
     let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
     let _stop_rollout = StopOnDrop(Arc::clone(&control));

@@ -74,6 +74,9 @@ pub struct RolloutSpec {
     pub job: JobConfig,
     /// Frozen policies the job acts with: role, config and weights.
     pub frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>,
+    /// Per scenario: the CoPO coordinator's Gaussian the background's SVOs are redrawn from
+    /// every step (`None`: the cases' SVOs).
+    pub svo_gaussians: Vec<Option<sf_sim::SvoGaussian>>,
     /// The job's scenarios in config order (index = map id).
     pub maps: Vec<Arc<Map>>,
     pub worker_id: u64,
@@ -125,6 +128,9 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
         })
         .collect();
+    for (v, g) in venvs.iter_mut().zip(&spec.svo_gaussians) {
+        v.set_svo_gaussian(*g);
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
     let (mut frozen_bg, mut frozen_ego, mut frozen_adv) = (None, None, None);
