@@ -295,7 +295,9 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     let l = start_learner(&dir, 64 << 20);
     let rt = rt();
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
-    let flow = submit(&rt, &mut c, tiny_job(r#""merge""#, "flow-socialcomm", 1500).replacen('\n', "\nkind = \"socialcomm\"\n", 1));
+    // A CoPO flow: Stage 1, then its coordinator (CoPO Stage 2), which the ego job's worker uses.
+    let copo = tiny_job(r#""merge""#, "flow-copo", 1500).replacen('\n', "\nkind = \"copo\"\n", 1) + "[coordinator]\niterations = 1\npopulation = 3\nenvs = 3\n";
+    let flow = submit(&rt, &mut c, copo);
     let ego_cfg = |dep: u64| tiny_job(r#""merge""#, "ego-in-flow", 800).replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\nbackground_job = {dep}\n"), 1);
     let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: ego_cfg(99) })).expect_err("unknown dependency");
     assert_eq!(e.code(), Code::InvalidArgument);
@@ -322,5 +324,11 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     assert_eq!(served.weights, frozen);
     let log = std::fs::read_to_string(dir.join("worker0.log")).unwrap_or_default();
     assert!(log.contains("frozen policy") && log.contains("Background"), "the worker did not load the frozen flow");
+    assert!(Path::new(&flow_done.artifact_dir).join("coordinator.json").exists(), "the CoPO job fitted its coordinator");
+    assert!(log.contains("from the coordinator's Gaussians in 1 scenario(s)"), "the ego job's background did not get the CoPO Stage-2 Gaussians");
+    // One worker ran both jobs under one registration (a new one per job left stale workers
+    // for the learner to time out).
+    let m = http_get(&l.admin, "/metrics").expect("metrics");
+    assert!(m.contains("socialflow_learner_rpcs_total{method=\"Register\",code=\"ok\"} 1\n"), "one registration expected:\n{m}");
     let _ = std::fs::remove_dir_all(&dir);
 }

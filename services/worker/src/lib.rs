@@ -239,7 +239,11 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
     // CoPO Stage 2 in the background: each scenario's coordinator Gaussian, if it has one.
     let bg = asg.frozen.iter().find(|f| f.role == sf_job::FrozenRole::Background);
-    let svo_gaussians = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
+    let svo_gaussians: Vec<_> = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
+    let redrawn = svo_gaussians.iter().flatten().count();
+    if redrawn > 0 {
+        tracing::info!(worker_id, "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
+    }
     let spec = RolloutSpec { job, frozen, svo_gaussians, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
     let credits = Arc::new(Credits::new(2));
     let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
