@@ -209,6 +209,22 @@ pub struct EnvSection {
     /// In a pipeline directory: `ego_job` by job name.
     #[serde(default)]
     pub ego_from: Option<String>,
+    /// How a driving policy's action moves its vehicle: `"direct"` (the paper: reference speed
+    /// and steer) or `"idm-residual"` (added to the IDM driver's action and clipped, so a zero
+    /// action drives like IDM: a budget lever, see `configs/paper-small/README.md`).
+    #[serde(default)]
+    pub action: ActionMode,
+}
+
+/// `env.action`: how a driving policy's action moves its vehicle.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ActionMode {
+    /// The paper's `[reference speed, steer]`, normalised.
+    #[default]
+    Direct,
+    /// A residual on the IDM driver's normalised action: `clip(a_idm + a, -1, 1)`.
+    IdmResidual,
 }
 fn d_vmin() -> u32 {
     8
@@ -238,10 +254,40 @@ pub struct SacSection {
     pub batch_size: usize,
     pub initial_alpha: f32,
     pub reward_scale: f32,
-    /// Environment steps of uniform random actions before the first update.
+    /// Environment steps of warm-up actions before the first update.
     pub warmup_steps: u64,
+    /// Who acts during the warm-up: uniformly random actions (the paper), or the IDM driver
+    /// expressed as the paper's action with `warmup_noise` added (a budget lever: see
+    /// `bc_updates`). Driving roles only; the SocialCommAdv adversary always starts random.
+    pub warmup_policy: WarmupPolicy,
+    /// Standard deviation of the Gaussian noise on each component of the IDM demonstrator's
+    /// normalised action during an IDM warm-up.
+    pub warmup_noise: f32,
+    /// The first this many updates fit the actor to the warm-up actions (behaviour cloning:
+    /// mean to the demonstrated action, log-std to `ln(warmup_noise)`) while the critic learns
+    /// as in SAC and alpha stays put; the demonstrator keeps acting until they are done.
+    /// Requires `warmup_policy = "idm"`. 0: plain SAC.
+    pub bc_updates: u64,
+    /// After the cloning updates, a behaviour-cloning term stays in the actor loss (scaled by
+    /// the critic's mean |Q|, as TD3+BC does) with this weight: constant if `bc_decay_updates`
+    /// is 0, else falling linearly to 0 over that many updates. 0: plain SAC after cloning.
+    pub bc_weight: f32,
+    pub bc_decay_updates: u64,
+    /// Entropy target of the temperature tuning (default: minus the action dimension).
+    pub target_entropy: Option<f32>,
     pub seed: u64,
     pub device: Device,
+}
+
+/// Who acts during the warm-up (`sac.warmup_policy`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WarmupPolicy {
+    /// Uniform in [-1, 1] per action component (the paper's random warm-up).
+    #[default]
+    Random,
+    /// The IDM driver's action plus `warmup_noise`.
+    Idm,
 }
 
 impl Default for SacSection {
@@ -256,6 +302,12 @@ impl Default for SacSection {
             initial_alpha: 1.0,
             reward_scale: 50.0,
             warmup_steps: 30_000,
+            warmup_policy: WarmupPolicy::Random,
+            warmup_noise: 0.1,
+            bc_updates: 0,
+            bc_weight: 0.0,
+            bc_decay_updates: 0,
+            target_entropy: None,
             seed: 0,
             device: Device::Cpu,
         }
@@ -481,6 +533,32 @@ impl JobConfig {
         if !(s.reward_scale.is_finite() && s.reward_scale > 0.0) {
             return bad("sac.reward_scale", format!("{} must be positive", s.reward_scale));
         }
+        if !(s.warmup_noise.is_finite() && (0.0..=1.0).contains(&s.warmup_noise)) {
+            return bad("sac.warmup_noise", format!("{} must be in [0, 1]", s.warmup_noise));
+        }
+        if s.warmup_policy == WarmupPolicy::Idm && self.kind.action_dim() != 2 {
+            return bad("sac.warmup_policy", format!("\"idm\" drives a vehicle; a {} job's action is an SVO", self.kind.as_str()));
+        }
+        if self.env.action == ActionMode::IdmResidual && self.kind.action_dim() != 2 {
+            return bad("env.action", format!("\"idm-residual\" is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
+        }
+        if self.env.action == ActionMode::IdmResidual && s.warmup_policy != WarmupPolicy::Idm {
+            return bad("sac.warmup_policy", "an \"idm-residual\" policy warms up around the IDM driver: set sac.warmup_policy = \"idm\"");
+        }
+        if s.bc_updates > 0 && s.warmup_policy != WarmupPolicy::Idm {
+            return bad("sac.bc_updates", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
+        }
+        if !(s.bc_weight.is_finite() && s.bc_weight >= 0.0) {
+            return bad("sac.bc_weight", format!("{} must be a non-negative number", s.bc_weight));
+        }
+        if (s.bc_weight > 0.0 || s.bc_decay_updates > 0) && s.warmup_policy != WarmupPolicy::Idm {
+            return bad("sac.bc_weight", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
+        }
+        if let Some(t) = s.target_entropy {
+            if !t.is_finite() {
+                return bad("sac.target_entropy", format!("{t} must be finite"));
+            }
+        }
         let t = &self.train;
         if t.env_steps == 0 {
             return bad("train.env_steps", "must be positive");
@@ -566,6 +644,21 @@ mod tests {
         assert!(e.to_string().contains("coordinator.elite_frac"), "{e}");
         assert_eq!(JobConfig::from_toml(&copo).expect("copo").coordinator(), Some(CoordinatorSection::default()), "copo fits one by default");
         assert_eq!(JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n")).expect("stage 1 only").coordinator(), None);
+    }
+
+    #[test]
+    fn the_idm_warm_up_is_checked() {
+        let ok = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 50\ntarget_entropy = -3.0\n")).expect("valid");
+        assert_eq!((ok.sac.warmup_policy, ok.sac.bc_updates, ok.sac.target_entropy), (WarmupPolicy::Idm, 50, Some(-3.0)));
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nbc_updates = 50\n")).expect_err("nothing to clone");
+        assert!(e.to_string().contains("sac.bc_updates"), "{e}");
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_noise = 2.0\n")).expect_err("noise");
+        assert!(e.to_string().contains("sac.warmup_noise"), "{e}");
+        let adv = "kind = \"socialcomm-adv\"\n".to_string() + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\n[train]");
+        let e = JobConfig::from_toml(&format!("{adv}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n")).expect_err("adversary");
+        assert!(e.to_string().contains("sac.warmup_policy"), "{e}");
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"expert\"\n")).expect_err("unknown policy");
+        assert!(e.to_string().contains("warmup_policy"), "{e}");
     }
 
     #[test]

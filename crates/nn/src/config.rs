@@ -43,6 +43,9 @@ pub struct NetConfig {
     pub ego_flag: bool,
     /// Action dimension (2 for driving, 1 for the adversary).
     pub action_dim: usize,
+    /// The driving action is a residual added to the IDM driver's action (`env.action =
+    /// "idm-residual"`); whoever runs the policy applies it (`sf_sac::drive`).
+    pub idm_residual: bool,
 }
 
 impl Default for NetConfig {
@@ -65,6 +68,7 @@ impl NetConfig {
             svo: SvoInput::None,
             ego_flag: false,
             action_dim: 2,
+            idm_residual: false,
         }
     }
 

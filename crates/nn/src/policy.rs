@@ -40,6 +40,14 @@ pub fn tanh_gaussian_log_prob(eps: Tensor<2>, log_std: Tensor<2>, a: Tensor<2>) 
     (gauss - corr).sum_dim(1)
 }
 
+/// `a = tanh(mean + exp(log_std) * eps)` and its log-probability: `[B, A]` each in,
+/// `(a [B, A], logp [B, 1])` out.
+pub fn tanh_gaussian_sample(mean: Tensor<2>, log_std: Tensor<2>, eps: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+    let a = (mean + log_std.clone().exp() * eps.clone()).tanh();
+    let logp = tanh_gaussian_log_prob(eps, log_std, a.clone());
+    (a, logp)
+}
+
 impl Actor {
     pub fn new(cfg: &NetConfig, seed: u64, device: &Device) -> Self {
         let mut init = Init::new(seed);
@@ -56,9 +64,7 @@ impl Actor {
     /// Reparameterised sample with standard-normal noise `eps: [B, A]` -> `(a [B, A], logp [B, 1])`.
     pub fn sample(&self, obs: &ObsBatch, table: Option<&SegmentTable>, eps: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
         let (mean, log_std) = self.dist(obs, table);
-        let a = (mean + log_std.clone().exp() * eps.clone()).tanh();
-        let logp = tanh_gaussian_log_prob(eps, log_std, a.clone());
-        (a, logp)
+        tanh_gaussian_sample(mean, log_std, eps)
     }
 
     /// The deterministic action `tanh(mean)` `[B, A]` (evaluation).

@@ -8,6 +8,7 @@
 //! same way. Must not: record transitions or choose which role is being trained.
 
 use rand::Rng;
+use rand_distr::StandardNormal;
 use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::VecEnv;
 use sf_sim::Action;
@@ -20,6 +21,10 @@ use crate::setup::adversary_svo_deg;
 pub enum Actor<'a> {
     /// Uniform in [-1, 1] (warm-up).
     Random,
+    /// The IDM demonstrator ([`VecEnv::demo_actions`]) with Gaussian noise of this standard
+    /// deviation per component, clipped to [-1, 1] (the IDM warm-up). Driving roles only.
+    /// For a role whose actions are IDM residuals it acts with the residual: the noise alone.
+    Demo { noise: f32, residual: bool },
     /// A policy: sampled, or its mean action when `deterministic` (evaluation).
     Policy { runner: &'a PolicyRunner, deterministic: bool },
 }
@@ -31,6 +36,15 @@ impl<'a> Actor<'a> {
 
     pub fn mean(runner: &'a PolicyRunner) -> Self {
         Self::Policy { runner, deterministic: true }
+    }
+
+    /// Its actions are residuals on the IDM driver's ([`apply`] adds the driver's action).
+    pub fn idm_residual(&self) -> bool {
+        match self {
+            Actor::Random => false,
+            Actor::Demo { residual, .. } => *residual,
+            Actor::Policy { runner, .. } => runner.idm_residual(),
+        }
     }
 }
 
@@ -57,6 +71,9 @@ pub struct Decision {
     pub adversary_actions: Vec<Vec<f32>>,
     /// Observations that went through a policy this step.
     pub inferred_rows: usize,
+    /// The `alive` / `background` actions are residuals on the IDM driver's.
+    pub alive_residual: bool,
+    pub background_residual: bool,
 }
 
 fn flagged(flags: &[f32]) -> Vec<usize> {
@@ -68,6 +85,15 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, dim: usize, rng: &mu
     let n: usize = rows.iter().map(Vec::len).sum();
     let flat = match actor {
         Actor::Random => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        Actor::Demo { noise, residual } => {
+            assert_eq!(dim, 2, "the IDM demonstrator drives; it has no other action");
+            let mut a: Vec<f32> = if residual { vec![0.0; n * dim] } else { venvs.iter().zip(rows).flat_map(|(v, rs)| v.demo_actions(rs)).collect() };
+            for x in &mut a {
+                let e: f32 = rng.sample(StandardNormal);
+                *x = (*x + noise * e).clamp(-1.0, 1.0);
+            }
+            a
+        }
         Actor::Policy { .. } if n == 0 => Vec::new(),
         Actor::Policy { runner, deterministic } => {
             let len = venvs.first().map_or(0, |v| v.spec.len);
@@ -90,7 +116,7 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, dim: usize, rng: &mu
         out.push(flat[at..at + rs.len() * dim].to_vec());
         at += rs.len() * dim;
     }
-    (out, if matches!(actor, Actor::Random) { 0 } else { n })
+    (out, if matches!(actor, Actor::Policy { .. }) { n } else { 0 })
 }
 
 /// Decides the step: the adversary speaks first (its message reaches the background's
@@ -114,10 +140,12 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
     out.background_rows = venvs.iter().map(|v| flagged(v.background())).collect();
     let (a, n) = act(venvs, &out.alive_rows, d.alive, 2, rng);
     out.alive_actions = a;
+    out.alive_residual = d.alive.idm_residual();
     out.inferred_rows += n;
     if let Some(bg) = d.background {
         let (a, n) = act(venvs, &out.background_rows, bg, 2, rng);
         out.background_actions = a;
+        out.background_residual = bg.idm_residual();
         out.inferred_rows += n;
     } else {
         out.background_actions = out.background_rows.iter().map(|rs| vec![0.0; rs.len() * 2]).collect();
@@ -125,13 +153,17 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
     out
 }
 
-/// Steps every batch with the decided driving actions (rows without one keep the default).
+/// Steps every batch with the decided driving actions (rows without one keep the default);
+/// a residual role's action is added to the IDM driver's action in the state it was decided
+/// in, and clipped to [-1, 1].
 pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
     for (k, v) in venvs.iter_mut().enumerate() {
         let mut acts = vec![Action::default(); v.alive().len()];
-        for (rows, a) in [(&d.alive_rows[k], &d.alive_actions[k]), (&d.background_rows[k], &d.background_actions[k])] {
+        for (rows, a, residual) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_residual), (&d.background_rows[k], &d.background_actions[k], d.background_residual)] {
+            let base = if residual { v.demo_actions(rows) } else { vec![0.0; rows.len() * 2] };
             for (j, &r) in rows.iter().enumerate() {
-                acts[r] = Action { ref_speed: a[j * 2], steer: a[j * 2 + 1] };
+                let c = |i: usize| (a[i] + base[i]).clamp(-1.0, 1.0);
+                acts[r] = Action { ref_speed: c(j * 2), steer: c(j * 2 + 1) };
             }
         }
         v.step(&acts);

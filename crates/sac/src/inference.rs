@@ -40,6 +40,11 @@ impl PolicyRunner {
         Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
     }
 
+    /// Whether this policy's actions are residuals on the IDM driver's (see `drive`).
+    pub fn idm_residual(&self) -> bool {
+        self.net.idm_residual
+    }
+
     /// Rows of one step: in the query-centric layout each agent's history is encoded once for
     /// all its observers ([`Histories::Shared`]).
     pub fn batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {

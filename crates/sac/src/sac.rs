@@ -43,6 +43,17 @@ pub struct SacConfig {
     /// before that step) instead of a fresh no-grad pass after it, saving one encoder pass.
     /// The reference script recomputes them (`false`).
     pub reuse_critic_features: bool,
+    /// The first this many updates clone the behaviour in the replay (the IDM warm-up's
+    /// demonstrations) instead of the SAC actor step: the actor's mean action is fitted to the
+    /// stored actions and its log-std to `bc_log_std`; alpha is not tuned meanwhile.
+    pub bc_updates: u64,
+    pub bc_log_std: f32,
+    /// After the cloning updates, the SAC actor loss keeps a behaviour-cloning term toward the
+    /// stored actions, `w * mean|Q| * mean((tanh(mean) - a)^2)` (TD3+BC's normalisation), with
+    /// `w = bc_weight` throughout when `bc_decay_updates` is 0, else falling linearly from
+    /// `bc_weight` to 0 over `bc_decay_updates` updates.
+    pub bc_weight: f32,
+    pub bc_decay_updates: u64,
 }
 
 impl Default for SacConfig {
@@ -178,7 +189,7 @@ impl Sac {
         let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [b, a_dim]), &self.ad);
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
         let f_reuse = self.cfg.reuse_critic_features.then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
-        let (q1, q2) = self.critic.heads(f_critic, act);
+        let (q1, q2) = self.critic.heads(f_critic, act.clone());
         let q_mean = q1.clone().mean().into_scalar::<f32>();
         let loss_c = (q1 - y.clone()).square().mean() + (q2 - y).square().mean();
         let critic_loss = loss_c.clone().into_scalar::<f32>();
@@ -186,6 +197,7 @@ impl Sac {
         self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
 
         // 3. Actor: maximise Q1(s, a~pi) - alpha log pi, critic features taken without gradients.
+        let act = act.detach();
         let fc = match f_reuse {
             Some(f) => f,
             None => {
@@ -198,20 +210,42 @@ impl Sac {
         let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
         let ad = self.ad.clone();
         let eps = self.noise(b, &ad);
-        let (a_new, logp) = self.actor.sample(&obs, table.as_ref(), eps);
-        let q_pi = self.critic.q1.clone().no_grad().forward(Tensor::cat(vec![fc, a_new], 1));
-        let loss_a = (logp.clone().mul_scalar(alpha) - q_pi).mean();
+        let (mean, log_std) = self.actor.dist(&obs, table.as_ref());
+        let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
+        let cloning = self.updates < self.cfg.bc_updates;
+        let loss_a = if cloning {
+            // 3'. Behaviour cloning of the warm-up demonstrator (first `bc_updates` updates).
+            (mean.tanh() - act).square().mean() + log_std.sub_scalar(self.cfg.bc_log_std).square().mean()
+        } else {
+            let q_pi = self.critic.q1.clone().no_grad().forward(Tensor::cat(vec![fc, a_new], 1));
+            let since = self.updates - self.cfg.bc_updates;
+            let w = match self.cfg.bc_decay_updates {
+                0 => self.cfg.bc_weight,
+                d if since < d => self.cfg.bc_weight * (1.0 - since as f32 / d as f32),
+                _ => 0.0,
+            };
+            let sac = (logp.clone().mul_scalar(alpha) - q_pi.clone()).mean();
+            if w > 0.0 {
+                // 3''. Fading behaviour-cloning term (offline-to-online hand-over).
+                let q_scale = q_pi.abs().mean().into_scalar::<f32>().max(1.0);
+                sac + (mean.tanh() - act).square().mean().mul_scalar(w * q_scale)
+            } else {
+                sac
+            }
+        };
         let actor_loss = loss_a.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
         self.actor = self.opt_actor.step(self.cfg.lr_actor, self.actor.clone(), grads);
 
-        // 4. Temperature: push the policy's entropy towards the target.
+        // 4. Temperature: push the policy's entropy towards the target (not while cloning).
         let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
         let entropy = -logp.clone().mean().into_scalar::<f32>();
         let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
         let alpha_loss = loss_al.clone().into_scalar::<f32>();
-        let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
-        self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+        if !cloning {
+            let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
+            self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+        }
 
         // 5. Polyak: target <- (1 - tau) target + tau critic.
         self.target = polyak(self.target.clone(), &self.critic.valid(), self.cfg.tau);

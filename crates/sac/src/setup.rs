@@ -4,7 +4,7 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
+use sf_job::config::{ActionMode, Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
 use sf_nn::{EncoderKind, NetConfig, SvoInput};
@@ -39,6 +39,7 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
     };
     n.ego_flag = job.kind == JobKind::Failmaker;
     n.action_dim = job.kind.action_dim();
+    n.idm_residual = job.env.action == ActionMode::IdmResidual;
     n
 }
 
@@ -115,12 +116,17 @@ pub fn sac_from_section(s: &SacSection) -> SacConfig {
         lr_alpha: s.lr_alpha,
         batch_size: s.batch_size,
         initial_alpha: s.initial_alpha,
-        target_entropy: None,
+        target_entropy: s.target_entropy,
         reward_scale: s.reward_scale,
         warmup_steps: s.warmup_steps,
         seed: s.seed,
         device: device_kind(s.device),
         reuse_critic_features: true,
+        bc_updates: s.bc_updates,
+        // The demonstrator's noise as the cloned policy's spread, inside the actor's log-std range.
+        bc_log_std: s.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5),
+        bc_weight: s.bc_weight,
+        bc_decay_updates: s.bc_decay_updates,
     }
 }
 

@@ -213,3 +213,79 @@ fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
     assert!(diff < 1e-5, "shared and per-observation encodings act differently: {diff}");
     assert!(a.iter().any(|x| x.abs() > 1e-3), "the actions are not all zero");
 }
+
+/// The IDM warm-up's cloning phase: for the first `bc_updates` updates the actor's mean action
+/// is fitted to the stored actions (here a route follower's, a function of the observation) and
+/// alpha stays put; the first update after them tunes alpha again.
+#[test]
+fn cloning_updates_fit_the_stored_actions_and_hold_alpha() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 512);
+    let spec = sf_sim::ObsSpec::new(&sim.obs);
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let cfg = SacConfig { seed: 2, batch_size: 32, lr_actor: 1e-3, initial_alpha: 0.5, bc_updates: 300, bc_log_std: -2.0, ..SacConfig::default() };
+    let mut sac = Sac::new(cfg, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac");
+    let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(5), 128).expect("probe batch");
+    let mse = |sac: &Sac| -> f32 {
+        let (actor, table) = sac.policy();
+        let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+        a.iter().zip(&probe.actions).map(|(x, y)| (x - y).powi(2)).sum::<f32>() / a.len() as f32
+    };
+    let before = mse(&sac);
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    for _ in 0..300 {
+        let l = sac.update(&r.sample(&mut rng, 32).expect("batch"));
+        assert_eq!(l.alpha, 0.5, "alpha is not tuned while cloning");
+    }
+    let after = mse(&sac);
+    assert!(after < 0.25 * before, "cloning error {before} -> {after}");
+    let l = sac.update(&r.sample(&mut rng, 32).expect("batch"));
+    assert_ne!(l.alpha, 0.5, "alpha is tuned again after the cloning updates");
+}
+
+/// The actor step reads Q1 through a `no_grad` copy; every head of the critic (and the actor)
+/// must still learn on every later update (burn's `no_grad` on a clone must not freeze the
+/// original).
+#[test]
+fn every_critic_head_and_the_actor_keep_learning_across_updates() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let mut sac = sac_for(&sim, &m, 4);
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    for k in 0..4 {
+        let (q1, q2, enc, actor) = (flat(&sac.critic.q1), flat(&sac.critic.q2), flat(&sac.critic.enc), flat(&sac.actor));
+        sac.update(&r.sample(&mut rng, 16).expect("batch"));
+        assert_ne!(q1, flat(&sac.critic.q1), "update {k}: Q1 head unchanged");
+        assert_ne!(q2, flat(&sac.critic.q2), "update {k}: Q2 head unchanged");
+        assert_ne!(enc, flat(&sac.critic.enc), "update {k}: critic encoder unchanged");
+        assert_ne!(actor, flat(&sac.actor), "update {k}: actor unchanged");
+    }
+}
+
+/// `drive` with IDM residuals: the role records its raw action (the residual, here zero) while
+/// the vehicles drive the IDM demonstrator's action, so a zero residual replays the
+/// demonstrator exactly.
+#[test]
+fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
+    use sf_sac::drive::{apply, decide, Actor, Drivers};
+    let sim = Arc::new(SimConfig::default());
+    let m = map();
+    let run = |residual: bool| {
+        let mut v = vec![VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 11 })];
+        let d = Drivers { alive: Actor::Demo { noise: 0.0, residual }, background: None, adversary: None };
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut recorded = Vec::new();
+        for _ in 0..30 {
+            let dec = decide(&mut v, &d, &mut rng);
+            assert_eq!(dec.alive_residual, residual);
+            recorded.extend_from_slice(&dec.alive_actions[0]);
+            apply(&mut v, &dec);
+        }
+        (v[0].observations().to_vec(), recorded)
+    };
+    let (direct_obs, direct_actions) = run(false);
+    let (residual_obs, residual_actions) = run(true);
+    assert_eq!(direct_obs, residual_obs, "same trajectories");
+    assert!(residual_actions.iter().all(|&a| a == 0.0), "a residual role records its residual");
+    assert!(direct_actions.iter().any(|&a| a != 0.0), "the demonstrator's own actions are recorded as they are");
+}

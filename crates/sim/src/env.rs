@@ -377,35 +377,58 @@ impl Env {
         Ok(())
     }
 
-    /// IDM leaders: the nearest vehicle ahead on the remaining route within the look-ahead.
+    /// IDM leaders of the IDM-driven agents (see [`Env::leader_of`]).
     fn find_leaders(&mut self) {
-        let p = &self.cfg.idm;
-        let len = self.cfg.vehicle.length_m;
         for i in 0..self.agents.len() {
             let a = &self.agents[i];
-            if !(a.alive && a.controller == Controller::Idm) {
+            if a.alive && a.controller == Controller::Idm {
+                self.agents[i].leader = self.leader_of(i);
+            }
+        }
+    }
+
+    /// Agent `i`'s IDM leader: the nearest live vehicle ahead on its remaining route within
+    /// the look-ahead, as `(gap_m, speed along the route in m/s)`.
+    fn leader_of(&self, i: usize) -> Option<(f32, f32)> {
+        let p = &self.cfg.idm;
+        let len = self.cfg.vehicle.length_m;
+        let a = &self.agents[i];
+        let route = &self.map.routes[a.route as usize];
+        let hi = route.cum_m.partition_point(|&c| c <= a.s_m + p.look_ahead_m) + 1;
+        let mut best: Option<(f32, f32)> = None;
+        for (j, b) in self.agents.iter().enumerate() {
+            if j == i || !b.alive || geom::dist2(a.state.pos(), b.state.pos()) > (p.look_ahead_m + len).powi(2) {
                 continue;
             }
-            let route = &self.map.routes[a.route as usize];
-            let hi = route.cum_m.partition_point(|&c| c <= a.s_m + p.look_ahead_m) + 1;
-            let mut best: Option<(f32, f32)> = None;
-            for (j, b) in self.agents.iter().enumerate() {
-                if j == i || !b.alive || geom::dist2(a.state.pos(), b.state.pos()) > (p.look_ahead_m + len).powi(2) {
-                    continue;
-                }
-                let pr = geom::project_range(&route.points, &route.cum_m, b.state.pos(), a.seg, hi);
-                let ahead = pr.s_m - a.s_m;
-                if pr.lateral_m.abs() > p.lateral_tolerance_m || ahead <= 0.0 {
-                    continue;
-                }
-                let gap = ahead - len;
-                if best.is_none_or(|(g, _)| gap < g) {
-                    let along = route.headings[pr.seg];
-                    best = Some((gap, b.state.speed_mps * (b.state.theta_rad - along).cos().max(0.0)));
-                }
+            let pr = geom::project_range(&route.points, &route.cum_m, b.state.pos(), a.seg, hi);
+            let ahead = pr.s_m - a.s_m;
+            if pr.lateral_m.abs() > p.lateral_tolerance_m || ahead <= 0.0 {
+                continue;
             }
-            self.agents[i].leader = best;
+            let gap = ahead - len;
+            if best.is_none_or(|(g, _)| gap < g) {
+                let along = route.headings[pr.seg];
+                best = Some((gap, b.state.speed_mps * (b.state.theta_rad - along).cos().max(0.0)));
+            }
         }
+        best
+    }
+
+    /// The IDM driver's choice for agent `i` now, as the paper's normalised action (the
+    /// demonstrator of the IDM warm-up): pure-pursuit steer toward its route and the
+    /// reference speed whose PID error equals IDM's acceleration (`v + a_idm / Kp`, clipped to
+    /// [0, v_max]). Held for a whole decision step, it drives its route like the IDM
+    /// controller, which recomputes both every sub-step.
+    pub fn demo_action(&self, i: usize) -> Action {
+        let a = &self.agents[i];
+        let vp = &self.cfg.vehicle;
+        let route = &self.map.routes[a.route as usize];
+        let look = (1.5 * a.state.speed_mps).max(4.0);
+        let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
+        let steer_rad = pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target));
+        let accel = idm_accel(&self.cfg.idm, a.state.speed_mps, self.leader_of(i));
+        let ref_speed_mps = (a.state.speed_mps + accel / vp.pid_kp.max(1e-3)).clamp(0.0, vp.max_speed_mps);
+        Action::encode(vp, ref_speed_mps, steer_rad)
     }
 
     /// Marks every pair of overlapping boxes as collided (both freeze until removal).

@@ -290,6 +290,17 @@ impl VecEnv {
             });
     }
 
+    /// The IDM demonstrator's action ([`Env::demo_action`]) for each listed row, two floats a
+    /// row (`[ref_speed, steer]`, normalised).
+    pub fn demo_actions(&self, rows: &[usize]) -> Vec<f32> {
+        let mut out = Vec::with_capacity(rows.len() * 2);
+        for &r in rows {
+            let a = self.slots[r / self.max_agents].env.demo_action(r % self.max_agents);
+            out.extend_from_slice(&[a.ref_speed, a.steer]);
+        }
+        out
+    }
+
     /// Per row: what the last step did.
     pub fn row_steps(&self) -> &[RowStep] {
         &self.steps

@@ -186,3 +186,37 @@ fn adversary_svo_reaches_only_the_told_observer() {
     assert_eq!(e.communicated_svo_deg(1, 2), 30.0, "background SVOs stay genuine");
     assert_eq!(e.communicated_svo_deg(0, 0), 10.0, "the ego is not fooled about itself");
 }
+
+/// The IDM warm-up's demonstrator: its action, held for whole decision steps by an externally
+/// driven car, crosses every route of every scenario cleanly at nearly full speed, and it asks
+/// for a lower reference speed than free road when a stopped car is close ahead.
+#[test]
+fn the_idm_demonstrator_drives_every_route_and_brakes_for_a_stopped_leader() {
+    for name in ["intersection", "merge", "roundabout", "bottleneck"] {
+        let m = map(name);
+        for r in 0..m.routes.len() as u32 {
+            let mut e = env(&m);
+            e.reset(&case(&[(spawn_for(&m, r, 0), r, 0.0)]), Mode::MultiAgent, None).expect("reset");
+            while !e.done() {
+                let a = e.demo_action(0);
+                assert!((-1.0..=1.0).contains(&a.ref_speed) && (-1.0..=1.0).contains(&a.steer), "{a:?}");
+                e.step(&[a]).expect("step");
+            }
+            let o = e.agents()[0].outcome();
+            assert!(o.success, "{name} route {r}: {:?}", e.agents()[0].termination);
+            assert!(o.speed_ratio > 0.8, "{name} route {r}: speed {}", o.speed_ratio);
+        }
+    }
+    let m = map("merge");
+    let mut e = env(&m);
+    e.reset(&case(&[(spawn_for(&m, 0, 0), 0, 0.0), (spawn_for(&m, 0, 1), 0, 0.0)]), Mode::MultiAgent, None).expect("reset");
+    let (p0, th) = (e.agents()[0].state.pos(), e.agents()[0].state.theta_rad);
+    e.place_agent(0, p0, th, 6.0);
+    e.place_agent(1, [p0[0] + 500.0, p0[1] + 500.0], th, 0.0);
+    let free = e.demo_action(0).ref_speed;
+    e.place_agent(1, [p0[0] + 8.0 * th.cos(), p0[1] + 8.0 * th.sin()], th, 0.0);
+    e.step(&[e.demo_action(0), stop()]).expect("step");
+    let near = e.demo_action(0).ref_speed;
+    assert_eq!(free, 1.0, "free road: full reference speed");
+    assert!(near < 0.0, "a stopped car 8 m ahead: brake (got {near})");
+}

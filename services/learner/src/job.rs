@@ -163,6 +163,8 @@ impl ActiveJob {
         self.metrics.policy_version.set(version as i64);
     }
 
+    /// Workers act with the warm-up policy (random or the IDM demonstrator) until
+    /// `sac.warmup_steps` transitions are in.
     pub fn in_warmup(&self) -> bool {
         lock(&self.stats).c.env_steps < self.cfg.sac.warmup_steps
     }

@@ -79,7 +79,7 @@ impl WorkerMetrics {
         reg.register("socialflow_worker_transitions_sent", "Learner transitions sent", m.transitions_sent.clone());
         reg.register("socialflow_worker_batches_sent", "Transition batches sent", m.batches_sent.clone());
         reg.register("socialflow_worker_episodes", "Episodes finished", m.episodes.clone());
-        reg.register("socialflow_worker_policy_version", "Policy version acting now (0 = random warm-up)", m.policy_version.clone());
+        reg.register("socialflow_worker_policy_version", "Policy version acting now (0 = warm-up actions)", m.policy_version.clone());
         reg.register("socialflow_worker_policy_fetches", "Policy weights fetched", m.policy_fetches.clone());
         reg.register("socialflow_worker_sessions", "Sessions started (register + assignment); more than one means reconnects", m.sessions.clone());
         reg.register("socialflow_worker_inference_observations", "Observations run through the actor", m.inference_obs.clone());

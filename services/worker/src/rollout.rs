@@ -13,7 +13,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_job::config::JobKind;
+use sf_job::config::{JobKind, WarmupPolicy};
 use sf_job::{EpisodeResult, FrozenRole, JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_sac::drive::{self, Actor, Drivers};
@@ -178,7 +178,11 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         }
         batch_version = Some(version);
         // The job's own policy plays its role; frozen policies the others.
-        let own = acting.map_or(Actor::Random, Actor::sampled);
+        let warm_actor = match job.sac.warmup_policy {
+            WarmupPolicy::Idm if act_dim == 2 => Actor::Demo { noise: job.sac.warmup_noise, residual: net.idm_residual },
+            _ => Actor::Random,
+        };
+        let own = acting.map_or(warm_actor, Actor::sampled);
         let (f_bg, f_ego, f_adv) = (frozen_bg.as_ref().map(Actor::sampled), frozen_ego.as_ref().map(Actor::sampled), frozen_adv.as_ref().map(Actor::sampled));
         let drivers = match kind {
             JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random), background: Some(own), adversary: None },
