@@ -268,9 +268,10 @@ pub struct SacSection {
     /// as in SAC and alpha stays put; the demonstrator keeps acting until they are done.
     /// Requires `warmup_policy = "idm"`. 0: plain SAC.
     pub bc_updates: u64,
-    /// After the cloning updates, a behaviour-cloning term stays in the actor loss (scaled by
-    /// the critic's mean |Q|, as TD3+BC does) with this weight: constant if `bc_decay_updates`
-    /// is 0, else falling linearly to 0 over that many updates. 0: plain SAC after cloning.
+    /// After the cloning updates, the cloning loss (mean action and log-std) stays in the actor
+    /// loss as a term scaled by the critic's mean |Q| (as TD3+BC does) with this weight:
+    /// constant if `bc_decay_updates` is 0, else falling linearly to 0 over that many updates.
+    /// 0: plain SAC after cloning.
     pub bc_weight: f32,
     pub bc_decay_updates: u64,
     /// Entropy target of the temperature tuning (default: minus the action dimension).

@@ -48,8 +48,9 @@ pub struct SacConfig {
     /// stored actions and its log-std to `bc_log_std`; alpha is not tuned meanwhile.
     pub bc_updates: u64,
     pub bc_log_std: f32,
-    /// After the cloning updates, the SAC actor loss keeps a behaviour-cloning term toward the
-    /// stored actions, `w * mean|Q| * mean((tanh(mean) - a)^2)` (TD3+BC's normalisation), with
+    /// After the cloning updates, the SAC actor loss keeps the cloning loss as a term,
+    /// `w * mean|Q| * bc` (TD3+BC's normalisation; it anchors the log-std too, which the entropy
+    /// bonus would otherwise inflate at Adam's full step size while alpha adapts), with
     /// `w = bc_weight` throughout when `bc_decay_updates` is 0, else falling linearly from
     /// `bc_weight` to 0 over `bc_decay_updates` updates.
     pub bc_weight: f32,
@@ -213,9 +214,11 @@ impl Sac {
         let (mean, log_std) = self.actor.dist(&obs, table.as_ref());
         let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
         let cloning = self.updates < self.cfg.bc_updates;
+        // Behaviour cloning of the replayed actions: mean action to them, log-std to `bc_log_std`.
+        let bc = |mean: Tensor<2>, log_std: Tensor<2>| (mean.tanh() - act).square().mean() + log_std.sub_scalar(self.cfg.bc_log_std).square().mean();
         let loss_a = if cloning {
-            // 3'. Behaviour cloning of the warm-up demonstrator (first `bc_updates` updates).
-            (mean.tanh() - act).square().mean() + log_std.sub_scalar(self.cfg.bc_log_std).square().mean()
+            // 3'. Cloning updates (the first `bc_updates`).
+            bc(mean, log_std)
         } else {
             let q_pi = self.critic.q1.clone().no_grad().forward(Tensor::cat(vec![fc, a_new], 1));
             let since = self.updates - self.cfg.bc_updates;
@@ -228,7 +231,7 @@ impl Sac {
             if w > 0.0 {
                 // 3''. Fading behaviour-cloning term (offline-to-online hand-over).
                 let q_scale = q_pi.abs().mean().into_scalar::<f32>().max(1.0);
-                sac + (mean.tanh() - act).square().mean().mul_scalar(w * q_scale)
+                sac + bc(mean, log_std).mul_scalar(w * q_scale)
             } else {
                 sac
             }
