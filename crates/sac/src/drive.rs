@@ -2,10 +2,12 @@
 //! background rows and the SocialCommAdv adversary, each with one batched inference over every
 //! scenario's environments.
 //!
-//! Owns: [`Drivers`] (the actor of each role), [`decide`] (the adversary's message first,
-//! communicated before anyone drives, then the driving actions), [`apply`] (steps the
-//! environments with them) and [`run_episodes`] (stored episodes to their end). Shared by rollout workers and evaluation, so both run a flow the
-//! same way. Must not: record transitions or choose which role is being trained.
+//! Owns: [`Drivers`] (the actor of each role: uniform, the IDM demonstrator, or a policy),
+//! [`decide`] (the adversary's message first, communicated before anyone drives, then the
+//! driving actions as the roles chose them), [`apply`] (steps the environments with them, adding
+//! the IDM driver's action for roles whose actions are residuals) and [`run_episodes`] (stored
+//! episodes to their end). Shared by rollout workers and evaluation, so both run a flow the same
+//! way. Must not: record transitions or choose which role is being trained.
 
 use rand::Rng;
 use rand_distr::StandardNormal;
