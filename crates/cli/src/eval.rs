@@ -632,7 +632,7 @@ mod tests {
         assert_eq!(svos.into_iter().collect::<Vec<_>>(), vec![0, 10, 20, 30, 40, 50, 60, 70, 80, 90]);
         // The flows-only grid: the same flow cells, no ego.
         let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper-small-flows.toml");
-        let flows = cells(&EvalConfig::load(&p).expect("valid"));
+        let flows = super::cells(&EvalConfig::load(&p).expect("valid"));
         assert!(flows.iter().all(|c| c.ego.is_empty()), "no ego cells");
         let flow_keys: BTreeSet<String> = flows.iter().map(Cell::key).collect();
         let full_flow_keys: BTreeSet<String> = cells.iter().filter(|c| c.ego.is_empty()).map(Cell::key).collect();
