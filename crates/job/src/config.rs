@@ -263,9 +263,9 @@ pub struct SacSection {
     /// Standard deviation of the Gaussian noise on each component of the IDM demonstrator's
     /// normalised action during an IDM warm-up.
     pub warmup_noise: f32,
-    /// The first this many updates fit the actor to the warm-up actions (behaviour cloning:
-    /// mean to the demonstrated action, log-std to `ln(warmup_noise)`) while the critic learns
-    /// as in SAC and alpha stays put; the demonstrator keeps acting until they are done.
+    /// The first this many updates fit the actor to the replayed actions (behaviour cloning:
+    /// mean to the stored action, log-std to `ln(warmup_noise)`) while the critic learns as in
+    /// SAC and alpha stays put; once the warm-up is over the cloned policy acts meanwhile.
     /// Requires `warmup_policy = "idm"`. 0: plain SAC.
     pub bc_updates: u64,
     /// After the cloning updates, the cloning loss (mean action and log-std) stays in the actor

@@ -198,7 +198,6 @@ impl Sac {
         self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
 
         // 3. Actor: maximise Q1(s, a~pi) - alpha log pi, critic features taken without gradients.
-        let act = act.detach();
         let fc = match f_reuse {
             Some(f) => f,
             None => {

@@ -21,7 +21,7 @@ use crate::config::SimConfig;
 use crate::geom::{self, Frame, P2};
 use crate::idm::{idm_accel, pure_pursuit_steer};
 use crate::map::Map;
-use crate::vehicle::{Action, Pid, VehicleState};
+use crate::vehicle::{Action, Pid, VehicleParams, VehicleState};
 
 /// Who computes a vehicle's controls.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -178,6 +178,16 @@ pub struct Env {
     box_road: Cuboid,
     poses: Vec<Pose>,
     alive_before: Vec<bool>,
+}
+
+/// The IDM driver's steer for agent `a`: pure pursuit toward the point of its route
+/// `max(1.5 s x speed, 4 m)` ahead. The IDM controller recomputes it every sub-step; the
+/// demonstrator ([`Env::demo_action`]) holds it for a decision step.
+fn route_steer_rad(map: &Map, vp: &VehicleParams, a: &Agent) -> f32 {
+    let route = &map.routes[a.route as usize];
+    let look = (1.5 * a.state.speed_mps).max(4.0);
+    let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
+    pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target))
 }
 
 impl Env {
@@ -346,10 +356,7 @@ impl Env {
                 let accel = match a.controller {
                     Controller::External => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
                     Controller::Idm => {
-                        let route = &map.routes[a.route as usize];
-                        let look = (1.5 * a.state.speed_mps).max(4.0);
-                        let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
-                        a.steer_rad = pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target));
+                        a.steer_rad = route_steer_rad(map, vp, a);
                         idm_accel(&cfg.idm, a.state.speed_mps, a.leader)
                     }
                 };
@@ -422,10 +429,7 @@ impl Env {
     pub fn demo_action(&self, i: usize) -> Action {
         let a = &self.agents[i];
         let vp = &self.cfg.vehicle;
-        let route = &self.map.routes[a.route as usize];
-        let look = (1.5 * a.state.speed_mps).max(4.0);
-        let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
-        let steer_rad = pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target));
+        let steer_rad = route_steer_rad(&self.map, vp, a);
         let accel = idm_accel(&self.cfg.idm, a.state.speed_mps, self.leader_of(i));
         let ref_speed_mps = (a.state.speed_mps + accel / vp.pid_kp.max(1e-3)).clamp(0.0, vp.max_speed_mps);
         Action::encode(vp, ref_speed_mps, steer_rad)

@@ -149,6 +149,11 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         anyhow::ensure!(frozen_ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
     }
     let act_dim = kind.action_dim();
+    // Who plays the job's own role until the warm-up ends.
+    let warm_actor = match job.sac.warmup_policy {
+        WarmupPolicy::Idm if act_dim == 2 => Actor::Demo { noise: job.sac.warmup_noise, residual: net.idm_residual },
+        _ => Actor::Random,
+    };
     let mut runner: Option<PolicyRunner> = None;
     let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim);
     let mut batch_version = None;
@@ -178,10 +183,6 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         }
         batch_version = Some(version);
         // The job's own policy plays its role; frozen policies the others.
-        let warm_actor = match job.sac.warmup_policy {
-            WarmupPolicy::Idm if act_dim == 2 => Actor::Demo { noise: job.sac.warmup_noise, residual: net.idm_residual },
-            _ => Actor::Random,
-        };
         let own = acting.map_or(warm_actor, Actor::sampled);
         let (f_bg, f_ego, f_adv) = (frozen_bg.as_ref().map(Actor::sampled), frozen_ego.as_ref().map(Actor::sampled), frozen_adv.as_ref().map(Actor::sampled));
         let drivers = match kind {
