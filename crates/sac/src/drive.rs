@@ -162,9 +162,10 @@ pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
     for (k, v) in venvs.iter_mut().enumerate() {
         let mut acts = vec![Action::default(); v.alive().len()];
         for (rows, a, residual) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_residual), (&d.background_rows[k], &d.background_actions[k], d.background_residual)] {
-            let base = if residual { v.demo_actions(rows) } else { vec![0.0; rows.len() * 2] };
+            // The IDM driver's actions only for residual roles; others drive their action as is.
+            let base = residual.then(|| v.demo_actions(rows));
             for (j, &r) in rows.iter().enumerate() {
-                let c = |i: usize| (a[i] + base[i]).clamp(-1.0, 1.0);
+                let c = |i: usize| (a[i] + base.as_ref().map_or(0.0, |b| b[i])).clamp(-1.0, 1.0);
                 acts[r] = Action { ref_speed: c(j * 2), steer: c(j * 2 + 1) };
             }
         }

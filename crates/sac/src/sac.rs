@@ -228,7 +228,7 @@ impl Sac {
             };
             let sac = (logp.clone().mul_scalar(alpha) - q_pi.clone()).mean();
             if w > 0.0 {
-                // 3''. Fading behaviour-cloning term (offline-to-online hand-over).
+                // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
                 let q_scale = q_pi.abs().mean().into_scalar::<f32>().max(1.0);
                 sac + bc(mean, log_std).mul_scalar(w * q_scale)
             } else {
