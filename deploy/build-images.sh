@@ -21,7 +21,7 @@ rm -rf rootfs && mkdir -p rootfs/app/configs rootfs/tmp rootfs/data
 add_with_libs rootfs "$bin_dir/socialflow" /app/socialflow
 # Debug info is most of a dev build's size; the image does not need it.
 if command -v strip >/dev/null; then strip --strip-debug rootfs/app/socialflow; fi
-cp -r ../configs/scenarios ../configs/learner.toml ../configs/quickstart.toml rootfs/app/configs/
+cp -r ../configs/scenarios ../configs/cases ../configs/learner.toml ../configs/quickstart.toml rootfs/app/configs/
 chmod 1777 rootfs/tmp
 docker build -q -t socialflow:local -f Dockerfile . >/dev/null
 echo "built socialflow:local"

@@ -2,7 +2,7 @@
 
 use std::time::Duration;
 
-use socialflow_e2e::socialflow;
+use socialflow_e2e::{socialflow, socialflow_env};
 
 const T: Duration = Duration::from_secs(120);
 
@@ -291,7 +291,8 @@ fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
     // The evaluation grid on these jobs: reproducible, resumable, and a report builds from it.
     let eval_cfg = |out: &str| {
         format!(
-            r#"runs = "{data}"
+            r#"kind = "eval"
+runs = "{data}"
 out = "{out}"
 scenarios = ["merge"]
 cases = 2
@@ -329,5 +330,22 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     let gif = std::fs::read(report.join("gif-merge.gif")).expect("the side-by-side GIF is in the report");
     assert!(gif.starts_with(b"GIF89a") && gif.len() > 10_000, "{} bytes", gif.len());
     assert!(std::fs::read_to_string(report.join("report.html")).expect("html").contains("data:image/gif;base64,"));
+
+    // The same file submitted to a learner on that data directory: its cells shared by two
+    // worker processes, the same episodes and the same GIF.
+    let l = socialflow_e2e::start_learner(&dir, 64 << 20);
+    let _w: Vec<socialflow_e2e::Proc> = (0..2).map(|k| socialflow_e2e::start_worker(&l, &dir, k)).collect();
+    let sub = socialflow_env(&["submit", &dir.join("eval-a.toml").display().to_string(), "--learner", &l.url, "--watch"], &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)], 4 * T);
+    assert!(sub.status.success(), "{}", String::from_utf8_lossy(&sub.stderr));
+    let job: serde_json::Value = String::from_utf8_lossy(&sub.stdout).lines().next().and_then(|l| serde_json::from_str(l).ok()).expect("the job as JSON");
+    let art = std::path::PathBuf::from(job["artifact_dir"].as_str().expect("artifact dir"));
+    let sorted = |text: &str| {
+        let mut rows: Vec<&str> = text.lines().collect();
+        rows.sort();
+        rows.join("\n")
+    };
+    let shared = std::fs::read_to_string(art.join("episodes.csv")).expect("the evaluation job's results");
+    assert_eq!(sorted(&shared), sorted(&a), "embedded and shared by workers: the same episodes");
+    assert_eq!(std::fs::read(art.join("gif-merge.gif")).expect("GIF"), std::fs::read(dir.join("eval-a/gif-merge.gif")).expect("GIF"));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -8,64 +8,10 @@ use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_proto::pb::job_service_client::JobServiceClient;
 use sf_svc::auth::{AttachToken, Token};
-use socialflow_e2e::{bin, free_port, scratch, socialflow_env, tiny_job, wait_for, Proc};
+use socialflow_e2e::{bin, http_get, restart, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, TOKEN, TWO_MAPS};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::Code;
-
-const TOKEN: &str = "e2e-test-token-0123";
-const TWO_MAPS: &str = r#""roundabout", "merge""#;
-
-struct Learner {
-    proc: Proc,
-    url: String,
-    admin: String,
-
-    cfg: PathBuf,
-    log: PathBuf,
-}
-
-fn start_learner(dir: &Path, max_message_bytes: usize) -> Learner {
-    start_learner_with(dir, max_message_bytes, "")
-}
-
-/// `extra`: more lines of learner config (TOML).
-fn start_learner_with(dir: &Path, max_message_bytes: usize, extra: &str) -> Learner {
-    let (g, a) = (free_port(), free_port());
-    let data = dir.join("data");
-    let cfg = dir.join("learner.toml");
-    std::fs::write(
-        &cfg,
-        format!("grpc_addr = \"127.0.0.1:{g}\"\nadmin_addr = \"127.0.0.1:{a}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nmax_message_bytes = {max_message_bytes}\nshutdown_grace_s = 60\n{extra}", data.display()),
-    )
-    .expect("learner config");
-    let log = dir.join("learner.log");
-    let proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
-    let l = Learner { proc, url: format!("http://127.0.0.1:{g}"), admin: format!("127.0.0.1:{a}"), cfg, log };
-    wait_for("learner readiness", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
-    l
-}
-
-fn restart(l: &mut Learner) {
-    let log = l.log.clone();
-    l.proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &l.cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
-    wait_for("learner readiness after restart", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
-}
-
-fn start_worker(l: &Learner, dir: &Path, k: usize) -> Proc {
-    Proc::spawn_logged(&bin("socialflow-worker"), &["--learner", &l.url, "--name", &format!("w{k}"), "--max-backoff-s", "1"], &[("SOCIALFLOW_TOKEN", TOKEN)], &dir.join(format!("worker{k}.log")))
-}
-
-/// A plain HTTP/1.0 GET on the admin port; `None` on any failure.
-fn http_get(addr: &str, path: &str) -> Option<String> {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(addr).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    write!(s, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
-    let mut out = String::new();
-    s.read_to_string(&mut out).ok()?;
-    (out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200")).then_some(out)
-}
 
 fn metric(body: &str, name: &str) -> f64 {
     body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
@@ -330,5 +276,100 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     // for the learner to time out).
     let m = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(m.contains("socialflow_learner_rpcs_total{method=\"Register\",code=\"ok\"} 1\n"), "one registration expected:\n{m}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// An evaluation grid over one trained ego and the IDM flow, `runs` / `out` for `socialflow eval`.
+fn eval_grid(data: &Path, out: &Path, ego_job: &str) -> String {
+    format!(
+        r#"kind = "eval"
+name = "grid"
+runs = "{}"
+out = "{}"
+scenarios = ["merge", "roundabout"]
+cases = 2
+seeds = 2
+envs = 4
+flows = [{{ name = "IDM", job = "idm" }}]
+egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}]
+[experiments]
+flow_quality = ["IDM"]
+cross_validation = ["IDM"]
+density = {{ scenario = "merge", flows = ["IDM"], vehicles = [2, 3] }}
+"#,
+        data.display(),
+        out.display()
+    )
+}
+
+fn sorted_rows(p: &Path) -> Vec<String> {
+    let text = std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let mut rows: Vec<String> = text.lines().skip(1).map(str::to_string).collect();
+    rows.sort();
+    rows
+}
+
+#[test]
+fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() {
+    let dir = scratch("evaljob");
+    let l = start_learner_with(&dir, 64 << 20, "worker_timeout_s = 2\n");
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let data = dir.join("data");
+    // Refused before anything is stored: unknown jobs and bad fields are named.
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: eval_grid(&data, &dir.join("x"), "nope") })).expect_err("unknown ego job");
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("egos.job") && e.message().contains("nope"), "{}", e.message());
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: eval_grid(&data, &dir.join("x"), "e").replace("cases = 2", "cases = 0") })).expect_err("bad field");
+    assert!(e.code() == Code::InvalidArgument && e.message().contains("`cases`"), "{}", e.message());
+    assert!(rt.block_on(c.list_jobs(pb::ListJobsRequest {})).expect("list").into_inner().jobs.is_empty());
+
+    let ego = submit(&rt, &mut c, tiny_job(TWO_MAPS, "ego-t", 300));
+    let mut w0 = start_worker(&l, &dir, 0);
+    assert_eq!(wait_final(&rt, &mut c, ego.job_id, "the ego to train").state, SUCCEEDED);
+    w0.kill9();
+
+    // A worker that leases a cell and is never heard from again.
+    let mut x = exp(&rt, &l.url);
+    let lost = rt.block_on(x.register(pb::RegisterRequest { name: "lost".into() })).expect("register").into_inner().worker_id;
+    let job = submit(&rt, &mut c, eval_grid(&data, &dir.join("embedded"), "ego-t"));
+    assert!(job.config_toml.contains(&format!("job_id = {}", ego.job_id)), "the names are pinned: {}", job.config_toml);
+    let cells = 2 + 2 + 2;
+    assert_eq!(progress(&job).target_env_steps, cells * 4);
+    let leased = wait_for("a cell for the lost worker", Duration::from_secs(60), || {
+        let r = rt.block_on(x.get_assignment(pb::GetAssignmentRequest { worker_id: lost })).expect("assignment").into_inner();
+        r.eval
+    });
+    assert_eq!(leased.cases * leased.seeds, 4);
+    // Results that do not match the cell change nothing.
+    let ep = |case_id, seed| pb::EvalEpisode { case_id, seed, success: 1.0, safety: 1.0, speed: 0.5, collision: 0.0 };
+    let short = pb::EvalResults { job_id: job.job_id, worker_id: lost, cell_id: leased.cell_id, episodes: vec![ep(0, 0)], error: String::new() };
+    let e = rt.block_on(x.push_eval_results(short)).expect_err("one episode of four");
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    let bad = pb::EvalResults { job_id: job.job_id, worker_id: lost, cell_id: 999, episodes: vec![], error: String::new() };
+    assert_eq!(rt.block_on(x.push_eval_results(bad)).expect_err("no such cell").code(), Code::NotFound);
+
+    let _w: Vec<Proc> = (1..3).map(|k| start_worker(&l, &dir, k)).collect();
+    let done = wait_final(&rt, &mut c, job.job_id, "the evaluation to finish");
+    assert_eq!(done.state, SUCCEEDED, "evaluation ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, cells * 4, "every episode of every cell");
+    let results = Path::new(&done.artifact_dir).join("episodes.csv");
+    let rows = sorted_rows(&results);
+    assert_eq!(rows.len() as u64, cells * 4);
+    let metrics = http_get(&l.admin, "/metrics").expect("metrics");
+    assert!(metric(&metrics, "socialflow_learner_eval_cells_reassigned") >= 1.0, "the lost worker's cell went to another worker");
+    assert_eq!(metric(&metrics, "socialflow_learner_eval_episodes_total"), (cells * 4) as f64);
+    // The lost worker's late results are refused; what is stored stays.
+    let four = pb::EvalResults { job_id: job.job_id, worker_id: lost, cell_id: leased.cell_id, episodes: vec![ep(0, 0), ep(0, 1), ep(1, 0), ep(1, 1)], error: String::new() };
+    assert!(rt.block_on(x.push_eval_results(four)).is_err());
+    assert_eq!(sorted_rows(&results), rows);
+    assert!(Path::new(&done.artifact_dir).join("meta.json").exists());
+
+    // The same grid evaluated in one process: the same numbers.
+    let cfg = dir.join("grid.toml");
+    std::fs::write(&cfg, eval_grid(&data, &dir.join("embedded"), "ego-t")).expect("eval config");
+    let o = socialflow_env(&["eval", &cfg.display().to_string()], &[], Duration::from_secs(300));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(sorted_rows(&dir.join("embedded/episodes.csv")), rows, "embedded and shared by workers: the same episodes");
     let _ = std::fs::remove_dir_all(&dir);
 }

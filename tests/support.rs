@@ -162,3 +162,60 @@ batch_transitions = 64
 "#
     )
 }
+
+// The service as deployed: learner and worker processes on loopback.
+
+pub const TOKEN: &str = "e2e-test-token-0123";
+pub const TWO_MAPS: &str = r#""roundabout", "merge""#;
+
+/// A `socialflow-learner` process on loopback ports.
+pub struct Learner {
+    pub proc: Proc,
+    pub url: String,
+    pub admin: String,
+    pub cfg: PathBuf,
+    pub log: PathBuf,
+}
+
+pub fn start_learner(dir: &Path, max_message_bytes: usize) -> Learner {
+    start_learner_with(dir, max_message_bytes, "")
+}
+
+/// `extra`: more lines of learner config (TOML).
+pub fn start_learner_with(dir: &Path, max_message_bytes: usize, extra: &str) -> Learner {
+    let (g, a) = (free_port(), free_port());
+    let data = dir.join("data");
+    let cfg = dir.join("learner.toml");
+    std::fs::write(
+        &cfg,
+        format!("grpc_addr = \"127.0.0.1:{g}\"\nadmin_addr = \"127.0.0.1:{a}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nmax_message_bytes = {max_message_bytes}\nshutdown_grace_s = 60\n{extra}", data.display()),
+    )
+    .expect("learner config");
+    let log = dir.join("learner.log");
+    let proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
+    let l = Learner { proc, url: format!("http://127.0.0.1:{g}"), admin: format!("127.0.0.1:{a}"), cfg, log };
+    wait_for("learner readiness", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+    l
+}
+
+pub fn restart(l: &mut Learner) {
+    let log = l.log.clone();
+    l.proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &l.cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
+    wait_for("learner readiness after restart", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+}
+
+pub fn start_worker(l: &Learner, dir: &Path, k: usize) -> Proc {
+    Proc::spawn_logged(&bin("socialflow-worker"), &["--learner", &l.url, "--name", &format!("w{k}"), "--max-backoff-s", "1"], &[("SOCIALFLOW_TOKEN", TOKEN)], &dir.join(format!("worker{k}.log")))
+}
+
+/// A plain HTTP/1.0 GET on the admin port; `None` on any failure.
+pub fn http_get(addr: &str, path: &str) -> Option<String> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(s, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
+    let mut out = String::new();
+    s.read_to_string(&mut out).ok()?;
+    (out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200")).then_some(out)
+}
+

@@ -54,8 +54,8 @@ pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
     match cmd {
         BenchCmd::Sim(a) => sim(ctx, a),
         BenchCmd::Sac(a) => crate::bench_sac::run(ctx, a),
-        BenchCmd::Ingest(a) => crate::bench_svc::ingest(ctx.scenarios.clone(), a),
-        BenchCmd::E2e(a) => crate::bench_svc::e2e(ctx.scenarios.clone(), a),
+        BenchCmd::Ingest(a) => crate::bench_svc::ingest(ctx, a),
+        BenchCmd::E2e(a) => crate::bench_svc::e2e(ctx, a),
     }
 }
 

@@ -60,14 +60,14 @@ publish_every_updates = 1000000
 checkpoint_every_s = 100000
 "#;
 
-pub fn ingest(scenarios: PathBuf, a: SvcBenchArgs) -> Result<()> {
+pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     if a.workers == 0 || a.batch == 0 {
         bail!("--workers and --batch must be positive");
     }
     let dir = tmp_dir("ingest");
     let _ = std::fs::remove_dir_all(&dir);
     let out = runtime()?.block_on(async {
-        let emb = Embedded::start(dir.clone(), scenarios, 0).await?;
+        let emb = Embedded::start(dir.clone(), dirs, 0).await?;
         let mut c = emb.client().await?;
         let job = remote::submit(&mut c, INGEST_JOB.to_string()).await?;
         let ch = tonic::transport::Endpoint::from_shared(emb.url.clone())?.connect().await?;
@@ -129,7 +129,7 @@ pub fn ingest(scenarios: PathBuf, a: SvcBenchArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn e2e(scenarios: PathBuf, a: SvcBenchArgs) -> Result<()> {
+pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     if a.workers == 0 {
         bail!("--workers must be positive");
     }
@@ -145,7 +145,7 @@ pub fn e2e(scenarios: PathBuf, a: SvcBenchArgs) -> Result<()> {
     let dir = tmp_dir("e2e");
     let _ = std::fs::remove_dir_all(&dir);
     let out = runtime()?.block_on(async {
-        let emb = Embedded::start(dir.clone(), scenarios, a.workers).await?;
+        let emb = Embedded::start(dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
         let job = remote::submit(&mut c, cfg.to_toml()).await?;
         let get = |c: &mut remote::JobsClient| {

@@ -127,9 +127,9 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     let ctx = scenarios::Ctx { scenarios: cli.scenarios, cases: cli.cases_dir };
     match cli.cmd {
-        Cmd::Train(a) => train::run(ctx.scenarios.clone(), a),
+        Cmd::Train(a) => train::run(&ctx, a),
         Cmd::Remote(c) => remote::run(c),
-        Cmd::Pipeline(a) => pipeline::run(ctx.scenarios.clone(), a),
+        Cmd::Pipeline(a) => pipeline::run(&ctx, a),
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),

@@ -129,13 +129,13 @@ async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
     }
 }
 
-pub fn run(scenarios_dir: PathBuf, a: PipelineArgs) -> Result<()> {
+pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
     let jobs = load(&a.dir)?;
     runtime()?.block_on(async move {
         match a.embedded {
             Some(0) => bail!("--embedded needs at least one worker"),
             Some(n) => {
-                let emb = Embedded::start(a.data_dir.clone(), scenarios_dir, n).await?;
+                let emb = Embedded::start(a.data_dir.clone(), dirs, n).await?;
                 let mut c = emb.client().await?;
                 let r = async {
                     let ids = submit_all(&mut c, &jobs).await?;

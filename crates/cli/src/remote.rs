@@ -21,7 +21,8 @@ pub use sf_svc::conn::LearnerConn as Conn;
 
 #[derive(Subcommand, Debug)]
 pub enum RemoteCmd {
-    /// Submits a job config (TOML) and prints the job.
+    /// Submits a job config or an evaluation grid (`kind = "eval"`, configs/eval/) and prints
+    /// the job.
     Submit {
         config: PathBuf,
         #[command(flatten)]
@@ -137,7 +138,12 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
         match cmd {
             RemoteCmd::Submit { config, conn, watch: w } => {
                 let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
-                sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
+                // Checked here first, so a bad file is named before any connection.
+                if sf_job::eval::is_eval_toml(&text) {
+                    sf_job::eval::EvalConfig::from_toml(&text).with_context(|| config.display().to_string())?;
+                } else {
+                    sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
+                }
                 let mut c = connect(&conn).await?;
                 let j = submit(&mut c, text).await?;
                 println!("{}", job_json(&j));

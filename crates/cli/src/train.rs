@@ -19,6 +19,7 @@ use sf_worker::{WorkerConfig, WorkerMetrics};
 use tokio::sync::watch;
 
 use crate::remote;
+use crate::scenarios::Ctx;
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -46,10 +47,11 @@ pub struct Embedded {
 
 impl Embedded {
     /// Starts a learner on loopback ports chosen by the OS and `n` workers connected to it.
-    pub async fn start(data_dir: PathBuf, scenarios_dir: PathBuf, n: usize) -> Result<Self> {
+    pub async fn start(data_dir: PathBuf, dirs: &Ctx, n: usize) -> Result<Self> {
+        let (scenarios_dir, cases_dir) = (dirs.scenarios.clone(), dirs.cases.clone());
         let secret: String = (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
         let token = Token::new(&secret, "embedded").context("embedded token")?;
-        let cfg = LearnerConfig { grpc_addr: SocketAddr::from(([127, 0, 0, 1], 0)), admin_addr: SocketAddr::from(([127, 0, 0, 1], 0)), data_dir, scenarios_dir: scenarios_dir.clone(), ..LearnerConfig::default() };
+        let cfg = LearnerConfig { grpc_addr: SocketAddr::from(([127, 0, 0, 1], 0)), admin_addr: SocketAddr::from(([127, 0, 0, 1], 0)), data_dir, scenarios_dir: scenarios_dir.clone(), cases_dir: cases_dir.clone(), ..LearnerConfig::default() };
         let learner = sf_learner::start(cfg, token.clone()).await?;
         let url = format!("http://{}", learner.grpc_addr);
         let (stop_workers, stop_rx) = watch::channel(false);
@@ -59,6 +61,7 @@ impl Embedded {
                 learner_url: url.clone(),
                 name: format!("embedded-{k}"),
                 scenarios_dir: scenarios_dir.clone(),
+                cases_dir: cases_dir.clone(),
                 token: Some(token.clone()),
                 rpc_timeout: Duration::from_secs(30),
                 max_backoff: Duration::from_secs(2),
@@ -89,14 +92,14 @@ pub fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting the async runtime")
 }
 
-pub fn run(scenarios_dir: PathBuf, a: TrainArgs) -> Result<()> {
+pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
     let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
     let cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
     if a.workers == 0 {
         bail!("--workers must be at least 1");
     }
     runtime()?.block_on(async move {
-        let emb = Embedded::start(a.data_dir.clone(), scenarios_dir, a.workers).await?;
+        let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
         let existing = remote::list(&mut c).await?.into_iter().find(|j| j.name == cfg.name && !j.state.is_final() && j.config_toml == text);
         let job = match existing {

@@ -14,6 +14,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use sf_job::eval::{Cell, EvalConfig, EvalEpisode};
 
 use crate::plot::{self, Bar, Mark, Series};
 use crate::{paired_t_test, Summary};
@@ -38,6 +39,29 @@ pub struct EpisodeRow {
 }
 
 impl EpisodeRow {
+    /// An evaluated episode of `cell`.
+    pub fn new(cell: &Cell, e: &EvalEpisode) -> Self {
+        Self {
+            experiment: cell.experiment.clone(),
+            ego: cell.ego.clone(),
+            flow: cell.flow.clone(),
+            scenario: cell.scenario.clone(),
+            svo_deg: cell.svo_deg,
+            vehicles: cell.vehicles,
+            case: e.case,
+            seed: e.seed,
+            success: e.success,
+            safety: e.safety,
+            speed: e.speed,
+            collision: e.collision,
+        }
+    }
+
+    /// The cell the episode belongs to.
+    pub fn cell(&self) -> Cell {
+        Cell { experiment: self.experiment.clone(), ego: self.ego.clone(), flow: self.flow.clone(), scenario: self.scenario.clone(), svo_deg: self.svo_deg, vehicles: self.vehicles }
+    }
+
     pub fn to_csv(&self) -> String {
         let o = |v: Option<String>| v.unwrap_or_default();
         format!(
@@ -123,6 +147,45 @@ pub struct Meta {
     pub seeds: u32,
 }
 
+impl Meta {
+    /// What a report of `cfg`'s grid needs to know.
+    pub fn of(cfg: &EvalConfig) -> Self {
+        Self {
+            trained_in: cfg.egos.iter().filter_map(|e| e.trained_in.clone().map(|t| (e.name.clone(), t))).collect(),
+            ours: cfg.ours.clone(),
+            flows: cfg.flows.iter().map(|f| f.name.clone()).collect(),
+            egos: cfg.egos.iter().map(|f| f.name.clone()).collect(),
+            cases: cfg.cases,
+            seeds: cfg.seeds,
+        }
+    }
+}
+
+/// Appends whole cells to an `episodes.csv` (the header first if the file is new or empty):
+/// one write per cell, so a cell is stored whole or not at all.
+pub struct EpisodesWriter {
+    file: std::fs::File,
+    path: PathBuf,
+}
+
+impl EpisodesWriter {
+    pub fn open(path: &Path) -> Result<Self, ReportError> {
+        let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(|e| file_err(path, e))?;
+        let empty = file.metadata().map_err(|e| file_err(path, e))?.len() == 0;
+        if empty {
+            use std::io::Write;
+            writeln!(file, "{EPISODES_HEADER}").map_err(|e| file_err(path, e))?;
+        }
+        Ok(Self { file, path: path.to_path_buf() })
+    }
+
+    pub fn append(&mut self, rows: &[EpisodeRow]) -> Result<(), ReportError> {
+        use std::io::Write;
+        let text: String = rows.iter().map(|r| r.to_csv() + "\n").collect();
+        self.file.write_all(text.as_bytes()).and_then(|()| self.file.sync_data()).map_err(|e| file_err(&self.path, e))
+    }
+}
+
 pub fn read_meta(path: &Path) -> Result<Meta, ReportError> {
     let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
     serde_json::from_str(&text).map_err(|e| file_err(path, e))
@@ -164,9 +227,11 @@ fn pct(s: Summary) -> String {
 }
 
 /// Paired t-test of metric `m` between two row sets, paired on the same episode start
-/// (scenario, SVO, vehicles, case, seed) and, with `same_flow`, the same flow too.
+/// (scenario, SVO, vehicles, case, seed) and the dimension that is not compared: with
+/// `same_flow` two egos are compared on the same flow; otherwise two flows with the same ego
+/// (pooled rows of several egos pair each ego with itself, never with another ego).
 fn paired_on(a: &[&EpisodeRow], b: &[&EpisodeRow], m: Metric, same_flow: bool) -> Option<crate::PairedT> {
-    let key = |r: &EpisodeRow| (if same_flow { r.flow.clone() } else { String::new() }, r.scenario.clone(), r.svo_deg, r.vehicles, r.case, r.seed);
+    let key = |r: &EpisodeRow| (if same_flow { r.flow.clone() } else { r.ego.clone() }, r.scenario.clone(), r.svo_deg, r.vehicles, r.case, r.seed);
     let bm: BTreeMap<_, f64> = b.iter().map(|r| (key(r), m(r) as f64)).collect();
     let (mut x, mut y) = (Vec::new(), Vec::new());
     for r in a {
@@ -551,6 +616,29 @@ mod tests {
         let e = read_episodes(&p).expect_err("NaN").to_string();
         assert!(e.contains("line 3") && e.contains("success"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn flows_pooled_over_egos_pair_each_ego_with_itself() {
+        // Ego A succeeds everywhere in both flows; ego B fails everywhere in both. Paired per
+        // ego, the flows do not differ at all; paired across egos they would differ in every pair.
+        let mut x = Vec::new();
+        let mut y = Vec::new();
+        for case in 0..20 {
+            for (ego, s) in [("A", 1.0), ("B", 0.0)] {
+                x.push(row("adversary", ego, "X", case, 0, s));
+                y.push(row("adversary", ego, "Y", case, 0, if case == 0 { 1.0 - s } else { s }));
+            }
+        }
+        let (xr, yr): (Vec<&EpisodeRow>, Vec<&EpisodeRow>) = (x.iter().collect(), y.iter().collect());
+        let t = paired_across_flows(&xr, &yr, |r| r.success).expect("a test");
+        assert_eq!(t.n, 40, "one pair per ego and episode start");
+        assert!(t.mean_diff.abs() < 1e-12 && t.p_value > 0.9, "{t:?}");
+        // Two egos on the same flow still pair across egos.
+        let a: Vec<&EpisodeRow> = x.iter().filter(|r| r.ego == "A").collect();
+        let b: Vec<&EpisodeRow> = x.iter().filter(|r| r.ego == "B").collect();
+        let t = paired(&a, &b, |r| r.success).expect("a test");
+        assert_eq!(t.n, 20);
     }
 
     #[test]

@@ -3,11 +3,12 @@
 //!
 //! Owns: [`JobConfig`] (the TOML a user submits; `deny_unknown_fields`, validated with errors
 //! that name the field), [`JobState`], [`JobRecord`], [`Progress`], [`Assignment`],
-//! [`TransitionBatch`] with its shape and finiteness checks. Must not: depend on burn, tokio or
+//! [`TransitionBatch`] with its shape and finiteness checks, evaluation grids ([`eval`]). Must not: depend on burn, tokio or
 //! the wire format (`sf_proto` converts to and from these types).
 
 pub use sf_sim::SvoGaussian;
 pub mod batch;
+pub mod eval;
 pub mod config;
 
 pub use batch::{BatchError, EpisodeResult, TransitionBatch};

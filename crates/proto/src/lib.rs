@@ -1,12 +1,14 @@
 //! The `socialflow.v1` wire format.
 //!
 //! Owns: the code generated from `proto/socialflow/v1/socialflow.proto` (module [`pb`]) and
-//! the only conversions between wire messages and the domain types of `sf_job`. Decoding
+//! the only conversions between wire messages and the domain types of `sf_job` (training
+//! assignments and batches, evaluation cells and their episodes). Decoding
 //! validates: enum values, shapes (every array holds `count` rows of the declared widths),
 //! finiteness, size caps. Must not: appear in other crates' public APIs (they pass domain
 //! types); hold service logic.
 
 use half::f16;
+use sf_job::eval::{Cell, EvalEpisode, EvalWork};
 use sf_job::{Assignment, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Progress, TransitionBatch};
 
 #[allow(clippy::all, missing_docs)]
@@ -132,21 +134,86 @@ pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
-        frozen: a
-            .frozen
-            .iter()
-            .map(|f| pb::FrozenPolicy {
-                role: match f.role {
-                    FrozenRole::Background => pb::FrozenRole::Background,
-                    FrozenRole::Ego => pb::FrozenRole::Ego,
-                    FrozenRole::Adversary => pb::FrozenRole::Adversary,
-                } as i32,
-                job_id: f.job_id,
-                config_toml: f.config_toml.clone(),
-                svo_gaussians: f.svo_gaussians.iter().map(|(s, g)| pb::ScenarioSvo { scenario: s.clone(), mean_deg: g.mean_deg, std_deg: g.std_deg }).collect(),
-            })
-            .collect(),
+        frozen: a.frozen.iter().map(frozen_to_wire).collect(),
     }
+}
+
+fn frozen_to_wire(f: &Frozen) -> pb::FrozenPolicy {
+    pb::FrozenPolicy {
+        role: match f.role {
+            FrozenRole::Background => pb::FrozenRole::Background,
+            FrozenRole::Ego => pb::FrozenRole::Ego,
+            FrozenRole::Adversary => pb::FrozenRole::Adversary,
+        } as i32,
+        job_id: f.job_id,
+        config_toml: f.config_toml.clone(),
+        svo_gaussians: f.svo_gaussians.iter().map(|(s, g)| pb::ScenarioSvo { scenario: s.clone(), mean_deg: g.mean_deg, std_deg: g.std_deg }).collect(),
+    }
+}
+
+fn frozen_from_wire(f: &pb::FrozenPolicy) -> Result<Frozen, WireError> {
+    let role = match pb::FrozenRole::try_from(f.role) {
+        Ok(pb::FrozenRole::Background) => FrozenRole::Background,
+        Ok(pb::FrozenRole::Ego) => FrozenRole::Ego,
+        Ok(pb::FrozenRole::Adversary) => FrozenRole::Adversary,
+        _ => return wire("assignment.frozen.role", format!("{} is not a frozen-policy role", f.role)),
+    };
+    if f.job_id == 0 || f.config_toml.is_empty() {
+        return wire("assignment.frozen.job_id", "a frozen policy names its job and config");
+    }
+    let mut svo_gaussians = Vec::with_capacity(f.svo_gaussians.len());
+    for g in &f.svo_gaussians {
+        let gauss = sf_job::SvoGaussian { mean_deg: g.mean_deg, std_deg: g.std_deg };
+        if g.scenario.is_empty() {
+            return wire("assignment.frozen.svo_gaussians.scenario", "must be set");
+        }
+        gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e })?;
+        svo_gaussians.push((g.scenario.clone(), gauss));
+    }
+    Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })
+}
+
+pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
+    let c = &w.cell;
+    pb::EvalAssignment {
+        job_id: w.job_id,
+        cell_id: w.cell_id,
+        cell: Some(pb::EvalCell { experiment: c.experiment.clone(), ego: c.ego.clone(), flow: c.flow.clone(), scenario: c.scenario.clone(), svo_deg: c.svo_deg, vehicles: c.vehicles.map(|v| v as u32) }),
+        cases: w.cases,
+        seeds: w.seeds,
+        envs: w.envs,
+        policies: w.policies.iter().map(frozen_to_wire).collect(),
+    }
+}
+
+pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError> {
+    if w.job_id == 0 {
+        return wire("eval.job_id", "must be set");
+    }
+    let Some(c) = &w.cell else { return wire("eval.cell", "must be set") };
+    if c.flow.is_empty() || c.scenario.is_empty() || c.experiment.is_empty() {
+        return wire("eval.cell", "experiment, flow and scenario must be set");
+    }
+    if w.cases == 0 || w.seeds == 0 || w.envs == 0 {
+        return wire("eval.cases", "cases, seeds and envs must be positive");
+    }
+    if c.svo_deg.is_some_and(|s| s > 90) {
+        return wire("eval.cell.svo_deg", format!("{} is not in [0, 90]", c.svo_deg.unwrap_or_default()));
+    }
+    let cell = Cell { experiment: c.experiment.clone(), ego: c.ego.clone(), flow: c.flow.clone(), scenario: c.scenario.clone(), svo_deg: c.svo_deg, vehicles: c.vehicles.map(|v| v as usize) };
+    let policies = w.policies.iter().map(frozen_from_wire).collect::<Result<Vec<_>, _>>()?;
+    Ok(EvalWork { job_id: w.job_id, cell_id: w.cell_id, cell, cases: w.cases, seeds: w.seeds, envs: w.envs, policies })
+}
+
+pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
+    pb::EvalEpisode { case_id: e.case, seed: e.seed, success: e.success, safety: e.safety, speed: e.speed, collision: e.collision }
+}
+
+/// Decodes and validates one episode's metrics.
+pub fn eval_episode_from_wire(e: &pb::EvalEpisode) -> Result<EvalEpisode, WireError> {
+    let ep = EvalEpisode { case: e.case_id, seed: e.seed, success: e.success, safety: e.safety, speed: e.speed, collision: e.collision };
+    ep.validate().map_err(|reason| WireError { field: "episodes", reason })?;
+    Ok(ep)
 }
 
 pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError> {
@@ -165,31 +232,7 @@ pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError>
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
-        frozen: a
-            .frozen
-            .iter()
-            .map(|f| {
-                let role = match pb::FrozenRole::try_from(f.role) {
-                    Ok(pb::FrozenRole::Background) => FrozenRole::Background,
-                    Ok(pb::FrozenRole::Ego) => FrozenRole::Ego,
-                    Ok(pb::FrozenRole::Adversary) => FrozenRole::Adversary,
-                    _ => return wire("assignment.frozen.role", format!("{} is not a frozen-policy role", f.role)),
-                };
-                if f.job_id == 0 || f.config_toml.is_empty() {
-                    return wire("assignment.frozen.job_id", "a frozen policy names its job and config");
-                }
-                let mut svo_gaussians = Vec::with_capacity(f.svo_gaussians.len());
-                for g in &f.svo_gaussians {
-                    let gauss = sf_job::SvoGaussian { mean_deg: g.mean_deg, std_deg: g.std_deg };
-                    if g.scenario.is_empty() {
-                        return wire("assignment.frozen.svo_gaussians.scenario", "must be set");
-                    }
-                    gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e })?;
-                    svo_gaussians.push((g.scenario.clone(), gauss));
-                }
-                Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })
-            })
-            .collect::<Result<_, _>>()?,
+        frozen: a.frozen.iter().map(frozen_from_wire).collect::<Result<_, _>>()?,
     })
 }
 
@@ -320,6 +363,33 @@ mod tests {
         let mut m = assignment_to_wire(&a);
         m.frozen[0].svo_gaussians[0].std_deg = f32::NAN;
         assert!(assignment_from_wire(&m).is_err());
+    }
+
+    #[test]
+    fn an_eval_cell_round_trips_and_bad_metrics_are_named() {
+        let w = EvalWork {
+            job_id: 3,
+            cell_id: 17,
+            cell: Cell { experiment: "svo_sweep".into(), ego: String::new(), flow: "CoPO".into(), scenario: "merge".into(), svo_deg: Some(40), vehicles: None },
+            cases: 20,
+            seeds: 2,
+            envs: 40,
+            policies: vec![Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into())],
+        };
+        assert_eq!(eval_work_from_wire(&eval_work_to_wire(&w)), Ok(w.clone()));
+        let mut m = eval_work_to_wire(&w);
+        m.cell = None;
+        assert_eq!(eval_work_from_wire(&m).expect_err("no cell").field, "eval.cell");
+        let mut m = eval_work_to_wire(&w);
+        m.seeds = 0;
+        assert!(eval_work_from_wire(&m).is_err());
+        let e = EvalEpisode { case: 4, seed: 1, success: 1.0, safety: 0.5, speed: 0.7, collision: 0.0 };
+        assert_eq!(eval_episode_from_wire(&eval_episode_to_wire(&e)), Ok(e));
+        let mut m = eval_episode_to_wire(&e);
+        m.speed = f32::NAN;
+        assert_eq!(eval_episode_from_wire(&m).expect_err("nan").field, "episodes");
+        m.speed = 1.5;
+        assert!(eval_episode_from_wire(&m).expect_err("range").reason.contains("speed"));
     }
 
     #[test]

@@ -3,12 +3,13 @@
 //! Owns: the replay buffer ([`replay`]), the Reverb-style rate limiter ([`rate_limiter`]),
 //! the SAC state and update ([`sac`]) and checkpoints that restore training exactly
 //! ([`checkpoint`]), the job-config mapping ([`setup`]), batched inference ([`inference`]) and
-//! who acts in a step of batched simulators ([`drive`]). Must not: do IO on the update path or know about gRPC.
+//! who acts in a step of batched simulators ([`drive`]), one cell of an evaluation grid ([`evaluate`]). Must not: do IO on the update path or know about gRPC.
 
 pub mod checkpoint;
 pub mod coordinator;
 pub mod drive;
 pub mod ego;
+pub mod evaluate;
 pub mod inference;
 pub mod rate_limiter;
 pub mod replay;

@@ -24,6 +24,10 @@ pub struct LearnerArgs {
     pub data_dir: Option<PathBuf>,
     #[arg(long, env = "SOCIALFLOW_SCENARIOS_DIR")]
     pub scenarios_dir: Option<PathBuf>,
+    /// Stored evaluation cases (evaluation jobs). Not `--cases-dir`: `socialflow learner`
+    /// already has that global flag.
+    #[arg(long, env = "SOCIALFLOW_CASES_DIR")]
+    pub eval_cases_dir: Option<PathBuf>,
     /// File holding the bearer token (default: the SOCIALFLOW_TOKEN variable).
     #[arg(long, env = "SOCIALFLOW_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
@@ -58,6 +62,9 @@ impl LearnerArgs {
         }
         if let Some(d) = &self.scenarios_dir {
             cfg.scenarios_dir = d.clone();
+        }
+        if let Some(d) = &self.eval_cases_dir {
+            cfg.cases_dir = d.clone();
         }
         if self.tls_cert_file.is_some() {
             cfg.tls_cert_file = self.tls_cert_file.clone();

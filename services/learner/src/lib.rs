@@ -4,14 +4,16 @@
 //! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
 //! behind the handlers: the job store, the one running job ([`job::ActiveJob`]), registered
 //! workers, metrics. The scheduler runs one job at a time — a RUNNING job left by a previous
-//! process first (auto-resume from its checkpoint), then QUEUED jobs in id order — on a
-//! dedicated trainer thread ([`trainer`]). Must not: expose wire types in its public API.
+//! process first (auto-resume from its checkpoint), then QUEUED jobs in id order — a training
+//! job on a dedicated trainer thread ([`trainer`]), an evaluation job ([`eval`]) by leasing
+//! its cells to the workers. Must not: expose wire types in its public API.
 //!
 //! Shutdown ([`RunningLearner::shutdown`], SIGTERM in the binary): the running job is asked to
 //! stop, its trainer writes a checkpoint, the job stays RUNNING in the store and resumes on the
 //! next start.
 
 pub mod cmd;
+pub mod eval;
 pub mod job;
 pub mod metrics;
 pub mod service;
@@ -54,6 +56,8 @@ pub struct LearnerConfig {
     pub data_dir: PathBuf,
     /// Scenario files `<name>.json`.
     pub scenarios_dir: PathBuf,
+    /// Stored evaluation cases `<name>.v<N>.json` (evaluation jobs).
+    pub cases_dir: PathBuf,
     pub max_message_bytes: usize,
     /// Seconds a worker may go without a heartbeat before it is forgotten.
     pub worker_timeout_s: u64,
@@ -71,6 +75,7 @@ impl Default for LearnerConfig {
             admin_addr: SocketAddr::from(([0, 0, 0, 0], 9090)),
             data_dir: PathBuf::from("runs/learner"),
             scenarios_dir: PathBuf::from("configs/scenarios"),
+            cases_dir: PathBuf::from("configs/cases"),
             max_message_bytes: sf_svc::MAX_MESSAGE_BYTES,
             worker_timeout_s: 30,
             shutdown_grace_s: 120,
@@ -91,6 +96,7 @@ impl LearnerConfig {
         anyhow::ensure!(self.max_message_bytes >= 1 << 16, "field `max_message_bytes`: {} is below 65536", self.max_message_bytes);
         anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
         anyhow::ensure!(self.scenarios_dir.is_dir(), "field `scenarios_dir`: {} is not a directory", self.scenarios_dir.display());
+        anyhow::ensure!(self.cases_dir.is_dir(), "field `cases_dir`: {} is not a directory", self.cases_dir.display());
         match (&self.tls_cert_file, &self.tls_key_file) {
             (Some(c), Some(k)) => {
                 anyhow::ensure!(c.is_file(), "field `tls_cert_file`: {} is not a file", c.display());
@@ -114,6 +120,8 @@ pub struct Inner {
     store: Arc<Store>,
     pub metrics: LearnerMetrics,
     active: RwLock<Option<Arc<ActiveJob>>>,
+    /// The running evaluation job (never together with a training job).
+    evaluating: RwLock<Option<Arc<eval::EvalJob>>>,
     wake: Notify,
     idle: Notify,
     workers: Mutex<HashMap<u64, WorkerInfo>>,
@@ -139,6 +147,28 @@ impl Inner {
         *self.active.write().unwrap_or_else(|p| p.into_inner()) = j;
     }
 
+    pub fn evaluating(&self) -> Option<Arc<eval::EvalJob>> {
+        self.evaluating.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    fn set_evaluating(&self, j: Option<Arc<eval::EvalJob>>) {
+        *self.evaluating.write().unwrap_or_else(|p| p.into_inner()) = j;
+    }
+
+    /// A job of either kind is running.
+    fn busy(&self) -> bool {
+        self.active().is_some() || self.evaluating().is_some()
+    }
+
+    /// Live progress of the running job `id`, if it is running.
+    fn live_progress(&self, id: u64) -> Option<sf_job::Progress> {
+        match (self.active(), self.evaluating()) {
+            (Some(j), _) if j.id == id => Some(j.progress()),
+            (_, Some(e)) if e.id == id => Some(e.progress()),
+            _ => None,
+        }
+    }
+
     /// Loads and validates the job's scenario files off the async runtime (file IO).
     async fn load_maps(&self, names: &[String]) -> Result<Vec<Arc<Map>>, String> {
         let dir = self.cfg.scenarios_dir.clone();
@@ -158,6 +188,9 @@ impl Inner {
         if self.shutting_down.load(Ordering::Acquire) {
             return Err(ServiceError::Unavailable("the learner is shutting down".into()));
         }
+        if sf_job::eval::is_eval_toml(&toml_text) {
+            return self.submit_eval(&toml_text).await;
+        }
         let cfg = JobConfig::from_toml(&toml_text)?;
         self.load_maps(&cfg.env.scenarios).await.map_err(ServiceError::InvalidArgument)?;
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
@@ -167,6 +200,9 @@ impl Inner {
         for (role, dep) in cfg.deps() {
             let field = role.field();
             let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} does not exist")))?;
+            if sf_job::eval::is_eval_toml(&rec.config_toml) {
+                return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is an evaluation, not a training job")));
+            }
             let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
             check_dep(&cfg, role, &dep_cfg).map_err(|e| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} {e}")))?;
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
@@ -187,11 +223,9 @@ impl Inner {
     pub async fn job(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
         let store = Arc::clone(&self.store);
         let mut rec = blocking(move || store.get(id)).await?.ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
-        if let Some(j) = self.active() {
-            if j.id == id && !rec.state.is_final() {
-                rec.progress = j.progress();
-                rec.state = JobState::Running;
-            }
+        if let Some(p) = self.live_progress(id).filter(|_| !rec.state.is_final()) {
+            rec.progress = p;
+            rec.state = JobState::Running;
         }
         Ok(rec)
     }
@@ -199,9 +233,9 @@ impl Inner {
     pub async fn jobs(self: &Arc<Self>) -> Result<Vec<JobRecord>, ServiceError> {
         let store = Arc::clone(&self.store);
         let mut all = blocking(move || store.list()).await?;
-        if let Some(j) = self.active() {
-            for r in all.iter_mut().filter(|r| r.id == j.id && !r.state.is_final()) {
-                r.progress = j.progress();
+        for r in all.iter_mut().filter(|r| !r.state.is_final()) {
+            if let Some(p) = self.live_progress(r.id) {
+                r.progress = p;
             }
         }
         Ok(all)
@@ -219,10 +253,11 @@ impl Inner {
         })
         .await?
         .ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
-        if let Some(j) = self.active() {
-            if j.id == id {
-                j.request_stop(StopReason::Cancelled);
-            }
+        if let Some(j) = self.active().filter(|j| j.id == id) {
+            j.request_stop(StopReason::Cancelled);
+        }
+        if let Some(e) = self.evaluating().filter(|e| e.id == id) {
+            e.request_stop(StopReason::Cancelled);
         }
         tracing::info!(job_id = id, state = rec.state.as_str(), "cancel requested");
         Ok(rec)
@@ -239,6 +274,11 @@ impl Inner {
 
     pub fn heartbeat(&self, id: u64) -> Result<(), ServiceError> {
         self.touch_worker(id)
+    }
+
+    /// Workers not yet forgotten for missing heartbeats.
+    fn live_workers(&self) -> std::collections::BTreeSet<u64> {
+        self.workers.lock().unwrap_or_else(|p| p.into_inner()).keys().copied().collect()
     }
 
     fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
@@ -266,7 +306,7 @@ impl Inner {
 
     /// Starts the next job if none is running.
     async fn schedule_once(self: &Arc<Self>) {
-        if self.active().is_some() || self.shutting_down.load(Ordering::Acquire) {
+        if self.busy() || self.shutting_down.load(Ordering::Acquire) {
             return;
         }
         let all = match self.jobs().await {
@@ -277,6 +317,7 @@ impl Inner {
             }
         };
         // A job waits until every job it depends on has succeeded; it fails if one did not.
+        // (An evaluation's jobs succeeded before it was accepted: it has none to wait for.)
         let dep_state = |r: &JobRecord| -> Option<(u64, JobState)> {
             let deps = JobConfig::from_toml(&r.config_toml).ok()?.deps();
             let states = deps.iter().map(|&(_, dep)| (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state)));
@@ -304,6 +345,9 @@ impl Inner {
     }
 
     async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
+        if sf_job::eval::is_eval_toml(&rec.config_toml) {
+            return self.start_eval(rec).await;
+        }
         let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
         let maps = self.load_maps(&cfg.env.scenarios).await?;
         let dir = PathBuf::from(&rec.artifact_dir);
@@ -363,15 +407,14 @@ impl Inner {
         let me = Arc::clone(self);
         tokio::spawn(async move {
             let out = rx.await.unwrap_or_else(|_| Outcome::Failed("the trainer thread panicked".into()));
-            me.finish(id, out, Some(job)).await;
+            me.finish(id, out, Some(job.progress())).await;
         });
         Ok(())
     }
 
     /// Records how a job ended and frees the slot.
-    async fn finish(self: &Arc<Self>, id: u64, out: Outcome, job: Option<Arc<ActiveJob>>) {
+    async fn finish(self: &Arc<Self>, id: u64, out: Outcome, progress: Option<sf_job::Progress>) {
         tracing::info!(job_id = id, outcome = ?out, "job stopped");
-        let progress = job.as_ref().map(|j| j.progress());
         let store = Arc::clone(&self.store);
         let r = blocking(move || {
             store.update(id, |r| {
@@ -399,6 +442,7 @@ impl Inner {
             tracing::error!(job_id = id, error = %e, "recording the job's end");
         }
         self.set_active(None);
+        self.set_evaluating(None);
         self.idle.notify_waiters();
         self.wake.notify_one();
     }
@@ -442,6 +486,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         store,
         metrics: metrics.clone(),
         active: RwLock::new(None),
+        evaluating: RwLock::new(None),
         wake: Notify::new(),
         idle: Notify::new(),
         workers: Mutex::new(HashMap::new()),
@@ -503,6 +548,15 @@ impl RunningLearner {
             let grace = Duration::from_secs(inner.cfg.shutdown_grace_s);
             if inner.active().is_some() && tokio::time::timeout(grace, idle).await.is_err() {
                 tracing::warn!("the trainer did not finish its checkpoint within the grace period");
+            }
+        }
+        if let Some(e) = inner.evaluating() {
+            // Stored cells stay stored; the job stays RUNNING and resumes with the rest.
+            tracing::info!(job_id = e.id, "shutting down: the evaluation resumes on the next start");
+            let idle = inner.idle.notified();
+            e.request_stop(StopReason::Shutdown);
+            if inner.evaluating().is_some() && tokio::time::timeout(Duration::from_secs(inner.cfg.shutdown_grace_s), idle).await.is_err() {
+                tracing::warn!("the evaluation did not stop within the grace period");
             }
         }
         if let Some(tx) = self.stop_server.take() {

@@ -42,6 +42,9 @@ pub struct LearnerMetrics {
     pub speed: FGauge,
     pub workers: Gauge,
     pub checkpoints: Counter,
+    pub eval_episodes: Counter,
+    pub eval_cells_pending: Gauge,
+    pub eval_cells_reassigned: Counter,
 }
 
 impl LearnerMetrics {
@@ -65,6 +68,9 @@ impl LearnerMetrics {
             speed: FGauge::default(),
             workers: Gauge::default(),
             checkpoints: Counter::default(),
+            eval_episodes: Counter::default(),
+            eval_cells_pending: Gauge::default(),
+            eval_cells_reassigned: Counter::default(),
         };
         reg.register("socialflow_learner_transitions_received", "Learner transitions accepted into replay", m.transitions_received.clone());
         reg.register("socialflow_learner_transitions_dropped", "Transitions dropped, by reason (stale: over the policy lag)", m.transitions_dropped.clone());
@@ -83,6 +89,9 @@ impl LearnerMetrics {
         reg.register("socialflow_learner_episode_speed_ratio", "Rolling mean speed / v_max of finished episodes", m.speed.clone());
         reg.register("socialflow_learner_workers", "Workers that sent a heartbeat recently", m.workers.clone());
         reg.register("socialflow_learner_checkpoints", "Checkpoints written", m.checkpoints.clone());
+        reg.register("socialflow_learner_eval_episodes", "Evaluated episodes stored by evaluation jobs", m.eval_episodes.clone());
+        reg.register("socialflow_learner_eval_cells_pending", "Cells of the running evaluation job not yet stored (queued or leased)", m.eval_cells_pending.clone());
+        reg.register("socialflow_learner_eval_cells_reassigned", "Leased cells handed to another worker because theirs stopped heartbeating", m.eval_cells_reassigned.clone());
         m
     }
 }

@@ -120,12 +120,24 @@ impl ExperienceService for Experience {
     }
 
     async fn get_assignment(&self, req: Request<pb::GetAssignmentRequest>) -> Res<pb::GetAssignmentResponse> {
-        let r = self.0.assignment(req.into_inner().worker_id);
-        let r = r.map(|a| match a {
-            Some(a) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: Some(sf_proto::assignment_to_wire(&a)) },
-            None => pb::GetAssignmentResponse { has_assignment: false, retry_after_ms: 1000, assignment: None },
+        let worker = req.into_inner().worker_id;
+        let r = self.0.assignment(worker).map(|a| match (a, self.0.eval_work(worker)) {
+            (Some(a), _) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: Some(sf_proto::assignment_to_wire(&a)), eval: None },
+            (None, Some(w)) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: None, eval: Some(sf_proto::eval_work_to_wire(&w)) },
+            // An evaluation's last cells are leased to others: ask again soon, one may come back.
+            (None, None) => pb::GetAssignmentResponse { has_assignment: false, retry_after_ms: if self.0.evaluating().is_some() { 250 } else { 1000 }, assignment: None, eval: None },
         });
         done(&self.0, "GetAssignment", r)
+    }
+
+    async fn push_eval_results(&self, req: Request<pb::EvalResults>) -> Res<pb::EvalAck> {
+        let m = req.into_inner();
+        let episodes = m.episodes.iter().map(sf_proto::eval_episode_from_wire).collect::<Result<Vec<_>, WireError>>();
+        let r = match episodes {
+            Ok(eps) => self.0.eval_results(m.job_id, m.worker_id, m.cell_id, eps, m.error).await,
+            Err(e) => Err(ServiceError::InvalidArgument(e.to_string())),
+        };
+        done(&self.0, "PushEvalResults", r.map(|stored| pb::EvalAck { stored }))
     }
 
     type PushTransitionsStream = BoxStream<pb::PushAck>;

@@ -26,6 +26,10 @@ pub struct WorkerArgs {
     pub admin_addr: Option<SocketAddr>,
     #[arg(long, env = "SOCIALFLOW_SCENARIOS_DIR", default_value = "configs/scenarios")]
     pub scenarios_dir: PathBuf,
+    /// Stored evaluation cases (evaluation jobs' cells). Not `--cases-dir`: `socialflow worker`
+    /// already has that global flag.
+    #[arg(long, env = "SOCIALFLOW_CASES_DIR", default_value = "configs/cases")]
+    pub eval_cases_dir: PathBuf,
     /// Deadline of each unary call, seconds.
     #[arg(long, default_value_t = 10)]
     pub rpc_timeout_s: u64,
@@ -40,6 +44,7 @@ impl WorkerArgs {
     pub fn resolve(&self) -> anyhow::Result<WorkerConfig> {
         anyhow::ensure!(self.conn.learner.starts_with("http://") || self.conn.learner.starts_with("https://"), "--learner `{}` must start with http:// or https://", self.conn.learner);
         anyhow::ensure!(self.scenarios_dir.is_dir(), "--scenarios-dir {} is not a directory", self.scenarios_dir.display());
+        anyhow::ensure!(self.eval_cases_dir.is_dir(), "--eval-cases-dir {} is not a directory", self.eval_cases_dir.display());
         anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
         let token = self.conn.token()?;
         let name = self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
@@ -47,6 +52,7 @@ impl WorkerArgs {
             learner_url: self.conn.learner.clone(),
             name,
             scenarios_dir: self.scenarios_dir.clone(),
+            cases_dir: self.eval_cases_dir.clone(),
             token: Some(token),
             rpc_timeout: Duration::from_secs(self.rpc_timeout_s),
             max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),

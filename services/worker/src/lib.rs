@@ -2,11 +2,13 @@
 //!
 //! Owns: the worker's session loop ([`run`]): connect, register, take an assignment, fetch the
 //! policy, stream transitions, follow new policy versions, and start over with bounded backoff
-//! when the learner goes away or the job ends. Simulation and inference run on a dedicated
-//! rollout thread ([`rollout`]); the async side only moves bytes. Every unary call has a
+//! when the learner goes away or the job ends; an evaluation job's cells ([`evalcell`]), one
+//! per assignment. Simulation and inference run on a dedicated rollout thread ([`rollout`]) or
+//! a blocking task (evaluation); the async side only moves bytes. Every unary call has a
 //! deadline. Must not: keep state across sessions (everything comes from the learner).
 
 pub mod cmd;
+pub mod evalcell;
 pub mod rollout;
 
 use std::path::PathBuf;
@@ -37,6 +39,8 @@ pub struct WorkerConfig {
     pub learner_url: String,
     pub name: String,
     pub scenarios_dir: PathBuf,
+    /// Stored evaluation cases (evaluation jobs).
+    pub cases_dir: PathBuf,
     pub token: Option<Token>,
     /// Deadline of every unary call.
     pub rpc_timeout: Duration,
@@ -59,6 +63,7 @@ pub struct WorkerMetrics {
     pub sessions: Counter,
     pub inference_obs: Counter,
     pub inference_ns: Counter<u64, AtomicU64>,
+    pub eval_cells: Counter,
 }
 
 impl WorkerMetrics {
@@ -74,6 +79,7 @@ impl WorkerMetrics {
             sessions: Counter::default(),
             inference_obs: Counter::default(),
             inference_ns: Counter::default(),
+            eval_cells: Counter::default(),
         };
         reg.register("socialflow_worker_env_steps", "Environment decision steps simulated", m.env_steps.clone());
         reg.register("socialflow_worker_transitions_sent", "Learner transitions sent", m.transitions_sent.clone());
@@ -84,6 +90,7 @@ impl WorkerMetrics {
         reg.register("socialflow_worker_sessions", "Sessions started (register + assignment); more than one means reconnects", m.sessions.clone());
         reg.register("socialflow_worker_inference_observations", "Observations run through the actor", m.inference_obs.clone());
         reg.register("socialflow_worker_inference_nanoseconds", "Time spent in actor inference", m.inference_ns.clone());
+        reg.register("socialflow_worker_eval_cells", "Evaluation cells run and pushed", m.eval_cells.clone());
         m
     }
 }
@@ -189,12 +196,21 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut
         }
     });
     let _abort_hb = AbortOnDrop(hb);
-    // Assignment.
+    // Assignment: a training job's, or evaluation cells one after another until one comes.
+    let mut cells = evalcell::Cells::new(cfg);
     let asg = loop {
         let r = client.get_assignment(req(pb::GetAssignmentRequest { worker_id }, t)).await.map_err(|s| status_err("GetAssignment", s, metrics))?.into_inner();
         metrics.common.rpc("GetAssignment", Code::Ok);
         if let (true, Some(a)) = (r.has_assignment, r.assignment) {
             break sf_proto::assignment_from_wire(&a).context("assignment from the learner")?;
+        }
+        if let (true, Some(w)) = (r.has_assignment, r.eval) {
+            let work = sf_proto::eval_work_from_wire(&w).context("evaluation cell from the learner")?;
+            tokio::select! {
+                r = cells.run(&mut client, worker_id, work, t, metrics) => r?,
+                _ = hb_rx.changed() => anyhow::bail!("heartbeats failed while running an evaluation cell"),
+            }
+            continue;
         }
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_millis(r.retry_after_ms.clamp(100, 10_000) as u64)) => {}

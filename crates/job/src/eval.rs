@@ -1,0 +1,402 @@
+//! Evaluation jobs: the config of an evaluation grid, its cells, and what one cell's episodes
+//! return.
+//!
+//! Owns: [`EvalConfig`] (`kind = "eval"`: which flows and ego policies, which experiments, how
+//! many stored cases and seeds; validated with errors that name the field), the expansion of
+//! its experiments into [`Cell`]s ([`EvalConfig::cells`]), the work a worker is handed for one
+//! cell ([`EvalWork`]) and the metrics of one evaluated episode ([`EvalEpisode`]). Both
+//! `socialflow eval` (embedded) and the learner's evaluation jobs (cells shared by workers)
+//! expand the same config into the same cells. Must not: run simulations (`sf_sac::evaluate`
+//! does) or know the results file (`sf_eval::report` does).
+
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use crate::Frozen;
+
+/// A config that is not a valid evaluation grid; the message names the field.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("{0}")]
+pub struct EvalConfigError(pub String);
+
+fn bad<T>(msg: impl Into<String>) -> Result<T, EvalConfigError> {
+    Err(EvalConfigError(msg.into()))
+}
+
+/// A named flow (`idm`, or the job whose final policy it is) or ego policy.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Named {
+    pub name: String,
+    /// The job's name (the newest succeeded job of that name), or `idm` for the IDM flow.
+    pub job: String,
+    /// Pins the job by id. The learner fills it in when it accepts an evaluation job, so the
+    /// job evaluates what existed at submission.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub job_id: Option<u64>,
+    /// Egos: the flow (by name) the ego was trained in; its cell is grey in the heatmaps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trained_in: Option<String>,
+}
+
+impl Named {
+    pub fn is_idm(&self) -> bool {
+        self.job == "idm"
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SvoSweep {
+    pub flows: Vec<String>,
+    /// Number of SVO values, evenly spaced over [0, 90] deg.
+    pub values: usize,
+    pub scenarios: Vec<String>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Density {
+    pub scenario: String,
+    pub flows: Vec<String>,
+    pub vehicles: Vec<usize>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Adversary {
+    pub egos: Vec<String>,
+    pub flows: Vec<String>,
+}
+
+/// GIFs of the same stored case with one ego under several flows, side by side.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Gifs {
+    pub ego: String,
+    pub flows: Vec<String>,
+    pub scenarios: Vec<String>,
+    #[serde(default)]
+    pub case: u32,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Experiments {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gifs: Option<Gifs>,
+    /// Flows evaluated on their own (every vehicle of the case driven by the flow).
+    pub flow_quality: Vec<String>,
+    /// Every ego in each of these flows (the paper: the four non-adversarial ones).
+    pub cross_validation: Vec<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub svo_sweep: Option<SvoSweep>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub density: Option<Density>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adversary: Option<Adversary>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EvalConfig {
+    /// Always `"eval"`: what tells an evaluation grid from a training job when one is submitted.
+    pub kind: String,
+    /// Shown in job lists and used for the artifact directory (default `eval`).
+    #[serde(default = "d_name")]
+    pub name: String,
+    /// `socialflow eval` (embedded) only: the data directory of the learner (or embedded
+    /// pipeline) that trained the jobs. A learner evaluates its own jobs and ignores it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runs: Option<PathBuf>,
+    /// `socialflow eval` (embedded) only: where `episodes.csv`, `meta.json` and the GIFs go.
+    /// A learner writes them to the job's artifact directory and ignores it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub out: Option<PathBuf>,
+    pub scenarios: Vec<String>,
+    /// The first N stored cases of each scenario.
+    pub cases: u32,
+    pub seeds: u32,
+    /// Episodes stepped together. Part of what an episode's numbers depend on (the learned
+    /// flows sample from one stream per seed, shared by the episodes stepped together).
+    #[serde(default = "d_envs")]
+    pub envs: usize,
+    pub flows: Vec<Named>,
+    pub egos: Vec<Named>,
+    /// The ego the paper proposes; the report tests it against the others.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ours: Option<String>,
+    #[serde(default)]
+    pub experiments: Experiments,
+}
+
+fn d_envs() -> usize {
+    32
+}
+
+fn d_name() -> String {
+    "eval".into()
+}
+
+/// Whether a submitted TOML text is an evaluation grid (`kind = "eval"`) rather than a job.
+pub fn is_eval_toml(text: &str) -> bool {
+    text.parse::<toml::Table>().is_ok_and(|t| t.get("kind").and_then(|k| k.as_str()) == Some("eval"))
+}
+
+/// One cell of the grid: `cases x seeds` episodes.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Cell {
+    pub experiment: String,
+    /// Empty when the flow is evaluated on its own.
+    pub ego: String,
+    pub flow: String,
+    pub scenario: String,
+    /// SVO sweep: every agent's SVO. Empty otherwise.
+    pub svo_deg: Option<u32>,
+    /// Density sweep: vehicles per case. Empty otherwise.
+    pub vehicles: Option<usize>,
+}
+
+impl Cell {
+    /// The cell's identity in results files and logs.
+    pub fn key(&self) -> String {
+        let opt = |v: Option<String>| v.unwrap_or_default();
+        format!("{}|{}|{}|{}|{}|{}", self.experiment, self.ego, self.flow, self.scenario, opt(self.svo_deg.map(|v| v.to_string())), opt(self.vehicles.map(|v| v.to_string())))
+    }
+}
+
+/// The metrics of one evaluated episode of a cell.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EvalEpisode {
+    /// The stored case's id.
+    pub case: u32,
+    pub seed: u32,
+    pub success: f32,
+    pub safety: f32,
+    pub speed: f32,
+    pub collision: f32,
+}
+
+impl EvalEpisode {
+    /// Every metric is a fraction in [0, 1].
+    pub fn validate(&self) -> Result<(), String> {
+        for (what, v) in [("success", self.success), ("safety", self.safety), ("speed", self.speed), ("collision", self.collision)] {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(format!("episode (case {}, seed {}): {what} {v} is not in [0, 1]", self.case, self.seed));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One cell handed to a worker by an evaluation job.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalWork {
+    pub job_id: u64,
+    /// The cell's index in the job's grid; results name it.
+    pub cell_id: u64,
+    pub cell: Cell,
+    pub cases: u32,
+    pub seeds: u32,
+    pub envs: u32,
+    /// What acts in the cell: the ego (role `Ego`), the learned flow (`Background`, with a CoPO
+    /// coordinator's Gaussians) and SocialCommAdv's adversary (`Adversary`). No `Background`:
+    /// the IDM flow. Their weights are each job's final policy (GetPolicy, version 0).
+    pub policies: Vec<Frozen>,
+}
+
+impl EvalConfig {
+    pub fn from_toml(text: &str) -> Result<Self, EvalConfigError> {
+        let c: Self = toml::from_str(text).map_err(|e| EvalConfigError(format!("eval config is not valid TOML for an evaluation: {}", e.to_string().trim_end())))?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// The config with every default written out.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("an eval config always serialises to TOML")
+    }
+
+    pub fn validate(&self) -> Result<(), EvalConfigError> {
+        if self.kind != "eval" {
+            return bad(format!("eval config field `kind`: `{}`, expected \"eval\"", self.kind));
+        }
+        if self.name.is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_') {
+            return bad("eval config field `name`: letters, digits, '-' and '_' only");
+        }
+        if self.cases == 0 || self.seeds == 0 || self.envs == 0 {
+            return bad("eval config fields `cases`, `seeds` and `envs` must be positive");
+        }
+        if self.scenarios.is_empty() {
+            return bad("eval config field `scenarios`: list at least one");
+        }
+        let flows: BTreeSet<&str> = self.flows.iter().map(|f| f.name.as_str()).collect();
+        let egos: BTreeSet<&str> = self.egos.iter().map(|f| f.name.as_str()).collect();
+        if flows.len() != self.flows.len() || egos.len() != self.egos.len() {
+            return bad("eval config fields `flows` / `egos`: names must be unique");
+        }
+        for n in self.flows.iter().chain(&self.egos).map(|f| f.name.as_str()).chain(self.scenarios.iter().map(String::as_str)) {
+            if n.is_empty() || n.contains([',', '|', '\n']) {
+                return bad(format!("eval config: name `{n}` must be non-empty without ',' or '|'"));
+            }
+        }
+        if let Some(e) = self.egos.iter().find(|e| e.is_idm()) {
+            return bad(format!("eval config field `egos`: `{}` names `idm`, which is a flow, not an ego policy", e.name));
+        }
+        if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
+            return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
+        }
+        for e in &self.egos {
+            if let Some(t) = e.trained_in.as_ref().filter(|t| !flows.contains(t.as_str())) {
+                return bad(format!("eval config field `egos.trained_in` of `{}`: `{t}` is not one of `flows`", e.name));
+            }
+        }
+        let e = &self.experiments;
+        let mut need_flows: Vec<(&str, &String)> = e.flow_quality.iter().map(|f| ("experiments.flow_quality", f)).collect();
+        need_flows.extend(e.cross_validation.iter().map(|f| ("experiments.cross_validation", f)));
+        let mut need_egos: Vec<(&str, &String)> = Vec::new();
+        if let Some(s) = &e.svo_sweep {
+            need_flows.extend(s.flows.iter().map(|f| ("experiments.svo_sweep.flows", f)));
+            if s.values < 2 {
+                return bad("eval config field `experiments.svo_sweep.values`: at least 2");
+            }
+        }
+        if let Some(d) = &e.density {
+            need_flows.extend(d.flows.iter().map(|f| ("experiments.density.flows", f)));
+            if d.vehicles.is_empty() || d.vehicles.contains(&0) {
+                return bad("eval config field `experiments.density.vehicles`: positive vehicle counts");
+            }
+        }
+        if let Some(g) = &e.gifs {
+            need_flows.extend(g.flows.iter().map(|f| ("experiments.gifs.flows", f)));
+            need_egos.push(("experiments.gifs.ego", &g.ego));
+        }
+        if let Some(a) = &e.adversary {
+            need_flows.extend(a.flows.iter().map(|f| ("experiments.adversary.flows", f)));
+            need_egos.extend(a.egos.iter().map(|f| ("experiments.adversary.egos", f)));
+        }
+        for (field, f) in need_flows {
+            if !flows.contains(f.as_str()) {
+                return bad(format!("eval config field `{field}`: `{f}` is not one of `flows`"));
+            }
+        }
+        for (field, f) in need_egos {
+            if !egos.contains(f.as_str()) {
+                return bad(format!("eval config field `{field}`: `{f}` is not one of `egos`"));
+            }
+        }
+        if self.cells().is_empty() {
+            return bad("eval config field `experiments`: the grid has no cells");
+        }
+        Ok(())
+    }
+
+    /// Every scenario a cell or GIF of the grid runs in.
+    pub fn all_scenarios(&self) -> BTreeSet<String> {
+        let mut s: BTreeSet<String> = self.scenarios.iter().cloned().collect();
+        let e = &self.experiments;
+        if let Some(sw) = &e.svo_sweep {
+            s.extend(sw.scenarios.iter().cloned());
+        }
+        if let Some(d) = &e.density {
+            s.insert(d.scenario.clone());
+        }
+        if let Some(g) = &e.gifs {
+            s.extend(g.scenarios.iter().cloned());
+        }
+        s
+    }
+
+    pub fn flow(&self, name: &str) -> Option<&Named> {
+        self.flows.iter().find(|f| f.name == name)
+    }
+
+    pub fn ego(&self, name: &str) -> Option<&Named> {
+        self.egos.iter().find(|f| f.name == name)
+    }
+
+    /// The grid's cells in a fixed order (a cell's index is its id in an evaluation job).
+    pub fn cells(&self) -> Vec<Cell> {
+        let cell = |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell { experiment: experiment.into(), ego: ego.into(), flow: flow.into(), scenario: scenario.into(), svo_deg, vehicles };
+        let e = &self.experiments;
+        let mut out = Vec::new();
+        for f in &e.flow_quality {
+            for s in &self.scenarios {
+                out.push(cell("flow_quality", "", f, s, None, None));
+            }
+        }
+        for ego in &self.egos {
+            for f in &e.cross_validation {
+                for s in &self.scenarios {
+                    out.push(cell("cross", &ego.name, f, s, None, None));
+                }
+            }
+        }
+        if let Some(sw) = &e.svo_sweep {
+            for f in &sw.flows {
+                for s in &sw.scenarios {
+                    for k in 0..sw.values {
+                        let svo = (90.0 * k as f64 / (sw.values - 1) as f64).round() as u32;
+                        out.push(cell("svo_sweep", "", f, s, Some(svo), None));
+                    }
+                }
+            }
+        }
+        if let Some(d) = &e.density {
+            for f in &d.flows {
+                for &n in &d.vehicles {
+                    out.push(cell("density", "", f, &d.scenario, None, Some(n)));
+                }
+            }
+        }
+        if let Some(a) = &e.adversary {
+            // The same numbers as the cross-validation's cells when both run; stored once each.
+            for ego in &a.egos {
+                for f in &a.flows {
+                    for s in &self.scenarios {
+                        out.push(cell("adversary", ego, f, s, None, None));
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BASE: &str = "kind = \"eval\"\nscenarios = [\"merge\"]\ncases = 2\nseeds = 1\nflows = [{ name = \"IDM\", job = \"idm\" }]\negos = [{ name = \"E\", job = \"ego-a\" }]\n[experiments]\nflow_quality = [\"IDM\"]\n";
+
+    #[test]
+    fn bad_eval_configs_name_the_field() {
+        assert!(EvalConfig::from_toml(BASE).is_ok());
+        for (from, to, needle) in [
+            ("flow_quality = [\"IDM\"]", "flow_quality = [\"Nope\"]", "experiments.flow_quality"),
+            ("kind = \"eval\"", "kind = \"ego\"", "`kind`"),
+            ("cases = 2", "cases = 0", "`cases`"),
+            ("job = \"ego-a\"", "job = \"idm\"", "`egos`"),
+            ("flow_quality = [\"IDM\"]", "flow_quality = []", "no cells"),
+            ("seeds = 1", "seeds = 1\nbogus = 3", "bogus"),
+        ] {
+            let text = BASE.replace(from, to);
+            let e = EvalConfig::from_toml(&text).expect_err(needle);
+            assert!(e.0.contains(needle), "{needle}: {e}");
+        }
+        assert!(is_eval_toml(BASE));
+        assert!(!is_eval_toml("name = \"x\"\nkind = \"ego\"\n"));
+        assert!(!is_eval_toml("not toml ["));
+    }
+
+    #[test]
+    fn a_config_round_trips_through_its_resolved_toml() {
+        let mut c = EvalConfig::from_toml(BASE).expect("valid");
+        c.egos[0].job_id = Some(7);
+        let back = EvalConfig::from_toml(&c.to_toml()).expect("valid");
+        assert_eq!(back, c);
+        assert_eq!(back.cells(), c.cells());
+    }
+}

@@ -1,0 +1,320 @@
+//! Running one cell of an evaluation grid: `cases x seeds` episodes of stored cases with the
+//! cell's ego and flow, in batched simulators.
+//!
+//! Owns: what acts in a cell ([`Policy`], [`FlowDef`]), the checks that an ego and a flow fit
+//! together ([`check_cell`]), the per-scenario policy cache ([`Runners`]), [`run_cell`] and the
+//! side-by-side GIF of one case under several flows ([`render_gif`]). `socialflow eval`
+//! (embedded) and the worker (an evaluation job's cells) both call these, so the same cell
+//! gives the same numbers wherever it runs. Must not: find jobs (callers hand over configs and
+//! weights) or write results.
+//!
+//! Actions: ego policies act with their mean action; learned flows and the adversary sample,
+//! one random stream per seed (the seed is the stream's seed), so the same policies, cases,
+//! seeds and `envs` give the same numbers.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use sf_job::config::JobKind;
+use sf_job::eval::{Cell, EvalEpisode};
+use sf_job::{Frozen, FrozenRole, JobConfig, SvoGaussian};
+use sf_sim::case::CaseFile;
+use sf_sim::env::Controller;
+use sf_sim::obs::MapSegments;
+use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::{Map, Mode, SimConfig};
+
+use crate::drive::{self, Actor, Drivers};
+use crate::inference::PolicyRunner;
+use crate::setup;
+
+/// A scenario's map (`<scenarios_dir>/<name>.json`) and its stored evaluation cases
+/// (`<cases_dir>/<name>.v<CASES_VERSION>.json`).
+pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), String> {
+    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|e| format!("scenario `{name}`: {e}"))?;
+    let path = cases_dir.join(format!("{name}.v{}.json", sf_sim::case::CASES_VERSION));
+    let cases = CaseFile::load(&path, &map).map_err(|e| format!("cases of `{name}` ({}): {e}", path.display()))?;
+    Ok((Arc::new(map), cases))
+}
+
+/// A finished job's final policy.
+#[derive(Clone)]
+pub struct Policy {
+    /// Identifies the policy in caches and messages (a job id or an artifact directory).
+    pub key: String,
+    pub cfg: JobConfig,
+    pub weights: Arc<Vec<u8>>,
+    /// A CoPO flow past Stage 2: per scenario, the coordinator's SVO Gaussian.
+    pub svo_gaussians: Vec<(String, SvoGaussian)>,
+}
+
+/// What drives a flow: IDM, or a learned background (with its adversary for SocialCommAdv).
+#[derive(Clone)]
+pub enum FlowDef {
+    Idm,
+    Learned { background: Policy, adversary: Option<Policy> },
+}
+
+impl FlowDef {
+    /// The kind of job the flow is (SocialCommAdv when it has an adversary); `None` for IDM.
+    pub fn kind(&self) -> Option<JobKind> {
+        match self {
+            Self::Idm => None,
+            Self::Learned { adversary: Some(_), .. } => Some(JobKind::SocialcommAdv),
+            Self::Learned { background, .. } => Some(background.cfg.kind),
+        }
+    }
+}
+
+/// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
+/// their fetched weights (`weights[i]` belongs to `policies[i]`).
+pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), String> {
+    if policies.len() != weights.len() {
+        return Err(format!("{} policies but {} weights", policies.len(), weights.len()));
+    }
+    let mut by_role: BTreeMap<u8, Policy> = BTreeMap::new();
+    for (f, w) in policies.iter().zip(weights) {
+        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| format!("config of job {}: {e}", f.job_id))?;
+        let role = f.role as u8;
+        if by_role.insert(role, Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
+            return Err(format!("two policies in the role {:?}", f.role));
+        }
+    }
+    let ego = by_role.remove(&(FrozenRole::Ego as u8));
+    let adversary = by_role.remove(&(FrozenRole::Adversary as u8));
+    let flow = match by_role.remove(&(FrozenRole::Background as u8)) {
+        Some(background) => FlowDef::Learned { background, adversary },
+        None if adversary.is_some() => return Err("an adversary without the flow it talks to".into()),
+        None => FlowDef::Idm,
+    };
+    Ok((flow, ego))
+}
+
+/// Whether `ego` (or none) can be evaluated in `flow`: an ego is an ego job observing in the
+/// flow's layout; a flow on its own is a Stage-1 flow that drives every vehicle.
+pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(), String> {
+    if let Some(e) = ego {
+        if e.cfg.kind != JobKind::Ego {
+            return Err(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str()));
+        }
+    }
+    match (ego, flow) {
+        (None, FlowDef::Learned { .. }) => {
+            let kind = flow.kind().unwrap_or_default();
+            if !kind.multi_agent() {
+                return Err(format!("flow `{}` ({}) needs an ego to act against; evaluate it with an ego", cell.flow, kind.as_str()));
+            }
+        }
+        (Some(e), FlowDef::Learned { background, .. }) => {
+            if setup::obs_spec(&e.cfg).layout != setup::obs_spec(&background.cfg).layout {
+                return Err(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow));
+            }
+        }
+        (_, FlowDef::Idm) => {}
+    }
+    Ok(())
+}
+
+/// Policies built for one scenario, loaded once and reused by every cell.
+pub struct Runners {
+    device: sf_nn::device::Device,
+    segments: BTreeMap<String, Arc<MapSegments>>,
+    cache: BTreeMap<(String, String), Arc<PolicyRunner>>,
+}
+
+impl Runners {
+    pub fn new(device: sf_nn::device::Device) -> Self {
+        Self { device, segments: BTreeMap::new(), cache: BTreeMap::new() }
+    }
+
+    fn segments(&mut self, map: &Map) -> Arc<MapSegments> {
+        Arc::clone(self.segments.entry(map.name.clone()).or_insert_with(|| Arc::new(MapSegments::build(map, SimConfig::default().obs.segment_points))))
+    }
+
+    fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, String> {
+        let key = (p.key.clone(), map.name.clone());
+        if let Some(r) = self.cache.get(&key) {
+            return Ok(Arc::clone(r));
+        }
+        let segs = self.segments(map);
+        let r = PolicyRunner::from_bytes(&setup::net_config(&p.cfg), &setup::obs_spec(&p.cfg), sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device).map_err(|e| format!("loading the policy of {}: {e}", p.key))?;
+        let r = Arc::new(r);
+        self.cache.insert(key, Arc::clone(&r));
+        Ok(r)
+    }
+}
+
+/// The policies acting in a cell.
+struct Acting {
+    ego: Option<Arc<PolicyRunner>>,
+    background: Option<Arc<PolicyRunner>>,
+    adversary: Option<Arc<PolicyRunner>>,
+    /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
+    /// (not in cells that fix every SVO, the SVO sweep).
+    svo_gaussian: Option<SvoGaussian>,
+}
+
+impl Acting {
+    /// The ego acts with its mean; flows and the adversary sample.
+    fn drivers(&self) -> Drivers<'_> {
+        match (&self.ego, &self.background) {
+            (Some(e), bg) => Drivers { alive: Actor::mean(e), background: bg.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) },
+            (None, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
+            // The all-IDM flow: its vehicles' controllers ignore these actions.
+            (None, None) => Drivers { alive: Actor::Random, background: None, adversary: None },
+        }
+    }
+}
+
+/// Simulator settings, mode and acting policies of a cell.
+fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), String> {
+    check_cell(cell, flow, ego)?;
+    // The layout comes from whichever job acts; what the background's observations carry from the flow.
+    let bg_kind = match flow {
+        FlowDef::Idm => None,
+        FlowDef::Learned { background, .. } => Some(background.cfg.kind),
+    };
+    let (sim, mode) = match (ego, flow) {
+        (Some(e), FlowDef::Idm) => (setup::sim_config(&e.cfg, None), Mode::Ego { background: Controller::Idm }),
+        (Some(e), FlowDef::Learned { .. }) => (setup::sim_config(&e.cfg, bg_kind), Mode::Ego { background: Controller::External }),
+        (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
+        (None, FlowDef::Learned { background, .. }) => (setup::sim_config(&background.cfg, None), Mode::MultiAgent),
+    };
+    let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
+    let (background, adversary) = match flow {
+        FlowDef::Idm => (None, None),
+        FlowDef::Learned { background, adversary } => (Some(runners.get(background, map, &sim)?), adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?),
+    };
+    let svo_gaussian = match flow {
+        FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g),
+        _ => None,
+    };
+    Ok((Arc::new(sim), mode, Acting { ego, background, adversary, svo_gaussian }))
+}
+
+/// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
+/// Stage 2's SVOs, follow the tag, so each seed gets its own).
+fn episode_tag(seed: u32, case: usize) -> u64 {
+    (seed as u64) << 32 | case as u64
+}
+
+/// How many episodes a cell runs and how many are stepped together.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CellSize {
+    /// The first N stored cases of the scenario.
+    pub cases: u32,
+    pub seeds: u32,
+    pub envs: usize,
+}
+
+/// Runs one cell on `map` (the cell's scenario) over its stored `cases`; episodes in (seed,
+/// case) order.
+pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, String> {
+    if map.name != cell.scenario {
+        return Err(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name));
+    }
+    let n_cases = size.cases as usize;
+    if n_cases > cases.cases.len() {
+        return Err(format!("eval config field `cases`: {} exceeds the {} stored cases of {}", n_cases, cases.cases.len(), cell.scenario));
+    }
+    if size.envs == 0 || size.seeds == 0 {
+        return Err("`envs` and `seeds` must be positive".into());
+    }
+    let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
+    let mut rows = Vec::with_capacity(n_cases * size.seeds as usize);
+    for seed in 0..size.seeds {
+        let eps: Vec<EpisodeSpec> = (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: episode_tag(seed, c) }).collect();
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, size.envs, eps)?;
+        v.set_svo_gaussian(acting.svo_gaussian);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
+        let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
+        for (tag, m) in drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |_, _| {}) {
+            done[(tag & 0xffff_ffff) as usize] = Some(m);
+        }
+        for (c, m) in done.into_iter().enumerate() {
+            let m = m.ok_or_else(|| format!("case {c} did not finish"))?;
+            rows.push(EvalEpisode { case: cases.cases[c].id, seed, success: m.success, safety: m.safety, speed: m.speed, collision: m.collision });
+        }
+    }
+    Ok(rows)
+}
+
+/// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
+/// into a GIF at `path`.
+pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), String> {
+    use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
+    let scenario = map.name.clone();
+    let case = cases.cases.get(case as usize).ok_or_else(|| format!("experiments.gifs.case {case} is not stored for {scenario}"))?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo).map_err(|e| e.to_string())?;
+    let mut films = Vec::new();
+    for (name, flow) in flows {
+        let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
+        let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }])?;
+        v.set_svo_gaussian(acting.svo_gaussian);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut frames = vec![renderer.frame(v.env(0))];
+        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| frames.push(renderer.frame(v.env(0))));
+        films.push(frames);
+    }
+    let len = films.iter().map(Vec::len).max().unwrap_or(0);
+    let file = std::fs::File::create(path).map_err(|e| format!("creating {}: {e}", path.display()))?;
+    let mut out = Some(std::io::BufWriter::new(file));
+    let mut gif: Option<GifWriter<_>> = None;
+    for k in 0..len {
+        let row: Vec<&sf_sim::render::Pixmap> = films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
+        let pm = side_by_side(&row).ok_or("composing frames")?;
+        if let Some(o) = out.take() {
+            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10).map_err(|e| e.to_string())?);
+        }
+        if let Some(w) = gif.as_mut() {
+            w.push(&pm).map_err(|e| e.to_string())?;
+        }
+    }
+    Ok(())
+}
+
+/// The flows and egos of an evaluation grid, found by whoever runs it.
+#[derive(Clone, Default)]
+pub struct Resolved {
+    pub flows: BTreeMap<String, FlowDef>,
+    pub egos: BTreeMap<String, Policy>,
+}
+
+impl Resolved {
+    /// The flow and ego (if any) acting in `cell`.
+    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&Policy>), String> {
+        let flow = self.flows.get(&cell.flow).ok_or_else(|| format!("flow `{}` is not in the grid", cell.flow))?;
+        let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| format!("ego `{}` is not in the grid", cell.ego))?) };
+        Ok((flow, ego))
+    }
+
+    /// Every cell's ego and flow fit together (checked before anything runs).
+    pub fn check(&self, cells: &[Cell]) -> Result<(), String> {
+        for c in cells {
+            let (flow, ego) = self.cell(c)?;
+            check_cell(c, flow, ego).map_err(|e| format!("cell {}: {e}", c.key()))?;
+        }
+        Ok(())
+    }
+
+    /// The config's GIFs (`gif-<scenario>.gif` in `out`) not already there; the paths written.
+    pub fn render_gifs(&self, g: &sf_job::eval::Gifs, out: &Path, maps: &BTreeMap<String, (Arc<Map>, CaseFile)>, runners: &mut Runners) -> Result<Vec<std::path::PathBuf>, String> {
+        let ego = self.egos.get(&g.ego).ok_or_else(|| format!("experiments.gifs.ego `{}` is not in the grid", g.ego))?;
+        let flows = g.flows.iter().map(|f| self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| format!("experiments.gifs.flows: `{f}` is not in the grid"))).collect::<Result<Vec<_>, _>>()?;
+        let mut written = Vec::new();
+        for s in &g.scenarios {
+            let path = out.join(format!("gif-{s}.gif"));
+            if path.exists() {
+                continue;
+            }
+            let (map, cases) = maps.get(s).ok_or_else(|| format!("scenario `{s}` is not loaded"))?;
+            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| format!("rendering {}: {e}", path.display()))?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+}

@@ -1,0 +1,440 @@
+//! The running evaluation job: an evaluation grid's cells shared by the workers.
+//!
+//! Owns: [`EvalJob`] — the grid's cells and the policies each needs, which cells are queued,
+//! leased (to which worker) and stored, the job's `episodes.csv` (a cell appended whole when a
+//! worker's results pass the checks) and its progress; resolving a grid's flow and ego names
+//! to this learner's succeeded jobs ([`resolve_names`], [`resolve_policies`]). A lease ends when
+//! the worker pushes the cell, asks for another, or is forgotten for missing heartbeats; its
+//! cell goes back to the queue. A restarted learner resumes a RUNNING evaluation from the
+//! cells its `episodes.csv` holds. Must not: run simulations (workers do; the GIFs are drawn
+//! by [`crate::Inner`] on a blocking thread once every cell is stored).
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use sf_eval::report::{EpisodeRow, EpisodesWriter, Meta};
+use sf_job::config::JobKind;
+use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
+use sf_job::{Frozen, FrozenRole, JobConfig, JobRecord, JobState, Progress};
+use sf_sac::evaluate::{FlowDef, Policy, Resolved};
+use sf_svc::ServiceError;
+use tokio::sync::Notify;
+
+use crate::job::StopReason;
+use crate::metrics::LearnerMetrics;
+
+/// Pins every flow and ego of `cfg` to a job id: the newest succeeded job of its name, or the
+/// id it already names (which must have succeeded). Errors name the field.
+pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), String> {
+    let pin = |field: &str, n: &mut sf_job::eval::Named| -> Result<(), String> {
+        if n.is_idm() {
+            n.job_id = None;
+            return Ok(());
+        }
+        let found = match n.job_id {
+            Some(id) => jobs.iter().find(|r| r.id == id).ok_or_else(|| format!("eval config field `{field}` of `{}`: job {id} does not exist", n.name))?,
+            None => jobs.iter().filter(|r| r.name == n.job && r.state == JobState::Succeeded).max_by_key(|r| r.id).ok_or_else(|| format!("eval config field `{field}` of `{}`: this learner has no succeeded job named `{}`", n.name, n.job))?,
+        };
+        if found.state != JobState::Succeeded {
+            return Err(format!("eval config field `{field}` of `{}`: job {} is {}, not succeeded", n.name, found.id, found.state.as_str()));
+        }
+        n.job_id = Some(found.id);
+        Ok(())
+    };
+    for f in cfg.flows.iter_mut() {
+        pin("flows.job", f)?;
+    }
+    for e in cfg.egos.iter_mut() {
+        pin("egos.job", e)?;
+    }
+    Ok(())
+}
+
+/// A succeeded job's final policy as a frozen policy of `role` (a CoPO flow brings its
+/// coordinator's Gaussians), and its weights if `weights` (file IO: call off the runtime).
+fn frozen(rec: &JobRecord, role: FrozenRole, weights: bool) -> Result<(Frozen, Policy), String> {
+    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| format!("stored config of job {}: {e}", rec.id))?;
+    let dir = PathBuf::from(&rec.artifact_dir);
+    let mut f = Frozen::new(role, rec.id, rec.config_toml.clone());
+    if role == FrozenRole::Background {
+        if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(&dir)? {
+            f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
+        }
+    }
+    let w = if weights { std::fs::read(dir.join("policy.bpk")).map_err(|e| format!("reading the final policy of job {}: {e}", rec.id))? } else { Vec::new() };
+    let p = Policy { key: rec.id.to_string(), cfg, weights: Arc::new(w), svo_gaussians: f.svo_gaussians.clone() };
+    Ok((f, p))
+}
+
+/// The policies behind a grid whose names are pinned ([`resolve_names`]): per flow the frozen
+/// policies a worker gets (none for IDM; background and adversary for SocialCommAdv), per ego
+/// its frozen policy, and the same as [`Resolved`] for checks and GIFs (with weights if
+/// `weights`). Refuses an ego that is not an ego job and a flow that is.
+pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<(BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>, Resolved), String> {
+    let rec = |id: Option<u64>, name: &str| -> Result<&JobRecord, String> {
+        let id = id.ok_or_else(|| format!("`{name}` is not pinned to a job"))?;
+        jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or_else(|| format!("`{name}`: job {id} has not succeeded"))
+    };
+    let mut grid = Resolved::default();
+    let mut flows = BTreeMap::new();
+    for f in &cfg.flows {
+        if f.is_idm() {
+            flows.insert(f.name.clone(), Vec::new());
+            grid.flows.insert(f.name.clone(), FlowDef::Idm);
+            continue;
+        }
+        let r = rec(f.job_id, &f.name)?;
+        let (fz, p) = frozen(r, FrozenRole::Background, weights)?;
+        match p.cfg.kind {
+            JobKind::Ego => return Err(format!("eval config field `flows.job` of `{}`: job {} is an ego job, not a flow", f.name, r.id)),
+            JobKind::SocialcommAdv => {
+                // SocialCommAdv: its SocialComm flow drives, its adversary talks.
+                let bg = p.cfg.env.background_job.ok_or_else(|| format!("socialcomm-adv job {} has no background flow", r.id))?;
+                let bg_rec = rec(Some(bg), &format!("the flow of job {}", r.id))?;
+                let (bfz, bp) = frozen(bg_rec, FrozenRole::Background, weights)?;
+                let (afz, ap) = frozen(r, FrozenRole::Adversary, weights)?;
+                flows.insert(f.name.clone(), vec![bfz, afz]);
+                grid.flows.insert(f.name.clone(), FlowDef::Learned { background: bp, adversary: Some(ap) });
+            }
+            _ => {
+                flows.insert(f.name.clone(), vec![fz]);
+                grid.flows.insert(f.name.clone(), FlowDef::Learned { background: p, adversary: None });
+            }
+        }
+    }
+    let mut egos = BTreeMap::new();
+    for e in &cfg.egos {
+        let r = rec(e.job_id, &e.name)?;
+        let (fz, p) = frozen(r, FrozenRole::Ego, weights)?;
+        if p.cfg.kind != JobKind::Ego {
+            return Err(format!("eval config field `egos.job` of `{}`: job {} is a {} job, not an ego policy", e.name, r.id, p.cfg.kind.as_str()));
+        }
+        egos.insert(e.name.clone(), fz);
+        grid.egos.insert(e.name.clone(), p);
+    }
+    Ok((flows, egos, grid))
+}
+
+struct State {
+    queued: VecDeque<usize>,
+    /// Cell -> (worker, since).
+    leased: HashMap<usize, (u64, Instant)>,
+    stored: Vec<bool>,
+    stored_cells: usize,
+    episodes: u64,
+    sums: [f64; 3],
+    writer: EpisodesWriter,
+    /// Set by a worker that could not run a cell.
+    failed: Option<String>,
+}
+
+/// An evaluation job while it runs.
+pub struct EvalJob {
+    pub id: u64,
+    pub cfg: EvalConfig,
+    pub dir: PathBuf,
+    cells: Vec<Cell>,
+    /// Per cell: the policies a worker acts with.
+    work: Vec<Vec<Frozen>>,
+    /// For the GIFs at the end.
+    pub grid: Resolved,
+    state: Mutex<State>,
+    stop: Mutex<Option<StopReason>>,
+    /// Every cell stored, a cell failed, or a stop was requested.
+    pub changed: Notify,
+    started: Instant,
+    wall_s_before: f64,
+    metrics: LearnerMetrics,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl EvalJob {
+    /// Builds the job from its pinned config, the learner's job records and the cells its
+    /// `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking file IO.
+    pub fn open(rec: &JobRecord, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, String> {
+        let cfg = EvalConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
+        let (flows, egos, grid) = resolve_policies(&cfg, jobs, true)?;
+        let cells = cfg.cells();
+        grid.check(&cells)?;
+        let work = cells
+            .iter()
+            .map(|c| {
+                let mut p = flows.get(&c.flow).cloned().unwrap_or_default();
+                if let Some(e) = egos.get(&c.ego) {
+                    p.push(e.clone());
+                }
+                p
+            })
+            .collect();
+        let dir = PathBuf::from(&rec.artifact_dir);
+        std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+        let meta = serde_json::to_string_pretty(&Meta::of(&cfg)).map_err(|e| e.to_string())?;
+        std::fs::write(dir.join("meta.json"), meta).map_err(|e| format!("writing {}/meta.json: {e}", dir.display()))?;
+        let path = dir.join("episodes.csv");
+        let rows = sf_eval::report::read_episodes(&path).map_err(|e| e.to_string())?;
+        let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
+        let stored: Vec<bool> = cells.iter().map(|c| have.contains(c)).collect();
+        let mut sums = [0.0; 3];
+        for r in &rows {
+            sums[0] += r.success as f64;
+            sums[1] += r.safety as f64;
+            sums[2] += r.speed as f64;
+        }
+        let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
+        let writer = EpisodesWriter::open(&path).map_err(|e| e.to_string())?;
+        metrics.eval_cells_pending.set(queued.len() as i64);
+        let state = State { stored_cells: stored.iter().filter(|s| **s).count(), queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
+        Ok(Self { id: rec.id, cfg, dir, cells, work, grid, state: Mutex::new(state), stop: Mutex::new(None), changed: Notify::new(), started: Instant::now(), wall_s_before: rec.progress.wall_s, metrics })
+    }
+
+    pub fn cells(&self) -> usize {
+        self.cells.len()
+    }
+
+    fn episodes_per_cell(&self) -> u64 {
+        self.cfg.cases as u64 * self.cfg.seeds as u64
+    }
+
+    pub fn progress(&self) -> Progress {
+        let s = lock(&self.state);
+        let n = s.episodes.max(1) as f64;
+        Progress {
+            env_steps: s.episodes,
+            target_env_steps: self.cells.len() as u64 * self.episodes_per_cell(),
+            episodes: s.episodes,
+            success: (s.sums[0] / n) as f32,
+            safety: (s.sums[1] / n) as f32,
+            speed: (s.sums[2] / n) as f32,
+            wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
+            ..Progress::default()
+        }
+    }
+
+    /// Every cell is stored.
+    pub fn is_complete(&self) -> bool {
+        let s = lock(&self.state);
+        s.stored_cells == self.cells.len()
+    }
+
+    pub fn failure(&self) -> Option<String> {
+        lock(&self.state).failed.clone()
+    }
+
+    pub fn request_stop(&self, why: StopReason) {
+        *lock(&self.stop) = Some(why);
+        self.changed.notify_one();
+    }
+
+    pub fn stop_reason(&self) -> Option<StopReason> {
+        *lock(&self.stop)
+    }
+
+    /// The next queued cell for `worker`. Leases of workers not in `live` (forgotten for
+    /// missing heartbeats) and the worker's own earlier lease (it asks again, so it gave that
+    /// cell up) go back to the queue first. `None`: nothing queued now (cells may still be
+    /// leased to others).
+    pub fn lease(&self, worker: u64, live: &BTreeSet<u64>) -> Option<EvalWork> {
+        if self.stop_reason().is_some() {
+            return None;
+        }
+        let mut s = lock(&self.state);
+        if s.failed.is_some() {
+            return None;
+        }
+        let gone: Vec<usize> = s.leased.iter().filter(|(_, (w, _))| *w == worker || !live.contains(w)).map(|(c, _)| *c).collect();
+        for c in gone {
+            if let Some((w, since)) = s.leased.remove(&c) {
+                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w, leased_s = since.elapsed().as_secs(), "cell returned to the queue");
+                if w != worker {
+                    self.metrics.eval_cells_reassigned.inc();
+                }
+                s.queued.push_front(c);
+            }
+        }
+        let c = s.queued.pop_front()?;
+        s.leased.insert(c, (worker, Instant::now()));
+        Some(EvalWork {
+            job_id: self.id,
+            cell_id: c as u64,
+            cell: self.cells[c].clone(),
+            cases: self.cfg.cases,
+            seeds: self.cfg.seeds,
+            envs: self.cfg.envs as u32,
+            policies: self.work[c].clone(),
+        })
+    }
+
+    /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell
+    /// was already stored. The episodes must be exactly one per stored case and seed of the
+    /// grid; nothing is written otherwise.
+    pub fn store(&self, worker: u64, cell_id: u64, episodes: &[EvalEpisode], error: &str) -> Result<bool, ServiceError> {
+        let c = usize::try_from(cell_id).ok().filter(|&c| c < self.cells.len()).ok_or_else(|| ServiceError::NotFound(format!("evaluation job {} has no cell {cell_id}", self.id)))?;
+        let cell = &self.cells[c];
+        let mut s = lock(&self.state);
+        if s.stored[c] {
+            return Ok(false);
+        }
+        if !error.is_empty() {
+            let msg = format!("cell {} failed on worker {worker}: {error}", cell.key());
+            s.failed = Some(msg.clone());
+            drop(s);
+            self.changed.notify_one();
+            return Err(ServiceError::FailedPrecondition(msg));
+        }
+        let want = self.episodes_per_cell() as usize;
+        let seeds: BTreeSet<(u32, u32)> = episodes.iter().map(|e| (e.case, e.seed)).collect();
+        if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= self.cfg.seeds) {
+            return Err(ServiceError::InvalidArgument(format!("cell {cell_id}: {} episodes, expected {want} distinct (case, seed) pairs with seeds below {}", episodes.len(), self.cfg.seeds)));
+        }
+        if let Some(bad) = episodes.iter().find_map(|e| e.validate().err()) {
+            return Err(ServiceError::InvalidArgument(format!("cell {cell_id}: {bad}")));
+        }
+        let rows: Vec<EpisodeRow> = episodes.iter().map(|e| EpisodeRow::new(cell, e)).collect();
+        s.writer.append(&rows).map_err(|e| ServiceError::Internal(e.to_string()))?;
+        s.stored[c] = true;
+        s.stored_cells += 1;
+        s.leased.remove(&c);
+        s.episodes += rows.len() as u64;
+        for r in &rows {
+            s.sums[0] += r.success as f64;
+            s.sums[1] += r.safety as f64;
+            s.sums[2] += r.speed as f64;
+        }
+        // A cell that went back to the queue (its worker looked dead) and is now stored.
+        s.queued.retain(|&q| q != c);
+        self.metrics.eval_episodes.inc_by(rows.len() as u64);
+        self.metrics.eval_cells_pending.set((self.cells.len() - s.stored_cells) as i64);
+        let done = s.stored_cells == self.cells.len();
+        drop(s);
+        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker, "cell stored");
+        if done {
+            self.changed.notify_one();
+        }
+        Ok(true)
+    }
+}
+
+/// Loads the map and stored cases of every scenario the grid runs in (blocking file IO).
+pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, String> {
+    let mut maps = BTreeMap::new();
+    for s in cfg.all_scenarios() {
+        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
+        if (cfg.cases as usize) > cases.cases.len() {
+            return Err(format!("eval config field `cases`: {} exceeds the {} stored cases of {s}", cfg.cases, cases.cases.len()));
+        }
+        maps.insert(s, (map, cases));
+    }
+    Ok(maps)
+}
+
+async fn blocking_str<T: Send + 'static>(f: impl FnOnce() -> Result<T, String> + Send + 'static) -> Result<T, String> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| format!("blocking task: {e}"))?
+}
+
+impl crate::Inner {
+    /// Validates an evaluation grid, pins its names to this learner's succeeded jobs, checks
+    /// every cell's ego and flow fit and that the cases exist, and queues it.
+    pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, text: &str) -> Result<JobRecord, ServiceError> {
+        let mut cfg = EvalConfig::from_toml(text).map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
+        let jobs = self.jobs().await?;
+        resolve_names(&mut cfg, &jobs).map_err(ServiceError::InvalidArgument)?;
+        let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
+        let c2 = cfg.clone();
+        blocking_str(move || {
+            let (_, _, grid) = resolve_policies(&c2, &jobs, false)?;
+            grid.check(&c2.cells())?;
+            load_maps(&c2, &scen, &cases).map(|_| ())
+        })
+        .await
+        .map_err(ServiceError::InvalidArgument)?;
+        let store = Arc::clone(&self.store);
+        let root = self.cfg.data_dir.join("jobs");
+        let name = cfg.name.clone();
+        let target = cfg.cells().len() as u64 * cfg.cases as u64 * cfg.seeds as u64;
+        let resolved = cfg.to_toml();
+        let rec = tokio::task::spawn_blocking(move || store.create(&name, &resolved, target, |id| root.join(format!("{id}-{name}")).display().to_string()))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("store task: {e}")))?
+            .map_err(|e| ServiceError::Internal(e.to_string()))?;
+        tracing::info!(job_id = rec.id, name = %rec.name, cells = cfg.cells().len(), "evaluation queued");
+        self.wake.notify_one();
+        Ok(rec)
+    }
+
+    /// Opens the evaluation (resuming from its stored cells), marks it RUNNING and follows it
+    /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
+    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
+        let jobs = self.jobs().await.map_err(|e| e.to_string())?;
+        let (r2, m2) = (rec.clone(), self.metrics.clone());
+        let job = Arc::new(blocking_str(move || EvalJob::open(&r2, &jobs, m2)).await?);
+        let store = Arc::clone(&self.store);
+        let id = rec.id;
+        tokio::task::spawn_blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
+        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().episodes, "evaluation started");
+        self.set_evaluating(Some(Arc::clone(&job)));
+        let me = Arc::clone(self);
+        tokio::spawn(async move {
+            let out = loop {
+                if let Some(why) = job.stop_reason() {
+                    break match why {
+                        StopReason::Cancelled => crate::trainer::Outcome::Cancelled,
+                        StopReason::Shutdown => crate::trainer::Outcome::Shutdown,
+                    };
+                }
+                if let Some(msg) = job.failure() {
+                    break crate::trainer::Outcome::Failed(msg);
+                }
+                if job.is_complete() {
+                    break me.finish_eval(&job).await;
+                }
+                job.changed.notified().await;
+            };
+            me.finish(id, out, Some(job.progress())).await;
+        });
+        Ok(())
+    }
+
+    /// Every cell is stored: draws the grid's GIFs into the job's directory.
+    async fn finish_eval(&self, job: &Arc<EvalJob>) -> crate::trainer::Outcome {
+        let Some(g) = job.cfg.experiments.gifs.clone() else { return crate::trainer::Outcome::Succeeded };
+        let (j, scen, cases) = (Arc::clone(job), self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
+        let r = blocking_str(move || {
+            let maps = load_maps(&j.cfg, &scen, &cases)?;
+            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
+            let mut runners = sf_sac::evaluate::Runners::new(device);
+            j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)
+        })
+        .await;
+        match r {
+            Ok(paths) => {
+                tracing::info!(job_id = job.id, gifs = paths.len(), "evaluation finished");
+                crate::trainer::Outcome::Succeeded
+            }
+            Err(e) => crate::trainer::Outcome::Failed(format!("every cell is stored, but the GIFs failed: {e}")),
+        }
+    }
+
+    /// A cell of the running evaluation for `worker`, if one is queued.
+    pub(crate) fn eval_work(&self, worker: u64) -> Option<EvalWork> {
+        let e = self.evaluating()?;
+        e.lease(worker, &self.live_workers())
+    }
+
+    /// A worker's results for one cell of the running evaluation `job_id`.
+    pub(crate) async fn eval_results(self: &Arc<Self>, job_id: u64, worker: u64, cell_id: u64, episodes: Vec<EvalEpisode>, error: String) -> Result<bool, ServiceError> {
+        self.touch_worker(worker)?;
+        let job = match self.evaluating() {
+            Some(e) if e.id == job_id && e.stop_reason().is_none() => e,
+            _ => {
+                let rec = self.job(job_id).await?;
+                return Err(ServiceError::FailedPrecondition(format!("job {job_id} is {}, not a running evaluation", rec.state.as_str())));
+            }
+        };
+        tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(|e| ServiceError::Internal(format!("store task: {e}")))?
+    }
+}
