@@ -373,3 +373,54 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
     assert_eq!(sorted_rows(&dir.join("embedded/episodes.csv")), rows, "embedded and shared by workers: the same episodes");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_killed_learner_resumes_an_evaluation_from_the_cells_it_stored() {
+    let dir = scratch("evalresume");
+    let mut l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    // IDM only: 2 + 2 x 10 cells of 80 episodes, slow enough to stop halfway.
+    let grid = format!(
+        r#"kind = "eval"
+runs = "{}"
+out = "{}"
+scenarios = ["merge", "roundabout"]
+cases = 20
+seeds = 4
+envs = 8
+flows = [{{ name = "IDM", job = "idm" }}]
+egos = []
+[experiments]
+flow_quality = ["IDM"]
+density = {{ scenario = "merge", flows = ["IDM"], vehicles = [2, 3, 4, 5, 6, 7, 8, 9, 10, 11] }}
+"#,
+        dir.join("data").display(),
+        dir.join("embedded").display()
+    );
+    let job = submit(&rt, &mut c, grid.clone());
+    let _w = start_worker(&l, &dir, 0);
+    let results = Path::new(&job.artifact_dir).join("episodes.csv");
+    let total = 12 * 80;
+    let stored_before = wait_for("some cells stored", Duration::from_secs(300), || {
+        let n = std::fs::read_to_string(&results).ok()?.lines().count().saturating_sub(1);
+        (n >= 80).then_some(n)
+    });
+    l.proc.kill9();
+    assert!(stored_before < total, "the evaluation finished before the learner was killed ({stored_before} episodes)");
+    drop(c);
+    restart(&mut l);
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let done = wait_final(&rt, &mut c, job.job_id, "the resumed evaluation");
+    assert_eq!(done.state, SUCCEEDED, "evaluation ended: {}", done.message);
+    let rows = sorted_rows(&results);
+    assert_eq!(rows.len(), total, "every cell once: nothing stored before the kill was lost or repeated");
+    let log = std::fs::read_to_string(&l.log).unwrap_or_default();
+    assert!(log.matches("evaluation started").count() >= 2, "the learner log does not show the resume");
+    let cfg = dir.join("grid.toml");
+    std::fs::write(&cfg, grid).expect("eval config");
+    let o = socialflow_env(&["eval", &cfg.display().to_string()], &[], Duration::from_secs(300));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(sorted_rows(&dir.join("embedded/episodes.csv")), rows, "resumed and embedded: the same episodes");
+    let _ = std::fs::remove_dir_all(&dir);
+}
