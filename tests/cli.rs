@@ -347,5 +347,17 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     let shared = std::fs::read_to_string(art.join("episodes.csv")).expect("the evaluation job's results");
     assert_eq!(sorted(&shared), sorted(&a), "embedded and shared by workers: the same episodes");
     assert_eq!(std::fs::read(art.join("gif-merge.gif")).expect("GIF"), std::fs::read(dir.join("eval-a/gif-merge.gif")).expect("GIF"));
+
+    // The whole graph, its evaluation and the report from one command: everything is reused
+    // from the runs above, and the report is built from the evaluation job's results.
+    let mut l = l;
+    assert!(l.proc.terminate(Duration::from_secs(30)), "the learner stops on SIGTERM");
+    let report2 = dir.join("report2");
+    let o = socialflow(&["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data, "--eval", &dir.join("eval-a.toml").display().to_string(), "--report", &report2.display().to_string()], 4 * T);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
+    assert!(lines.iter().any(|v| v["job_id"] == job["job_id"] && v["state"] == "succeeded"), "the evaluation job is reused: {lines:?}");
+    assert_eq!(lines.last().and_then(|v| v["experiments"].as_array()).map(Vec::len), Some(5), "the report's findings come last");
+    assert!(report2.join("report.html").exists() && report2.join("gif-merge.gif").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }

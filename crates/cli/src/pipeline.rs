@@ -1,5 +1,7 @@
 //! `socialflow pipeline <dir>`: submits a directory of job configs as one graph, dependencies
-//! first, and follows it to the end; rerun, it resumes where it stopped.
+//! first, and follows it to the end; rerun, it resumes where it stopped. With `--eval` it then
+//! submits an evaluation grid on the trained jobs (the learner's workers share its cells) and
+//! with `--report` builds the report from its results: the paper's experiments from one command.
 //!
 //! Owns: name-based references between the configs of a directory (`env.background_from`,
 //! `env.ego_from`, `train.init_from` = "<job name>", turned into the `*_job = <id>` fields at
@@ -15,6 +17,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
+use sf_job::eval::EvalConfig;
 use sf_job::{JobConfig, JobState};
 
 use crate::remote::{self, Conn, JobsClient};
@@ -30,6 +33,14 @@ pub struct PipelineArgs {
     /// Embedded: job store and artifacts (rerun with the same directory to resume).
     #[arg(long, default_value = "runs/pipeline")]
     pub data_dir: PathBuf,
+    /// An evaluation grid (configs/eval/) to submit once every job of the graph has succeeded;
+    /// a job of the grid's name already on the learner is reused (a rerun resumes it).
+    #[arg(long)]
+    pub eval: Option<PathBuf>,
+    /// With `--eval`: build the report from the evaluation's results into this directory (the
+    /// learner's artifact directory must be on this machine, as with `--embedded`).
+    #[arg(long, requires = "eval")]
+    pub report: Option<PathBuf>,
     #[command(flatten)]
     pub conn: Conn,
 }
@@ -107,6 +118,34 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
     Ok(out)
 }
 
+/// After the graph: submits the evaluation grid (or reuses the learner's job of its name),
+/// follows it and builds the report.
+async fn evaluate(c: &mut JobsClient, grid: &(PathBuf, EvalConfig, String), report: Option<&Path>) -> Result<()> {
+    let (path, cfg, text) = grid;
+    let existing = remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && sf_job::eval::is_eval_toml(&j.config_toml) && !matches!(j.state, JobState::Failed | JobState::Cancelled)).max_by_key(|j| j.id);
+    let id = match existing {
+        Some(j) => {
+            eprintln!("{}: evaluation job {} ({}) already on the learner", cfg.name, j.id, j.state.as_str());
+            j.id
+        }
+        None => {
+            let j = remote::submit(c, text.clone()).await.with_context(|| path.display().to_string())?;
+            eprintln!("{}: submitted as evaluation job {} ({} cells)", cfg.name, j.id, cfg.cells().len());
+            j.id
+        }
+    };
+    follow(c, &[(cfg.name.clone(), id)]).await?;
+    if let Some(out) = report {
+        let j = remote::list(c).await?.into_iter().find(|j| j.id == id).with_context(|| format!("evaluation job {id} is gone"))?;
+        let results = PathBuf::from(&j.artifact_dir);
+        if !results.join("episodes.csv").exists() {
+            bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", results.display());
+        }
+        crate::eval::report(crate::eval::ReportArgs { results, out: out.to_path_buf() })?;
+    }
+    Ok(())
+}
+
 /// Polls until every job is final; prints one JSON line per job; fails if any did not succeed.
 async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
     loop {
@@ -131,6 +170,26 @@ async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
 
 pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
     let jobs = load(&a.dir)?;
+    // The grid is checked before anything is submitted.
+    let grid = match &a.eval {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let cfg = EvalConfig::from_toml(&text).with_context(|| p.display().to_string())?;
+            Some((p.clone(), cfg, text))
+        }
+        None => None,
+    };
+    let report = a.report.clone();
+    let then_eval = |c: &mut JobsClient| {
+        let (grid, report) = (grid.clone(), report.clone());
+        let mut c = c.clone();
+        async move {
+            match &grid {
+                Some(g) => evaluate(&mut c, g, report.as_deref()).await,
+                None => Ok(()),
+            }
+        }
+    };
     runtime()?.block_on(async move {
         match a.embedded {
             Some(0) => bail!("--embedded needs at least one worker"),
@@ -139,8 +198,12 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                 let mut c = emb.client().await?;
                 let r = async {
                     let ids = submit_all(&mut c, &jobs).await?;
+                    let all = async {
+                        follow(&mut c, &ids).await?;
+                        then_eval(&mut c).await
+                    };
                     tokio::select! {
-                        r = follow(&mut c, &ids) => r.map(Some),
+                        r = all => r.map(Some),
                         _ = sf_svc::signal::terminate() => Ok(None),
                     }
                 }
@@ -157,7 +220,8 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
             None => {
                 let mut c = remote::connect(&a.conn).await?;
                 let ids = submit_all(&mut c, &jobs).await?;
-                follow(&mut c, &ids).await
+                follow(&mut c, &ids).await?;
+                then_eval(&mut c).await
             }
         }
     })
