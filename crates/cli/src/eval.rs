@@ -208,5 +208,9 @@ mod tests {
         let paper = load(&p).expect("valid");
         assert_eq!((paper.cases, paper.seeds), (200, 10));
         assert_eq!(paper.cells(), cells, "the paper grid has the paper-small grid's cells");
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper-small-flow-quality-200x10.toml");
+        let fq = load(&p).expect("valid");
+        assert_eq!((fq.cases, fq.seeds), (200, 10));
+        assert_eq!(fq.cells(), cells.iter().filter(|c| c.experiment == "flow_quality").cloned().collect::<Vec<_>>());
     }
 }
