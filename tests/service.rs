@@ -364,6 +364,8 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
     assert!(rt.block_on(x.push_eval_results(four)).is_err());
     assert_eq!(sorted_rows(&results), rows);
     assert!(Path::new(&done.artifact_dir).join("meta.json").exists());
+    let pinned = std::fs::read_to_string(Path::new(&done.artifact_dir).join("config.toml")).expect("the grid beside its results");
+    assert!(pinned.contains(&format!("job_id = {}", ego.job_id)), "{pinned}");
 
     // The same grid evaluated in one process: the same numbers.
     let cfg = dir.join("grid.toml");

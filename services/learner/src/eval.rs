@@ -6,7 +6,8 @@
 //! to this learner's succeeded jobs ([`resolve_names`], [`resolve_policies`]). A lease ends when
 //! the worker pushes the cell, asks for another, or is forgotten for missing heartbeats; its
 //! cell goes back to the queue. A restarted learner resumes a RUNNING evaluation from the
-//! cells its `episodes.csv` holds. Must not: run simulations (workers do; the GIFs are drawn
+//! cells its `episodes.csv` holds. Its directory: `config.toml` (pinned), `meta.json`,
+//! `episodes.csv`, the GIFs. Must not: run simulations (workers do; the GIFs are drawn
 //! by [`crate::Inner`] on a blocking thread once every cell is stored).
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
@@ -175,6 +176,8 @@ impl EvalJob {
         std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
         let meta = serde_json::to_string_pretty(&Meta::of(&cfg)).map_err(|e| e.to_string())?;
         std::fs::write(dir.join("meta.json"), meta).map_err(|e| format!("writing {}/meta.json: {e}", dir.display()))?;
+        // The grid as it runs (names pinned to job ids), beside its results.
+        std::fs::write(dir.join("config.toml"), &rec.config_toml).map_err(|e| format!("writing {}/config.toml: {e}", dir.display()))?;
         let path = dir.join("episodes.csv");
         let rows = sf_eval::report::read_episodes(&path).map_err(|e| e.to_string())?;
         let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
