@@ -118,10 +118,10 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
     Ok(out)
 }
 
-/// After the graph: submits the evaluation grid (or reuses the learner's job of its name),
-/// follows it and builds the report.
-async fn evaluate(c: &mut JobsClient, grid: &(PathBuf, EvalConfig, String), report: Option<&Path>) -> Result<()> {
-    let (path, cfg, text) = grid;
+/// After the graph, if there is a grid: submits it (or reuses the learner's evaluation job of
+/// its name), follows it and builds the report.
+async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String)>, report: Option<&Path>) -> Result<()> {
+    let Some((path, cfg, text)) = grid else { return Ok(()) };
     let existing = remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && sf_job::eval::is_eval_toml(&j.config_toml) && !matches!(j.state, JobState::Failed | JobState::Cancelled)).max_by_key(|j| j.id);
     let id = match existing {
         Some(j) => {
@@ -179,17 +179,6 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
         }
         None => None,
     };
-    let report = a.report.clone();
-    let then_eval = |c: &mut JobsClient| {
-        let (grid, report) = (grid.clone(), report.clone());
-        let mut c = c.clone();
-        async move {
-            match &grid {
-                Some(g) => evaluate(&mut c, g, report.as_deref()).await,
-                None => Ok(()),
-            }
-        }
-    };
     runtime()?.block_on(async move {
         match a.embedded {
             Some(0) => bail!("--embedded needs at least one worker"),
@@ -200,7 +189,7 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                     let ids = submit_all(&mut c, &jobs).await?;
                     let all = async {
                         follow(&mut c, &ids).await?;
-                        then_eval(&mut c).await
+                        evaluate(&mut c, grid.as_ref(), a.report.as_deref()).await
                     };
                     tokio::select! {
                         r = all => r.map(Some),
@@ -221,7 +210,7 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                 let mut c = remote::connect(&a.conn).await?;
                 let ids = submit_all(&mut c, &jobs).await?;
                 follow(&mut c, &ids).await?;
-                then_eval(&mut c).await
+                evaluate(&mut c, grid.as_ref(), a.report.as_deref()).await
             }
         }
     })

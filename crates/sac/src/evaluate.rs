@@ -75,17 +75,19 @@ pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(Flo
     if policies.len() != weights.len() {
         return Err(format!("{} policies but {} weights", policies.len(), weights.len()));
     }
-    let mut by_role: BTreeMap<u8, Policy> = BTreeMap::new();
+    let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
         let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| format!("config of job {}: {e}", f.job_id))?;
-        let role = f.role as u8;
-        if by_role.insert(role, Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
+        let slot = match f.role {
+            FrozenRole::Ego => &mut ego,
+            FrozenRole::Background => &mut background,
+            FrozenRole::Adversary => &mut adversary,
+        };
+        if slot.replace(Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
             return Err(format!("two policies in the role {:?}", f.role));
         }
     }
-    let ego = by_role.remove(&(FrozenRole::Ego as u8));
-    let adversary = by_role.remove(&(FrozenRole::Adversary as u8));
-    let flow = match by_role.remove(&(FrozenRole::Background as u8)) {
+    let flow = match background {
         Some(background) => FlowDef::Learned { background, adversary },
         None if adversary.is_some() => return Err("an adversary without the flow it talks to".into()),
         None => FlowDef::Idm,

@@ -18,8 +18,8 @@ use std::time::Instant;
 use sf_eval::report::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
-use sf_job::{Frozen, FrozenRole, JobConfig, JobRecord, JobState, Progress};
-use sf_sac::evaluate::{FlowDef, Policy, Resolved};
+use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
+use sf_sac::evaluate::Resolved;
 use sf_svc::ServiceError;
 use tokio::sync::Notify;
 
@@ -53,62 +53,46 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Str
     Ok(())
 }
 
-/// A succeeded job's final policy as a frozen policy of `role` (a CoPO flow brings its
-/// coordinator's Gaussians), and its weights if `weights` (file IO: call off the runtime).
-fn frozen(rec: &JobRecord, role: FrozenRole, weights: bool) -> Result<(Frozen, Policy), String> {
-    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| format!("stored config of job {}: {e}", rec.id))?;
-    let dir = PathBuf::from(&rec.artifact_dir);
-    let mut f = Frozen::new(role, rec.id, rec.config_toml.clone());
-    if role == FrozenRole::Background {
-        if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(&dir)? {
-            f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
-        }
-    }
-    let w = if weights { std::fs::read(dir.join("policy.bpk")).map_err(|e| format!("reading the final policy of job {}: {e}", rec.id))? } else { Vec::new() };
-    let p = Policy { key: rec.id.to_string(), cfg, weights: Arc::new(w), svo_gaussians: f.svo_gaussians.clone() };
-    Ok((f, p))
-}
-
 /// The policies behind a grid whose names are pinned ([`resolve_names`]): per flow the frozen
-/// policies a worker gets (none for IDM; background and adversary for SocialCommAdv), per ego
-/// its frozen policy, and the same as [`Resolved`] for checks and GIFs (with weights if
-/// `weights`). Refuses an ego that is not an ego job and a flow that is.
+/// policies a worker gets (none for IDM; background and adversary for SocialCommAdv, as a
+/// training job's background gets them: [`crate::flow_frozen`]), per ego its frozen policy, and
+/// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
+/// the runtime). Refuses an ego that is not an ego job and a flow that is.
 pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<(BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>, Resolved), String> {
-    let rec = |id: Option<u64>, name: &str| -> Result<&JobRecord, String> {
-        let id = id.ok_or_else(|| format!("`{name}` is not pinned to a job"))?;
-        jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or_else(|| format!("`{name}`: job {id} has not succeeded"))
+    let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or_else(|| format!("job {id} has not succeeded"));
+    let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, String> {
+        let id = n.job_id.ok_or_else(|| format!("`{}` is not pinned to a job", n.name))?;
+        find(id).map_err(|e| format!("`{}`: {e}", n.name))
+    };
+    // Each policy's final weights, or nothing when only the configs are checked.
+    let load = |fz: &[Frozen]| -> Result<Vec<Arc<Vec<u8>>>, String> {
+        fz.iter()
+            .map(|f| {
+                if !weights {
+                    return Ok(Arc::new(Vec::new()));
+                }
+                let dir = PathBuf::from(&find(f.job_id)?.artifact_dir);
+                std::fs::read(dir.join("policy.bpk")).map(Arc::new).map_err(|e| format!("reading the final policy of job {}: {e}", f.job_id))
+            })
+            .collect()
     };
     let mut grid = Resolved::default();
     let mut flows = BTreeMap::new();
     for f in &cfg.flows {
-        if f.is_idm() {
-            flows.insert(f.name.clone(), Vec::new());
-            grid.flows.insert(f.name.clone(), FlowDef::Idm);
-            continue;
+        let fz = if f.is_idm() { Vec::new() } else { crate::flow_frozen(pinned(f)?, |id| find(id).cloned())? };
+        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?)?;
+        if flow.kind() == Some(JobKind::Ego) {
+            return Err(format!("eval config field `flows.job` of `{}`: job {} is an ego job, not a flow", f.name, fz[0].job_id));
         }
-        let r = rec(f.job_id, &f.name)?;
-        let (fz, p) = frozen(r, FrozenRole::Background, weights)?;
-        match p.cfg.kind {
-            JobKind::Ego => return Err(format!("eval config field `flows.job` of `{}`: job {} is an ego job, not a flow", f.name, r.id)),
-            JobKind::SocialcommAdv => {
-                // SocialCommAdv: its SocialComm flow drives, its adversary talks.
-                let bg = p.cfg.env.background_job.ok_or_else(|| format!("socialcomm-adv job {} has no background flow", r.id))?;
-                let bg_rec = rec(Some(bg), &format!("the flow of job {}", r.id))?;
-                let (bfz, bp) = frozen(bg_rec, FrozenRole::Background, weights)?;
-                let (afz, ap) = frozen(r, FrozenRole::Adversary, weights)?;
-                flows.insert(f.name.clone(), vec![bfz, afz]);
-                grid.flows.insert(f.name.clone(), FlowDef::Learned { background: bp, adversary: Some(ap) });
-            }
-            _ => {
-                flows.insert(f.name.clone(), vec![fz]);
-                grid.flows.insert(f.name.clone(), FlowDef::Learned { background: p, adversary: None });
-            }
-        }
+        flows.insert(f.name.clone(), fz);
+        grid.flows.insert(f.name.clone(), flow);
     }
     let mut egos = BTreeMap::new();
     for e in &cfg.egos {
-        let r = rec(e.job_id, &e.name)?;
-        let (fz, p) = frozen(r, FrozenRole::Ego, weights)?;
+        let r = pinned(e)?;
+        let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
+        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
+        let p = ego.ok_or_else(|| format!("ego `{}`: no policy", e.name))?;
         if p.cfg.kind != JobKind::Ego {
             return Err(format!("eval config field `egos.job` of `{}`: job {} is a {} job, not an ego policy", e.name, r.id, p.cfg.kind.as_str()));
         }
@@ -123,12 +107,17 @@ struct State {
     /// Cell -> (worker, since).
     leased: HashMap<usize, (u64, Instant)>,
     stored: Vec<bool>,
-    stored_cells: usize,
     episodes: u64,
     sums: [f64; 3],
     writer: EpisodesWriter,
     /// Set by a worker that could not run a cell.
     failed: Option<String>,
+}
+
+impl State {
+    fn stored_cells(&self) -> usize {
+        self.stored.iter().filter(|s| **s).count()
+    }
 }
 
 /// An evaluation job while it runs.
@@ -191,7 +180,7 @@ impl EvalJob {
         let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
         let writer = EpisodesWriter::open(&path).map_err(|e| e.to_string())?;
         metrics.eval_cells_pending.set(queued.len() as i64);
-        let state = State { stored_cells: stored.iter().filter(|s| **s).count(), queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
+        let state = State { queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
         Ok(Self { id: rec.id, cfg, dir, cells, work, grid, state: Mutex::new(state), stop: Mutex::new(None), changed: Notify::new(), started: Instant::now(), wall_s_before: rec.progress.wall_s, metrics })
     }
 
@@ -221,7 +210,7 @@ impl EvalJob {
     /// Every cell is stored.
     pub fn is_complete(&self) -> bool {
         let s = lock(&self.state);
-        s.stored_cells == self.cells.len()
+        s.stored_cells() == self.cells.len()
     }
 
     pub fn failure(&self) -> Option<String> {
@@ -300,7 +289,6 @@ impl EvalJob {
         let rows: Vec<EpisodeRow> = episodes.iter().map(|e| EpisodeRow::new(cell, e)).collect();
         s.writer.append(&rows).map_err(|e| ServiceError::Internal(e.to_string()))?;
         s.stored[c] = true;
-        s.stored_cells += 1;
         s.leased.remove(&c);
         s.episodes += rows.len() as u64;
         for r in &rows {
@@ -311,8 +299,9 @@ impl EvalJob {
         // A cell that went back to the queue (its worker looked dead) and is now stored.
         s.queued.retain(|&q| q != c);
         self.metrics.eval_episodes.inc_by(rows.len() as u64);
-        self.metrics.eval_cells_pending.set((self.cells.len() - s.stored_cells) as i64);
-        let done = s.stored_cells == self.cells.len();
+        let stored = s.stored_cells();
+        self.metrics.eval_cells_pending.set((self.cells.len() - stored) as i64);
+        let done = stored == self.cells.len();
         drop(s);
         tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker, "cell stored");
         if done {

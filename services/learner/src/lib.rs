@@ -369,22 +369,9 @@ impl Inner {
                 DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
                 DepRole::Ego => frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml)),
                 DepRole::Background => {
-                    let dc = JobConfig::from_toml(&d.config_toml).map_err(|e| format!("stored config of job {dep}: {e}"))?;
-                    if dc.kind == JobKind::SocialcommAdv {
-                        // Against SocialCommAdv: its SocialComm flow drives, its adversary talks.
-                        let flow = dc.env.background_job.ok_or_else(|| format!("socialcomm-adv job {dep} has no background flow"))?;
-                        let f = self.job(flow).await.map_err(|e| format!("job {flow} (the flow of job {dep}): {e}"))?;
-                        frozen.push(Frozen::new(FrozenRole::Background, flow, f.config_toml));
-                        frozen.push(Frozen::new(FrozenRole::Adversary, dep, d.config_toml));
-                    } else {
-                        // A CoPO flow past Stage 2 brings its coordinator's Gaussians.
-                        let mut f = Frozen::new(FrozenRole::Background, dep, d.config_toml);
-                        let dir = PathBuf::from(&d.artifact_dir);
-                        if let Some(c) = tokio::task::spawn_blocking(move || sf_sac::coordinator::CoordinatorFile::load(&dir)).await.map_err(|e| e.to_string())?? {
-                            f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
-                        }
-                        frozen.push(f);
-                    }
+                    let jobs = self.jobs().await.map_err(|e| e.to_string())?;
+                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or_else(|| format!("job {id} not found")))).await.map_err(|e| e.to_string())??;
+                    frozen.extend(fz);
                 }
             }
         }
@@ -568,6 +555,24 @@ impl RunningLearner {
             Ok(Err(e)) => Err(e).context("gRPC server task"),
         }
     }
+}
+
+/// The frozen policies with which a finished flow job `rec` drives the background, for a
+/// training job or an evaluation: a SocialCommAdv job brings its SocialComm flow (`find` looks it
+/// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
+/// coordinator's Gaussians if it has fitted them (Stage 2). Blocking file IO (`coordinator.json`).
+pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecord, String>) -> Result<Vec<Frozen>, String> {
+    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| format!("stored config of job {}: {e}", rec.id))?;
+    if cfg.kind == JobKind::SocialcommAdv {
+        let flow = cfg.env.background_job.ok_or_else(|| format!("socialcomm-adv job {} has no background flow", rec.id))?;
+        let f = find(flow).map_err(|e| format!("job {flow} (the flow of job {}): {e}", rec.id))?;
+        return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
+    }
+    let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
+    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir))? {
+        f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
+    }
+    Ok(vec![f])
 }
 
 /// Whether `dep` can serve `job` in `role`: its kind (`DepRole::accepts`), for `train.init_job`

@@ -121,7 +121,12 @@ impl ExperienceService for Experience {
 
     async fn get_assignment(&self, req: Request<pb::GetAssignmentRequest>) -> Res<pb::GetAssignmentResponse> {
         let worker = req.into_inner().worker_id;
-        let r = self.0.assignment(worker).map(|a| match (a, self.0.eval_work(worker)) {
+        // A cell is leased only when there is no training assignment to give.
+        let r = self.0.assignment(worker).map(|a| {
+            let eval = if a.is_none() { self.0.eval_work(worker) } else { None };
+            (a, eval)
+        });
+        let r = r.map(|pair| match pair {
             (Some(a), _) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: Some(sf_proto::assignment_to_wire(&a)), eval: None },
             (None, Some(w)) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: None, eval: Some(sf_proto::eval_work_to_wire(&w)) },
             // An evaluation's last cells are leased to others: ask again soon, one may come back.
