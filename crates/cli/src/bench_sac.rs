@@ -7,7 +7,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -43,6 +43,10 @@ pub struct SacArgs {
     device: DeviceArg,
     #[arg(long)]
     json: bool,
+    /// Benchmark a job config's observation, network and SAC settings instead of `--size`
+    /// (e.g. configs/ladder/jobs/l4-ego-idm.toml).
+    #[arg(long)]
+    job: Option<std::path::PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -85,12 +89,22 @@ fn sac_device(d: DeviceArg) -> sf_nn::device::DeviceKind {
 }
 
 pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
-    let (sim, net) = size_config(a.size);
+    let job = match &a.job {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            Some(sf_job::JobConfig::from_toml(&text).with_context(|| p.display().to_string())?)
+        }
+        None => None,
+    };
+    let (sim, net) = match &job {
+        Some(j) => (sf_sac::setup::sim_config(j, None), sf_sac::setup::net_config(j)),
+        None => size_config(a.size),
+    };
     let sim = Arc::new(sim);
     let map = ctx.map("intersection")?;
     let mut venv = VecEnv::new(map.clone(), sim.clone(), VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (20, 20), seed: 1 });
     let spec = venv.spec.clone();
-    let mut replay = Replay::new(100_000, spec.len, 2);
+    let mut replay = Replay::new(100_000, spec.len, net.action_dim);
     let mut actions = vec![Action::default(); venv.alive().len()];
     while replay.len() < 4 * a.batch {
         let before = venv.observations().to_vec();
@@ -101,9 +115,10 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         venv.step(&actions);
         for i in (0..alive.len()).filter(|&i| alive[i] == 1.0) {
             let act = [actions[i].ref_speed, actions[i].steer];
+            let act = &act[..net.action_dim];
             replay.push(Transition {
                 obs: &before[i * spec.len..(i + 1) * spec.len],
-                action: &act,
+                action: act,
                 reward: venv.row_steps()[i].rewards.individual,
                 next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
                 terminal: false,
@@ -114,7 +129,13 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let segs = MapSegments::build(&map, sim.obs.segment_points);
     // paper and compact follow the reference update exactly (fresh critic features).
     let reuse = matches!(a.size, Size::Default);
-    let mut sac = Sac::new(SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), ..SacConfig::default() }, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
+    let cfg = match &job {
+        // The job's SAC settings past its cloning and critic-only updates: full updates.
+        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates: 0, critic_pretrain_updates: 0, ..sf_sac::setup::sac_config(j) },
+        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), ..SacConfig::default() },
+    };
+    let reuse = cfg.reuse_critic_features;
+    let mut sac = Sac::new(cfg, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
     for b in batches.iter().take(2) {
@@ -155,7 +176,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let unshared_median = time_inference(false);
     let encoded = runner.batch(&rows, &ids).histories.encoded_histories();
     let out = json!({
-        "size": format!("{:?}", a.size).to_lowercase(),
+        "size": match &a.job { Some(p) => p.display().to_string(), None => format!("{:?}", a.size).to_lowercase() },
         "batch": a.batch,
         "updates_per_s": 1.0 / update_median,
         "update_median_s": update_median,

@@ -65,7 +65,7 @@ fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
     load_job(&dir)
 }
 
-fn load_job(dir: &Path) -> Result<Policy> {
+pub(crate) fn load_job(dir: &Path) -> Result<Policy> {
     let text = std::fs::read_to_string(dir.join("config.toml")).with_context(|| format!("reading {}/config.toml", dir.display()))?;
     let cfg = JobConfig::from_toml(&text).with_context(|| format!("{}/config.toml", dir.display()))?;
     let weights = std::fs::read(dir.join("policy.bpk")).with_context(|| format!("reading {}/policy.bpk", dir.display()))?;

@@ -14,8 +14,10 @@ mod bench_sac;
 mod bench_svc;
 mod eval;
 mod evalflow;
+mod ladder;
 mod learn;
 mod pipeline;
+mod probe;
 mod remote;
 mod render;
 mod scenarios;
@@ -44,6 +46,12 @@ enum Cmd {
     /// Submits a directory of job configs as one graph (dependencies first) and follows it;
     /// rerun, it resumes where it stopped.
     Pipeline(pipeline::PipelineArgs),
+    /// One rung of the learning ladder: trains its ego job per seed, evaluates each policy
+    /// against the IDM driver on the same stored cases and checks the rung's gate.
+    Ladder(ladder::LadderArgs),
+    /// The critic probe: trains a job's critic on demonstrator data alone and scores how well
+    /// it predicts failures on held-out episodes (AUROC, failure-row error).
+    Probe(probe::ProbeArgs),
     /// Runs the learner service (same as the `socialflow-learner` binary).
     Learner(sf_learner::cmd::LearnerArgs),
     /// Runs a rollout worker (same as the `socialflow-worker` binary).
@@ -130,6 +138,8 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Train(a) => train::run(&ctx, a),
         Cmd::Remote(c) => remote::run(c),
         Cmd::Pipeline(a) => pipeline::run(&ctx, a),
+        Cmd::Ladder(a) => ladder::run(&ctx, a),
+        Cmd::Probe(a) => probe::run(&ctx, a),
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),

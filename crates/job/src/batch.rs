@@ -13,6 +13,32 @@ pub struct EpisodeResult {
     pub success: f32,
     pub safety: f32,
     pub speed: f32,
+    /// How the scored agents' episodes ended, as fractions of them (`EpisodeMetrics`).
+    pub ends: Ends,
+}
+
+/// Fractions of an episode's scored agents that ended each way (the failures and timeouts;
+/// the rest reached their destination).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct Ends {
+    pub collision: f32,
+    pub off_road: f32,
+    pub off_route: f32,
+    pub wrong_lane: f32,
+    pub timeout: f32,
+}
+
+impl Ends {
+    pub const FIELDS: [&'static str; 5] = ["collision", "off_road", "off_route", "wrong_lane", "timeout"];
+
+    pub fn values(&self) -> [f32; 5] {
+        [self.collision, self.off_road, self.off_route, self.wrong_lane, self.timeout]
+    }
+
+    pub fn from_values(v: [f32; 5]) -> Self {
+        Self { collision: v[0], off_road: v[1], off_route: v[2], wrong_lane: v[3], timeout: v[4] }
+    }
 }
 
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -107,7 +133,17 @@ impl TransitionBatch {
         finite32("actions", &self.actions)?;
         finite32("rewards", &self.rewards)?;
         for (i, e) in self.episodes.iter().enumerate() {
-            for (field, v) in [("episodes.success", e.success), ("episodes.safety", e.safety), ("episodes.speed", e.speed)] {
+            let [c, r, o, w, t] = e.ends.values();
+            for (field, v) in [
+                ("episodes.success", e.success),
+                ("episodes.safety", e.safety),
+                ("episodes.speed", e.speed),
+                ("episodes.collision", c),
+                ("episodes.off_road", r),
+                ("episodes.off_route", o),
+                ("episodes.wrong_lane", w),
+                ("episodes.timeout", t),
+            ] {
                 if !(v.is_finite() && (0.0..=1.5).contains(&v)) {
                     return Err(BatchError::Invalid { field, reason: format!("episode {i}: {v} is not a fraction") });
                 }

@@ -84,12 +84,10 @@ impl JobKind {
     }
 
     /// Size of the policy's action: the adversary says one SVO, drivers steer and set speed.
-    pub fn action_dim(self) -> usize {
-        if self == Self::SocialcommAdv {
-            1
-        } else {
-            2
-        }
+    /// Whether its policy drives a vehicle (every kind but the SocialCommAdv adversary, whose
+    /// action is an SVO).
+    pub fn drives(self) -> bool {
+        self != Self::SocialcommAdv
     }
 
     pub fn as_str(self) -> &'static str {
@@ -210,22 +208,30 @@ pub struct EnvSection {
     #[serde(default)]
     pub ego_from: Option<String>,
     /// How a driving policy's action moves its vehicle: `"direct"` (the paper: reference speed
-    /// and steer) or `"idm-residual"` (added to the IDM driver's action and clipped, so a zero
-    /// action drives like IDM: a budget lever, see `configs/paper-small/README.md`).
+    /// and steer), `"idm-residual"` (added to the IDM driver's action and clipped, so a zero
+    /// action drives like IDM: session 5's budget lever, see `configs/paper-small/README.md`) or
+    /// `"idm-accel-residual"` (one number moving the IDM driver's acceleration linearly to full
+    /// braking at -1 and full acceleration at +1, steering left to IDM's pure pursuit: zero is
+    /// IDM exactly).
     #[serde(default)]
     pub action: ActionMode,
+    /// Ego jobs among IDM cars: the share of training episodes drawn among cases in which the
+    /// IDM driver in the ego's seat collides (the rest as usual): the conflicts IDM does not
+    /// yield in, for the ladder's learn-to-yield rung. Absent: every case as drawn.
+    #[serde(default)]
+    pub conflict_share: Option<f32>,
+    /// Overrides the observation's cap on other agents (nearest first; default 20).
+    #[serde(default)]
+    pub max_neighbours: Option<usize>,
+    /// Overrides the query-centric observation's cap on map segments (nearest first; default 96).
+    #[serde(default)]
+    pub max_segments: Option<usize>,
 }
 
-/// `env.action`: how a driving policy's action moves its vehicle.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum ActionMode {
-    /// The paper's `[reference speed, steer]`, normalised.
-    #[default]
-    Direct,
-    /// A residual on the IDM driver's normalised action: `clip(a_idm + a, -1, 1)`.
-    IdmResidual,
-}
+/// `env.action`: how a driving policy's action moves its vehicle (one type with the
+/// simulator's, which applies it).
+pub use sf_sim::DriveAction as ActionMode;
+
 fn d_vmin() -> u32 {
     8
 }
@@ -241,6 +247,16 @@ pub struct NetSection {
     pub encoder: Option<Encoder>,
     /// Overrides token width and DeepSets width (heads get twice it).
     pub width: Option<usize>,
+    /// Overrides the preset's layers in the pose embeddings (`fast`: 1, a linear map, so the
+    /// attention cannot prefer near vehicles; 2 makes it non-linear).
+    pub pose_layers: Option<usize>,
+    /// The encoder's output is `(attention + ego token) / 2`.
+    pub ego_skip: bool,
+    /// LayerNorm on the critic's features and between its Q-head layers.
+    pub critic_layer_norm: bool,
+    /// The released code's doubly squashed mean (deterministic actions within +-0.762); off
+    /// by default, kept for fidelity comparisons.
+    pub squash_mean_twice: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -263,6 +279,10 @@ pub struct SacSection {
     /// Standard deviation of the Gaussian noise on each component of the IDM demonstrator's
     /// normalised action during an IDM warm-up.
     pub warmup_noise: f32,
+    /// IDM warm-up with a residual action: the probability per step that a vehicle starts a
+    /// braking segment (its residual held at U(-1, -0.2) for 4-12 steps), so the data shows
+    /// what braking early buys. 0: none.
+    pub warmup_brake_prob: f32,
     /// The first this many updates fit the actor to the replayed actions (behaviour cloning:
     /// mean to the stored action, log-std to `ln(warmup_noise)`) while the critic learns as in
     /// SAC and alpha stays put; once the warm-up is over the cloned policy acts meanwhile.
@@ -276,8 +296,44 @@ pub struct SacSection {
     pub bc_decay_updates: u64,
     /// Entropy target of the temperature tuning (default: minus the action dimension).
     pub target_entropy: Option<f32>,
+    /// After the cloning updates, this many more updates train the critic alone (policy
+    /// evaluation of the cloned policy) before the actor and alpha move.
+    pub critic_pretrain_updates: u64,
+    /// The critic's regression loss: `"mse"` (the paper) or `"huber"` (quadratic within
+    /// `huber_delta` of the target, linear beyond, on the scaled reward's units).
+    pub critic_loss: CriticLoss,
+    pub huber_delta: f32,
+    /// What the cloning term pulls the mean action to: the replayed actions (`"replay"`), or
+    /// zero (`"zero"`: the IDM driver itself, for residual actions), only in states where the
+    /// critic rates the zero action at least as high as the policy's (`bc_q_filter`).
+    pub bc_target: BcTarget,
+    pub bc_q_filter: bool,
+    /// The actor reads the critic's (detached) encoder features and publishes a copy of the
+    /// critic's encoder instead of training its own: one encoder pass forward and backward
+    /// fewer per update.
+    pub shared_encoder: bool,
     pub seed: u64,
     pub device: Device,
+}
+
+/// `sac.critic_loss`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CriticLoss {
+    #[default]
+    Mse,
+    Huber,
+}
+
+/// `sac.bc_target`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BcTarget {
+    /// The stored actions of the replay (the demonstrator's during the warm-up).
+    #[default]
+    Replay,
+    /// The zero action (residual kinds: the IDM driver).
+    Zero,
 }
 
 /// Who acts during the warm-up (`sac.warmup_policy`).
@@ -305,10 +361,17 @@ impl Default for SacSection {
             warmup_steps: 30_000,
             warmup_policy: WarmupPolicy::Random,
             warmup_noise: 0.1,
+            warmup_brake_prob: 0.0,
             bc_updates: 0,
             bc_weight: 0.0,
             bc_decay_updates: 0,
             target_entropy: None,
+            critic_pretrain_updates: 0,
+            critic_loss: CriticLoss::Mse,
+            huber_delta: 10.0,
+            bc_target: BcTarget::Replay,
+            bc_q_filter: false,
+            shared_encoder: false,
             seed: 0,
             device: Device::Cpu,
         }
@@ -416,6 +479,16 @@ impl DepRole {
 }
 
 impl JobConfig {
+    /// Floats in its policy's action: the drive action's for driving kinds, 1 (an SVO) for the
+    /// SocialCommAdv adversary.
+    pub fn action_dim(&self) -> usize {
+        if self.kind.drives() {
+            self.env.action.dim()
+        } else {
+            1
+        }
+    }
+
     /// The jobs this one depends on, by id.
     pub fn deps(&self) -> Vec<(DepRole, u64)> {
         [(DepRole::Background, self.env.background_job), (DepRole::Ego, self.env.ego_job), (DepRole::Init, self.train.init_job)].into_iter().filter_map(|(r, id)| id.map(|id| (r, id))).collect()
@@ -537,14 +610,49 @@ impl JobConfig {
         if !(s.warmup_noise.is_finite() && (0.0..=1.0).contains(&s.warmup_noise)) {
             return bad("sac.warmup_noise", format!("{} must be in [0, 1]", s.warmup_noise));
         }
-        if s.warmup_policy == WarmupPolicy::Idm && self.kind.action_dim() != 2 {
+        if s.warmup_policy == WarmupPolicy::Idm && !self.kind.drives() {
             return bad("sac.warmup_policy", format!("\"idm\" drives a vehicle; a {} job's action is an SVO", self.kind.as_str()));
         }
-        if self.env.action == ActionMode::IdmResidual && self.kind.action_dim() != 2 {
-            return bad("env.action", format!("\"idm-residual\" is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
+        if self.env.action != ActionMode::Direct && !self.kind.drives() {
+            return bad("env.action", format!("a residual action is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
         }
-        if self.env.action == ActionMode::IdmResidual && s.warmup_policy != WarmupPolicy::Idm {
-            return bad("sac.warmup_policy", "an \"idm-residual\" policy warms up around the IDM driver: set sac.warmup_policy = \"idm\"");
+        if self.env.action != ActionMode::Direct && s.warmup_policy != WarmupPolicy::Idm {
+            return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\"");
+        }
+        if !(s.warmup_brake_prob.is_finite() && (0.0..=1.0).contains(&s.warmup_brake_prob)) {
+            return bad("sac.warmup_brake_prob", format!("{} must be in [0, 1]", s.warmup_brake_prob));
+        }
+        if s.warmup_brake_prob > 0.0 && (self.env.action == ActionMode::Direct || s.warmup_policy != WarmupPolicy::Idm) {
+            return bad("sac.warmup_brake_prob", "braking segments hold a residual of an IDM warm-up: set env.action to a residual kind and sac.warmup_policy = \"idm\"");
+        }
+        if s.bc_target == BcTarget::Zero && self.env.action == ActionMode::Direct {
+            return bad("sac.bc_target", "\"zero\" is the IDM driver only for residual actions: set env.action to a residual kind");
+        }
+        if s.bc_q_filter && s.bc_target != BcTarget::Zero {
+            return bad("sac.bc_q_filter", "the Q filter compares the policy with the zero action: set sac.bc_target = \"zero\"");
+        }
+        if !(s.huber_delta.is_finite() && s.huber_delta > 0.0) {
+            return bad("sac.huber_delta", format!("{} must be positive", s.huber_delta));
+        }
+        if let Some(p) = self.env.conflict_share {
+            if !(p.is_finite() && (0.0..=1.0).contains(&p)) {
+                return bad("env.conflict_share", format!("{p} must be in [0, 1]"));
+            }
+            if self.kind != JobKind::Ego || self.env.background_job.is_some() || self.env.background_from.is_some() {
+                return bad("env.conflict_share", "conflict cases are chosen by the IDM ego's fate among IDM cars: an ego job with no background job");
+            }
+        }
+        for (f, v, hi) in [("env.max_neighbours", self.env.max_neighbours, 64), ("env.max_segments", self.env.max_segments, 512)] {
+            if let Some(v) = v {
+                if !(1..=hi).contains(&v) {
+                    return bad(f, format!("{v} must be in 1..={hi}"));
+                }
+            }
+        }
+        if let Some(p) = self.net.pose_layers {
+            if !(1..=4).contains(&p) {
+                return bad("net.pose_layers", format!("{p} must be in 1..=4"));
+            }
         }
         if s.bc_updates > 0 && s.warmup_policy != WarmupPolicy::Idm {
             return bad("sac.bc_updates", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
@@ -660,6 +768,34 @@ mod tests {
         assert!(e.to_string().contains("sac.warmup_policy"), "{e}");
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"expert\"\n")).expect_err("unknown policy");
         assert!(e.to_string().contains("warmup_policy"), "{e}");
+    }
+
+    /// The acceleration residual, the critic's and the cloning term's options, and the
+    /// observation caps: accepted when they fit, refused naming the field otherwise.
+    #[test]
+    fn the_learning_recipe_is_checked() {
+        let env = MIN.replace("[train]", "action = \"idm-accel-residual\"\nmax_neighbours = 10\nmax_segments = 48\n[train]");
+        let ok = JobConfig::from_toml(&format!(
+            "{env}[net]\npose_layers = 2\nego_skip = true\ncritic_layer_norm = true\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\ncritic_loss = \"huber\"\nbc_target = \"zero\"\nbc_q_filter = true\ncritic_pretrain_updates = 10\nshared_encoder = true\n"
+        ))
+        .expect("valid");
+        assert_eq!((ok.action_dim(), ok.env.max_neighbours, ok.sac.critic_loss, ok.sac.bc_target), (1, Some(10), CriticLoss::Huber, BcTarget::Zero));
+        assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
+        for (text, field) in [
+            (format!("{env}[sac]\nwarmup_steps = 100\n"), "sac.warmup_policy"),
+            (format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\n"), "sac.bc_target"),
+            (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_q_filter = true\n"), "sac.bc_q_filter"),
+            (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nhuber_delta = 0.0\n"), "sac.huber_delta"),
+            (format!("{env}[net]\npose_layers = 9\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"), "net.pose_layers"),
+            (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "max_segments = 0\n[train]")), "env.max_segments"),
+            (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "action = \"idm-brake\"\n[train]")), "action"),
+        ] {
+            let e = JobConfig::from_toml(&text).expect_err(field);
+            assert!(e.to_string().contains(field), "{field}: {e}");
+        }
+        let adv = "kind = \"socialcomm-adv\"\n".to_string() + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\naction = \"idm-accel-residual\"\n[train]");
+        let e = JobConfig::from_toml(&format!("{adv}[sac]\nwarmup_steps = 100\n")).expect_err("adversary");
+        assert!(e.to_string().contains("env.action"), "{e}");
     }
 
     #[test]

@@ -11,7 +11,7 @@ pub mod batch;
 pub mod eval;
 pub mod config;
 
-pub use batch::{BatchError, EpisodeResult, TransitionBatch};
+pub use batch::{BatchError, Ends, EpisodeResult, TransitionBatch};
 pub use config::{ConfigError, DepRole, JobConfig};
 
 use serde::{Deserialize, Serialize};

@@ -1,6 +1,7 @@
 //! Network sizes and variants. Sizes are configuration, not code.
 
 use serde::{Deserialize, Serialize};
+pub use sf_sim::DriveAction;
 
 /// Which encoder reads the observation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -41,11 +42,23 @@ pub struct NetConfig {
     pub svo: SvoInput,
     /// FailMaker: the ego flag channel is consumed.
     pub ego_flag: bool,
-    /// Action dimension (2 for driving, 1 for the adversary).
+    /// Action dimension (`action.dim()` for driving, 1 for the adversary).
     pub action_dim: usize,
-    /// The driving action is a residual added to the IDM driver's action (`env.action =
-    /// "idm-residual"`); whoever runs the policy applies it (`sf_sac::drive`).
-    pub idm_residual: bool,
+    /// How a driving policy's action moves its vehicle (`env.action`); whoever runs the policy
+    /// applies it (`sf_sac::drive`).
+    pub action: DriveAction,
+    /// The released code's mean head: tanh on the mean *and* on the sample, so the
+    /// deterministic action stays within +-tanh(1) = +-0.762. Off (default): the mean is
+    /// squashed once, by the sample's tanh.
+    pub squash_mean_twice: bool,
+    /// The actor's log-std at initialisation (the log-std head's output bias); a warm-up with a
+    /// demonstrator sets it to the demonstrator's noise so the first policy is not noisier.
+    pub init_log_std: f32,
+    /// LayerNorm on the critic's encoder features and between its Q-head layers (RLPD, DroQ).
+    pub critic_layer_norm: bool,
+    /// The heads read `[ego token, attention output]` instead of the attention output alone,
+    /// so the ego's own state reaches them undiluted (highway-env's ego-attention adds them).
+    pub ego_skip: bool,
 }
 
 impl Default for NetConfig {
@@ -68,7 +81,11 @@ impl NetConfig {
             svo: SvoInput::None,
             ego_flag: false,
             action_dim: 2,
-            idm_residual: false,
+            action: DriveAction::Direct,
+            squash_mean_twice: false,
+            init_log_std: -1.0,
+            critic_layer_norm: false,
+            ego_skip: false,
         }
     }
 
@@ -88,6 +105,9 @@ impl NetConfig {
             if v == 0 {
                 return Err(format!("net config field `{f}` must be positive"));
             }
+        }
+        if !(-2.5..=0.5).contains(&self.init_log_std) {
+            return Err(format!("net config field `init_log_std` must lie in the actor's log-std range [-2.5, 0.5], got {}", self.init_log_std));
         }
         if !self.d_model.is_multiple_of(self.heads) {
             return Err(format!("net config field `heads`: d_model {} is not divisible by {}", self.d_model, self.heads));

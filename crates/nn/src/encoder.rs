@@ -30,6 +30,9 @@ pub struct Encoder {
     pub attn: EgoAttention,
     #[module(skip)]
     pub kind: EncoderKind,
+    /// `NetConfig::ego_skip`: the output is `(attention + ego token) / 2`.
+    #[module(skip)]
+    pub ego_skip: bool,
 }
 
 /// Map-segment embeddings of one or more maps, computed once per weight version and shared
@@ -93,6 +96,7 @@ impl Encoder {
             type_emb: Param::from_tensor(Tensor::from_data(TensorData::new(type_emb, [TYPES, d]), device)),
             attn: EgoAttention::new(init, d, cfg.heads, device),
             kind: cfg.encoder,
+            ego_skip: cfg.ego_skip,
         }
     }
 
@@ -139,7 +143,12 @@ impl Encoder {
         types.extend(std::iter::repeat_n(T_MAP, m));
         let types = Tensor::<1, Int>::from_data(TensorData::new(types, [t]), &tokens.device());
         let keys = tokens.clone() + self.type_emb.val().select(0, types).unsqueeze_dim::<3>(0);
-        self.attn.forward(ego, keys, tokens, obs.pad.clone())
+        let out = self.attn.forward(ego.clone(), keys, tokens, obs.pad.clone());
+        if self.ego_skip {
+            (out + ego).mul_scalar(0.5)
+        } else {
+            out
+        }
     }
 
     pub fn d(&self) -> usize {

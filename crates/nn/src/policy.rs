@@ -2,8 +2,10 @@
 
 use std::f32::consts::PI;
 
-use burn::module::Module;
-use burn::tensor::{Device, Tensor};
+use burn::module::{Module, Param};
+use burn::nn::{LayerNorm, LayerNormConfig};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::batch::ObsBatch;
 use crate::config::NetConfig;
@@ -17,6 +19,9 @@ pub struct Actor {
     pub enc: Encoder,
     pub mean: Mlp,
     pub log_std: Mlp,
+    /// `NetConfig::squash_mean_twice` (the released code's double tanh).
+    #[module(skip)]
+    pub squash_mean_twice: bool,
 }
 
 /// Twin Q: `(obs, action) -> (Q1, Q2)`.
@@ -25,6 +30,15 @@ pub struct Critic {
     pub enc: Encoder,
     pub q1: Mlp,
     pub q2: Mlp,
+    /// `NetConfig::critic_layer_norm`: one LayerNorm on the encoder features, then one after
+    /// each hidden layer of each head (`[features, q1 hidden.., q2 hidden..]`); empty when off.
+    pub norms: Vec<LayerNorm>,
+}
+
+/// `x -> atanh((x + 1) / 1.5)`: the pre-squash value whose [`squash_log_std`] is `x`.
+fn unsquash_log_std(x: f32) -> f32 {
+    let y = ((x + 1.0) / 1.5).clamp(-0.999, 0.999);
+    0.5 * ((1.0 + y) / (1.0 - y)).ln()
 }
 
 /// `0.5 * (3 tanh(x) - 2)`: log standard deviation in [-2.5, 0.5] (log variance in [-5, 1]).
@@ -52,13 +66,28 @@ impl Actor {
     pub fn new(cfg: &NetConfig, seed: u64, device: &Device) -> Self {
         let mut init = Init::new(seed);
         let (d, h, a) = (cfg.d_model, cfg.head_hidden, cfg.action_dim);
-        Self { enc: Encoder::new(cfg, &mut init, device), mean: init.mlp(&[d, h, h, a], device), log_std: init.mlp(&[d, h, h, a], device) }
+        let enc = Encoder::new(cfg, &mut init, device);
+        let mean = init.mlp(&[d, h, h, a], device);
+        let mut log_std = init.mlp(&[d, h, h, a], device);
+        // The first policy's spread: the log-std head's output bias.
+        if let Some(last) = log_std.layers.last_mut() {
+            let b = TensorData::new(vec![unsquash_log_std(cfg.init_log_std); a], [a]);
+            last.bias = Some(Param::from_tensor(Tensor::from_data(b, device)));
+        }
+        Self { enc, mean, log_std, squash_mean_twice: cfg.squash_mean_twice }
     }
 
-    /// `obs -> (mean [B, A] in (-1, 1), log_std [B, A])`.
+    /// `obs -> (mean [B, A] before the sample's tanh, log_std [B, A])`. The mean is unbounded,
+    /// or in (-1, 1) with `squash_mean_twice`.
     pub fn dist(&self, obs: &ObsBatch, table: Option<&SegmentTable>) -> (Tensor<2>, Tensor<2>) {
-        let f = self.enc.forward(obs, table);
-        (self.mean.forward(f.clone()).tanh(), squash_log_std(self.log_std.forward(f)))
+        self.dist_from_features(self.enc.forward(obs, table))
+    }
+
+    /// [`Actor::dist`] on encoder features `[B, D]` (another encoder's, when they are shared).
+    pub fn dist_from_features(&self, f: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let mean = self.mean.forward(f.clone());
+        let mean = if self.squash_mean_twice { mean.tanh() } else { mean };
+        (mean, squash_log_std(self.log_std.forward(f)))
     }
 
     /// Reparameterised sample with standard-normal noise `eps: [B, A]` -> `(a [B, A], logp [B, 1])`.
@@ -77,13 +106,41 @@ impl Critic {
     pub fn new(cfg: &NetConfig, seed: u64, device: &Device) -> Self {
         let mut init = Init::new(seed);
         let (d, h, a) = (cfg.d_model, cfg.head_hidden, cfg.action_dim);
-        Self { enc: Encoder::new(cfg, &mut init, device), q1: init.mlp(&[d + a, h, h, 1], device), q2: init.mlp(&[d + a, h, h, 1], device) }
+        let enc = Encoder::new(cfg, &mut init, device);
+        let (q1, q2) = (init.mlp(&[d + a, h, h, 1], device), init.mlp(&[d + a, h, h, 1], device));
+        let norms = if cfg.critic_layer_norm {
+            std::iter::once(d).chain(std::iter::repeat_n(h, 4)).map(|w| LayerNormConfig::new(w).init(device)).collect()
+        } else {
+            Vec::new()
+        };
+        Self { enc, q1, q2, norms }
+    }
+
+    /// One Q head, with LayerNorm after each hidden layer (`norms`, one per hidden layer) or not.
+    fn head(q: &Mlp, norms: &[LayerNorm], mut x: Tensor<2>) -> Tensor<2> {
+        if norms.is_empty() {
+            return q.forward(x);
+        }
+        let n = q.layers.len();
+        for (i, l) in q.layers.iter().enumerate() {
+            x = l.forward(x);
+            if i + 1 < n {
+                x = relu(norms[i].forward(x));
+            }
+        }
+        x
     }
 
     /// Q heads on encoder features `f: [B, D]` and actions `[B, A]` -> `([B, 1], [B, 1])`.
     pub fn heads(&self, f: Tensor<2>, a: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let f = match self.norms.first() {
+            Some(ln) => ln.forward(f),
+            None => f,
+        };
         let x = Tensor::cat(vec![f, a], 1);
-        (self.q1.forward(x.clone()), self.q2.forward(x))
+        let hidden = self.q1.layers.len().saturating_sub(1);
+        let (n1, n2) = if self.norms.is_empty() { (&[][..], &[][..]) } else { self.norms[1..].split_at(hidden) };
+        (Self::head(&self.q1, n1, x.clone()), Self::head(&self.q2, n2, x))
     }
 
     pub fn forward(&self, obs: &ObsBatch, table: Option<&SegmentTable>, a: Tensor<2>) -> (Tensor<2>, Tensor<2>) {

@@ -9,7 +9,7 @@
 
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};
-use sf_job::{Assignment, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Progress, TransitionBatch};
+use sf_job::{Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Progress, TransitionBatch};
 
 #[allow(clippy::all, missing_docs)]
 pub mod pb {
@@ -268,7 +268,17 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
         episodes: b
             .episodes
             .iter()
-            .map(|e| pb::EpisodeResult { scenario_index: e.scenario_index, success: e.success, safety: e.safety, speed: e.speed })
+            .map(|e| pb::EpisodeResult {
+                scenario_index: e.scenario_index,
+                success: e.success,
+                safety: e.safety,
+                speed: e.speed,
+                collision: e.ends.collision,
+                off_road: e.ends.off_road,
+                off_route: e.ends.off_route,
+                wrong_lane: e.ends.wrong_lane,
+                timeout: e.ends.timeout,
+            })
             .collect(),
         sim_steps: b.sim_steps,
     }
@@ -304,7 +314,17 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
         rewards: m.rewards,
         terminals,
         map_ids: m.map_ids,
-        episodes: m.episodes.iter().map(|e| EpisodeResult { scenario_index: e.scenario_index, success: e.success, safety: e.safety, speed: e.speed }).collect(),
+        episodes: m
+            .episodes
+            .iter()
+            .map(|e| EpisodeResult {
+                scenario_index: e.scenario_index,
+                success: e.success,
+                safety: e.safety,
+                speed: e.speed,
+                ends: Ends { collision: e.collision, off_road: e.off_road, off_route: e.off_route, wrong_lane: e.wrong_lane, timeout: e.timeout },
+            })
+            .collect(),
         sim_steps: m.sim_steps,
     };
     b.validate().map_err(|e| WireError { field: "batch", reason: e.to_string() })?;
@@ -319,7 +339,7 @@ mod tests {
     fn a_batch_round_trips_and_bad_ones_are_named() {
         let mut b = TransitionBatch::new(3, 4, 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
-        b.episodes.push(EpisodeResult { scenario_index: 1, success: 1.0, safety: 1.0, speed: 0.5 });
+        b.episodes.push(EpisodeResult { scenario_index: 1, success: 1.0, safety: 1.0, speed: 0.5, ends: Ends { collision: 0.25, timeout: 0.5, ..Ends::default() } });
         let back = batch_from_wire(batch_to_wire(&b)).expect("round trip");
         assert_eq!(back, b);
 

@@ -13,7 +13,7 @@ use rand::Rng;
 use rand_distr::StandardNormal;
 use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::VecEnv;
-use sf_sim::Action;
+use sf_sim::{Action, DriveAction};
 
 use crate::inference::PolicyRunner;
 use crate::setup::adversary_svo_deg;
@@ -21,12 +21,12 @@ use crate::setup::adversary_svo_deg;
 /// How one role acts.
 #[derive(Clone, Copy)]
 pub enum Actor<'a> {
-    /// Uniform in [-1, 1] (warm-up).
-    Random,
-    /// The IDM demonstrator ([`VecEnv::demo_actions`]) with Gaussian noise of this standard
-    /// deviation per component, clipped to [-1, 1] (the IDM warm-up). Driving roles only.
-    /// For a role whose actions are IDM residuals it acts with the residual: the noise alone.
-    Demo { noise: f32, residual: bool },
+    /// Uniform in [-1, 1], `dim` floats (warm-up); driving roles read them as the paper's action.
+    Random { dim: usize },
+    /// The IDM demonstrator ([`VecEnv::demo_action`]) expressed as `action` (for residual
+    /// kinds: zero) with Gaussian noise of this standard deviation per component, clipped to
+    /// [-1, 1] (the IDM warm-up). Driving roles only.
+    Demo { noise: f32, action: DriveAction },
     /// A policy: sampled, or its mean action when `deterministic` (evaluation).
     Policy { runner: &'a PolicyRunner, deterministic: bool },
 }
@@ -40,12 +40,21 @@ impl<'a> Actor<'a> {
         Self::Policy { runner, deterministic: true }
     }
 
-    /// Its actions are residuals on the IDM driver's ([`apply`] adds the driver's action).
-    pub fn idm_residual(&self) -> bool {
+    /// How its action vector moves a vehicle ([`apply`] turns it into the vehicle's command).
+    pub fn drive_action(&self) -> DriveAction {
         match self {
-            Actor::Random => false,
-            Actor::Demo { residual, .. } => *residual,
-            Actor::Policy { runner, .. } => runner.idm_residual(),
+            Actor::Random { .. } => DriveAction::Direct,
+            Actor::Demo { action, .. } => *action,
+            Actor::Policy { runner, .. } => runner.net().action,
+        }
+    }
+
+    /// Floats per action.
+    pub fn dim(&self) -> usize {
+        match self {
+            Actor::Random { dim } => *dim,
+            Actor::Demo { action, .. } => action.dim(),
+            Actor::Policy { runner, .. } => runner.net().action_dim,
         }
     }
 }
@@ -66,30 +75,35 @@ pub struct Decision {
     /// Row indices of live `alive` rows and of live externally driven background rows.
     pub alive_rows: Vec<Vec<usize>>,
     pub background_rows: Vec<Vec<usize>>,
-    /// Two floats per row of `alive_rows` / `background_rows`.
+    /// `alive_action.dim()` / `background_action.dim()` floats per row of `alive_rows` /
+    /// `background_rows`.
     pub alive_actions: Vec<Vec<f32>>,
     pub background_actions: Vec<Vec<f32>>,
     /// One float per row of `alive_rows` when there is an adversary (its raw action).
     pub adversary_actions: Vec<Vec<f32>>,
     /// Observations that went through a policy this step.
     pub inferred_rows: usize,
-    /// The `alive` / `background` actions are residuals on the IDM driver's.
-    pub alive_residual: bool,
-    pub background_residual: bool,
+    /// How the `alive` / `background` actions move their vehicles.
+    pub alive_action: DriveAction,
+    pub background_action: DriveAction,
 }
 
 fn flagged(flags: &[f32]) -> Vec<usize> {
     (0..flags.len()).filter(|&r| flags[r] == 1.0).collect()
 }
 
-/// `dim` actions per listed row of every batch, one inference for all of them.
-fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, dim: usize, rng: &mut impl Rng) -> (Vec<Vec<f32>>, usize) {
+/// `actor.dim()` actions per listed row of every batch, one inference for all of them.
+fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) -> (Vec<Vec<f32>>, usize) {
     let n: usize = rows.iter().map(Vec::len).sum();
+    let dim = actor.dim();
     let flat = match actor {
-        Actor::Random => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
-        Actor::Demo { noise, residual } => {
-            assert_eq!(dim, 2, "the IDM demonstrator drives; it has no other action");
-            let mut a: Vec<f32> = if residual { vec![0.0; n * dim] } else { venvs.iter().zip(rows).flat_map(|(v, rs)| v.demo_actions(rs)).collect() };
+        Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        Actor::Demo { noise, action } => {
+            let mut a: Vec<f32> = if action.needs_demo() || action == DriveAction::Direct {
+                venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect()
+            } else {
+                vec![0.0; n * dim]
+            };
             for x in &mut a {
                 let e: f32 = rng.sample(StandardNormal);
                 *x = (*x + noise * e).clamp(-1.0, 1.0);
@@ -127,7 +141,8 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
     let alive_rows: Vec<Vec<usize>> = venvs.iter().map(|v| flagged(v.alive())).collect();
     let mut out = Decision { alive_rows, ..Decision::default() };
     if let Some(adv) = d.adversary {
-        let (a, n) = act(venvs, &out.alive_rows, adv, 1, rng);
+        assert_eq!(adv.dim(), 1, "the adversary's action is one SVO");
+        let (a, n) = act(venvs, &out.alive_rows, adv, rng);
         out.inferred_rows += n;
         for ((v, rs), acts) in venvs.iter_mut().zip(&out.alive_rows).zip(&a) {
             // The ego is agent 0 of its environment: row k * max_agents.
@@ -140,14 +155,14 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
         out.adversary_actions = a;
     }
     out.background_rows = venvs.iter().map(|v| flagged(v.background())).collect();
-    let (a, n) = act(venvs, &out.alive_rows, d.alive, 2, rng);
+    let (a, n) = act(venvs, &out.alive_rows, d.alive, rng);
     out.alive_actions = a;
-    out.alive_residual = d.alive.idm_residual();
+    out.alive_action = d.alive.drive_action();
     out.inferred_rows += n;
     if let Some(bg) = d.background {
-        let (a, n) = act(venvs, &out.background_rows, bg, 2, rng);
+        let (a, n) = act(venvs, &out.background_rows, bg, rng);
         out.background_actions = a;
-        out.background_residual = bg.idm_residual();
+        out.background_action = bg.drive_action();
         out.inferred_rows += n;
     } else {
         out.background_actions = out.background_rows.iter().map(|rs| vec![0.0; rs.len() * 2]).collect();
@@ -155,21 +170,67 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
     out
 }
 
-/// Steps every batch with the decided driving actions (rows without one keep the default);
-/// a residual role's action is added to the IDM driver's action in the state it was decided
-/// in, and clipped to [-1, 1].
+/// Steps every batch with the decided driving actions (rows without one keep the default),
+/// each turned into its vehicle's command by its role's [`DriveAction`]: an `idm-residual`
+/// role's action is added to the IDM driver's action in the state it was decided in.
 pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
     for (k, v) in venvs.iter_mut().enumerate() {
         let mut acts = vec![Action::default(); v.alive().len()];
-        for (rows, a, residual) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_residual), (&d.background_rows[k], &d.background_actions[k], d.background_residual)] {
-            // The IDM driver's actions only for residual roles; others drive their action as is.
-            let base = residual.then(|| v.demo_actions(rows));
+        for (rows, a, kind) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_action), (&d.background_rows[k], &d.background_actions[k], d.background_action)] {
+            let dim = kind.dim();
             for (j, &r) in rows.iter().enumerate() {
-                let c = |i: usize| (a[i] + base.as_ref().map_or(0.0, |b| b[i])).clamp(-1.0, 1.0);
-                acts[r] = Action { ref_speed: c(j * 2), steer: c(j * 2 + 1) };
+                // The IDM driver's action only where the kind adds to it.
+                let demo = kind.needs_demo().then(|| v.demo_action(r));
+                acts[r] = kind.command(&a[j * dim..(j + 1) * dim], demo);
             }
         }
         v.step(&acts);
+    }
+}
+
+/// Braking segments in a demonstrator's warm-up: with probability `start_prob` per step a
+/// driving row starts holding its action's first component (the speed or acceleration
+/// residual) at a value drawn from U(-1, -0.2) for 4 to 12 decision steps, so the data shows
+/// what braking early buys (and costs). State per row, cleared when the row's episode ends.
+pub struct BrakeSegments {
+    start_prob: f32,
+    /// Per batch, per row: steps left and the value held.
+    left: Vec<Vec<(u32, f32)>>,
+}
+
+impl BrakeSegments {
+    pub fn new(start_prob: f32, venvs: &[VecEnv]) -> Self {
+        Self { start_prob, left: venvs.iter().map(|v| vec![(0, 0.0); v.alive().len()]).collect() }
+    }
+
+    /// Overrides the decided `alive` actions of rows in a segment (call between [`decide`]
+    /// and [`apply`]; the recorded action is then the one applied).
+    pub fn overlay(&mut self, d: &mut Decision, rng: &mut impl Rng) {
+        let dim = d.alive_action.dim();
+        for (k, rows) in d.alive_rows.iter().enumerate() {
+            for (j, &r) in rows.iter().enumerate() {
+                let (left, value) = &mut self.left[k][r];
+                if *left == 0 && rng.random::<f32>() < self.start_prob {
+                    *left = rng.random_range(4..=12);
+                    *value = rng.random_range(-1.0..-0.2);
+                }
+                if *left > 0 {
+                    *left -= 1;
+                    d.alive_actions[k][j * dim] = *value;
+                }
+            }
+        }
+    }
+
+    /// Ends the segments of rows whose episode ended in the last step (call after [`apply`]).
+    pub fn after_step(&mut self, venvs: &[VecEnv]) {
+        for (k, v) in venvs.iter().enumerate() {
+            for (r, st) in v.row_steps().iter().enumerate() {
+                if st.ended.is_some() {
+                    self.left[k][r] = (0, 0.0);
+                }
+            }
+        }
     }
 }
 

@@ -44,6 +44,7 @@ pub struct EgoRun {
 
 /// One point of a learning curve.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct CurvePoint {
     pub env_steps: u64,
     pub updates: u64,
@@ -51,22 +52,49 @@ pub struct CurvePoint {
     pub success: f32,
     pub safety: f32,
     pub speed: f32,
+    /// The last update's single-batch losses.
     pub critic_loss: f32,
     pub actor_loss: f32,
     pub alpha: f32,
     pub entropy: f32,
     pub wall_s: f64,
+    /// Rolling fractions of how episodes ended (same window as `success`).
+    pub ends: sf_job::Ends,
+    /// Mean critic loss over the updates since the previous point, and its median.
+    pub critic_loss_mean: f32,
+    pub critic_loss_median: f32,
+    pub q_mean: f32,
 }
 
 impl CurvePoint {
     /// Header of the curve CSV files (`curve.csv`).
-    pub const CSV_HEADER: &'static str = "env_steps,updates,episodes,success,safety,speed,critic_loss,actor_loss,alpha,entropy,wall_s";
+    pub const CSV_HEADER: &'static str =
+        "env_steps,updates,episodes,success,safety,speed,critic_loss,actor_loss,alpha,entropy,wall_s,collision,off_road,off_route,wrong_lane,timeout,critic_loss_mean,critic_loss_median,q_mean";
 
     /// One CSV row (no newline) in [`CurvePoint::CSV_HEADER`] order.
     pub fn csv_row(&self) -> String {
+        let e = &self.ends;
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{:.1}",
-            self.env_steps, self.updates, self.episodes, self.success, self.safety, self.speed, self.critic_loss, self.actor_loss, self.alpha, self.entropy, self.wall_s
+            "{},{},{},{},{},{},{},{},{},{},{:.1},{},{},{},{},{},{},{},{}",
+            self.env_steps,
+            self.updates,
+            self.episodes,
+            self.success,
+            self.safety,
+            self.speed,
+            self.critic_loss,
+            self.actor_loss,
+            self.alpha,
+            self.entropy,
+            self.wall_s,
+            e.collision,
+            e.off_road,
+            e.off_route,
+            e.wrong_lane,
+            e.timeout,
+            self.critic_loss_mean,
+            self.critic_loss_median,
+            self.q_mean
         )
     }
 }
@@ -111,7 +139,7 @@ pub fn train_ego(sim: &Arc<SimConfig>, sac: &mut Sac, run: &EgoRun, mut on_point
             let mut actions = vec![Action::default(); v.alive().len()];
             if steps < sac.cfg.warmup_steps {
                 for &r in &rows {
-                    actions[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0) };
+                    actions[r] = Action { ref_speed: rng.random_range(-1.0..1.0), steer: rng.random_range(-1.0..1.0), idm_accel: None };
                 }
             } else if !rows.is_empty() {
                 let mut obs = Vec::with_capacity(rows.len() * spec.len);
@@ -125,7 +153,7 @@ pub fn train_ego(sim: &Arc<SimConfig>, sac: &mut Sac, run: &EgoRun, mut on_point
                 let (a, _) = policy.sample(&ob, table.as_ref(), eps);
                 let a: Vec<f32> = a.into_data().try_to_vec().expect("actions are f32");
                 for (j, &r) in rows.iter().enumerate() {
-                    actions[r] = Action { ref_speed: a[j * a_dim], steer: a[j * a_dim + 1] };
+                    actions[r] = Action { ref_speed: a[j * a_dim], steer: a[j * a_dim + 1], idm_accel: None };
                 }
             }
             let before = v.observations().to_vec();
@@ -179,6 +207,7 @@ pub fn train_ego(sim: &Arc<SimConfig>, sac: &mut Sac, run: &EgoRun, mut on_point
                 alpha: last.alpha,
                 entropy: last.entropy,
                 wall_s: start.elapsed().as_secs_f64(),
+                ..CurvePoint::default()
             };
             on_point(&p);
             curve.push(p);

@@ -136,7 +136,8 @@ impl Runners {
         Arc::clone(self.segments.entry(map.name.clone()).or_insert_with(|| Arc::new(MapSegments::build(map, SimConfig::default().obs.segment_points))))
     }
 
-    fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, String> {
+    /// The runner of `p` on `map` (built once, then cached).
+    pub fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, String> {
         let key = (p.key.clone(), map.name.clone());
         if let Some(r) = self.cache.get(&key) {
             return Ok(Arc::clone(r));
@@ -166,7 +167,7 @@ impl Acting {
             (Some(e), bg) => Drivers { alive: Actor::mean(e), background: bg.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) },
             (None, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
             // The all-IDM flow: its vehicles' controllers ignore these actions.
-            (None, None) => Drivers { alive: Actor::Random, background: None, adversary: None },
+            (None, None) => Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None },
         }
     }
 }

@@ -40,9 +40,9 @@ impl PolicyRunner {
         Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
     }
 
-    /// Whether this policy's actions are residuals on the IDM driver's (see `drive`).
-    pub fn idm_residual(&self) -> bool {
-        self.net.idm_residual
+    /// The network it runs (its action kind and size among them).
+    pub fn net(&self) -> &NetConfig {
+        &self.net
     }
 
     /// Rows of one step: in the query-centric layout each agent's history is encoded once for

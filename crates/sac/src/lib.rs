@@ -3,7 +3,7 @@
 //! Owns: the replay buffer ([`replay`]), the Reverb-style rate limiter ([`rate_limiter`]),
 //! the SAC state and update ([`sac`]) and checkpoints that restore training exactly
 //! ([`checkpoint`]), the job-config mapping ([`setup`]), batched inference ([`inference`]) and
-//! who acts in a step of batched simulators ([`drive`]), one cell of an evaluation grid ([`evaluate`]). Must not: do IO on the update path or know about gRPC.
+//! who acts in a step of batched simulators ([`drive`]), one cell of an evaluation grid ([`evaluate`]), the critic probe ([`probe`]). Must not: do IO on the update path or know about gRPC.
 
 pub mod checkpoint;
 pub mod coordinator;
@@ -11,6 +11,7 @@ pub mod drive;
 pub mod ego;
 pub mod evaluate;
 pub mod inference;
+pub mod probe;
 pub mod rate_limiter;
 pub mod replay;
 pub mod sac;

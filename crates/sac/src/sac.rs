@@ -55,7 +55,24 @@ pub struct SacConfig {
     /// `bc_weight` to 0 over `bc_decay_updates` updates.
     pub bc_weight: f32,
     pub bc_decay_updates: u64,
+    /// After the cloning updates, this many updates train the critic alone (the actor and
+    /// alpha stay put): policy evaluation of the cloned policy before it improves.
+    pub critic_pretrain_updates: u64,
+    pub critic_loss: CriticLoss,
+    /// Huber's threshold, in scaled-reward units.
+    pub huber_delta: f32,
+    /// What the cloning *term* (after the cloning updates) pulls the mean action to.
+    pub bc_target: BcTarget,
+    /// The actor reads the critic's encoder features (detached) instead of training its own
+    /// encoder; its published encoder is a copy of the critic's. Saves the actor's encoder
+    /// pass forward and backward (SAC-AE / DrQ practice).
+    pub shared_encoder: bool,
+    /// With `BcTarget::Zero`: clone zero only in the batch's states where the critic rates it
+    /// at least as high as the policy's sampled action (Q-filtered cloning, Nair et al. 2018).
+    pub bc_q_filter: bool,
 }
+
+pub use sf_job::config::{BcTarget, CriticLoss};
 
 impl Default for SacConfig {
     /// The paper's table, kept once in `sf_job::config::SacSection`, with rewards unscaled.
@@ -121,8 +138,11 @@ impl Sac {
         }
         let plain = device::device(cfg.device)?;
         let ad = plain.clone().autodiff();
-        let actor = Actor::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(1), &ad);
+        let mut actor = Actor::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(1), &ad);
         let critic = Critic::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(2), &ad);
+        if cfg.shared_encoder {
+            actor.enc = critic.enc.clone();
+        }
         let target = critic.valid();
         let la = Tensor::from_data(TensorData::new(vec![cfg.initial_alpha.ln()], [1]), &ad);
         let qc = spec.layout == sf_sim::Layout::QueryCentric;
@@ -189,64 +209,104 @@ impl Sac {
         let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
         let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [b, a_dim]), &self.ad);
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
-        let f_reuse = self.cfg.reuse_critic_features.then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
+        let f_reuse = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
         let (q1, q2) = self.critic.heads(f_critic, act.clone());
         let q_mean = q1.clone().mean().into_scalar::<f32>();
-        let loss_c = (q1 - y.clone()).square().mean() + (q2 - y).square().mean();
+        let loss_c = match self.cfg.critic_loss {
+            CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
+            // 2 x Huber, so that it equals the squared error within delta of the target.
+            CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta) + huber(q2 - y, self.cfg.huber_delta)).mul_scalar(2.0),
+        };
         let critic_loss = loss_c.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
         self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
+        if self.cfg.shared_encoder {
+            self.actor.enc = self.critic.enc.clone();
+        }
 
-        // 3. Actor: maximise Q1(s, a~pi) - alpha log pi, critic features taken without gradients.
-        let fc = match f_reuse {
-            Some(f) => f,
-            None => {
-                let critic_v = self.critic.valid();
-                let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
-                let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
-                Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
-            }
-        };
-        let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
-        let ad = self.ad.clone();
-        let eps = self.noise(b, &ad);
-        let (mean, log_std) = self.actor.dist(&obs, table.as_ref());
-        let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
+        // 3. Actor: maximise min(Q1, Q2)(s, a~pi) - alpha log pi, critic features taken without
+        //    gradients. Not while the critic alone is trained (`critic_pretrain_updates`).
         let cloning = self.updates < self.cfg.bc_updates;
-        // Behaviour cloning of the replayed actions: mean action to them, log-std to `bc_log_std`.
-        let bc = |mean: Tensor<2>, log_std: Tensor<2>| (mean.tanh() - act).square().mean() + log_std.sub_scalar(self.cfg.bc_log_std).square().mean();
-        let loss_a = if cloning {
-            // 3'. Cloning updates (the first `bc_updates`).
-            bc(mean, log_std)
-        } else {
-            let q_pi = self.critic.q1.clone().no_grad().forward(Tensor::cat(vec![fc, a_new], 1));
-            let since = self.updates - self.cfg.bc_updates;
-            let w = match self.cfg.bc_decay_updates {
-                0 => self.cfg.bc_weight,
-                d if since < d => self.cfg.bc_weight * (1.0 - since as f32 / d as f32),
-                _ => 0.0,
+        let evaluating_only = !cloning && self.updates < self.cfg.bc_updates + self.cfg.critic_pretrain_updates;
+        let (mut actor_loss, mut alpha_loss, mut entropy) = (0.0, 0.0, 0.0);
+        if !evaluating_only {
+            let fc = match f_reuse {
+                Some(f) => f,
+                None => {
+                    let critic_v = self.critic.valid();
+                    let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
+                    let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
+                    Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
+                }
             };
-            let sac = (logp.clone().mul_scalar(alpha) - q_pi.clone()).mean();
-            if w > 0.0 {
-                // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
-                let q_scale = q_pi.abs().mean().into_scalar::<f32>().max(1.0);
-                sac + bc(mean, log_std).mul_scalar(w * q_scale)
+            let ad = self.ad.clone();
+            let eps = self.noise(b, &ad);
+            let (mean, log_std) = if self.cfg.shared_encoder {
+                self.actor.dist_from_features(fc.clone())
             } else {
-                sac
-            }
-        };
-        let actor_loss = loss_a.clone().into_scalar::<f32>();
-        let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
-        self.actor = self.opt_actor.step(self.cfg.lr_actor, self.actor.clone(), grads);
+                let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
+                self.actor.dist(&obs, table.as_ref())
+            };
+            let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
+            // Behaviour cloning: mean action to `target` (row weights `w_rows`, or all rows),
+            // log-std to `bc_log_std`.
+            let bc_log_std = self.cfg.bc_log_std;
+            let bc = |mean: Tensor<2>, log_std: Tensor<2>, target: Tensor<2>, w_rows: Option<Tensor<2>>| {
+                let err = (mean.tanh() - target).square();
+                let err = match w_rows {
+                    Some(w) => (err * w).mean(),
+                    None => err.mean(),
+                };
+                err + log_std.sub_scalar(bc_log_std).square().mean()
+            };
+            let loss_a = if cloning {
+                // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
+                bc(mean, log_std, act, None)
+            } else {
+                let critic_ng = self.critic.clone().no_grad();
+                let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), a_new.clone());
+                let q_pi = q1_pi.min_pair(q2_pi);
+                let since = self.updates - self.cfg.bc_updates - self.cfg.critic_pretrain_updates;
+                let w = match self.cfg.bc_decay_updates {
+                    0 => self.cfg.bc_weight,
+                    d if since < d => self.cfg.bc_weight * (1.0 - since as f32 / d as f32),
+                    _ => 0.0,
+                };
+                let sac = (logp.clone().mul_scalar(alpha) - q_pi.clone()).mean();
+                if w > 0.0 {
+                    // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
+                    let q_scale = q_pi.clone().abs().mean().into_scalar::<f32>().max(1.0);
+                    let term = match self.cfg.bc_target {
+                        BcTarget::Replay => bc(mean, log_std, act, None),
+                        BcTarget::Zero => {
+                            let zeros = Tensor::<2>::zeros([b, a_dim], &self.ad);
+                            let rows = self.cfg.bc_q_filter.then(|| {
+                                let (q1_0, q2_0) = critic_ng.heads(fc, zeros.clone());
+                                let q_zero = q1_0.min_pair(q2_0);
+                                let keep = q_zero.greater_equal(q_pi.detach()).float();
+                                Tensor::<2>::from_data(keep.into_data(), &self.ad)
+                            });
+                            bc(mean, log_std, zeros, rows)
+                        }
+                    };
+                    sac + term.mul_scalar(w * q_scale)
+                } else {
+                    sac
+                }
+            };
+            actor_loss = loss_a.clone().into_scalar::<f32>();
+            let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
+            self.actor = self.opt_actor.step(self.cfg.lr_actor, self.actor.clone(), grads);
 
-        // 4. Temperature: push the policy's entropy towards the target (not while cloning).
-        let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
-        let entropy = -logp.clone().mean().into_scalar::<f32>();
-        let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
-        let alpha_loss = loss_al.clone().into_scalar::<f32>();
-        if !cloning {
-            let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
-            self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+            // 4. Temperature: push the policy's entropy towards the target (not while cloning).
+            let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
+            entropy = -logp.clone().mean().into_scalar::<f32>();
+            let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
+            alpha_loss = loss_al.clone().into_scalar::<f32>();
+            if !cloning {
+                let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
+                self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+            }
         }
 
         // 5. Polyak: target <- (1 - tau) target + tau critic.
@@ -268,10 +328,34 @@ impl Sac {
         sf_nn::weights::to_bytes(&self.actor.valid())
     }
 
+    /// `min(Q1, Q2)(s, a)` of the online critic for rows of observations and actions, in
+    /// chunks on the plain device (the critic probe, diagnostics).
+    pub fn q_min(&self, obs: &[f32], actions: &[f32], map_ids: &[u32]) -> Vec<f32> {
+        let (len, a_dim) = (self.spec.len, self.net.action_dim);
+        let critic = self.critic.valid();
+        let table = self.seg_plain.as_ref().map(|s| critic.enc.segment_table(s));
+        let mut out = Vec::with_capacity(map_ids.len());
+        for start in (0..map_ids.len()).step_by(256) {
+            let end = (start + 256).min(map_ids.len());
+            let ob = self.batch_on(&obs[start * len..end * len], &map_ids[start..end], &self.plain);
+            let a = Tensor::<2>::from_data(TensorData::new(actions[start * a_dim..end * a_dim].to_vec(), [end - start, a_dim]), &self.plain);
+            let (q1, q2) = critic.forward(&ob, table.as_ref(), a);
+            out.extend(q1.min_pair(q2).into_data().try_to_vec::<f32>().unwrap_or_default());
+        }
+        out
+    }
+
     /// Builds an inference batch on the plain device.
     pub fn obs_batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
         self.batch_on(rows, map_ids, &self.plain)
     }
+}
+
+/// Huber loss, mean over the batch: `0.5 d^2` within `delta`, `delta (|d| - delta / 2)` beyond.
+pub fn huber(d: Tensor<2>, delta: f32) -> Tensor<1> {
+    let ad = d.abs();
+    let quad = ad.clone().clamp_max(delta);
+    (quad.clone() * (ad - quad.mul_scalar(0.5))).mean()
 }
 
 /// Flattened parameter values in visit order.

@@ -4,7 +4,7 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{ActionMode, Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
+use sf_job::config::{Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
 use sf_nn::{EncoderKind, NetConfig, SvoInput};
@@ -38,8 +38,18 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
         SvoSeen::All => SvoInput::All,
     };
     n.ego_flag = job.kind == JobKind::Failmaker;
-    n.action_dim = job.kind.action_dim();
-    n.idm_residual = job.env.action == ActionMode::IdmResidual;
+    n.action_dim = job.action_dim();
+    n.action = if job.kind.drives() { job.env.action } else { sf_sim::DriveAction::Direct };
+    if let Some(p) = job.net.pose_layers {
+        n.pose_layers = p;
+    }
+    n.ego_skip = job.net.ego_skip;
+    n.critic_layer_norm = job.net.critic_layer_norm;
+    n.squash_mean_twice = job.net.squash_mean_twice;
+    // A demonstrator's warm-up: the first policy is as spread as the demonstrator.
+    if job.sac.warmup_policy == sf_job::config::WarmupPolicy::Idm {
+        n.init_log_std = bc_log_std(&job.sac);
+    }
     n
 }
 
@@ -89,6 +99,12 @@ pub fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
         SvoSeen::Own => SvoVisibility::Own,
         SvoSeen::All => SvoVisibility::All,
     };
+    if let Some(n) = job.env.max_neighbours {
+        s.obs.max_neighbours = n;
+    }
+    if let Some(n) = job.env.max_segments {
+        s.obs.max_segments = n;
+    }
     // FailMaker's agents tell the ego apart and carry c in [-90, 90] as their SVO.
     if job.kind == JobKind::Failmaker || background == Some(JobKind::Failmaker) {
         s.obs.ego_flag = true;
@@ -123,11 +139,21 @@ pub fn sac_from_section(s: &SacSection) -> SacConfig {
         device: device_kind(s.device),
         reuse_critic_features: true,
         bc_updates: s.bc_updates,
-        // The demonstrator's noise as the cloned policy's spread, inside the actor's log-std range.
-        bc_log_std: s.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5),
+        bc_log_std: bc_log_std(s),
         bc_weight: s.bc_weight,
         bc_decay_updates: s.bc_decay_updates,
+        critic_pretrain_updates: s.critic_pretrain_updates,
+        critic_loss: s.critic_loss,
+        huber_delta: s.huber_delta,
+        bc_target: s.bc_target,
+        bc_q_filter: s.bc_q_filter,
+        shared_encoder: s.shared_encoder,
     }
+}
+
+/// The demonstrator's noise as the cloned policy's spread, inside the actor's log-std range.
+pub fn bc_log_std(s: &SacSection) -> f32 {
+    s.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5)
 }
 
 pub fn device_kind(d: Device) -> DeviceKind {

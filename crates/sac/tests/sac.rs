@@ -268,24 +268,200 @@ fn every_critic_head_and_the_actor_keep_learning_across_updates() {
 #[test]
 fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
     use sf_sac::drive::{apply, decide, Actor, Drivers};
+    use sf_sim::DriveAction;
     let sim = Arc::new(SimConfig::default());
     let m = map();
-    let run = |residual: bool| {
+    let run = |action: DriveAction| {
         let mut v = vec![VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 11 })];
-        let d = Drivers { alive: Actor::Demo { noise: 0.0, residual }, background: None, adversary: None };
+        let d = Drivers { alive: Actor::Demo { noise: 0.0, action }, background: None, adversary: None };
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let mut recorded = Vec::new();
         for _ in 0..30 {
             let dec = decide(&mut v, &d, &mut rng);
-            assert_eq!(dec.alive_residual, residual);
+            assert_eq!(dec.alive_action, action);
             recorded.extend_from_slice(&dec.alive_actions[0]);
             apply(&mut v, &dec);
         }
         (v[0].observations().to_vec(), recorded)
     };
-    let (direct_obs, direct_actions) = run(false);
-    let (residual_obs, residual_actions) = run(true);
+    let (direct_obs, direct_actions) = run(DriveAction::Direct);
+    let (residual_obs, residual_actions) = run(DriveAction::IdmResidual);
     assert_eq!(direct_obs, residual_obs, "same trajectories");
     assert!(residual_actions.iter().all(|&a| a == 0.0), "a residual role records its residual");
     assert!(direct_actions.iter().any(|&a| a != 0.0), "the demonstrator's own actions are recorded as they are");
+}
+
+/// The mean head is squashed once: a pre-squash mean of 3 gives a deterministic action of
+/// tanh(3) = 0.995, beyond the released code's ceiling tanh(1) = 0.762, which
+/// `squash_mean_twice` keeps for fidelity.
+#[test]
+fn the_mean_action_reaches_the_full_range_unless_squashed_twice() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let spec = sf_sim::ObsSpec::new(&sim.obs);
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 8).expect("batch");
+    for twice in [false, true] {
+        let net = NetConfig { squash_mean_twice: twice, ..tiny_net() };
+        let mut sac = Sac::new(SacConfig::default(), net, spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+        // A mean head that outputs 3 whatever it reads.
+        let last = sac.actor.mean.layers.last_mut().expect("layers");
+        last.weight = Param::from_tensor(Tensor::zeros(last.weight.dims(), &sac.ad));
+        last.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![3.0f32; 2], [2]), &sac.ad)));
+        let (actor, table) = sac.policy();
+        let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+        let want = if twice { 3f32.tanh().tanh() } else { 3f32.tanh() };
+        assert!(a.iter().all(|&x| (x - want).abs() < 1e-5), "twice {twice}: {a:?}, want {want}");
+    }
+}
+
+/// The log-std head starts at the configured spread (its output bias, through the squash).
+#[test]
+fn the_first_policy_starts_at_the_configured_log_std() {
+    for want in [-2.3f32, -1.2, 0.0] {
+        let net = NetConfig { init_log_std: want, ..tiny_net() };
+        let actor = sf_nn::Actor::new(&net, 3, &burn::tensor::Device::flex());
+        let b = actor.log_std.layers.last().and_then(|l| l.bias.as_ref()).expect("bias").val();
+        let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0)).into_data().try_to_vec().expect("f32");
+        assert!(got.iter().all(|&g| (g - want).abs() < 1e-4), "{got:?} vs {want}");
+    }
+    assert!(NetConfig { init_log_std: -3.0, ..tiny_net() }.validate().is_err(), "outside the log-std range");
+}
+
+/// During `critic_pretrain_updates` (after the cloning updates) only the critic learns: the
+/// actor and alpha stay put; with `shared_encoder` the actor's encoder is the critic's.
+#[test]
+fn critic_pretraining_holds_the_actor_and_shared_encoders_follow_the_critic() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 128);
+    let spec = sf_sim::ObsSpec::new(&sim.obs);
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let cfg = SacConfig { seed: 4, batch_size: 16, bc_updates: 2, critic_pretrain_updates: 3, shared_encoder: true, ..SacConfig::default() };
+    let mut sac = Sac::new(cfg, NetConfig { critic_layer_norm: true, ego_skip: true, pose_layers: 2, ..tiny_net() }, spec, sim.dt_s, &[&segs]).expect("sac");
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    for _ in 0..2 {
+        sac.update(&r.sample(&mut rng, 16).expect("batch"));
+    }
+    for k in 0..3 {
+        let (actor, critic, alpha) = (flat(&sac.actor.mean), flat(&sac.critic), sac.alpha());
+        sac.update(&r.sample(&mut rng, 16).expect("batch"));
+        assert_eq!(actor, flat(&sac.actor.mean), "critic-only update {k} moved the actor");
+        assert_eq!(alpha, sac.alpha(), "critic-only update {k} moved alpha");
+        assert_ne!(critic, flat(&sac.critic), "critic-only update {k} did not train the critic");
+        assert_eq!(flat(&sac.actor.enc), flat(&sac.critic.enc), "the shared encoder is the critic's");
+    }
+    let actor = flat(&sac.actor.mean);
+    sac.update(&r.sample(&mut rng, 16).expect("batch"));
+    assert_ne!(actor, flat(&sac.actor.mean), "the actor learns after the critic-only updates");
+    assert_eq!(flat(&sac.actor.enc), flat(&sac.critic.enc));
+}
+
+/// Huber: half the squared error within delta, linear beyond.
+#[test]
+fn huber_is_quadratic_within_delta_and_linear_beyond() {
+    let dev = burn::tensor::Device::flex();
+    let d = Tensor::<2>::from_data(TensorData::new(vec![0.5f32, -2.0, 30.0, -10.0], [4, 1]), &dev);
+    let got = sf_sac::sac::huber(d, 10.0).into_scalar::<f32>();
+    let want = (0.125 + 2.0 + 10.0 * (30.0 - 5.0) + 50.0) / 4.0;
+    assert!((got - want).abs() < 1e-4, "{got} vs {want}");
+}
+
+/// The cloning term towards the zero action with the Q filter: where the critic rates zero at
+/// least as high as the policy's action (here a critic flat in the action), the term pulls the
+/// mean action to zero; where it rates the policy's action higher (a critic rewarding positive
+/// actions) the rows are filtered out and the mean action is left to the critic.
+#[test]
+fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it() {
+    use sf_sac::sac::BcTarget;
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 256);
+    let spec = sf_sim::ObsSpec::new(&sim.obs);
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(2), 64).expect("probe");
+    let run = |slope: f32| -> (f32, f32) {
+        let cfg = SacConfig { seed: 5, batch_size: 32, lr_actor: 1e-3, lr_critic: 1e-12, initial_alpha: 1e-4, bc_weight: 5.0, bc_target: BcTarget::Zero, bc_q_filter: true, ..SacConfig::default() };
+        let mut sac = Sac::new(cfg, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+        let mean = |sac: &Sac| -> f32 {
+            let (actor, table) = sac.policy();
+            let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+            a.iter().sum::<f32>() / a.len() as f32
+        };
+        // Start the mean action at tanh(0.5) in both components.
+        let last = sac.actor.mean.layers.last_mut().expect("layers");
+        last.weight = Param::from_tensor(Tensor::zeros(last.weight.dims(), &sac.ad));
+        last.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![0.5f32; 2], [2]), &sac.ad)));
+        // Q = 1 + slope * (a0 + a1), through a ReLU-free path: first layer passes the action
+        // (plus 10, to stay positive) to unit 0, the next layers copy unit 0.
+        for q in [&mut sac.critic.q1, &mut sac.critic.q2] {
+            let (d_in, d_out) = (q.layers[0].weight.dims()[0], q.layers[0].weight.dims()[1]);
+            let mut w = vec![0f32; d_in * d_out];
+            w[(d_in - 2) * d_out] = 1.0;
+            w[(d_in - 1) * d_out] = 1.0;
+            let mut b = vec![0f32; d_out];
+            b[0] = 10.0;
+            q.layers[0].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
+            q.layers[0].bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(b, [d_out]), &sac.ad)));
+            let (d_in, d_out) = (q.layers[1].weight.dims()[0], q.layers[1].weight.dims()[1]);
+            let mut w = vec![0f32; d_in * d_out];
+            w[0] = 1.0;
+            q.layers[1].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
+            q.layers[1].bias = Some(Param::from_tensor(Tensor::zeros([d_out], &sac.ad)));
+            let d_in = q.layers[2].weight.dims()[0];
+            let mut w = vec![0f32; d_in];
+            w[0] = slope;
+            q.layers[2].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, 1]), &sac.ad));
+            q.layers[2].bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![1.0 - 10.0 * slope], [1]), &sac.ad)));
+        }
+        let before = mean(&sac);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..80 {
+            sac.update(&r.sample(&mut rng, 32).expect("batch"));
+        }
+        (before, mean(&sac))
+    };
+    let (before, flat) = run(0.0);
+    assert!(flat.abs() < 0.5 * before.abs(), "flat critic: the term pulls to zero ({before} -> {flat})");
+    let (before, rising) = run(1.0);
+    assert!(rising > before, "a critic preferring larger actions filters the term out ({before} -> {rising})");
+}
+
+/// Braking segments in a residual warm-up: each row holds one value in [-1, -0.2] for 4 to 12
+/// steps (the recorded action is the applied one), then may start another.
+#[test]
+fn braking_segments_hold_a_braking_residual_for_4_to_12_steps() {
+    use sf_sac::drive::{apply, decide, Actor, BrakeSegments, Drivers};
+    use sf_sim::env::Controller;
+    use sf_sim::DriveAction;
+    let sim = Arc::new(SimConfig::default());
+    let mut v = vec![VecEnv::new(map(), sim, VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 2 })];
+    let d = Drivers { alive: Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual }, background: None, adversary: None };
+    let mut brakes = BrakeSegments::new(1.0, &v);
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    // Per row: the run of equal values so far.
+    let mut runs: std::collections::BTreeMap<usize, (f32, u32)> = Default::default();
+    let mut finished_runs = Vec::new();
+    for _ in 0..60 {
+        let mut dec = decide(&mut v, &d, &mut rng);
+        brakes.overlay(&mut dec, &mut rng);
+        for (j, &r) in dec.alive_rows[0].iter().enumerate() {
+            let a = dec.alive_actions[0][j];
+            assert!((-1.0..=-0.2).contains(&a), "row {r}: {a}");
+            let e = runs.entry(r).or_insert((a, 0));
+            if e.0 == a {
+                e.1 += 1;
+            } else {
+                finished_runs.push(e.1);
+                *e = (a, 1);
+            }
+        }
+        apply(&mut v, &dec);
+        brakes.after_step(&v);
+        for (r, st) in v[0].row_steps().iter().enumerate() {
+            if st.ended.is_some() {
+                runs.remove(&r);
+            }
+        }
+    }
+    assert!(!finished_runs.is_empty(), "segments ended and new ones started");
+    assert!(finished_runs.iter().all(|&n| (4..=12).contains(&n)), "{finished_runs:?}");
 }

@@ -114,6 +114,8 @@ pub struct Agent {
     pid: Pid,
     ref_speed_mps: f32,
     steer_rad: f32,
+    /// External agents driving as IDM with this residual on its acceleration (`Action::idm_accel`).
+    idm_accel_residual: Option<f32>,
     collided: bool,
     /// IDM: bumper gap and leader speed along the route, updated every sub-step.
     leader: Option<(f32, f32)>,
@@ -190,6 +192,18 @@ fn route_steer_rad(map: &Map, vp: &VehicleParams, a: &Agent) -> f32 {
     pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target))
 }
 
+/// IDM's acceleration `a_idm` moved by a residual `r` in [-1, 1] towards full braking (r = -1:
+/// `-max`) or full acceleration (r = +1: `+max`), linearly on each side; `None` or 0 is IDM
+/// exactly. (A plain offset `a_idm + 5 r` could not brake at full speed on a free road, where
+/// IDM still commands ~4.7 m/s^2 towards its desired 12 m/s.)
+pub fn residual_accel(a_idm: f32, r: Option<f32>, max_mps2: f32) -> f32 {
+    match r {
+        None => a_idm,
+        Some(r) if r < 0.0 => a_idm + r * (a_idm + max_mps2),
+        Some(r) => a_idm + r * (max_mps2 - a_idm),
+    }
+}
+
 impl Env {
     pub fn new(map: Arc<Map>, cfg: Arc<SimConfig>) -> Self {
         let v = &cfg.vehicle;
@@ -246,6 +260,7 @@ impl Env {
                 pid: Pid::default(),
                 ref_speed_mps: 0.0,
                 steer_rad: 0.0,
+                idm_accel_residual: None,
                 collided: false,
                 leader: None,
                 hist: vec![[state.x_m, state.y_m, state.theta_rad, 0.0]; h],
@@ -347,17 +362,18 @@ impl Env {
                 let (v, d) = actions[i].decode(vp);
                 a.ref_speed_mps = v;
                 a.steer_rad = d;
+                a.idm_accel_residual = actions[i].idm_accel.map(|r| if r.is_finite() { r.clamp(-1.0, 1.0) } else { 0.0 });
             }
         }
         self.find_leaders();
         for _ in 0..cfg.substeps {
             let map = &self.map;
             for a in self.agents.iter_mut().filter(|a| a.alive && !a.collided) {
-                let accel = match a.controller {
-                    Controller::External => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
-                    Controller::Idm => {
+                let accel = match (a.controller, a.idm_accel_residual) {
+                    (Controller::External, None) => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
+                    (Controller::Idm, _) | (Controller::External, Some(_)) => {
                         a.steer_rad = route_steer_rad(map, vp, a);
-                        idm_accel(&cfg.idm, a.state.speed_mps, a.leader)
+                        residual_accel(idm_accel(&cfg.idm, a.state.speed_mps, a.leader), a.idm_accel_residual, vp.max_accel_mps2)
                     }
                 };
                 let v0 = a.state.speed_mps;
@@ -384,11 +400,11 @@ impl Env {
         Ok(())
     }
 
-    /// IDM leaders of the IDM-driven agents (see [`Env::leader_of`]).
+    /// IDM leaders of the IDM-driven agents, residual drivers included (see [`Env::leader_of`]).
     fn find_leaders(&mut self) {
         for i in 0..self.agents.len() {
             let a = &self.agents[i];
-            if a.alive && a.controller == Controller::Idm {
+            if a.alive && (a.controller == Controller::Idm || a.idm_accel_residual.is_some()) {
                 self.agents[i].leader = self.leader_of(i);
             }
         }

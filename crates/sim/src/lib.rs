@@ -30,4 +30,4 @@ pub use config::{Layout, ObsConfig, SimConfig, SvoVisibility};
 pub use env::{Controller, Env, Mode, Role, Termination};
 pub use map::Map;
 pub use obs::{ObsSpec, Observer};
-pub use vehicle::Action;
+pub use vehicle::{Action, DriveAction};

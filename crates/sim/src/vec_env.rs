@@ -56,6 +56,41 @@ impl RowStep {
     }
 }
 
+/// A random case with a vehicle count uniform in `vehicles`; with `conflict_share = Some(p)`,
+/// with probability p one in which the IDM driver in agent 0's seat ends by a collision (tried
+/// up to 200 draws, then the last draw is taken).
+pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u32, vehicles: (u32, u32), conflict_share: Option<f32>) -> Case {
+    let want_conflict = conflict_share.is_some_and(|p| rng.random::<f32>() < p);
+    let n = rng.random_range(vehicles.0..=vehicles.1) as usize;
+    let mut case = random_case(map, rng, id, n);
+    if want_conflict {
+        for _ in 0..200 {
+            if idm_ego_collides(map, sim, &case) {
+                break;
+            }
+            let n = rng.random_range(vehicles.0..=vehicles.1) as usize;
+            case = random_case(map, rng, id, n);
+        }
+    }
+    case
+}
+
+/// Whether the IDM driver in agent 0's seat (every vehicle IDM) ends its episode of `case` by
+/// a collision.
+pub fn idm_ego_collides(map: &Arc<Map>, sim: &Arc<SimConfig>, case: &Case) -> bool {
+    let mut e = Env::new(Arc::clone(map), Arc::clone(sim));
+    if e.reset(case, Mode::AllIdm, None).is_err() {
+        return false;
+    }
+    let idle = vec![Action::default(); e.len()];
+    while !e.done() && e.agents()[0].alive {
+        if e.step(&idle).is_err() {
+            return false;
+        }
+    }
+    e.agents()[0].termination == Some(Termination::Collision)
+}
+
 /// One stored episode to run (evaluation): a case, optionally truncated to `vehicles`, with
 /// every agent's SVO set to `svo_deg` if given; `tag` comes back with its metrics.
 #[derive(Clone, Debug)]
@@ -99,6 +134,8 @@ pub struct VecEnv {
     /// CoPO Stage 2: every flow-driven agent's SVO is redrawn from this at every reset and
     /// after every step (`None`: SVOs stay as the case gives them).
     svo_gaussian: Option<SvoGaussian>,
+    /// [`VecEnv::with_conflicts`].
+    conflict_share: Option<f32>,
 }
 
 impl VecEnv {
@@ -172,10 +209,35 @@ impl VecEnv {
             .zip(v.alive.par_chunks_mut(max_agents))
             .zip(v.background.par_chunks_mut(max_agents))
             .for_each(|(((s, obs), alive), bg)| {
-                s.reset(mode, vehicles);
+                s.reset(mode, vehicles, None);
                 s.observe(obs, alive, bg, spec_len);
             });
         v
+    }
+
+    /// Random resets (from now on, and of every running episode now) draw, with probability
+    /// `share`, only cases in which the IDM driver in agent 0's seat collides ([`draw_case`]):
+    /// a training distribution rich in the conflicts IDM does not yield in.
+    pub fn with_conflicts(mut self, share: f32) -> Self {
+        self.conflict_share = Some(share);
+        let (mode, vehicles) = (self.cfg.mode, self.cfg.vehicles);
+        self.redo_live_slots(|s| s.reset(mode, vehicles, Some(share)));
+        self
+    }
+
+    /// Runs `f` on every slot with an episode, then observes it again.
+    fn redo_live_slots(&mut self, f: impl Fn(&mut Slot) + Sync + Send) {
+        let (spec_len, max_agents) = (self.spec.len, self.max_agents);
+        self.slots
+            .par_iter_mut()
+            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(self.alive.par_chunks_mut(max_agents))
+            .zip(self.background.par_chunks_mut(max_agents))
+            .filter(|(((s, _), _), _)| !s.idle)
+            .for_each(|(((s, obs), alive), bg)| {
+                f(s);
+                s.observe(obs, alive, bg, spec_len);
+            });
     }
 
     fn build(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
@@ -209,6 +271,7 @@ impl VecEnv {
             agent_steps: 0,
             queue: None,
             svo_gaussian: None,
+            conflict_share: None,
         }
     }
 
@@ -247,17 +310,8 @@ impl VecEnv {
     /// once. `None` keeps the cases' SVOs. Draws come from each environment's own generator.
     pub fn set_svo_gaussian(&mut self, g: Option<SvoGaussian>) {
         self.svo_gaussian = g;
-        let (spec_len, max_agents, mode) = (self.spec.len, self.max_agents, self.cfg.mode);
-        self.slots
-            .par_iter_mut()
-            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
-            .zip(self.alive.par_chunks_mut(max_agents))
-            .zip(self.background.par_chunks_mut(max_agents))
-            .filter(|(((s, _), _), _)| !s.idle)
-            .for_each(|(((s, obs), alive), bg)| {
-                s.redraw_svos(g, mode);
-                s.observe(obs, alive, bg, spec_len);
-            });
+        let mode = self.cfg.mode;
+        self.redo_live_slots(|s| s.redraw_svos(g, mode));
     }
 
     /// Tells background agents of environment `k` within the observation radius of the ego
@@ -290,15 +344,9 @@ impl VecEnv {
             });
     }
 
-    /// The IDM demonstrator's action ([`Env::demo_action`]) for each listed row, two floats a
-    /// row (`[ref_speed, steer]`, normalised).
-    pub fn demo_actions(&self, rows: &[usize]) -> Vec<f32> {
-        let mut out = Vec::with_capacity(rows.len() * 2);
-        for &r in rows {
-            let a = self.slots[r / self.max_agents].env.demo_action(r % self.max_agents);
-            out.extend_from_slice(&[a.ref_speed, a.steer]);
-        }
-        out
+    /// The IDM demonstrator's action ([`Env::demo_action`]) of row `r`'s agent, normalised.
+    pub fn demo_action(&self, r: usize) -> Action {
+        self.slots[r / self.max_agents].env.demo_action(r % self.max_agents)
     }
 
     /// Per row: what the last step did.
@@ -333,6 +381,7 @@ impl VecEnv {
         let learners_only = matches!(mode, Mode::Ego { .. });
         let queued = self.queue.is_some();
         let svo_gaussian = self.svo_gaussian;
+        let conflict_share = self.conflict_share;
         let agent_steps: u64 = self
             .slots
             .par_iter_mut()
@@ -357,7 +406,7 @@ impl VecEnv {
                         s.idle = true;
                         return stepped;
                     }
-                    s.reset(mode, vehicles);
+                    s.reset(mode, vehicles, conflict_share);
                 }
                 s.redraw_svos(svo_gaussian, mode);
                 s.observe(obs, alive, bg, spec_len);
@@ -406,9 +455,8 @@ impl Slot {
         }
     }
 
-    fn reset(&mut self, mode: Mode, vehicles: (u32, u32)) {
-        let n = self.rng.random_range(vehicles.0..=vehicles.1) as usize;
-        let case = random_case(&self.env.map, &mut self.rng, self.episodes, n);
+    fn reset(&mut self, mode: Mode, vehicles: (u32, u32), conflict_share: Option<f32>) {
+        let case = draw_case(&self.env.map, &self.env.cfg, &mut self.rng, self.episodes, vehicles, conflict_share);
         self.tag = self.episodes as u64;
         self.episodes += 1;
         self.env.reset(&case, mode, None).expect("generated cases are valid for their map");

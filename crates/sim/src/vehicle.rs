@@ -92,10 +92,70 @@ impl Pid {
 }
 
 /// The paper's action, normalised: `[ref_speed, steer]`, each in [-1, 1].
+///
+/// `idm_accel`, when set, replaces both with a residual on the IDM driver: the vehicle is
+/// driven exactly as an IDM car (pure-pursuit steer and IDM acceleration, both recomputed every
+/// sub-step) with its acceleration moved linearly towards full braking (-1) or full
+/// acceleration (+1) (`env::residual_accel`; clipped to [-1, 1], non-finite counts as 0).
+/// `Some(0.0)` is the IDM driver, bit for bit.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Action {
     pub ref_speed: f32,
     pub steer: f32,
+    pub idm_accel: Option<f32>,
+}
+
+/// How a driving policy's action vector moves its vehicle (`env.action` of a job).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DriveAction {
+    /// The paper's `[reference speed, steer]`, normalised.
+    #[default]
+    Direct,
+    /// `[reference speed, steer]` added to the IDM driver's normalised action and clipped
+    /// (session 5's lever: cannot stop when IDM sees no leader, see the learning issue).
+    IdmResidual,
+    /// One number: a residual on the IDM driver's acceleration, moving it linearly to full
+    /// braking at -1 and full acceleration at +1, with IDM's pure-pursuit steering. Zero is IDM
+    /// exactly; -1 brakes at full force from any IDM command.
+    IdmAccelResidual,
+}
+
+impl DriveAction {
+    /// Floats per action.
+    pub fn dim(self) -> usize {
+        match self {
+            Self::Direct | Self::IdmResidual => 2,
+            Self::IdmAccelResidual => 1,
+        }
+    }
+
+    /// The vehicle command of one policy action `a` (`dim()` floats). `demo` is the IDM
+    /// driver's normalised action, needed only by `IdmResidual` (see `needs_demo`).
+    pub fn command(self, a: &[f32], demo: Option<Action>) -> Action {
+        match self {
+            Self::Direct => Action { ref_speed: a[0], steer: a[1], idm_accel: None },
+            Self::IdmResidual => {
+                let d = demo.unwrap_or_default();
+                Action { ref_speed: (d.ref_speed + a[0]).clamp(-1.0, 1.0), steer: (d.steer + a[1]).clamp(-1.0, 1.0), idm_accel: None }
+            }
+            Self::IdmAccelResidual => Action { idm_accel: Some(a[0]), ..Action::default() },
+        }
+    }
+
+    /// Whether [`DriveAction::command`] needs the IDM driver's normalised action.
+    pub fn needs_demo(self) -> bool {
+        self == Self::IdmResidual
+    }
+
+    /// The action of this kind that drives like the IDM driver (given its normalised action):
+    /// the demonstrator of an IDM warm-up. Residual kinds: all zeros.
+    pub fn demonstrator(self, demo: Action) -> Vec<f32> {
+        match self {
+            Self::Direct => vec![demo.ref_speed, demo.steer],
+            Self::IdmResidual | Self::IdmAccelResidual => vec![0.0; self.dim()],
+        }
+    }
 }
 
 impl Action {
@@ -113,6 +173,7 @@ impl Action {
         Self {
             ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0),
             steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0),
+            idm_accel: None,
         }
     }
 }
@@ -152,7 +213,7 @@ mod tests {
         assert_eq!(s.speed_mps, p.max_speed_mps);
         s.step(&p, -100.0, 0.0, 10.0);
         assert_eq!(s.speed_mps, 0.0);
-        let (v, d) = Action { ref_speed: 7.0, steer: f32::NAN }.decode(&p);
+        let (v, d) = Action { ref_speed: 7.0, steer: f32::NAN, idm_accel: None }.decode(&p);
         assert_eq!((v, d), (p.max_speed_mps, 0.0));
     }
 

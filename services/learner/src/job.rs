@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use std::time::{Duration, Instant};
 
-use sf_job::{EpisodeResult, JobConfig, Progress, TransitionBatch};
+use sf_job::{Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::{Losses, RateLimiter, Replay};
 use sf_svc::ServiceError;
@@ -281,6 +281,19 @@ impl ActiveJob {
 
     fn unreserve(&self, n: usize) {
         lock(&self.stats).reserved -= n as u64;
+    }
+
+    /// Rolling means of how episodes ended (the window of [`ActiveJob::progress`]).
+    pub fn ends(&self) -> Ends {
+        let s = lock(&self.stats);
+        let n = s.window.len().max(1) as f32;
+        let mut sum = [0f32; 5];
+        for e in &s.window {
+            for (a, v) in sum.iter_mut().zip(e.ends.values()) {
+                *a += v;
+            }
+        }
+        Ends::from_values(sum.map(|v| v / n))
     }
 
     /// Called by the trainer after each update.

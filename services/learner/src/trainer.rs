@@ -115,6 +115,9 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
     let mut next_point = (st.counters.env_steps / every + 1) * every;
     let mut last_ckpt = Instant::now();
     let mut last_loss = Default::default();
+    // Critic losses and Q means of the updates since the previous curve point.
+    let mut recent_losses: Vec<f32> = Vec::new();
+    let mut recent_q = 0.0f64;
     let outcome = loop {
         if let Some(why) = job.stop_reason() {
             break match why {
@@ -133,6 +136,8 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
                 };
                 if sampled.is_ok() {
                     last_loss = sac.update(&batch);
+                    recent_losses.push(last_loss.critic);
+                    recent_q += last_loss.q_mean as f64;
                     job.record_update(sac.updates, last_loss);
                     if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
                         publish(&sac, &mut version)?;
@@ -144,8 +149,16 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
             Err(e) => return Err(e.to_string()),
         }
         let p = job.progress();
-        while p.env_steps >= next_point {
-            st.curve.push(CurvePoint {
+        if p.env_steps >= next_point {
+            let n = recent_losses.len().max(1);
+            let (mean, q) = (recent_losses.iter().map(|&l| l as f64).sum::<f64>() / n as f64, recent_q / n as f64);
+            recent_losses.sort_by(f32::total_cmp);
+            let median = recent_losses.get(recent_losses.len() / 2).copied().unwrap_or(0.0);
+            let ends = job.ends();
+            recent_losses.clear();
+            recent_q = 0.0;
+            while p.env_steps >= next_point {
+                st.curve.push(CurvePoint {
                 env_steps: next_point.min(p.env_steps),
                 updates: p.updates,
                 episodes: p.episodes,
@@ -157,8 +170,13 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
                 alpha: last_loss.alpha,
                 entropy: last_loss.entropy,
                 wall_s: p.wall_s,
+                ends,
+                critic_loss_mean: mean as f32,
+                critic_loss_median: median,
+                q_mean: q as f32,
             });
-            next_point += every;
+                next_point += every;
+            }
         }
         if last_ckpt.elapsed() >= Duration::from_secs(cfg.train.checkpoint_every_s) {
             save(&job, &sac, &dir, &mut st, version)?;

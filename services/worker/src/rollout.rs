@@ -14,7 +14,7 @@ use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::{JobKind, WarmupPolicy};
-use sf_job::{EpisodeResult, FrozenRole, JobConfig, TransitionBatch};
+use sf_job::{Ends, EpisodeResult, FrozenRole, JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_sac::drive::{self, Actor, Drivers};
 use sf_sac::inference::PolicyRunner;
@@ -128,6 +128,9 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
         })
         .collect();
+    if let Some(share) = job.env.conflict_share {
+        venvs = venvs.into_iter().map(|v| v.with_conflicts(share)).collect();
+    }
     for (v, g) in venvs.iter_mut().zip(&spec.svo_gaussians) {
         v.set_svo_gaussian(*g);
     }
@@ -148,12 +151,15 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
     if kind == JobKind::Failmaker || kind == JobKind::SocialcommAdv {
         anyhow::ensure!(frozen_ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
     }
-    let act_dim = kind.action_dim();
+    let act_dim = job.action_dim();
     // Who plays the job's own role until the warm-up ends.
     let warm_actor = match job.sac.warmup_policy {
-        WarmupPolicy::Idm if act_dim == 2 => Actor::Demo { noise: job.sac.warmup_noise, residual: net.idm_residual },
-        _ => Actor::Random,
+        WarmupPolicy::Idm if kind.drives() => Actor::Demo { noise: job.sac.warmup_noise, action: net.action },
+        _ => Actor::Random { dim: act_dim },
     };
+    // Braking segments overlay the warm-up actions of the `alive` rows: the job's own only
+    // where it drives them (not FailMaker's background).
+    let mut brakes = (job.sac.warmup_brake_prob > 0.0 && kind.drives() && kind != JobKind::Failmaker).then(|| drive::BrakeSegments::new(job.sac.warmup_brake_prob, &venvs));
     let mut runner: Option<PolicyRunner> = None;
     let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim);
     let mut batch_version = None;
@@ -186,18 +192,25 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         let own = acting.map_or(warm_actor, Actor::sampled);
         let (f_bg, f_ego, f_adv) = (frozen_bg.as_ref().map(Actor::sampled), frozen_ego.as_ref().map(Actor::sampled), frozen_adv.as_ref().map(Actor::sampled));
         let drivers = match kind {
-            JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random), background: Some(own), adversary: None },
-            JobKind::SocialcommAdv => Drivers { alive: f_ego.unwrap_or(Actor::Random), background: f_bg, adversary: Some(own) },
+            JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: Some(own), adversary: None },
+            JobKind::SocialcommAdv => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: f_bg, adversary: Some(own) },
             _ => Drivers { alive: own, background: f_bg, adversary: f_adv },
         };
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
         let t = Instant::now();
-        let d = drive::decide(&mut venvs, &drivers, &mut rng);
+        let mut d = drive::decide(&mut venvs, &drivers, &mut rng);
+        let in_warmup = acting.is_none();
+        if let (Some(b), true) = (brakes.as_mut(), in_warmup) {
+            b.overlay(&mut d, &mut rng);
+        }
         if d.inferred_rows > 0 {
             metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
             metrics.inference_obs.inc_by(d.inferred_rows as u64);
         }
         drive::apply(&mut venvs, &d);
+        if let Some(b) = brakes.as_mut() {
+            b.after_step(&venvs);
+        }
         // The rows the job learns from and the actions its policy took there.
         let (trained_rows, trained_actions) = match kind {
             JobKind::Failmaker => (&d.background_rows, &d.background_actions),
@@ -217,7 +230,13 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
             }
             for m in v.take_finished() {
                 metrics.episodes.inc();
-                batch.episodes.push(EpisodeResult { scenario_index: k as u32, success: m.success, safety: m.safety, speed: m.speed });
+                batch.episodes.push(EpisodeResult {
+                    scenario_index: k as u32,
+                    success: m.success,
+                    safety: m.safety,
+                    speed: m.speed,
+                    ends: Ends { collision: m.collision, off_road: m.off_road, off_route: m.off_route, wrong_lane: m.wrong_lane, timeout: m.timeout },
+                });
             }
         }
         if batch.count >= job.worker.batch_transitions {

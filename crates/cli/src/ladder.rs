@@ -1,0 +1,500 @@
+//! `socialflow ladder <rung.toml>`: one rung of the learning ladder. Trains the rung's job once
+//! per training seed (embedded learner and workers, reusing a finished job of the same name in
+//! `--data-dir`), evaluates each final policy with its mean action on the stored cases against
+//! the IDM driver in the ego's seat (the same episodes, paired), checks the rung's gate and
+//! writes the curves, episodes and a summary to `--out`.
+//!
+//! Owns: the rung file format ([`Rung`]), the paired ego-vs-IDM evaluation and the gate.
+//! Must not: change how jobs train (it submits ordinary job configs) or how episodes run
+//! (`sf_sac::drive`).
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sf_eval::plot::{line_chart, Series};
+use sf_job::{JobConfig, JobState};
+use sf_sac::drive::{self, Actor, Drivers};
+use sf_sac::evaluate::{Policy, Runners};
+use sf_sac::setup;
+use sf_sim::env::{Controller, Mode};
+use sf_sim::metrics::EpisodeMetrics;
+use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::{CaseFile, DriveAction, Map, SimConfig};
+
+use crate::remote;
+use crate::scenarios::Ctx;
+use crate::train::{runtime, Embedded};
+
+#[derive(Args, Debug)]
+pub struct LadderArgs {
+    /// The rung (TOML), e.g. configs/ladder/l3-roundabout.toml.
+    pub rung: PathBuf,
+    /// Job store of the embedded learner; a finished job of a seed's name there is reused.
+    #[arg(long, default_value = "runs/ladder")]
+    pub data_dir: PathBuf,
+    /// Where the curves, episodes and summary go (default docs/ladder/<rung name>).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Training seeds (default: the rung's).
+    #[arg(long, value_delimiter = ',')]
+    pub seeds: Option<Vec<u64>>,
+    /// Rollout workers in this process.
+    #[arg(long, default_value_t = 2)]
+    pub workers: usize,
+    /// Evaluate the jobs already trained; train nothing.
+    #[arg(long)]
+    pub eval_only: bool,
+}
+
+/// A rung of the ladder: a job, its training seeds, an evaluation and a gate.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Rung {
+    /// L0 ... L5.
+    pub rung: String,
+    pub name: String,
+    /// The job config, relative to the rung file.
+    pub job: PathBuf,
+    pub seeds: Vec<u64>,
+    pub eval: RungEval,
+    pub gate: Gate,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RungEval {
+    pub scenarios: Vec<String>,
+    /// The first N stored cases of each scenario.
+    pub cases: u32,
+    pub seeds: u32,
+    /// Vehicles per case (ego first), cycled over the cases: case i keeps
+    /// `vehicles[i % len]` of its stored vehicles. Empty: as stored.
+    #[serde(default)]
+    pub vehicles: Vec<usize>,
+    #[serde(default = "d_envs")]
+    pub envs: usize,
+    /// Evaluate on `cases` generated cases per scenario instead of the stored ones.
+    #[serde(default)]
+    pub generate: Option<Generate>,
+}
+
+/// Generated evaluation cases: vehicle counts uniform in `vehicles`, and with probability
+/// `conflict_share` a case in which the IDM ego collides (`sf_sim::vec_env::draw_case`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Generate {
+    pub vehicles: [u32; 2],
+    pub conflict_share: f32,
+    pub seed: u64,
+}
+
+fn d_envs() -> usize {
+    40
+}
+
+/// What every training seed's policy must reach (fields left out are not checked).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Gate {
+    /// Success over all evaluated episodes.
+    pub min_success: Option<f64>,
+    /// Success minus the IDM ego's on the same episodes.
+    pub min_success_gain: Option<f64>,
+    /// The IDM ego's collision rate minus the policy's.
+    pub min_collision_drop: Option<f64>,
+    /// Failures other than collisions (off road, off route, wrong lane).
+    pub max_other_failures: Option<f64>,
+    /// Paired t-test of success against the IDM ego.
+    pub max_p: Option<f64>,
+    /// The training curve's rolling success at every point from `curve_from_updates` updates on.
+    pub curve_min_success: Option<f64>,
+    pub curve_from_updates: u64,
+    /// The training curve reaches `curve_reach_success` within `curve_reach_updates` updates.
+    pub curve_reach_success: Option<f64>,
+    pub curve_reach_updates: u64,
+}
+
+impl Rung {
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let r: Rung = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+        if r.seeds.is_empty() {
+            bail!("{}: `seeds` is empty", path.display());
+        }
+        if r.eval.scenarios.is_empty() || r.eval.cases == 0 || r.eval.seeds == 0 || r.eval.envs == 0 {
+            bail!("{}: `eval` needs scenarios and positive cases, seeds and envs", path.display());
+        }
+        if let Some(g) = &r.eval.generate {
+            if g.vehicles[0] == 0 || g.vehicles[0] > g.vehicles[1] || !(0.0..=1.0).contains(&g.conflict_share) {
+                bail!("{}: `eval.generate` needs 1 <= vehicles[0] <= vehicles[1] and conflict_share in [0, 1]", path.display());
+            }
+        }
+        if r.eval.vehicles.contains(&0) {
+            bail!("{}: `eval.vehicles` entries must be positive", path.display());
+        }
+        Ok(r)
+    }
+}
+
+/// One evaluated episode of the ladder: a policy (or the IDM ego) on a case and seed.
+#[derive(Clone, Debug, Serialize)]
+struct Row {
+    train_seed: u64,
+    driver: &'static str,
+    scenario: String,
+    case: u32,
+    seed: u32,
+    vehicles: usize,
+    success: f32,
+    collision: f32,
+    other_failure: f32,
+    timeout: f32,
+    speed: f32,
+}
+
+impl Row {
+    const HEADER: &'static str = "train_seed,driver,scenario,case,seed,vehicles,success,collision,other_failure,timeout,speed";
+
+    fn csv(&self) -> String {
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{}",
+            self.train_seed, self.driver, self.scenario, self.case, self.seed, self.vehicles, self.success, self.collision, self.other_failure, self.timeout, self.speed
+        )
+    }
+}
+
+/// One seed's verdict.
+#[derive(Clone, Debug, Serialize)]
+struct SeedSummary {
+    train_seed: u64,
+    job_dir: String,
+    episodes: usize,
+    success: f64,
+    idm_success: f64,
+    collision: f64,
+    idm_collision: f64,
+    other_failures: f64,
+    speed: f64,
+    idm_speed: f64,
+    p_value: f64,
+    per_scenario: BTreeMap<String, [f64; 2]>,
+    updates: u64,
+    wall_s: f64,
+    passed: bool,
+    failed_checks: Vec<String>,
+}
+
+pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
+    let rung = Rung::load(&a.rung)?;
+    let job_path = a.rung.parent().unwrap_or(Path::new(".")).join(&rung.job);
+    let text = std::fs::read_to_string(&job_path).with_context(|| format!("reading {}", job_path.display()))?;
+    let base = JobConfig::from_toml(&text).with_context(|| job_path.display().to_string())?;
+    if base.kind != sf_job::config::JobKind::Ego {
+        bail!("{}: a rung trains an ego job, not a {} job", job_path.display(), base.kind.as_str());
+    }
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("docs/ladder").join(&rung.name));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let seeds = a.seeds.clone().unwrap_or_else(|| rung.seeds.clone());
+    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_sac::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    if let Some(g) = &rung.eval.generate {
+        let sim = Arc::new(SimConfig::default());
+        for (map, cases) in &mut maps {
+            let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
+            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), Some(g.conflict_share))).collect();
+        }
+    }
+
+    // 1. Train (or find) one job per seed.
+    let mut jobs = Vec::new();
+    for &seed in &seeds {
+        let mut cfg = base.clone();
+        cfg.name = format!("{}-s{seed}", base.name);
+        cfg.sac.seed = seed;
+        let dir = train_or_find(dirs, &a, &cfg)?;
+        jobs.push((seed, dir));
+    }
+
+    // 2. Evaluate each against the IDM ego on the same episodes.
+    let mut rows = Vec::new();
+    let mut summaries = Vec::new();
+    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(anyhow::Error::msg)?);
+    let mut curves = Vec::new();
+    for (seed, dir) in &jobs {
+        let policy = crate::eval::load_job(dir)?;
+        let seed_out = out.join(format!("seed-{seed}"));
+        std::fs::create_dir_all(&seed_out)?;
+        for f in ["curve.csv", "curve.png", "config.toml"] {
+            if dir.join(f).exists() {
+                std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
+            }
+        }
+        curves.push((*seed, read_curve(&dir.join("curve.csv"))?));
+        let mut mine = Vec::new();
+        for (map, cases) in &maps {
+            mine.extend(evaluate(&rung.eval, *seed, map, cases, Some(&policy), &mut runners)?);
+            mine.extend(evaluate(&rung.eval, *seed, map, cases, None, &mut runners)?);
+        }
+        let (updates, wall_s) = last_point(&dir.join("curve.csv"))?;
+        let mut s = summarise(*seed, dir, &mine, &rung.gate, updates, wall_s)?;
+        check_curve(&mut s, &rung.gate, &curves.last().map(|(_, c)| c.clone()).unwrap_or_default());
+        summaries.push(s);
+        rows.extend(mine);
+    }
+
+    // 3. Write episodes, summary and curves.
+    let mut csv = String::from(Row::HEADER);
+    csv.push('\n');
+    for r in &rows {
+        csv.push_str(&r.csv());
+        csv.push('\n');
+    }
+    std::fs::write(out.join("episodes.csv"), csv)?;
+    let passed = summaries.iter().all(|s| s.passed);
+    let json = serde_json::json!({"rung": rung.rung, "name": rung.name, "gate": rung.gate, "eval": rung.eval, "passed": passed, "seeds": summaries});
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&json)?)?;
+    std::fs::write(out.join("summary.md"), summary_md(&rung, &summaries, passed))?;
+    plot_curves(&out, &rung, &curves)?;
+    println!("{}", serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()}));
+    print!("{}", summary_md(&rung, &summaries, passed));
+    Ok(())
+}
+
+/// The artifact directory of a finished job named `cfg.name` in the data directory, training
+/// it first unless `--eval-only`.
+fn train_or_find(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
+    let text = cfg.to_toml();
+    runtime()?.block_on(async {
+        let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers.max(1)).await?;
+        let mut c = emb.client().await?;
+        let jobs = remote::list(&mut c).await?;
+        let done = jobs.iter().filter(|j| j.name == cfg.name && j.state == JobState::Succeeded).max_by_key(|j| j.id).cloned();
+        let result = match done {
+            Some(j) => Ok(PathBuf::from(&j.artifact_dir)),
+            None if a.eval_only => Err(anyhow::anyhow!("no finished job `{}` in {}", cfg.name, a.data_dir.display())),
+            None => {
+                let running = jobs.into_iter().find(|j| j.name == cfg.name && !j.state.is_final());
+                let job = match running {
+                    Some(j) => j,
+                    None => remote::submit(&mut c, text).await?,
+                };
+                eprintln!("training {} (job {})", cfg.name, job.id);
+                let (state, _) = remote::watch(&mut c, job.id, true).await?;
+                if state == JobState::Succeeded {
+                    Ok(PathBuf::from(&job.artifact_dir))
+                } else {
+                    Err(anyhow::anyhow!("job {} ({}) ended {}", job.id, cfg.name, state.as_str()))
+                }
+            }
+        };
+        emb.stop().await?;
+        result
+    })
+}
+
+/// The evaluation episodes of one scenario: the policy's mean action in the ego's seat, or
+/// (`policy = None`) the IDM driver there (an acceleration residual of zero: IDM exactly).
+fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, policy: Option<&Policy>, runners: &mut Runners) -> Result<Vec<Row>> {
+    let n = e.cases as usize;
+    if n > cases.cases.len() {
+        bail!("eval.cases: {n} exceeds the {} stored cases of {}", cases.cases.len(), map.name);
+    }
+    let sim = Arc::new(match policy {
+        Some(p) => setup::sim_config(&p.cfg, None),
+        None => SimConfig::default(),
+    });
+    let runner = policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;
+    let drivers = Drivers {
+        alive: match &runner {
+            Some(r) => Actor::mean(r),
+            None => Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual },
+        },
+        background: None,
+        adversary: None,
+    };
+    let vehicles = |c: usize| if e.vehicles.is_empty() { None } else { Some(e.vehicles[c % e.vehicles.len()]) };
+    let mut rows = Vec::new();
+    for seed in 0..e.seeds {
+        let eps: Vec<EpisodeSpec> = (0..n).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: vehicles(c), svo_deg: None, tag: (seed as u64) << 32 | c as u64 }).collect();
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), Mode::Ego { background: Controller::Idm }, e.envs, eps).map_err(anyhow::Error::msg)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
+        let mut done: Vec<Option<EpisodeMetrics>> = vec![None; n];
+        for (tag, m) in drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {}) {
+            done[(tag & 0xffff_ffff) as usize] = Some(m);
+        }
+        for (c, m) in done.into_iter().enumerate() {
+            let m = m.with_context(|| format!("case {c} did not finish"))?;
+            rows.push(Row {
+                train_seed,
+                driver: if policy.is_some() { "policy" } else { "idm" },
+                scenario: map.name.clone(),
+                case: cases.cases[c].id,
+                seed,
+                vehicles: vehicles(c).unwrap_or(cases.cases[c].vehicles.len()).min(cases.cases[c].vehicles.len()),
+                success: m.success,
+                collision: m.collision,
+                other_failure: m.off_road + m.off_route + m.wrong_lane,
+                timeout: m.timeout,
+                speed: m.speed,
+            });
+        }
+    }
+    Ok(rows)
+}
+
+fn mean(xs: impl Iterator<Item = f32>) -> f64 {
+    let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x as f64, n + 1));
+    if n == 0 {
+        0.0
+    } else {
+        s / n as f64
+    }
+}
+
+fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, wall_s: f64) -> Result<SeedSummary> {
+    let pol: Vec<&Row> = rows.iter().filter(|r| r.driver == "policy").collect();
+    let idm: Vec<&Row> = rows.iter().filter(|r| r.driver == "idm").collect();
+    // Rows are paired: the same (scenario, case, seed) in the same order.
+    let a: Vec<f64> = pol.iter().map(|r| r.success as f64).collect();
+    let b: Vec<f64> = idm.iter().map(|r| r.success as f64).collect();
+    let p_value = match sf_eval::paired_t_test(&a, &b) {
+        Ok(t) => t.p_value,
+        // Identical outcomes everywhere: no difference to test.
+        Err(_) => 1.0,
+    };
+    let mut per_scenario = BTreeMap::new();
+    for s in pol.iter().map(|r| r.scenario.clone()).collect::<std::collections::BTreeSet<_>>() {
+        let m = |v: &[&Row]| mean(v.iter().filter(|r| r.scenario == s).map(|r| r.success));
+        let v = [m(&pol), m(&idm)];
+        per_scenario.insert(s, v);
+    }
+    let mut s = SeedSummary {
+        train_seed,
+        job_dir: dir.display().to_string(),
+        episodes: pol.len(),
+        success: mean(pol.iter().map(|r| r.success)),
+        idm_success: mean(idm.iter().map(|r| r.success)),
+        collision: mean(pol.iter().map(|r| r.collision)),
+        idm_collision: mean(idm.iter().map(|r| r.collision)),
+        other_failures: mean(pol.iter().map(|r| r.other_failure)),
+        speed: mean(pol.iter().map(|r| r.speed)),
+        idm_speed: mean(idm.iter().map(|r| r.speed)),
+        p_value,
+        per_scenario,
+        updates,
+        wall_s,
+        passed: true,
+        failed_checks: Vec::new(),
+    };
+    let mut fail = |ok: bool, what: String| {
+        if !ok {
+            s.failed_checks.push(what);
+        }
+    };
+    if let Some(v) = g.min_success {
+        fail(s.success >= v, format!("success {:.3} < {v}", s.success));
+    }
+    if let Some(v) = g.min_success_gain {
+        fail(s.success - s.idm_success >= v, format!("success gain over IDM {:+.3} < {v}", s.success - s.idm_success));
+    }
+    if let Some(v) = g.min_collision_drop {
+        fail(s.idm_collision - s.collision >= v, format!("collision drop {:+.3} < {v}", s.idm_collision - s.collision));
+    }
+    if let Some(v) = g.max_other_failures {
+        fail(s.other_failures <= v, format!("other failures {:.3} > {v}", s.other_failures));
+    }
+    if let Some(v) = g.max_p {
+        fail(s.p_value <= v && s.success > s.idm_success, format!("p = {:.3e} (policy {:.3} vs IDM {:.3}), need p <= {v} in the policy's favour", s.p_value, s.success, s.idm_success));
+    }
+    s.passed = s.failed_checks.is_empty();
+    Ok(s)
+}
+
+/// The gate's checks on the training curve (`[env_steps, updates, success, safety]` points).
+fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[[f64; 4]]) {
+    if let Some(v) = g.curve_min_success {
+        let after: Vec<f64> = curve.iter().filter(|p| p[1] >= g.curve_from_updates as f64).map(|p| p[2]).collect();
+        let low = after.iter().copied().fold(f64::INFINITY, f64::min);
+        if after.is_empty() || low < v {
+            s.failed_checks.push(format!("curve success from {} updates on: min {:.3} < {v}", g.curve_from_updates, if after.is_empty() { 0.0 } else { low }));
+        }
+    }
+    if let Some(v) = g.curve_reach_success {
+        if !curve.iter().any(|p| p[1] <= g.curve_reach_updates as f64 && p[2] >= v) {
+            s.failed_checks.push(format!("curve success never reached {v} within {} updates", g.curve_reach_updates));
+        }
+    }
+    s.passed = s.failed_checks.is_empty();
+}
+
+fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
+    let mut m = String::new();
+    let _ = writeln!(m, "## {} `{}`: {}\n", r.rung, r.name, if passed { "PASSED" } else { "NOT PASSED" });
+    let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | p (paired) | gate |");
+    let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|");
+    for s in seeds {
+        let _ = writeln!(
+            m,
+            "| {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} |",
+            s.train_seed,
+            s.updates,
+            s.success,
+            s.idm_success,
+            s.collision,
+            s.idm_collision,
+            s.other_failures,
+            s.speed,
+            s.idm_speed,
+            sf_eval::report::fmt_p(s.p_value),
+            if s.passed { "pass".to_string() } else { s.failed_checks.join("; ") }
+        );
+    }
+    let _ = writeln!(m, "\nPer scenario, success policy / IDM ego:\n");
+    for s in seeds {
+        let per: Vec<String> = s.per_scenario.iter().map(|(k, [p, i])| format!("{k} {p:.3} / {i:.3}")).collect();
+        let _ = writeln!(m, "- seed {}: {}", s.train_seed, per.join(", "));
+    }
+    m
+}
+
+/// `(env_steps, updates, success, safety)` per curve point, read by column name.
+fn read_curve(path: &Path) -> Result<Vec<[f64; 4]>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
+    let idx = [col("env_steps")?, col("updates")?, col("success")?, col("safety")?];
+    let mut out = Vec::new();
+    for (i, l) in lines.enumerate() {
+        let f: Vec<&str> = l.split(',').collect();
+        let mut p = [0.0; 4];
+        for (k, &c) in idx.iter().enumerate() {
+            p[k] = f.get(c).and_then(|v| v.parse().ok()).with_context(|| format!("{} line {}: column {c}", path.display(), i + 2))?;
+        }
+        out.push(p);
+    }
+    Ok(out)
+}
+
+fn last_point(path: &Path) -> Result<(u64, f64)> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let (u, w) = (header.iter().position(|h| *h == "updates"), header.iter().position(|h| *h == "wall_s"));
+    let last: Vec<&str> = lines.last().unwrap_or_default().split(',').collect();
+    let get = |i: Option<usize>| i.and_then(|i| last.get(i)).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    Ok((get(u) as u64, get(w)))
+}
+
+/// Rolling success against updates, one line per seed.
+fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<[f64; 4]>)]) -> Result<()> {
+    let names: Vec<String> = curves.iter().map(|(s, _)| format!("seed {s}")).collect();
+    let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[1], p[2])).collect() }).collect();
+    line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500)).map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
+}
