@@ -53,7 +53,7 @@ fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
 
 /// The job a flow or ego names: by `job_id` if pinned, else the newest `jobs/<id>-<name>/`
 /// with a final policy.
-fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
+pub(crate) fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
     let dirs = job_dirs(runs)?;
     let dir = match id {
         Some(id) => dirs.into_iter().find(|(i, _, _)| *i == id).map(|(_, _, d)| d).with_context(|| format!("job {id} has no directory under {}", runs.join("jobs").display()))?,

@@ -217,8 +217,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         let mut cfg = base.clone();
         cfg.name = format!("{}-s{seed}", base.name);
         cfg.sac.seed = seed;
-        let dir = train_or_find(dirs, &a, &cfg)?;
-        jobs.push((seed, dir));
+        jobs.push((seed, trained_policy(dirs, &a, &cfg)?));
     }
 
     // 2. Evaluate each against the IDM ego on the same episodes.
@@ -226,8 +225,13 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let mut summaries = Vec::new();
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(anyhow::Error::msg)?);
     let mut curves = Vec::new();
-    for (seed, dir) in &jobs {
-        let policy = crate::eval::load_job(dir)?;
+    // The IDM ego does not depend on the training seed: its episodes run once.
+    let mut idm = Vec::new();
+    for (map, cases) in &maps {
+        idm.extend(evaluate(&rung.eval, 0, map, cases, None, &mut runners)?);
+    }
+    for (seed, policy) in &jobs {
+        let dir = &PathBuf::from(&policy.key);
         let seed_out = out.join(format!("seed-{seed}"));
         std::fs::create_dir_all(&seed_out)?;
         for f in ["curve.csv", "curve.png", "config.toml"] {
@@ -235,16 +239,17 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
                 std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
             }
         }
-        curves.push((*seed, read_curve(&dir.join("curve.csv"))?));
+        let curve = read_curve(&dir.join("curve.csv"))?;
         let mut mine = Vec::new();
         for (map, cases) in &maps {
-            mine.extend(evaluate(&rung.eval, *seed, map, cases, Some(&policy), &mut runners)?);
-            mine.extend(evaluate(&rung.eval, *seed, map, cases, None, &mut runners)?);
+            mine.extend(evaluate(&rung.eval, *seed, map, cases, Some(policy), &mut runners)?);
         }
-        let (updates, wall_s) = last_point(&dir.join("curve.csv"))?;
-        let mut s = summarise(*seed, dir, &mine, &rung.gate, updates, wall_s)?;
-        check_curve(&mut s, &rung.gate, &curves.last().map(|(_, c)| c.clone()).unwrap_or_default());
+        mine.extend(idm.iter().map(|r| Row { train_seed: *seed, ..r.clone() }));
+        let [updates, _, wall_s] = curve.last().copied().unwrap_or_default();
+        let mut s = summarise(*seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
+        check_curve(&mut s, &rung.gate, &curve);
         summaries.push(s);
+        curves.push((*seed, curve));
         rows.extend(mine);
     }
 
@@ -266,33 +271,36 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     Ok(())
 }
 
-/// The artifact directory of a finished job named `cfg.name` in the data directory, training
-/// it first unless `--eval-only`.
-fn train_or_find(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
+/// The final policy of the newest finished job named `cfg.name` in the data directory, found on
+/// disk as `socialflow eval` finds its jobs (so no learner starts, and none resumes other
+/// jobs, just to evaluate); otherwise, unless `--eval-only`, that job trained now.
+fn trained_policy(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<Policy> {
+    match crate::eval::find_job(&a.data_dir, &cfg.name, None) {
+        Ok(p) => Ok(p),
+        Err(e) if a.eval_only => Err(e),
+        Err(_) => crate::eval::load_job(&train(dirs, a, cfg)?),
+    }
+}
+
+/// Trains `cfg` (or follows its unfinished job of the same name) on an embedded learner with
+/// `--workers` workers; returns its artifact directory once it succeeded.
+fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
     let text = cfg.to_toml();
     runtime()?.block_on(async {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers.max(1)).await?;
         let mut c = emb.client().await?;
-        let jobs = remote::list(&mut c).await?;
-        let done = jobs.iter().filter(|j| j.name == cfg.name && j.state == JobState::Succeeded).max_by_key(|j| j.id).cloned();
-        let result = match done {
-            Some(j) => Ok(PathBuf::from(&j.artifact_dir)),
-            None if a.eval_only => Err(anyhow::anyhow!("no finished job `{}` in {}", cfg.name, a.data_dir.display())),
-            None => {
-                let running = jobs.into_iter().find(|j| j.name == cfg.name && !j.state.is_final());
-                let job = match running {
-                    Some(j) => j,
-                    None => remote::submit(&mut c, text).await?,
-                };
-                eprintln!("training {} (job {})", cfg.name, job.id);
-                let (state, _) = remote::watch(&mut c, job.id, true).await?;
-                if state == JobState::Succeeded {
-                    Ok(PathBuf::from(&job.artifact_dir))
-                } else {
-                    Err(anyhow::anyhow!("job {} ({}) ended {}", job.id, cfg.name, state.as_str()))
-                }
-            }
-        };
+        let result = async {
+            let running = remote::list(&mut c).await?.into_iter().find(|j| j.name == cfg.name && !j.state.is_final());
+            let job = match running {
+                Some(j) => j,
+                None => remote::submit(&mut c, text).await?,
+            };
+            eprintln!("training {} (job {})", cfg.name, job.id);
+            let (state, _) = remote::watch(&mut c, job.id, true).await?;
+            anyhow::ensure!(state == JobState::Succeeded, "job {} ({}) ended {}", job.id, cfg.name, state.as_str());
+            Ok(PathBuf::from(&job.artifact_dir))
+        }
+        .await;
         emb.stop().await?;
         result
     })
@@ -416,17 +424,17 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
     Ok(s)
 }
 
-/// The gate's checks on the training curve (`[env_steps, updates, success, safety]` points).
-fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[[f64; 4]]) {
+/// The gate's checks on the training curve.
+fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[CurvePt]) {
     if let Some(v) = g.curve_min_success {
-        let after: Vec<f64> = curve.iter().filter(|p| p[1] >= g.curve_from_updates as f64).map(|p| p[2]).collect();
+        let after: Vec<f64> = curve.iter().filter(|p| p[0] >= g.curve_from_updates as f64).map(|p| p[1]).collect();
         let low = after.iter().copied().fold(f64::INFINITY, f64::min);
         if after.is_empty() || low < v {
             s.failed_checks.push(format!("curve success from {} updates on: min {:.3} < {v}", g.curve_from_updates, if after.is_empty() { 0.0 } else { low }));
         }
     }
     if let Some(v) = g.curve_reach_success {
-        if !curve.iter().any(|p| p[1] <= g.curve_reach_updates as f64 && p[2] >= v) {
+        if !curve.iter().any(|p| p[0] <= g.curve_reach_updates as f64 && p[1] >= v) {
             s.failed_checks.push(format!("curve success never reached {v} within {} updates", g.curve_reach_updates));
         }
     }
@@ -463,17 +471,20 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     m
 }
 
-/// `(env_steps, updates, success, safety)` per curve point, read by column name.
-fn read_curve(path: &Path) -> Result<Vec<[f64; 4]>> {
+/// One curve point as the ladder reads it: `[updates, rolling success, wall_s]`.
+type CurvePt = [f64; 3];
+
+/// A job's `curve.csv`, read by column name.
+fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
-    let idx = [col("env_steps")?, col("updates")?, col("success")?, col("safety")?];
+    let idx = [col("updates")?, col("success")?, col("wall_s")?];
     let mut out = Vec::new();
     for (i, l) in lines.enumerate() {
         let f: Vec<&str> = l.split(',').collect();
-        let mut p = [0.0; 4];
+        let mut p = [0.0; 3];
         for (k, &c) in idx.iter().enumerate() {
             p[k] = f.get(c).and_then(|v| v.parse().ok()).with_context(|| format!("{} line {}: column {c}", path.display(), i + 2))?;
         }
@@ -482,19 +493,9 @@ fn read_curve(path: &Path) -> Result<Vec<[f64; 4]>> {
     Ok(out)
 }
 
-fn last_point(path: &Path) -> Result<(u64, f64)> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let (u, w) = (header.iter().position(|h| *h == "updates"), header.iter().position(|h| *h == "wall_s"));
-    let last: Vec<&str> = lines.last().unwrap_or_default().split(',').collect();
-    let get = |i: Option<usize>| i.and_then(|i| last.get(i)).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    Ok((get(u) as u64, get(w)))
-}
-
 /// Rolling success against updates, one line per seed.
-fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<[f64; 4]>)]) -> Result<()> {
+fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<()> {
     let names: Vec<String> = curves.iter().map(|(s, _)| format!("seed {s}")).collect();
-    let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[1], p[2])).collect() }).collect();
+    let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() }).collect();
     line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500)).map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
 }

@@ -340,7 +340,7 @@ impl Sac {
             let ob = self.batch_on(&obs[start * len..end * len], &map_ids[start..end], &self.plain);
             let a = Tensor::<2>::from_data(TensorData::new(actions[start * a_dim..end * a_dim].to_vec(), [end - start, a_dim]), &self.plain);
             let (q1, q2) = critic.forward(&ob, table.as_ref(), a);
-            out.extend(q1.min_pair(q2).into_data().try_to_vec::<f32>().unwrap_or_default());
+            out.extend(q1.min_pair(q2).into_data().try_to_vec::<f32>().expect("Q values are f32"));
         }
         out
     }

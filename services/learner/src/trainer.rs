@@ -159,22 +159,22 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
             recent_q = 0.0;
             while p.env_steps >= next_point {
                 st.curve.push(CurvePoint {
-                env_steps: next_point.min(p.env_steps),
-                updates: p.updates,
-                episodes: p.episodes,
-                success: p.success,
-                safety: p.safety,
-                speed: p.speed,
-                critic_loss: last_loss.critic,
-                actor_loss: last_loss.actor,
-                alpha: last_loss.alpha,
-                entropy: last_loss.entropy,
-                wall_s: p.wall_s,
-                ends,
-                critic_loss_mean: mean as f32,
-                critic_loss_median: median,
-                q_mean: q as f32,
-            });
+                    env_steps: next_point.min(p.env_steps),
+                    updates: p.updates,
+                    episodes: p.episodes,
+                    success: p.success,
+                    safety: p.safety,
+                    speed: p.speed,
+                    critic_loss: last_loss.critic,
+                    actor_loss: last_loss.actor,
+                    alpha: last_loss.alpha,
+                    entropy: last_loss.entropy,
+                    wall_s: p.wall_s,
+                    ends,
+                    critic_loss_mean: mean as f32,
+                    critic_loss_median: median,
+                    q_mean: q as f32,
+                });
                 next_point += every;
             }
         }

@@ -199,13 +199,16 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
         let t = Instant::now();
         let mut d = drive::decide(&mut venvs, &drivers, &mut rng);
-        let in_warmup = acting.is_none();
-        if let (Some(b), true) = (brakes.as_mut(), in_warmup) {
-            b.overlay(&mut d, &mut rng);
-        }
         if d.inferred_rows > 0 {
             metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
             metrics.inference_obs.inc_by(d.inferred_rows as u64);
+        }
+        // Braking segments belong to the warm-up: once the policy acts they are dropped.
+        if acting.is_some() {
+            brakes = None;
+        }
+        if let Some(b) = brakes.as_mut() {
+            b.overlay(&mut d, &mut rng);
         }
         drive::apply(&mut venvs, &d);
         if let Some(b) = brakes.as_mut() {
