@@ -13,10 +13,7 @@ fn json_of(out: &std::process::Output) -> serde_json::Value {
 
 #[test]
 fn bench_sim_prints_the_contract_fields() {
-    let v = json_of(&socialflow(
-        &["bench", "sim", "--scenario", "roundabout", "--vehicles", "12", "--seconds", "0.5", "--threads", "1", "--json"],
-        T,
-    ));
+    let v = json_of(&socialflow(&["bench", "sim", "--scenario", "roundabout", "--vehicles", "12", "--seconds", "0.5", "--threads", "1", "--json"], T));
     for k in ["scenario", "vehicles", "threads", "agent_steps_per_s", "env_steps_per_s"] {
         assert!(v.get(k).is_some(), "missing {k} in {v}");
     }
@@ -95,10 +92,7 @@ fn bench_sac_prints_the_contract_fields() {
 fn learn_ego_writes_curve_config_and_checkpoint() {
     let dir = std::env::temp_dir().join(format!("sf-e2e-learn-{}", std::process::id()));
     let d = dir.to_string_lossy().to_string();
-    let out = socialflow(
-        &["learn-ego", "--scenario", "merge", "--steps", "400", "--warmup", "100", "--envs", "4", "--width", "16", "--batch", "16", "--out", &d],
-        Duration::from_secs(300),
-    );
+    let out = socialflow(&["learn-ego", "--scenario", "merge", "--steps", "400", "--warmup", "100", "--envs", "4", "--width", "16", "--batch", "16", "--out", &d], Duration::from_secs(300));
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("summary JSON");
     assert!(v["updates"].as_u64().unwrap_or(0) > 0, "{v}");
@@ -353,7 +347,10 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     let mut l = l;
     assert!(l.proc.terminate(Duration::from_secs(30)), "the learner stops on SIGTERM");
     let report2 = dir.join("report2");
-    let o = socialflow(&["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data, "--eval", &dir.join("eval-a.toml").display().to_string(), "--report", &report2.display().to_string()], 4 * T);
+    let o = socialflow(
+        &["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data, "--eval", &dir.join("eval-a.toml").display().to_string(), "--report", &report2.display().to_string()],
+        4 * T,
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
     assert!(lines.iter().any(|v| v["job_id"] == job["job_id"] && v["state"] == "succeeded"), "the evaluation job is reused: {lines:?}");

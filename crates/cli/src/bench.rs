@@ -71,11 +71,7 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
     let n_envs = a.envs.unwrap_or(8 * a.threads.max(1));
     let vehicles = a.vehicles.min(map.spawns.len() as u32);
     let result = pool.install(|| {
-        let mut venv = VecEnv::new(
-            map.clone(),
-            cfg.clone(),
-            VecEnvConfig { n_envs, mode: Mode::MultiAgent, vehicles: (vehicles, vehicles), seed: 7 },
-        );
+        let mut venv = VecEnv::new(map.clone(), cfg.clone(), VecEnvConfig { n_envs, mode: Mode::MultiAgent, vehicles: (vehicles, vehicles), seed: 7 });
         let rows = venv.alive().len();
         let mut actions = vec![Action::default(); rows];
         let spec = venv.spec.clone();

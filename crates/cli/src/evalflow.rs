@@ -9,9 +9,9 @@
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use rand::SeedableRng;
 use rayon::prelude::*;
 use serde_json::json;
-use rand::SeedableRng;
 use sf_eval::Summary;
 use sf_sac::coordinator::CoordinatorFile;
 use sf_sac::drive::{Actor, Drivers};

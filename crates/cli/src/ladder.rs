@@ -497,5 +497,6 @@ fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
 fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<()> {
     let names: Vec<String> = curves.iter().map(|(s, _)| format!("seed {s}")).collect();
     let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() }).collect();
-    line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500)).map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
+    line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500))
+        .map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
 }

@@ -122,7 +122,11 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
 /// its name), follows it and builds the report.
 async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String)>, report: Option<&Path>) -> Result<()> {
     let Some((path, cfg, text)) = grid else { return Ok(()) };
-    let existing = remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && sf_job::eval::is_eval_toml(&j.config_toml) && !matches!(j.state, JobState::Failed | JobState::Cancelled)).max_by_key(|j| j.id);
+    let existing = remote::list(c)
+        .await?
+        .into_iter()
+        .filter(|j| j.name == cfg.name && sf_job::eval::is_eval_toml(&j.config_toml) && !matches!(j.state, JobState::Failed | JobState::Cancelled))
+        .max_by_key(|j| j.id);
     let id = match existing {
         Some(j) => {
             eprintln!("{}: evaluation job {} ({}) already on the learner", cfg.name, j.id, j.state.as_str());
@@ -231,7 +235,13 @@ mod tests {
         }
         assert!(jobs[pos("ego-idm")].1.env.background_from.is_none());
         // RARL: each phase after the frozen side it acts against and the phase it continues.
-        for (job, after) in [("flow-failmaker", "ego-idm"), ("ego-failmaker", "flow-failmaker"), ("flow-socialcomm-adv", "ego-socialcomm"), ("flow-socialcomm-adv", "flow-socialcomm"), ("ego-socialcomm-adv", "flow-socialcomm-adv")] {
+        for (job, after) in [
+            ("flow-failmaker", "ego-idm"),
+            ("ego-failmaker", "flow-failmaker"),
+            ("flow-socialcomm-adv", "ego-socialcomm"),
+            ("flow-socialcomm-adv", "flow-socialcomm"),
+            ("ego-socialcomm-adv", "flow-socialcomm-adv"),
+        ] {
             assert!(pos(after) < pos(job), "{after} before {job}");
         }
         assert_eq!(jobs[pos("ego-failmaker")].1.train.init_from.as_deref(), Some("ego-idm"));
@@ -243,7 +253,8 @@ mod tests {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper");
         let jobs = load(&dir).expect("a valid pipeline");
         let pos = |n: &str| jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"));
-        let chain = ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "failmaker-3", "ego-failmaker-3", "failmaker-4", "ego-failmaker-4", "flow-failmaker", "ego-failmaker"];
+        let chain =
+            ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "failmaker-3", "ego-failmaker-3", "failmaker-4", "ego-failmaker-4", "flow-failmaker", "ego-failmaker"];
         for w in chain.windows(2) {
             assert!(pos(w[0]) < pos(w[1]), "{} before {}", w[0], w[1]);
         }

@@ -93,9 +93,7 @@ pub fn job_json(j: &JobRecord) -> serde_json::Value {
 /// A progress bar over learner transitions.
 pub fn bar(target: u64) -> ProgressBar {
     let pb = ProgressBar::new(target);
-    pb.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}").map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    pb.set_style(ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}").map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar()));
     pb
 }
 

@@ -57,22 +57,28 @@ pub fn run(ctx: &Ctx, a: RenderArgs) -> Result<()> {
             let (w, h) = r.size();
             let mut gif = GifWriter::new(&mut out, w, h, 10)?;
             let mut err = None;
-            env.run_episode(|_, _| {}, |e| {
-                if err.is_none() {
-                    err = gif.push(&r.frame(e)).err();
-                }
-            })?;
+            env.run_episode(
+                |_, _| {},
+                |e| {
+                    if err.is_none() {
+                        err = gif.push(&r.frame(e)).err();
+                    }
+                },
+            )?;
             if let Some(e) = err {
                 return Err(e.into());
             }
         }
         "png" => {
             let mut frame = None;
-            env.run_episode(|_, _| {}, |e| {
-                if e.step_index() == a.step {
-                    frame = Some(r.frame(e));
-                }
-            })?;
+            env.run_episode(
+                |_, _| {},
+                |e| {
+                    if e.step_index() == a.step {
+                        frame = Some(r.frame(e));
+                    }
+                },
+            )?;
             let Some(f) = frame else { bail!("the episode ended before step {}", a.step) };
             write_png(&f, &mut out)?;
         }

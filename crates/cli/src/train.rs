@@ -51,7 +51,14 @@ impl Embedded {
         let (scenarios_dir, cases_dir) = (dirs.scenarios.clone(), dirs.cases.clone());
         let secret: String = (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
         let token = Token::new(&secret, "embedded").context("embedded token")?;
-        let cfg = LearnerConfig { grpc_addr: SocketAddr::from(([127, 0, 0, 1], 0)), admin_addr: SocketAddr::from(([127, 0, 0, 1], 0)), data_dir, scenarios_dir: scenarios_dir.clone(), cases_dir: cases_dir.clone(), ..LearnerConfig::default() };
+        let cfg = LearnerConfig {
+            grpc_addr: SocketAddr::from(([127, 0, 0, 1], 0)),
+            admin_addr: SocketAddr::from(([127, 0, 0, 1], 0)),
+            data_dir,
+            scenarios_dir: scenarios_dir.clone(),
+            cases_dir: cases_dir.clone(),
+            ..LearnerConfig::default()
+        };
         let learner = sf_learner::start(cfg, token.clone()).await?;
         let url = format!("http://{}", learner.grpc_addr);
         let (stop_workers, stop_rx) = watch::channel(false);

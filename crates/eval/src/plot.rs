@@ -51,13 +51,7 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
     let (y0, y1) = y_range.unwrap_or_else(|| if y1 > y0 { (y0, y1 + 0.05 * (y1 - y0)) } else { (y0 - 1.0, y1 + 1.0) });
     let root = BitMapBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(56)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(|e| err(&e))?;
+    let mut chart = ChartBuilder::on(&root).caption(title, ("sans-serif", 22)).margin(12).x_label_area_size(40).y_label_area_size(56).build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(&e))?;
     chart.configure_mesh().x_desc(x_label).y_desc(y_label).label_style(("sans-serif", 14)).draw().map_err(|e| err(&e))?;
     for (k, s) in series.iter().enumerate() {
         let colour = Palette99::pick(k).to_rgba();
@@ -71,7 +65,6 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
     root.present().map_err(|e| err(&e))?;
     Ok(())
 }
-
 
 /// A heatmap cell's decoration.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -146,13 +139,8 @@ pub fn grouped_bars(path: &Path, title: &str, y_label: &str, group_names: &[Stri
     let root = BitMapBackend::new(path, (width, 440)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let x_max = group_names.len() as f64;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(12)
-        .x_label_area_size(36)
-        .y_label_area_size(56)
-        .build_cartesian_2d(0.0..x_max.max(1.0), 0.0..1.15)
-        .map_err(|e| err(&e))?;
+    let mut chart =
+        ChartBuilder::on(&root).caption(title, ("sans-serif", 20)).margin(12).x_label_area_size(36).y_label_area_size(56).build_cartesian_2d(0.0..x_max.max(1.0), 0.0..1.15).map_err(|e| err(&e))?;
     let names = group_names.to_vec();
     chart
         .configure_mesh()
@@ -160,7 +148,11 @@ pub fn grouped_bars(path: &Path, title: &str, y_label: &str, group_names: &[Stri
         .x_labels(group_names.len().max(1) * 2 + 1)
         .x_label_formatter(&move |x: &f64| {
             let k = (*x - 0.5).round();
-            if (x - 0.5 - k).abs() < 1e-6 && k >= 0.0 { names.get(k as usize).cloned().unwrap_or_default() } else { String::new() }
+            if (x - 0.5 - k).abs() < 1e-6 && k >= 0.0 {
+                names.get(k as usize).cloned().unwrap_or_default()
+            } else {
+                String::new()
+            }
         })
         .y_desc(y_label)
         .label_style(("sans-serif", 13))

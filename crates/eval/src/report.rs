@@ -86,7 +86,8 @@ impl EpisodeRow {
         if f.len() != 12 {
             return Err(format!("{} fields, expected 12", f.len()));
         }
-        let num = |i: usize, what: &str| f[i].parse::<f32>().map_err(|_| format!("{what} `{}` is not a number", f[i])).and_then(|v| if v.is_finite() { Ok(v) } else { Err(format!("{what} is not finite")) });
+        let num =
+            |i: usize, what: &str| f[i].parse::<f32>().map_err(|_| format!("{what} `{}` is not a number", f[i])).and_then(|v| if v.is_finite() { Ok(v) } else { Err(format!("{what} is not finite")) });
         let opt = |i: usize, what: &str| if f[i].is_empty() { Ok(None) } else { f[i].parse::<u64>().map(Some).map_err(|_| format!("{what} `{}` is not an integer", f[i])) };
         Ok(Self {
             experiment: f[0].into(),
@@ -406,7 +407,12 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
                 .iter()
                 .map(|f| {
                     let svos: BTreeSet<u32> = sw.iter().filter(|r| &r.flow == f && &r.scenario == s).filter_map(|r| r.svo_deg).collect();
-                    (f.clone(), svos.into_iter().map(|v| (v as f64, summary(&by(rows, |r| r.experiment == "svo_sweep" && &r.flow == f && &r.scenario == s && r.svo_deg == Some(v)), |r| r.success).mean)).collect())
+                    (
+                        f.clone(),
+                        svos.into_iter()
+                            .map(|v| (v as f64, summary(&by(rows, |r| r.experiment == "svo_sweep" && &r.flow == f && &r.scenario == s && r.svo_deg == Some(v)), |r| r.success).mean))
+                            .collect(),
+                    )
                 })
                 .collect();
             let file = format!("svo-sweep-{s}.png");
@@ -449,10 +455,13 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
         }
         let width = table.iter().map(Vec::len).max().unwrap_or(1);
         let head: Vec<String> = std::iter::once("Flow".to_string()).chain((1..width).map(|k| format!("density {k}"))).collect();
-        let table: Vec<Vec<String>> = table.into_iter().map(|mut r: Vec<String>| {
-            r.resize(width, String::new());
-            r
-        }).collect();
+        let table: Vec<Vec<String>> = table
+            .into_iter()
+            .map(|mut r: Vec<String>| {
+                r.resize(width, String::new());
+                r
+            })
+            .collect();
         doc.table(&head, &table);
     }
 
@@ -494,7 +503,11 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
             let (sc, sca, fm) = (summary(&pooled(&flows[0]), |r| r.success).mean, summary(&pooled(&flows[1]), |r| r.success).mean, summary(&pooled(&flows[2]), |r| r.success).mean);
             let p = paired_across_flows(&pooled(&flows[1]), &pooled(&flows[0]), |r| r.success).map(|t| t.p_value);
             found.checks.push((format!("Egos succeed less in {} than in {} (pooled)", flows[1], flows[0]), sca < sc && p.is_some_and(|p| p < 0.05), p));
-            found.checks.push((format!("{} degrades egos more than {} (pooled success: {} {:.1}, {} {:.1}, {} {:.1})", flows[2], flows[1], flows[0], 100.0 * sc, flows[1], 100.0 * sca, flows[2], 100.0 * fm), sc - fm > sc - sca, None));
+            found.checks.push((
+                format!("{} degrades egos more than {} (pooled success: {} {:.1}, {} {:.1}, {} {:.1})", flows[2], flows[1], flows[0], 100.0 * sc, flows[1], 100.0 * sca, flows[2], 100.0 * fm),
+                sc - fm > sc - sca,
+                None,
+            ));
         }
     }
 
@@ -509,7 +522,8 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
         let scen = order(cv.iter().map(|r| r.scenario.clone()), &scen_pref);
         for s in &scen {
             for (mname, m) in [METRICS[0], METRICS[2]] {
-                let values: Vec<Vec<f64>> = egos.iter().map(|e| flows.iter().map(|f| summary(&by(rows, |r| r.experiment == "cross" && &r.ego == e && &r.flow == f && &r.scenario == s), m).mean).collect()).collect();
+                let values: Vec<Vec<f64>> =
+                    egos.iter().map(|e| flows.iter().map(|f| summary(&by(rows, |r| r.experiment == "cross" && &r.ego == e && &r.flow == f && &r.scenario == s), m).mean).collect()).collect();
                 let marks = medals(&egos, &flows, &values, &meta.trained_in);
                 let file = format!("cross-{}-{s}.png", mname.to_lowercase());
                 plot::heatmap(&out.join(&file), &format!("{mname}, {s}"), &egos, &flows, &values, &marks)?;
@@ -553,7 +567,8 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
     }
 
     // Episode GIFs placed in `out` by the caller (`gif-<scenario>.gif`).
-    let mut gifs: Vec<String> = std::fs::read_dir(out).map_err(|e| file_err(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with("gif-") && n.ends_with(".gif")).collect();
+    let mut gifs: Vec<String> =
+        std::fs::read_dir(out).map_err(|e| file_err(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with("gif-") && n.ends_with(".gif")).collect();
     gifs.sort();
     if !gifs.is_empty() {
         doc.h(2, "The same case under each flow");
@@ -566,7 +581,8 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
 
     if !found.checks.is_empty() {
         doc.h(2, "The paper's findings at this budget");
-        let table: Vec<Vec<String>> = found.checks.iter().map(|(c, ok, p)| vec![c.clone(), if *ok { "holds".into() } else { "does not hold".into() }, p.map(fmt_p).unwrap_or_else(|| "-".into())]).collect();
+        let table: Vec<Vec<String>> =
+            found.checks.iter().map(|(c, ok, p)| vec![c.clone(), if *ok { "holds".into() } else { "does not hold".into() }, p.map(fmt_p).unwrap_or_else(|| "-".into())]).collect();
         doc.table(&["Finding".into(), "Here".into(), "p".into()], &table);
     }
     let md_path = out.join("report.md");
@@ -602,7 +618,20 @@ mod tests {
     use super::*;
 
     fn row(experiment: &str, ego: &str, flow: &str, case: u32, seed: u32, success: f32) -> EpisodeRow {
-        EpisodeRow { experiment: experiment.into(), ego: ego.into(), flow: flow.into(), scenario: "merge".into(), svo_deg: None, vehicles: None, case, seed, success, safety: success, speed: 0.5, collision: 0.0 }
+        EpisodeRow {
+            experiment: experiment.into(),
+            ego: ego.into(),
+            flow: flow.into(),
+            scenario: "merge".into(),
+            svo_deg: None,
+            vehicles: None,
+            case,
+            seed,
+            success,
+            safety: success,
+            speed: 0.5,
+            collision: 0.0,
+        }
     }
 
     #[test]

@@ -496,7 +496,10 @@ impl JobConfig {
 
     /// The jobs this one depends on, by name (a pipeline directory).
     pub fn deps_by_name(&self) -> Vec<(DepRole, &str)> {
-        [(DepRole::Background, &self.env.background_from), (DepRole::Ego, &self.env.ego_from), (DepRole::Init, &self.train.init_from)].into_iter().filter_map(|(r, n)| n.as_deref().map(|n| (r, n))).collect()
+        [(DepRole::Background, &self.env.background_from), (DepRole::Ego, &self.env.ego_from), (DepRole::Init, &self.train.init_from)]
+            .into_iter()
+            .filter_map(|(r, n)| n.as_deref().map(|n| (r, n)))
+            .collect()
     }
 
     /// Replaces the name references by ids (`id_of` answers for a name).

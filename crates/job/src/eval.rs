@@ -319,7 +319,14 @@ impl EvalConfig {
 
     /// The grid's cells in a fixed order (a cell's index is its id in an evaluation job).
     pub fn cells(&self) -> Vec<Cell> {
-        let cell = |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell { experiment: experiment.into(), ego: ego.into(), flow: flow.into(), scenario: scenario.into(), svo_deg, vehicles };
+        let cell = |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell {
+            experiment: experiment.into(),
+            ego: ego.into(),
+            flow: flow.into(),
+            scenario: scenario.into(),
+            svo_deg,
+            vehicles,
+        };
         let e = &self.experiments;
         let mut out = Vec::new();
         for f in &e.flow_quality {

@@ -8,8 +8,8 @@
 
 pub use sf_sim::SvoGaussian;
 pub mod batch;
-pub mod eval;
 pub mod config;
+pub mod eval;
 
 pub use batch::{BatchError, Ends, EpisodeResult, TransitionBatch};
 pub use config::{ConfigError, DepRole, JobConfig};

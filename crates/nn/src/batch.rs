@@ -83,16 +83,7 @@ impl ObsBatch {
     /// `histories`: see [`Histories`]; sharing is exact (histories are compared bit for bit,
     /// time channel and mask included), so it never changes what the network computes.
     #[allow(clippy::too_many_arguments)]
-    pub fn from_rows(
-        rows: &[f32],
-        spec: &ObsSpec,
-        cfg: &NetConfig,
-        frame_dt_s: f32,
-        map_ids: &[u32],
-        map_offsets: &[u32],
-        histories: Histories,
-        device: &Device,
-    ) -> Self {
+    pub fn from_rows(rows: &[f32], spec: &ObsSpec, cfg: &NetConfig, frame_dt_s: f32, map_ids: &[u32], map_offsets: &[u32], histories: Histories, device: &Device) -> Self {
         let b = rows.len() / spec.len;
         assert_eq!(b * spec.len, rows.len(), "rows must be whole observations");
         let (h, n, r, m, p) = (spec.history, spec.neighbours, spec.route_points, spec.map_pieces, spec.piece_points);
@@ -180,10 +171,7 @@ impl ObsBatch {
         }
         let map = match spec.layout {
             Layout::EgoFrame => MapInput::EgoFrame { pts: tensor(map_pts, [b, m, p, MAP_FEATS], device), mask: tensor(map_mask, [b, m, p], device) },
-            Layout::QueryCentric => MapInput::QueryCentric {
-                ids: Tensor::from_data(TensorData::new(ids, [b * m]), device),
-                pose: tensor(pose, [b, m, SEG_POSE], device),
-            },
+            Layout::QueryCentric => MapInput::QueryCentric { ids: Tensor::from_data(TensorData::new(ids, [b * m]), device), pose: tensor(pose, [b, m, SEG_POSE], device) },
         };
         let histories = if shared {
             let u = table.ids.len();

@@ -101,7 +101,15 @@ impl NetConfig {
 
     /// Checks sizes; names the field.
     pub fn validate(&self) -> Result<(), String> {
-        for (f, v) in [("d_model", self.d_model), ("set_hidden", self.set_hidden), ("phi_layers", self.phi_layers), ("pose_layers", self.pose_layers), ("head_hidden", self.head_hidden), ("heads", self.heads), ("action_dim", self.action_dim)] {
+        for (f, v) in [
+            ("d_model", self.d_model),
+            ("set_hidden", self.set_hidden),
+            ("phi_layers", self.phi_layers),
+            ("pose_layers", self.pose_layers),
+            ("head_hidden", self.head_hidden),
+            ("heads", self.heads),
+            ("action_dim", self.action_dim),
+        ] {
             if v == 0 {
                 return Err(format!("net config field `{f}` must be positive"));
             }

@@ -67,11 +67,7 @@ impl SegmentInput {
             s += m.len() as u32;
         }
         let s = s as usize;
-        Self {
-            feats: Tensor::from_data(TensorData::new(feats, [1, s, p, MAP_FEATS]), device),
-            mask: Tensor::from_data(TensorData::new(mask, [1, s, p]), device),
-            offsets,
-        }
+        Self { feats: Tensor::from_data(TensorData::new(feats, [1, s, p, MAP_FEATS]), device), mask: Tensor::from_data(TensorData::new(mask, [1, s, p]), device), offsets }
     }
 }
 

@@ -156,9 +156,7 @@ mod tests {
             let (short, long) = (i.min(o), i.max(o));
             for a in 0..short {
                 for c in 0..short {
-                    let dot: f32 = (0..long)
-                        .map(|k| if i >= o { w[k * o + a] * w[k * o + c] } else { w[a * o + k] * w[c * o + k] })
-                        .sum();
+                    let dot: f32 = (0..long).map(|k| if i >= o { w[k * o + a] * w[k * o + c] } else { w[a * o + k] * w[c * o + k] }).sum();
                     let want = if a == c { 1.0 } else { 0.0 };
                     assert!((dot - want).abs() < 1e-4, "({a},{c}) = {dot}");
                 }
@@ -203,9 +201,7 @@ mod tests {
         let mut ctx = vec![0f32; d];
         for head in 0..h {
             let r = head * dh..(head + 1) * dh;
-            let sc: Vec<f32> = (0..t)
-                .map(|j| if pad[j] { f32::NEG_INFINITY } else { r.clone().map(|c| q[c] * ks[j][c]).sum::<f32>() / (dh as f32).sqrt() })
-                .collect();
+            let sc: Vec<f32> = (0..t).map(|j| if pad[j] { f32::NEG_INFINITY } else { r.clone().map(|c| q[c] * ks[j][c]).sum::<f32>() / (dh as f32).sqrt() }).collect();
             let m = sc.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
             let e: Vec<f32> = sc.iter().map(|s| (s - m).exp()).collect();
             let z: f32 = e.iter().sum();

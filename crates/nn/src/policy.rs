@@ -108,11 +108,7 @@ impl Critic {
         let (d, h, a) = (cfg.d_model, cfg.head_hidden, cfg.action_dim);
         let enc = Encoder::new(cfg, &mut init, device);
         let (q1, q2) = (init.mlp(&[d + a, h, h, 1], device), init.mlp(&[d + a, h, h, 1], device));
-        let norms = if cfg.critic_layer_norm {
-            std::iter::once(d).chain(std::iter::repeat_n(h, 4)).map(|w| LayerNormConfig::new(w).init(device)).collect()
-        } else {
-            Vec::new()
-        };
+        let norms = if cfg.critic_layer_norm { std::iter::once(d).chain(std::iter::repeat_n(h, 4)).map(|w| LayerNormConfig::new(w).init(device)).collect() } else { Vec::new() };
         Self { enc, q1, q2, norms }
     }
 

@@ -178,7 +178,14 @@ pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
     pb::EvalAssignment {
         job_id: w.job_id,
         cell_id: w.cell_id,
-        cell: Some(pb::EvalCell { experiment: c.experiment.clone(), ego: c.ego.clone(), flow: c.flow.clone(), scenario: c.scenario.clone(), svo_deg: c.svo_deg, vehicles: c.vehicles.map(|v| v as u32) }),
+        cell: Some(pb::EvalCell {
+            experiment: c.experiment.clone(),
+            ego: c.ego.clone(),
+            flow: c.flow.clone(),
+            scenario: c.scenario.clone(),
+            svo_deg: c.svo_deg,
+            vehicles: c.vehicles.map(|v| v as u32),
+        }),
         cases: w.cases,
         seeds: w.seeds,
         envs: w.envs,

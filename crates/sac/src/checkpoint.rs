@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 use burn::module::Module;
 use burn::tensor::Bytes;
 use rand_chacha::ChaCha8Rng;
-use sf_nn::weights;
 use serde::{Deserialize, Serialize};
+use sf_nn::weights;
 
 use crate::sac::{Sac, SacConfig};
 
@@ -83,14 +83,7 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
         let p = tmp.join(name);
         std::fs::write(&p, bytes).map_err(io(&p))?;
     }
-    let state = State {
-        version: CHECKPOINT_VERSION,
-        updates: sac.updates,
-        rng_seed: sac.rng.get_seed(),
-        rng_word_pos: sac.rng.get_word_pos(),
-        sac: sac.cfg.clone(),
-        net: sac.net.clone(),
-    };
+    let state = State { version: CHECKPOINT_VERSION, updates: sac.updates, rng_seed: sac.rng.get_seed(), rng_word_pos: sac.rng.get_word_pos(), sac: sac.cfg.clone(), net: sac.net.clone() };
     let p = tmp.join("state.json");
     let text = serde_json::to_string_pretty(&state).map_err(|e| CheckpointError::State { path: p.display().to_string(), reason: e.to_string() })?;
     std::fs::write(&p, text).map_err(io(&p))?;

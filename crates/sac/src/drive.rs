@@ -100,11 +100,8 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) 
         Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
         Actor::Demo { noise, action } => {
             // Residual kinds demonstrate with zeros: no IDM action to compute.
-            let mut a: Vec<f32> = if action == DriveAction::Direct {
-                venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect()
-            } else {
-                vec![0.0; n * dim]
-            };
+            let mut a: Vec<f32> =
+                if action == DriveAction::Direct { venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect() } else { vec![0.0; n * dim] };
             for x in &mut a {
                 let e: f32 = rng.sample(StandardNormal);
                 *x = (*x + noise * e).clamp(-1.0, 1.0);

@@ -8,11 +8,11 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use burn::tensor::{Tensor, TensorData};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
-use burn::tensor::{Tensor, TensorData};
 use sf_sim::env::Controller;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Map, Mode, SimConfig};

@@ -143,7 +143,8 @@ impl Runners {
             return Ok(Arc::clone(r));
         }
         let segs = self.segments(map);
-        let r = PolicyRunner::from_bytes(&setup::net_config(&p.cfg), &setup::obs_spec(&p.cfg), sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device).map_err(|e| format!("loading the policy of {}: {e}", p.key))?;
+        let r = PolicyRunner::from_bytes(&setup::net_config(&p.cfg), &setup::obs_spec(&p.cfg), sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device)
+            .map_err(|e| format!("loading the policy of {}: {e}", p.key))?;
         let r = Arc::new(r);
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
@@ -229,7 +230,8 @@ pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, f
     let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
     let mut rows = Vec::with_capacity(n_cases * size.seeds as usize);
     for seed in 0..size.seeds {
-        let eps: Vec<EpisodeSpec> = (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: episode_tag(seed, c) }).collect();
+        let eps: Vec<EpisodeSpec> =
+            (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: episode_tag(seed, c) }).collect();
         let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, size.envs, eps)?;
         v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);

@@ -54,7 +54,13 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
     let mut venvs: Vec<VecEnv> = maps
         .iter()
         .enumerate()
-        .map(|(k, m)| VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode: Mode::Ego { background: Controller::Idm }, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: seed.wrapping_add(k as u64 * 7919) }))
+        .map(|(k, m)| {
+            VecEnv::new(
+                Arc::clone(m),
+                Arc::clone(&sim),
+                VecEnvConfig { n_envs: per_map, mode: Mode::Ego { background: Controller::Idm }, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: seed.wrapping_add(k as u64 * 7919) },
+            )
+        })
         .collect();
     let len = venvs[0].spec.len;
     let drivers = Drivers { alive: Actor::Demo { noise: job.sac.warmup_noise, action: net.action }, background: None, adversary: None };
@@ -109,9 +115,7 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
         let fail_at = ep.iter().position(|p| p.failed);
         for (t, p) in ep.iter().enumerate() {
             if i < n_train {
-                train
-                    .push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, map_id: p.map_id })
-                    .map_err(|e| e.to_string())?;
+                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, map_id: p.map_id }).map_err(|e| e.to_string())?;
             } else {
                 test.obs.extend_from_slice(&p.obs);
                 test.next_obs.extend_from_slice(&p.next_obs);

@@ -50,10 +50,7 @@ impl RateLimiterConfig {
         }
         let need = self.samples_per_insert.max(1.0);
         if !(self.error_buffer.is_finite() && self.error_buffer >= need) {
-            return bad(
-                "error_buffer",
-                format!("{} must be at least max(1, samples_per_insert) = {need}, or inserts and samples can block each other forever", self.error_buffer),
-            );
+            return bad("error_buffer", format!("{} must be at least max(1, samples_per_insert) = {need}, or inserts and samples can block each other forever", self.error_buffer));
         }
         Ok(())
     }

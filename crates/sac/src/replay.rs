@@ -72,20 +72,7 @@ pub struct Replay {
 impl Replay {
     pub fn new(capacity: usize, obs_len: usize, act_dim: usize) -> Self {
         assert!(capacity > 0, "replay capacity must be positive");
-        Self {
-            capacity,
-            obs_len,
-            act_dim,
-            obs: Vec::new(),
-            next_obs: Vec::new(),
-            actions: Vec::new(),
-            rewards: Vec::new(),
-            terminals: Vec::new(),
-            map_ids: Vec::new(),
-            len: 0,
-            head: 0,
-            inserted: 0,
-        }
+        Self { capacity, obs_len, act_dim, obs: Vec::new(), next_obs: Vec::new(), actions: Vec::new(), rewards: Vec::new(), terminals: Vec::new(), map_ids: Vec::new(), len: 0, head: 0, inserted: 0 }
     }
 
     /// Bytes one stored transition takes.

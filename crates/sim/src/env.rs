@@ -527,10 +527,7 @@ impl Env {
             } else if a.zone_entered {
                 a.zone_passed = true;
             }
-            let wrong_lane = !map.in_junction(pos)
-                && map
-                    .nearest_lane_heading(pos, 4.0)
-                    .is_some_and(|h| geom::wrap_angle(a.state.theta_rad - h).abs() > max_heading);
+            let wrong_lane = !map.in_junction(pos) && map.nearest_lane_heading(pos, 4.0).is_some_and(|h| geom::wrap_angle(a.state.theta_rad - h).abs() > max_heading);
             a.termination = if a.collided {
                 Some(Termination::Collision)
             } else if off_road {
@@ -598,11 +595,7 @@ impl Env {
 
     /// Runs the episode to its end: before each step `policy` fills one action per agent,
     /// after each step (and once after reset) `on_step` sees the environment.
-    pub fn run_episode(
-        &mut self,
-        mut policy: impl FnMut(&Env, &mut [Action]),
-        mut on_step: impl FnMut(&Env),
-    ) -> Result<(), EnvError> {
+    pub fn run_episode(&mut self, mut policy: impl FnMut(&Env, &mut [Action]), mut on_step: impl FnMut(&Env)) -> Result<(), EnvError> {
         let mut actions = vec![Action::default(); self.agents.len()];
         on_step(self);
         while !self.done {

@@ -92,10 +92,7 @@ impl Frame {
     /// This frame's coordinates -> world point.
     #[inline]
     pub fn to_world(&self, p: P2) -> P2 {
-        [
-            self.origin[0] + p[0] * self.cos - p[1] * self.sin,
-            self.origin[1] + p[0] * self.sin + p[1] * self.cos,
-        ]
+        [self.origin[0] + p[0] * self.cos - p[1] * self.sin, self.origin[1] + p[0] * self.sin + p[1] * self.cos]
     }
 
     /// World heading -> heading relative to this frame, wrapped.

@@ -23,16 +23,7 @@ pub struct IdmParams {
 
 impl Default for IdmParams {
     fn default() -> Self {
-        Self {
-            desired_speed_mps: 12.0,
-            time_headway_s: 1.0,
-            min_gap_m: 2.0,
-            delta: 4.0,
-            max_accel_mps2: 5.0,
-            comfort_decel_mps2: 5.0,
-            look_ahead_m: 50.0,
-            lateral_tolerance_m: 2.5,
-        }
+        Self { desired_speed_mps: 12.0, time_headway_s: 1.0, min_gap_m: 2.0, delta: 4.0, max_accel_mps2: 5.0, comfort_decel_mps2: 5.0, look_ahead_m: 50.0, lateral_tolerance_m: 2.5 }
     }
 }
 
@@ -44,8 +35,7 @@ pub fn idm_accel(p: &IdmParams, v_mps: f32, leader: Option<(f32, f32)>) -> f32 {
         None => 0.0,
         Some((gap_m, v_lead_mps)) => {
             let dv = v_mps - v_lead_mps;
-            let s_star = p.min_gap_m
-                + (v_mps * p.time_headway_s + v_mps * dv / (2.0 * (p.max_accel_mps2 * p.comfort_decel_mps2).sqrt())).max(0.0);
+            let s_star = p.min_gap_m + (v_mps * p.time_headway_s + v_mps * dv / (2.0 * (p.max_accel_mps2 * p.comfort_decel_mps2).sqrt())).max(0.0);
             let g = gap_m.max(0.01);
             (s_star / g).powi(2)
         }

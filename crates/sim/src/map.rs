@@ -180,10 +180,7 @@ impl Map {
     pub fn from_file(f: &ScenarioFile, origin: &str) -> Result<Self, MapError> {
         let bad = |field: String, reason: String| invalid(origin, field, reason);
         if f.format_version != FORMAT_VERSION {
-            return Err(bad(
-                "format_version".into(),
-                format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version),
-            ));
+            return Err(bad("format_version".into(), format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version)));
         }
         if f.name.is_empty() {
             return Err(bad("name".into(), "must not be empty".into()));
@@ -265,10 +262,7 @@ impl Map {
                     return Err(bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist")));
                 }
                 if k > 0 && !lanes[r.lanes[k - 1] as usize].successors.contains(&l) {
-                    return Err(bad(
-                        format!("{field}.lanes[{k}]"),
-                        format!("lane {l} is not a successor of lane {}", r.lanes[k - 1]),
-                    ));
+                    return Err(bad(format!("{field}.lanes[{k}]"), format!("lane {l} is not a successor of lane {}", r.lanes[k - 1])));
                 }
             }
             let route = build_route(&lanes, &r.lanes);
@@ -298,17 +292,12 @@ impl Map {
                 let first_lane = route.lanes[0];
                 let lane_len = lanes[first_lane as usize].cum_m.last().copied().unwrap_or(0.0);
                 if !(s.s_m.is_finite() && s.s_m >= 0.0 && s.s_m <= lane_len) {
-                    return Err(bad(
-                        format!("{field}.s_m"),
-                        format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m),
-                    ));
+                    return Err(bad(format!("{field}.s_m"), format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m)));
                 }
                 let here = geom::point_at(&route.points, &route.cum_m, s.s_m);
                 match pose {
                     None => pose = Some((first_lane, here)),
-                    Some((l0, _)) if l0 != first_lane => {
-                        return Err(bad(format!("{field}.routes"), "routes listed do not share their first lane".into()))
-                    }
+                    Some((l0, _)) if l0 != first_lane => return Err(bad(format!("{field}.routes"), "routes listed do not share their first lane".into())),
                     _ => {}
                 }
             }
@@ -327,12 +316,8 @@ impl Map {
         }
 
         let edges: Vec<Vec<P2>> = f.edges.iter().map(|e| e.points.clone()).collect();
-        let edge_segments: Vec<(P2, P2)> =
-            edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
-        let seg_boxes: Vec<(P2, P2)> = edge_segments
-            .iter()
-            .map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])]))
-            .collect();
+        let edge_segments: Vec<(P2, P2)> = edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
+        let seg_boxes: Vec<(P2, P2)> = edge_segments.iter().map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])])).collect();
         let edge_grid = Grid::build(b.min, b.max, 8.0, &seg_boxes);
         let lane_points: Vec<(P2, f32)> = lanes
             .iter()
@@ -382,10 +367,7 @@ impl Map {
 
     /// Static polylines (lane centre-lines with their widths, then edges with width 0).
     pub fn static_polylines(&self) -> impl Iterator<Item = (PolyKind, &[P2], f32)> {
-        self.lanes
-            .iter()
-            .map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m))
-            .chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
+        self.lanes.iter().map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m)).chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
     }
 }
 
@@ -400,12 +382,5 @@ fn build_route(lanes: &[Lane], ids: &[u32]) -> Route {
     }
     let points = geom::resample(&pts, POINT_SPACING_M);
     let cum_m = geom::cumulative_lengths(&points);
-    Route {
-        lanes: ids.to_vec(),
-        headings: geom::polyline_headings(&points),
-        length_m: cum_m[cum_m.len() - 1],
-        cum_m,
-        points,
-        width_m: lanes[ids[0] as usize].width_m,
-    }
+    Route { lanes: ids.to_vec(), headings: geom::polyline_headings(&points), length_m: cum_m[cum_m.len() - 1], cum_m, points, width_m: lanes[ids[0] as usize].width_m }
 }

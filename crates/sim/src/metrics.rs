@@ -47,17 +47,7 @@ impl EpisodeMetrics {
         }
         if m.agents > 0 {
             let n = m.agents as f32;
-            for v in [
-                &mut m.success,
-                &mut m.safety,
-                &mut m.speed,
-                &mut m.collision,
-                &mut m.off_road,
-                &mut m.off_route,
-                &mut m.wrong_lane,
-                &mut m.timeout,
-                &mut m.destination,
-            ] {
+            for v in [&mut m.success, &mut m.safety, &mut m.speed, &mut m.collision, &mut m.off_road, &mut m.off_route, &mut m.wrong_lane, &mut m.timeout, &mut m.destination] {
                 *v /= n;
             }
         }
@@ -75,10 +65,7 @@ mod tests {
 
     #[test]
     fn episode_means_and_learner_filter() {
-        let outs = [
-            o(Role::Learner, true, Termination::Destination, 0.8),
-            o(Role::Background, false, Termination::Collision, 0.2),
-        ];
+        let outs = [o(Role::Learner, true, Termination::Destination, 0.8), o(Role::Background, false, Termination::Collision, 0.2)];
         let m = EpisodeMetrics::from_outcomes(outs, false);
         assert_eq!(m.agents, 2);
         assert!((m.success - 0.5).abs() < 1e-6 && (m.safety - 0.5).abs() < 1e-6 && (m.collision - 0.5).abs() < 1e-6);

@@ -233,16 +233,7 @@ impl Observer {
     /// Shares an existing segment store (one per map and piece length).
     pub fn with_segments(segments: Arc<MapSegments>, sim: &crate::config::SimConfig) -> Self {
         let cfg = sim.obs.clone();
-        Self {
-            spec: ObsSpec::new(&cfg),
-            cfg,
-            segments,
-            vmax: sim.vehicle.max_speed_mps,
-            own_hist: Vec::new(),
-            cand: Vec::new(),
-            pieces: Vec::new(),
-            pieces_in_reach: 0,
-        }
+        Self { spec: ObsSpec::new(&cfg), cfg, segments, vmax: sim.vehicle.max_speed_mps, own_hist: Vec::new(), cand: Vec::new(), pieces: Vec::new(), pieces_in_reach: 0 }
     }
 
     /// Computes the per-step data shared by all observers (each agent's own-frame history).
@@ -255,12 +246,7 @@ impl Observer {
             for k in 0..h {
                 let st = a.history(h - 1 - k);
                 let l = f.to_local([st[0], st[1]]);
-                self.own_hist.extend_from_slice(&[
-                    l[0] / POS_SCALE_M,
-                    l[1] / POS_SCALE_M,
-                    f.angle_to_local(st[2]) / PI,
-                    st[3] / self.vmax,
-                ]);
+                self.own_hist.extend_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, f.angle_to_local(st[2]) / PI, st[3] / self.vmax]);
             }
         }
     }
@@ -309,12 +295,7 @@ impl Observer {
                         let st = b.history(h - 1 - k);
                         let l = frame.to_local([st[0], st[1]]);
                         let o = hs + k * AGENT_FEATS;
-                        out[o..o + AGENT_FEATS].copy_from_slice(&[
-                            l[0] / POS_SCALE_M,
-                            l[1] / POS_SCALE_M,
-                            frame.angle_to_local(st[2]) / PI,
-                            st[3] / self.vmax,
-                        ]);
+                        out[o..o + AGENT_FEATS].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, frame.angle_to_local(st[2]) / PI, st[3] / self.vmax]);
                     }
                 }
             }
@@ -340,12 +321,7 @@ impl Observer {
             }
             let l = frame.to_local(route.points[idx]);
             let o = spec.route.start + k * ROUTE_FEATS;
-            out[o..o + ROUTE_FEATS].copy_from_slice(&[
-                l[0] / POS_SCALE_M,
-                l[1] / POS_SCALE_M,
-                frame.angle_to_local(route.headings[idx]) / PI,
-                k as f32 / spec.route_points as f32,
-            ]);
+            out[o..o + ROUTE_FEATS].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, frame.angle_to_local(route.headings[idx]) / PI, k as f32 / spec.route_points as f32]);
             out[spec.route_mask.start + k] = 1.0;
         }
 

@@ -55,14 +55,7 @@ impl Renderer {
         let (w_m, h_m) = (map.boundary.max[0] - map.boundary.min[0], map.boundary.max[1] - map.boundary.min[1]);
         let px_per_m = max_px as f32 / w_m.max(h_m);
         let (width, height) = ((w_m * px_per_m).ceil() as u32, (h_m * px_per_m).ceil() as u32);
-        let mut r = Self {
-            min: map.boundary.min,
-            px_per_m,
-            width,
-            height,
-            background: Pixmap::new(width, height).ok_or(RenderError::Size(width, height))?,
-            colour_by,
-        };
+        let mut r = Self { min: map.boundary.min, px_per_m, width, height, background: Pixmap::new(width, height).ok_or(RenderError::Size(width, height))?, colour_by };
         r.background = r.draw_map(map)?;
         Ok(r)
     }

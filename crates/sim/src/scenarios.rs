@@ -71,10 +71,7 @@ fn hermite(p0: P2, h0: f32, p1: P2, h1: f32) -> Vec<P2> {
             let h10 = t3 - 2.0 * t2 + t;
             let h01 = -2.0 * t3 + 3.0 * t2;
             let h11 = t3 - t2;
-            [
-                h00 * p0[0] + h10 * t0[0] + h01 * p1[0] + h11 * t1[0],
-                h00 * p0[1] + h10 * t0[1] + h01 * p1[1] + h11 * t1[1],
-            ]
+            [h00 * p0[0] + h10 * t0[0] + h01 * p1[0] + h11 * t1[0], h00 * p0[1] + h10 * t0[1] + h01 * p1[1] + h11 * t1[1]]
         })
         .collect();
     geom::resample(&dense, POINT_SPACING_M)
@@ -139,12 +136,7 @@ impl Builder {
             let routes: Vec<u32> = self.routes.iter().filter(|r| r.lanes[0] == first).map(|r| r.id).collect();
             let centre = &self.lanes[first as usize].centre;
             let cum = geom::cumulative_lengths(centre);
-            let zone_s = centre
-                .iter()
-                .zip(&cum)
-                .find(|(p, _)| geom::point_in_polygon(**p, &zone))
-                .map(|(_, s)| *s)
-                .unwrap_or(f32::INFINITY);
+            let zone_s = centre.iter().zip(&cum).find(|(p, _)| geom::point_in_polygon(**p, &zone)).map(|(_, s)| *s).unwrap_or(f32::INFINITY);
             let last = (cum[cum.len() - 1]).min(zone_s) - SPAWN_END_CLEARANCE_M;
             let mut s = FIRST_SPAWN_M;
             while s <= last {
@@ -171,10 +163,12 @@ fn rect(x0: f32, y0: f32, x1: f32, y1: f32) -> Vec<P2> {
 }
 
 fn circle(r: f32, n: usize) -> Vec<P2> {
-    (0..n).map(|k| {
-        let a = 2.0 * PI * k as f32 / n as f32;
-        [r * a.cos(), r * a.sin()]
-    }).collect()
+    (0..n)
+        .map(|k| {
+            let a = 2.0 * PI * k as f32 / n as f32;
+            [r * a.cos(), r * a.sin()]
+        })
+        .collect()
 }
 
 /// Four-way junction, 70 m arms, two lanes each way; zone = the junction box |x|, |y| <= 12.5 m.

@@ -203,15 +203,12 @@ impl VecEnv {
     pub fn new(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
         let mut v = Self::build(map, sim, cfg);
         let (spec_len, mode, vehicles, max_agents) = (v.spec.len, v.cfg.mode, v.cfg.vehicles, v.max_agents);
-        v.slots
-            .par_iter_mut()
-            .zip(v.obs.par_chunks_mut(max_agents * spec_len))
-            .zip(v.alive.par_chunks_mut(max_agents))
-            .zip(v.background.par_chunks_mut(max_agents))
-            .for_each(|(((s, obs), alive), bg)| {
+        v.slots.par_iter_mut().zip(v.obs.par_chunks_mut(max_agents * spec_len)).zip(v.alive.par_chunks_mut(max_agents)).zip(v.background.par_chunks_mut(max_agents)).for_each(
+            |(((s, obs), alive), bg)| {
                 s.reset(mode, vehicles, None);
                 s.observe(obs, alive, bg, spec_len);
-            });
+            },
+        );
         v
     }
 
@@ -322,26 +319,21 @@ impl VecEnv {
     pub fn communicate_ego_svo(&mut self, svo_deg: &[Option<f32>]) {
         assert_eq!(svo_deg.len(), self.slots.len(), "one message per environment");
         let (spec_len, max_agents) = (self.spec.len, self.max_agents);
-        self.slots
-            .par_iter_mut()
-            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
-            .zip(self.background.par_chunks(max_agents))
-            .zip(svo_deg.par_iter())
-            .for_each(|(((s, obs), bg), &msg)| {
-                let env = &mut s.env;
-                let Some(ego) = env.agents().first().filter(|a| a.alive).map(|a| a.state.pos()) else {
-                    return;
-                };
-                let r2 = env.cfg.obs.radius_m * env.cfg.obs.radius_m;
-                for i in 1..env.len() {
-                    let near = crate::geom::dist2(env.agents()[i].state.pos(), ego) <= r2;
-                    env.set_seen_ego_svo(i, msg.filter(|_| near));
-                }
-                s.observer.prepare(&s.env);
-                for (i, row) in obs.chunks_mut(spec_len).enumerate().filter(|&(i, _)| bg.get(i) == Some(&1.0)) {
-                    s.observer.write(&s.env, i, row);
-                }
-            });
+        self.slots.par_iter_mut().zip(self.obs.par_chunks_mut(max_agents * spec_len)).zip(self.background.par_chunks(max_agents)).zip(svo_deg.par_iter()).for_each(|(((s, obs), bg), &msg)| {
+            let env = &mut s.env;
+            let Some(ego) = env.agents().first().filter(|a| a.alive).map(|a| a.state.pos()) else {
+                return;
+            };
+            let r2 = env.cfg.obs.radius_m * env.cfg.obs.radius_m;
+            for i in 1..env.len() {
+                let near = crate::geom::dist2(env.agents()[i].state.pos(), ego) <= r2;
+                env.set_seen_ego_svo(i, msg.filter(|_| near));
+            }
+            s.observer.prepare(&s.env);
+            for (i, row) in obs.chunks_mut(spec_len).enumerate().filter(|&(i, _)| bg.get(i) == Some(&1.0)) {
+                s.observer.write(&s.env, i, row);
+            }
+        });
     }
 
     /// The IDM demonstrator's action ([`Env::demo_action`]) of row `r`'s agent, normalised.

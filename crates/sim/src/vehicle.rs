@@ -26,18 +26,7 @@ pub struct VehicleParams {
 
 impl Default for VehicleParams {
     fn default() -> Self {
-        Self {
-            length_m: 4.2,
-            width_m: 2.0,
-            wheelbase_m: 2.6,
-            max_speed_mps: 6.0,
-            max_accel_mps2: 5.0,
-            max_steer_deg: 45.0,
-            pid_kp: 1.0,
-            pid_ki: 0.01,
-            pid_kd: 0.05,
-            pid_integral_reset: 10.0,
-        }
+        Self { length_m: 4.2, width_m: 2.0, wheelbase_m: 2.6, max_speed_mps: 6.0, max_accel_mps2: 5.0, max_steer_deg: 45.0, pid_kp: 1.0, pid_ki: 0.01, pid_kd: 0.05, pid_integral_reset: 10.0 }
     }
 }
 
@@ -170,11 +159,7 @@ impl Action {
 
     /// Encodes physical values into a normalised action (inverse of [`Action::decode`]).
     pub fn encode(p: &VehicleParams, ref_speed_mps: f32, steer_rad: f32) -> Self {
-        Self {
-            ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0),
-            steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0),
-            idm_accel: None,
-        }
+        Self { ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0), steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0), idm_accel: None }
     }
 }
 

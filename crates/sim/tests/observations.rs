@@ -47,12 +47,7 @@ fn check_layout(layout: Layout) {
                 assert!((row[spec.ego_ctx.start] - env.agents()[i].svo_deg / 90.0).abs() < 1e-6);
                 // Neighbours: masked, within the radius, headings as unit vectors, nearest first.
                 let mask = &row[spec.agents_mask.clone()];
-                let live_near = env
-                    .agents()
-                    .iter()
-                    .enumerate()
-                    .filter(|(j, b)| *j != i && b.alive && sf_sim::geom::dist(b.state.pos(), env.agents()[i].state.pos()) <= 50.0)
-                    .count();
+                let live_near = env.agents().iter().enumerate().filter(|(j, b)| *j != i && b.alive && sf_sim::geom::dist(b.state.pos(), env.agents()[i].state.pos()) <= 50.0).count();
                 assert_eq!(mask.iter().filter(|&&v| v == 1.0).count(), live_near.min(spec.neighbours), "{name}: neighbour count");
                 let mut last_d = 0.0;
                 for (slot, &mv) in mask.iter().enumerate() {

@@ -41,11 +41,7 @@ async fn ready(axum::extract::State(s): axum::extract::State<AdminState>) -> imp
 pub async fn serve(addr: SocketAddr, registry: Arc<Registry>, ready_flag: Arc<AtomicBool>, refresh: Arc<dyn Fn() + Send + Sync>) -> anyhow::Result<SocketAddr> {
     let listener = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("binding admin port {addr}"))?;
     let bound = listener.local_addr().context("admin listener address")?;
-    let app = Router::new()
-        .route("/metrics", get(metrics))
-        .route("/healthz", get(|| async { "ok\n" }))
-        .route("/readyz", get(ready))
-        .with_state(AdminState { registry, ready: ready_flag, refresh });
+    let app = Router::new().route("/metrics", get(metrics)).route("/healthz", get(|| async { "ok\n" })).route("/readyz", get(ready)).with_state(AdminState { registry, ready: ready_flag, refresh });
     tokio::spawn(async move {
         if let Err(e) = axum::serve(listener, app).await {
             tracing::error!(error = %e, "admin server stopped");

@@ -21,4 +21,3 @@ pub async fn terminate() {
         let _ = tokio::signal::ctrl_c().await;
     }
 }
-

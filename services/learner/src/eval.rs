@@ -36,7 +36,11 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Str
         }
         let found = match n.job_id {
             Some(id) => jobs.iter().find(|r| r.id == id).ok_or_else(|| format!("eval config field `{field}` of `{}`: job {id} does not exist", n.name))?,
-            None => jobs.iter().filter(|r| r.name == n.job && r.state == JobState::Succeeded).max_by_key(|r| r.id).ok_or_else(|| format!("eval config field `{field}` of `{}`: this learner has no succeeded job named `{}`", n.name, n.job))?,
+            None => jobs
+                .iter()
+                .filter(|r| r.name == n.job && r.state == JobState::Succeeded)
+                .max_by_key(|r| r.id)
+                .ok_or_else(|| format!("eval config field `{field}` of `{}`: this learner has no succeeded job named `{}`", n.name, n.job))?,
         };
         if found.state != JobState::Succeeded {
             return Err(format!("eval config field `{field}` of `{}`: job {} is {}, not succeeded", n.name, found.id, found.state.as_str()));
@@ -181,7 +185,20 @@ impl EvalJob {
         let writer = EpisodesWriter::open(&path).map_err(|e| e.to_string())?;
         metrics.eval_cells_pending.set(queued.len() as i64);
         let state = State { queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
-        Ok(Self { id: rec.id, cfg, dir, cells, work, grid, state: Mutex::new(state), stop: Mutex::new(None), changed: Notify::new(), started: Instant::now(), wall_s_before: rec.progress.wall_s, metrics })
+        Ok(Self {
+            id: rec.id,
+            cfg,
+            dir,
+            cells,
+            work,
+            grid,
+            state: Mutex::new(state),
+            stop: Mutex::new(None),
+            changed: Notify::new(),
+            started: Instant::now(),
+            wall_s_before: rec.progress.wall_s,
+            metrics,
+        })
     }
 
     pub fn cells(&self) -> usize {
@@ -250,15 +267,7 @@ impl EvalJob {
         }
         let c = s.queued.pop_front()?;
         s.leased.insert(c, (worker, Instant::now()));
-        Some(EvalWork {
-            job_id: self.id,
-            cell_id: c as u64,
-            cell: self.cells[c].clone(),
-            cases: self.cfg.cases,
-            seeds: self.cfg.seeds,
-            envs: self.cfg.envs as u32,
-            policies: self.work[c].clone(),
-        })
+        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell: self.cells[c].clone(), cases: self.cfg.cases, seeds: self.cfg.seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone() })
     }
 
     /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell

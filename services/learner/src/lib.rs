@@ -174,10 +174,7 @@ impl Inner {
         let dir = self.cfg.scenarios_dir.clone();
         let names = names.to_vec();
         tokio::task::spawn_blocking(move || {
-            names
-                .iter()
-                .map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}")))
-                .collect::<Result<Vec<_>, _>>()
+            names.iter().map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}"))).collect::<Result<Vec<_>, _>>()
         })
         .await
         .map_err(|e| format!("scenario loading task: {e}"))?
@@ -195,7 +192,9 @@ impl Inner {
         self.load_maps(&cfg.env.scenarios).await.map_err(ServiceError::InvalidArgument)?;
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
         if let Some((_, name)) = cfg.deps_by_name().first() {
-            return Err(ServiceError::InvalidArgument(format!("job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids")));
+            return Err(ServiceError::InvalidArgument(format!(
+                "job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids"
+            )));
         }
         for (role, dep) in cfg.deps() {
             let field = role.field();
@@ -370,7 +369,9 @@ impl Inner {
                 DepRole::Ego => frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml)),
                 DepRole::Background => {
                     let jobs = self.jobs().await.map_err(|e| e.to_string())?;
-                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or_else(|| format!("job {id} not found")))).await.map_err(|e| e.to_string())??;
+                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or_else(|| format!("job {id} not found"))))
+                        .await
+                        .map_err(|e| e.to_string())??;
                     frozen.extend(fz);
                 }
             }
@@ -448,7 +449,8 @@ pub struct RunningLearner {
 /// (trailers-only responses carry the status in headers).
 fn size_status<B>(mut res: http::Response<B>) -> http::Response<B> {
     let h = res.headers_mut();
-    let oversized = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11") && h.get("grpc-message").is_some_and(|m| m.to_str().is_ok_and(|m| m.contains("message%20length%20too%20large") || m.contains("message length too large")));
+    let oversized = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11")
+        && h.get("grpc-message").is_some_and(|m| m.to_str().is_ok_and(|m| m.contains("message%20length%20too%20large") || m.contains("message length too large")));
     if oversized {
         h.insert("grpc-status", http::HeaderValue::from_static("8"));
     }
@@ -597,7 +599,8 @@ mod tests {
     #[test]
     fn every_shipped_config_file_is_valid() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+        let mut files: Vec<PathBuf> =
+            std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
         files.push(root.join("deploy/smoke-job.toml"));
         for sub in ["configs/paper-small", "configs/paper"] {
             files.extend(std::fs::read_dir(root.join(sub)).expect("pipeline dir").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")));
@@ -614,4 +617,3 @@ mod tests {
         }
     }
 }
-

@@ -266,15 +266,15 @@ impl Inner {
         let scenario_index = j.next_scenario();
         let seed = j.cfg.sac.seed.wrapping_mul(1_000_003).wrapping_add(worker_id.wrapping_mul(7919)).wrapping_add(self.assignments.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
         Ok(Some(Assignment {
-                job_id: j.id,
-                config_toml: j.cfg.to_toml(),
-                scenario_index,
-                seed,
-                policy_version: j.latest_version(),
-                obs_len: j.obs_len as u32,
-                action_dim: j.action_dim as u32,
-                warmup: j.in_warmup(),
-                frozen: j.frozen.clone(),
+            job_id: j.id,
+            config_toml: j.cfg.to_toml(),
+            scenario_index,
+            seed,
+            policy_version: j.latest_version(),
+            obs_len: j.obs_len as u32,
+            action_dim: j.action_dim as u32,
+            warmup: j.in_warmup(),
+            frozen: j.frozen.clone(),
         }))
     }
 }

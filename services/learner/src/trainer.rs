@@ -210,7 +210,8 @@ fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[MapSegments], sim
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[seg], weights, 0, &device).map_err(|e| format!("loading the final policy: {e}"))?;
+        let runner =
+            sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[seg], weights, 0, &device).map_err(|e| format!("loading the final policy: {e}"))?;
         let settings = FitSettings {
             iterations: c.iterations,
             population: c.population,

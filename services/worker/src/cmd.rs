@@ -47,7 +47,8 @@ impl WorkerArgs {
         anyhow::ensure!(self.eval_cases_dir.is_dir(), "--eval-cases-dir {} is not a directory", self.eval_cases_dir.display());
         anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
         let token = self.conn.token()?;
-        let name = self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
+        let name =
+            self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
         Ok(WorkerConfig {
             learner_url: self.conn.learner.clone(),
             name,

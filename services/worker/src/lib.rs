@@ -145,9 +145,7 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
 
 async fn connect(cfg: &WorkerConfig) -> anyhow::Result<Client> {
     let ch = sf_svc::tls::endpoint(&cfg.learner_url, cfg.tls_ca_file.as_deref())?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
-    Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone()))
-        .max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
+    Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone())).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES).max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
 }
 
 fn status_err(what: &str, s: tonic::Status, metrics: &WorkerMetrics) -> anyhow::Error {

@@ -17,13 +17,7 @@ pub fn map(name: &str) -> Arc<Map> {
 
 /// The first spawn point (in file order) whose routes include `route`, skipping `skip` of them.
 pub fn spawn_for(map: &Map, route: u32, skip: usize) -> u32 {
-    map.spawns
-        .iter()
-        .enumerate()
-        .filter(|(_, s)| s.routes.contains(&route))
-        .nth(skip)
-        .map(|(i, _)| i as u32)
-        .expect("a spawn point for the route")
+    map.spawns.iter().enumerate().filter(|(_, s)| s.routes.contains(&route)).nth(skip).map(|(i, _)| i as u32).expect("a spawn point for the route")
 }
 
 pub fn case(vehicles: &[(u32, u32, f32)]) -> Case {
