@@ -5,59 +5,9 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use sf_proto::pb;
-use sf_proto::pb::experience_service_client::ExperienceServiceClient;
-use sf_proto::pb::job_service_client::JobServiceClient;
-use sf_svc::auth::{AttachToken, Token};
+use socialflow_e2e::grpc::{exp, get, jobs, metric, progress, rt, submit, wait_final, Exp, SUCCEEDED};
 use socialflow_e2e::{bin, http_get, restart, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, TOKEN, TWO_MAPS};
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 use tonic::Code;
-
-fn metric(body: &str, name: &str) -> f64 {
-    body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
-}
-
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime")
-}
-
-type Jobs = JobServiceClient<InterceptedService<Channel, AttachToken>>;
-type Exp = ExperienceServiceClient<InterceptedService<Channel, AttachToken>>;
-
-fn channel(rt: &tokio::runtime::Runtime, url: &str) -> Channel {
-    rt.block_on(async { tonic::transport::Endpoint::from_shared(url.to_string()).expect("url").connect().await }).expect("connect to the learner")
-}
-
-fn jobs(rt: &tokio::runtime::Runtime, url: &str, token: Option<&str>) -> Jobs {
-    let t = token.map(|t| Token::new(t, "test").expect("token"));
-    JobServiceClient::with_interceptor(channel(rt, url), AttachToken::new(t)).max_encoding_message_size(usize::MAX)
-}
-
-fn exp(rt: &tokio::runtime::Runtime, url: &str) -> Exp {
-    ExperienceServiceClient::with_interceptor(channel(rt, url), AttachToken::new(Some(Token::new(TOKEN, "test").expect("token")))).max_encoding_message_size(usize::MAX)
-}
-
-fn submit(rt: &tokio::runtime::Runtime, c: &mut Jobs, toml: String) -> pb::Job {
-    rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: toml })).expect("submit").into_inner()
-}
-
-fn get(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64) -> pb::Job {
-    rt.block_on(c.get_job(pb::GetJobRequest { job_id: id })).expect("get job").into_inner()
-}
-
-fn progress(j: &pb::Job) -> pb::JobProgress {
-    j.progress.clone().unwrap_or_default()
-}
-
-const SUCCEEDED: i32 = pb::JobState::Succeeded as i32;
-
-/// Polls a job until it succeeds or fails.
-fn wait_final(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64, what: &str) -> pb::Job {
-    wait_for(what, Duration::from_secs(600), || {
-        let j = get(rt, c, id);
-        (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
-    })
-}
 
 #[test]
 fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
@@ -135,6 +85,21 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     for f in ["config.toml", "curve.csv", "state.json", "policy.bpk", "checkpoint/state.json"] {
         assert!(art.join(f).exists(), "missing artifact {f} in {}", art.display());
     }
+    // TensorBoard event files: our reader checks the records, the official package (CI has it
+    // in a venv: SOCIALFLOW_TB_PYTHON) reads the scalars.
+    let tb = art.join("tensorboard");
+    let files: Vec<PathBuf> = std::fs::read_dir(&tb).expect("tensorboard dir").filter_map(|e| e.ok().map(|e| e.path())).collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    let events = sf_eval::tensorboard::read_events(&std::fs::read(&files[0]).expect("event file")).expect("valid TFRecords");
+    assert!(events.len() >= 10, "{} events", events.len());
+    assert!(!art.join("replay").exists(), "a succeeded job keeps no replay segments");
+    match std::env::var("SOCIALFLOW_TB_PYTHON") {
+        Ok(py) => {
+            let out = std::process::Command::new(py).arg(socialflow_e2e::repo().join("tests/python/read_tensorboard.py")).arg(&tb).arg("10").output().expect("python");
+            assert!(out.status.success(), "tensorboard could not read the events: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        }
+        Err(_) => eprintln!("SOCIALFLOW_TB_PYTHON not set: the tensorboard package's read is skipped"),
+    }
     let m = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(metric(&m, "socialflow_learner_updates_total") >= p.updates as f64);
     assert!(metric(&m, "socialflow_learner_transitions_received_total") >= 1500.0);
@@ -200,6 +165,9 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     assert!(p.policy_version > version_before, "policy version went from {version_before} to {}", p.policy_version);
     let log = std::fs::read_to_string(&l.log).unwrap_or_default();
     assert!(log.contains("resumed from checkpoint"), "the learner log does not show a resume");
+    // The replay came back with the checkpoint (segments in the job's replay/ directory).
+    let restored = log.lines().filter(|l| l.contains("replay restored")).find_map(|l| l.split_whitespace().find_map(|w| w.strip_prefix("transitions=")?.parse::<u64>().ok()));
+    assert!(restored.is_some_and(|n| n >= 600), "the replay was not restored: {restored:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -218,3 +218,63 @@ pub fn http_get(addr: &str, path: &str) -> Option<String> {
     s.read_to_string(&mut out).ok()?;
     (out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200")).then_some(out)
 }
+
+/// gRPC clients of a test learner and the calls the tests repeat.
+pub mod grpc {
+    use std::time::Duration;
+
+    use sf_proto::pb;
+    use sf_proto::pb::experience_service_client::ExperienceServiceClient;
+    use sf_proto::pb::job_service_client::JobServiceClient;
+    use sf_svc::auth::{AttachToken, Token};
+    use tonic::service::interceptor::InterceptedService;
+    use tonic::transport::Channel;
+
+    use super::{wait_for, TOKEN};
+
+    pub fn metric(body: &str, name: &str) -> f64 {
+        body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
+    }
+
+    pub fn rt() -> tokio::runtime::Runtime {
+        tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime")
+    }
+
+    pub type Jobs = JobServiceClient<InterceptedService<Channel, AttachToken>>;
+    pub type Exp = ExperienceServiceClient<InterceptedService<Channel, AttachToken>>;
+
+    pub fn channel(rt: &tokio::runtime::Runtime, url: &str) -> Channel {
+        rt.block_on(async { tonic::transport::Endpoint::from_shared(url.to_string()).expect("url").connect().await }).expect("connect to the learner")
+    }
+
+    pub fn jobs(rt: &tokio::runtime::Runtime, url: &str, token: Option<&str>) -> Jobs {
+        let t = token.map(|t| Token::new(t, "test").expect("token"));
+        JobServiceClient::with_interceptor(channel(rt, url), AttachToken::new(t)).max_encoding_message_size(usize::MAX)
+    }
+
+    pub fn exp(rt: &tokio::runtime::Runtime, url: &str) -> Exp {
+        ExperienceServiceClient::with_interceptor(channel(rt, url), AttachToken::new(Some(Token::new(TOKEN, "test").expect("token")))).max_encoding_message_size(usize::MAX)
+    }
+
+    pub fn submit(rt: &tokio::runtime::Runtime, c: &mut Jobs, toml: String) -> pb::Job {
+        rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: toml })).expect("submit").into_inner()
+    }
+
+    pub fn get(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64) -> pb::Job {
+        rt.block_on(c.get_job(pb::GetJobRequest { job_id: id })).expect("get job").into_inner()
+    }
+
+    pub fn progress(j: &pb::Job) -> pb::JobProgress {
+        j.progress.clone().unwrap_or_default()
+    }
+
+    pub const SUCCEEDED: i32 = pb::JobState::Succeeded as i32;
+
+    /// Polls a job until it succeeds or fails.
+    pub fn wait_final(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64, what: &str) -> pb::Job {
+        wait_for(what, Duration::from_secs(600), || {
+            let j = get(rt, c, id);
+            (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
+        })
+    }
+}

@@ -23,6 +23,11 @@ pub enum BenchCmd {
     Ingest(crate::bench_svc::SvcBenchArgs),
     /// Environment steps and updates per second of a real job with m in-process workers.
     E2e(crate::bench_svc::SvcBenchArgs),
+    /// Bytes per transition and the time to checkpoint and restore a persisted replay.
+    Replay(crate::bench_replay::ReplayArgs),
+    /// Many worker streams against one learner process for minutes, optionally killing one
+    /// every N seconds: RPC errors, transition accounting, learner memory.
+    Soak(crate::bench_soak::SoakArgs),
 }
 
 #[derive(Args, Debug)]
@@ -56,6 +61,8 @@ pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
         BenchCmd::Sac(a) => crate::bench_sac::run(ctx, a),
         BenchCmd::Ingest(a) => crate::bench_svc::ingest(ctx, a),
         BenchCmd::E2e(a) => crate::bench_svc::e2e(ctx, a),
+        BenchCmd::Replay(a) => crate::bench_replay::run(ctx, a),
+        BenchCmd::Soak(a) => crate::bench_soak::run(ctx, a),
     }
 }
 

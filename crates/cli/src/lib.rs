@@ -10,7 +10,9 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 
 mod bench;
+mod bench_replay;
 mod bench_sac;
+mod bench_soak;
 mod bench_svc;
 mod eval;
 mod evalflow;
@@ -119,7 +121,14 @@ fn tune_allocator() {
 pub fn main() -> ExitCode {
     tune_allocator();
     let cli = Cli::parse();
-    let _ = tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).with_writer(std::io::stderr).try_init();
+    // One logging set-up for every command; the services' own `--log-json` (and
+    // SOCIALFLOW_LOG_JSON, which the container images set) chooses JSON lines.
+    let json = match &cli.cmd {
+        Cmd::Learner(a) => a.log_json,
+        Cmd::Worker(a) => a.log_json,
+        _ => false,
+    };
+    sf_svc::logging::init(json);
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

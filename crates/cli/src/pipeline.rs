@@ -122,11 +122,15 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
 /// its name), follows it and builds the report.
 async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String)>, report: Option<&Path>) -> Result<()> {
     let Some((path, cfg, text)) = grid else { return Ok(()) };
-    let existing = remote::list(c)
-        .await?
-        .into_iter()
-        .filter(|j| j.name == cfg.name && sf_job::eval::is_eval_toml(&j.config_toml) && !matches!(j.state, JobState::Failed | JobState::Cancelled))
-        .max_by_key(|j| j.id);
+    let mut existing = None;
+    // Newest first: the first of its name that is an evaluation.
+    for j in remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)) {
+        let full = remote::get(c, j.id).await?;
+        if sf_job::eval::is_eval_toml(&full.config_toml) {
+            existing = Some(full);
+            break;
+        }
+    }
     let id = match existing {
         Some(j) => {
             eprintln!("{}: evaluation job {} ({}) already on the learner", cfg.name, j.id, j.state.as_str());

@@ -78,6 +78,13 @@ pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord
     Ok(sf_proto::job_from_wire(&j)?)
 }
 
+/// One job with its config.
+pub async fn get(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
+    let j = c.get_job(deadline(pb::GetJobRequest { job_id })).await.map_err(status_err).with_context(|| format!("getting job {job_id}"))?.into_inner();
+    Ok(sf_proto::job_from_wire(&j)?)
+}
+
+/// Every job, newest first, without configs (`get` has them).
 pub async fn list(c: &mut JobsClient) -> Result<Vec<JobRecord>> {
     let r = c.list_jobs(deadline(pb::ListJobsRequest {})).await.map_err(status_err).context("listing jobs")?.into_inner();
     r.jobs.iter().map(|j| sf_proto::job_from_wire(j).map_err(Into::into)).collect()
@@ -156,7 +163,7 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
             RemoteCmd::Status { job_id, conn, json: as_json } => {
                 let mut c = connect(&conn).await?;
                 let jobs = match job_id {
-                    Some(id) => vec![sf_proto::job_from_wire(&c.get_job(deadline(pb::GetJobRequest { job_id: id })).await.map_err(status_err)?.into_inner())?],
+                    Some(id) => vec![get(&mut c, id).await?],
                     None => list(&mut c).await?,
                 };
                 for j in &jobs {

@@ -73,7 +73,7 @@ impl Embedded {
                 rpc_timeout: Duration::from_secs(30),
                 max_backoff: Duration::from_secs(2),
                 threads: 0,
-                tls_ca_file: None,
+                tls: Default::default(),
             };
             let metrics = WorkerMetrics::register(&mut Registry::default());
             workers.push(tokio::spawn(sf_worker::run(wc, metrics, stop_rx.clone())));
@@ -82,7 +82,7 @@ impl Embedded {
     }
 
     pub async fn client(&self) -> Result<remote::JobsClient> {
-        remote::jobs_client(sf_svc::tls::endpoint(&self.url, None)?, &self.url, Some(self.token.clone())).await
+        remote::jobs_client(sf_svc::tls::endpoint(&self.url, &Default::default())?, &self.url, Some(self.token.clone())).await
     }
 
     /// Stops the workers, then the learner (checkpointing a running job).
@@ -105,10 +105,19 @@ pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
     if a.workers == 0 {
         bail!("--workers must be at least 1");
     }
+    // The device before any port: a cuda job on a machine without a GPU stops here.
+    sf_nn::device::device(sf_sac::setup::device_kind(cfg.sac.device)).with_context(|| format!("{}: field `sac.device`", a.config.display()))?;
     runtime()?.block_on(async move {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
-        let existing = remote::list(&mut c).await?.into_iter().find(|j| j.name == cfg.name && !j.state.is_final() && j.config_toml == text);
+        let mut existing = None;
+        for j in remote::list(&mut c).await?.into_iter().filter(|j| j.name == cfg.name && !j.state.is_final()) {
+            let full = remote::get(&mut c, j.id).await?;
+            if full.config_toml == text {
+                existing = Some(full);
+                break;
+            }
+        }
         let job = match existing {
             Some(j) => {
                 eprintln!("resuming job {} ({}) from {}", j.id, j.name, j.artifact_dir);

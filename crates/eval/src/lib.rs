@@ -1,11 +1,13 @@
 //! socialflow-eval: the statistics of the paper's evaluation protocol.
 //!
 //! Owns: [`Summary`] (mean with a Student-t 95% confidence interval), [`paired_t_test`], the
-//! charts ([`plot`]) and the reproduction report built from stored per-episode results
-//! ([`report`]). Must not: run simulations; callers pass per-episode values.
+//! charts ([`plot`]), TensorBoard event files ([`tensorboard`]) and the reproduction report
+//! built from stored per-episode results ([`report`]). Must not: run simulations; callers pass
+//! per-episode values.
 
 pub mod plot;
 pub mod report;
+pub mod tensorboard;
 
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, StudentsT};

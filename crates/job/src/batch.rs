@@ -106,6 +106,9 @@ impl TransitionBatch {
     /// Checks shapes and values; the error names the field.
     pub fn validate(&self) -> Result<(), BatchError> {
         let n = self.count;
+        if n == 0 {
+            return Err(BatchError::Invalid { field: "count", reason: "a batch holds at least one transition".into() });
+        }
         if self.obs_len == 0 {
             return Err(BatchError::Invalid { field: "obs_len", reason: "must be positive".into() });
         }
@@ -182,5 +185,7 @@ mod tests {
         let mut b = one();
         b.obs_len = 0;
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
+        // An empty batch is a malformed one (workers send only full or flushed batches).
+        assert!(matches!(TransitionBatch::new(1, 2, 3, 2).validate(), Err(BatchError::Invalid { field: "count", .. })));
     }
 }

@@ -396,6 +396,10 @@ pub struct TrainSection {
     pub publish_every_updates: u64,
     #[serde(default = "d_ckpt")]
     pub checkpoint_every_s: u64,
+    /// Write the replay beside each checkpoint (only what is new since the previous one) and
+    /// read it back on resume, so a restarted learner keeps its data.
+    #[serde(default = "d_true")]
+    pub persist_replay: bool,
     /// A learning-curve point every this many transitions (default: 50 points per job).
     #[serde(default)]
     pub curve_every_steps: Option<u64>,
@@ -427,6 +431,9 @@ fn d_ckpt() -> u64 {
 }
 fn d_window() -> usize {
     100
+}
+fn d_true() -> bool {
+    true
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

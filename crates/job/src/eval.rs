@@ -259,8 +259,10 @@ impl EvalConfig {
         let mut need_egos: Vec<(&str, &String)> = Vec::new();
         if let Some(s) = &e.svo_sweep {
             need_flows.extend(s.flows.iter().map(|f| ("experiments.svo_sweep.flows", f)));
-            if s.values < 2 {
-                return bad("eval config field `experiments.svo_sweep.values`: at least 2");
+            // SVOs are whole degrees in [0, 90]: more than 91 values would repeat cells (and an
+            // unbounded count would make `cells()` below allocate without end).
+            if !(2..=91).contains(&s.values) {
+                return bad(format!("eval config field `experiments.svo_sweep.values`: {}, expected 2 to 91 (whole degrees in [0, 90])", s.values));
             }
         }
         if let Some(d) = &e.density {
@@ -396,6 +398,18 @@ mod tests {
         assert!(is_eval_toml(BASE));
         assert!(!is_eval_toml("name = \"x\"\nkind = \"ego\"\n"));
         assert!(!is_eval_toml("not toml ["));
+    }
+
+    /// Regression (found by `tests/fuzz.rs`): a huge SVO-sweep count was accepted by the
+    /// parser and made validation expand the grid until memory ran out.
+    #[test]
+    fn svo_sweep_values_are_bounded() {
+        let sweep = |values: &str| format!("{BASE}svo_sweep = {{ flows = [\"IDM\"], values = {values}, scenarios = [\"merge\"] }}\n");
+        assert_eq!(EvalConfig::from_toml(&sweep("91")).expect("one value per degree").cells().len(), 92);
+        for v in ["1", "92", "9223372036854775807"] {
+            let e = EvalConfig::from_toml(&sweep(v)).expect_err(v);
+            assert!(e.0.contains("experiments.svo_sweep.values"), "{v}: {e}");
+        }
     }
 
     #[test]

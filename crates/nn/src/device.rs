@@ -21,6 +21,8 @@ pub enum DeviceKind {
 pub enum DeviceError {
     #[error("device `{0}` needs a build with the `{0}` feature of socialflow-nn")]
     NotBuilt(&'static str),
+    #[error("device `cuda` is built in but unusable here (no NVIDIA GPU or driver?): {0}")]
+    Unavailable(String),
 }
 
 /// The inference device of a kind (no autodiff).
@@ -28,7 +30,7 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
     match kind {
         DeviceKind::Cpu => Ok(Device::flex()),
         #[cfg(feature = "cuda")]
-        DeviceKind::Cuda => Ok(Device::cuda(0)),
+        DeviceKind::Cuda => probe_cuda(),
         #[cfg(not(feature = "cuda"))]
         DeviceKind::Cuda => Err(DeviceError::NotBuilt("cuda")),
         #[cfg(feature = "ndarray")]
@@ -36,6 +38,31 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
         #[cfg(not(feature = "ndarray"))]
         DeviceKind::Ndarray => Err(DeviceError::NotBuilt("ndarray")),
     }
+}
+
+/// CUDA device 0 after a round trip of one small tensor: burn initialises CUDA lazily and
+/// panics deep inside on a machine without a GPU; this turns that into an error at the first
+/// look (before a learner binds its ports or a job is accepted). Checked once per process.
+#[cfg(feature = "cuda")]
+fn probe_cuda() -> Result<Device, DeviceError> {
+    use std::sync::OnceLock;
+    static PROBE: OnceLock<Result<(), String>> = OnceLock::new();
+    let r = PROBE.get_or_init(|| {
+        let quiet = std::panic::take_hook();
+        std::panic::set_hook(Box::new(|_| {}));
+        let r = std::panic::catch_unwind(|| {
+            let d = Device::cuda(0);
+            let t = burn::tensor::Tensor::<1>::from_data(burn::tensor::TensorData::new(vec![1.0f32, 2.0], [2]), &d);
+            t.into_data().try_to_vec::<f32>().map(|v| v.len()).unwrap_or(0)
+        });
+        std::panic::set_hook(quiet);
+        match r {
+            Ok(2) => Ok(()),
+            Ok(n) => Err(format!("a test tensor came back with {n} values")),
+            Err(p) => Err(p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "CUDA initialisation panicked".into())),
+        }
+    });
+    r.clone().map(|()| Device::cuda(0)).map_err(DeviceError::Unavailable)
 }
 
 /// The training device of a kind (autodiff enabled).

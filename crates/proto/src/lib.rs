@@ -16,6 +16,9 @@ pub mod pb {
     tonic::include_proto!("socialflow.v1");
 }
 
+/// The encoded `FileDescriptorSet` of `socialflow.v1`, for gRPC server reflection.
+pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("socialflow_descriptor");
+
 /// A wire message that does not decode into a valid domain value.
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[error("field `{field}`: {reason}")]
@@ -252,8 +255,10 @@ fn f16_to_bytes(v: &[f16]) -> Vec<u8> {
 }
 
 fn f16_from_bytes(field: &'static str, b: &[u8], want: usize) -> Result<Vec<f16>, WireError> {
-    if b.len() != want * 2 {
-        return wire(field, format!("{} bytes, expected {} ({} half floats)", b.len(), want * 2, want));
+    // `want` is the peer's count x obs_len (up to (2^32 - 1)^2): its byte count may overflow.
+    let Some(want_bytes) = want.checked_mul(2) else { return wire("count", format!("count x obs_len ({want}) half floats overflow a byte count")) };
+    if b.len() != want_bytes {
+        return wire(field, format!("{} bytes, expected {} ({} half floats)", b.len(), want_bytes, want));
     }
     Ok(b.chunks_exact(2).map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]]))).collect())
 }
@@ -363,6 +368,17 @@ mod tests {
         let mut m = batch_to_wire(&b);
         m.obs_f16[0..2].copy_from_slice(&f16::NAN.to_bits().to_le_bytes());
         assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));
+    }
+
+    /// Regression (found by `tests/fuzz.rs`): shape fields whose byte count overflows 64 bits
+    /// are refused, not a multiplication overflow panic.
+    #[test]
+    fn huge_shapes_are_refused_without_overflow() {
+        let mut b = TransitionBatch::new(3, 4, 2, 2);
+        b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
+        let mut m = batch_to_wire(&b);
+        (m.count, m.obs_len, m.action_dim) = (u32::MAX, u32::MAX, u32::MAX);
+        assert_eq!(batch_from_wire(m).expect_err("huge shape").field, "count");
     }
 
     #[test]

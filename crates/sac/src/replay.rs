@@ -67,12 +67,85 @@ pub struct Replay {
     len: usize,
     head: usize,
     inserted: u64,
+    /// Insertion number of the first transition this buffer stored (a restored buffer keeps
+    /// numbering where its job was).
+    offset: u64,
+}
+
+/// One stored transition, borrowed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stored<'a> {
+    pub obs: &'a [f16],
+    pub next_obs: &'a [f16],
+    pub action: &'a [f32],
+    pub reward: f32,
+    pub terminal: bool,
+    pub map_id: u32,
 }
 
 impl Replay {
     pub fn new(capacity: usize, obs_len: usize, act_dim: usize) -> Self {
         assert!(capacity > 0, "replay capacity must be positive");
-        Self { capacity, obs_len, act_dim, obs: Vec::new(), next_obs: Vec::new(), actions: Vec::new(), rewards: Vec::new(), terminals: Vec::new(), map_ids: Vec::new(), len: 0, head: 0, inserted: 0 }
+        Self::numbered_from(capacity, obs_len, act_dim, 0)
+    }
+
+    /// An empty buffer whose first transition gets insertion number `first` (restoring a job's
+    /// replay: numbers match the job's transition count).
+    pub fn numbered_from(capacity: usize, obs_len: usize, act_dim: usize, first: u64) -> Self {
+        assert!(capacity > 0, "replay capacity must be positive");
+        Self {
+            capacity,
+            obs_len,
+            act_dim,
+            obs: Vec::new(),
+            next_obs: Vec::new(),
+            actions: Vec::new(),
+            rewards: Vec::new(),
+            terminals: Vec::new(),
+            map_ids: Vec::new(),
+            len: 0,
+            head: 0,
+            inserted: first,
+            offset: first,
+        }
+    }
+
+    pub fn obs_len(&self) -> usize {
+        self.obs_len
+    }
+
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// Renumbers the held transitions so that the newest is `inserted - 1` (a restore that
+    /// found fewer transitions than its job counted). Contents and order do not change.
+    pub fn renumber(&mut self, inserted: u64) {
+        let shift = inserted.wrapping_sub(self.inserted);
+        self.offset = self.offset.wrapping_add(shift);
+        self.inserted = inserted;
+    }
+
+    /// Insertion number of the oldest transition held.
+    pub fn oldest(&self) -> u64 {
+        self.inserted - self.len as u64
+    }
+
+    /// The transition with insertion number `k`, if still held.
+    pub fn get(&self, k: u64) -> Option<Stored<'_>> {
+        if k < self.oldest() || k >= self.inserted {
+            return None;
+        }
+        let i = ((k - self.offset) % self.capacity as u64) as usize;
+        let o = i * self.obs_len;
+        Some(Stored {
+            obs: &self.obs[o..o + self.obs_len],
+            next_obs: &self.next_obs[o..o + self.obs_len],
+            action: &self.actions[i * self.act_dim..(i + 1) * self.act_dim],
+            reward: self.rewards[i],
+            terminal: self.terminals[i] != 0.0,
+            map_id: self.map_ids[i],
+        })
     }
 
     /// Bytes one stored transition takes.
@@ -97,7 +170,8 @@ impl Replay {
         self.capacity
     }
 
-    /// Transitions ever inserted (including evicted ones).
+    /// Transitions ever inserted (including evicted ones, and for a restored buffer those
+    /// before its first).
     pub fn inserted(&self) -> u64 {
         self.inserted
     }
@@ -262,6 +336,21 @@ mod tests {
         assert_eq!(a.sample(&mut r1, 20), b.sample(&mut r2, 20));
         assert_eq!(b.push_f16(&[f16::NAN; 3], &[0.0, 0.0], 0.0, &[f16::ZERO; 3], false, 0), Err(ReplayError::NotFinite("obs")));
         assert_eq!(b.inserted(), 3);
+    }
+
+    #[test]
+    fn transitions_are_found_by_insertion_number_across_wraparound() {
+        let mut r = Replay::numbered_from(3, 3, 2, 100);
+        for k in 0..5 {
+            let o = [k as f32, 0.25, -1.0];
+            r.push(t(k as f32, &o)).expect("push");
+        }
+        assert_eq!((r.oldest(), r.inserted()), (102, 105));
+        assert!(r.get(101).is_none() && r.get(105).is_none());
+        for k in 102..105 {
+            let s = r.get(k).expect("held");
+            assert_eq!((s.obs[0].to_f32(), s.reward), ((k - 100) as f32, (k - 100) as f32));
+        }
     }
 
     #[test]

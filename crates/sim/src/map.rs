@@ -4,8 +4,8 @@
 //! spawn points, spatial indices). Must not: hold vehicles or any per-episode state; a `Map`
 //! is immutable after loading and shared (`Arc`) by every environment on it.
 //!
-//! Invariants established by [`Map::from_file`]: ids are dense indices; every polyline has at
-//! least two finite points inside the boundary; consecutive lanes of a route are connected
+//! Invariants established by [`Map::from_file`]: ids are dense indices; the boundary is at most
+//! [`MAX_EXTENT_M`] a side; every polyline has at least two finite points inside the boundary; consecutive lanes of a route are connected
 //! (`successors`); every route crosses the interaction zone; every spawn point lies on the
 //! first lane of each route it lists, outside the interaction zone.
 
@@ -20,6 +20,11 @@ pub const FORMAT_VERSION: u32 = 1;
 
 /// Spawn points closer than this overlap (less than a lane width, more than a car's width).
 pub const MIN_SPAWN_SEPARATION_M: f32 = 3.0;
+
+/// Largest side of a map's boundary, in metres. The spatial grids hold one cell per 4 m square
+/// of the boundary, so a larger (if finite) boundary could exhaust memory while loading; the
+/// shipped maps are at most 250 m a side.
+pub const MAX_EXTENT_M: f32 = 5_000.0;
 
 /// Resampling spacing of route polylines and lane centre-lines, in metres.
 pub const POINT_SPACING_M: f32 = 2.0;
@@ -188,6 +193,10 @@ impl Map {
         let b = &f.boundary;
         if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite()) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
             return Err(bad("boundary".into(), "min must be finite and below max on both axes".into()));
+        }
+        let extent_m = [b.max[0] - b.min[0], b.max[1] - b.min[1]];
+        if extent_m.iter().any(|&e| e > MAX_EXTENT_M) {
+            return Err(bad("boundary".into(), format!("{} x {} m exceeds {MAX_EXTENT_M} m a side", extent_m[0], extent_m[1])));
         }
         let inside = |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
         let check_poly = |field: String, pts: &[P2], min_len: usize| -> Result<(), MapError> {
@@ -383,4 +392,25 @@ fn build_route(lanes: &[Lane], ids: &[u32]) -> Route {
     let points = geom::resample(&pts, POINT_SPACING_M);
     let cum_m = geom::cumulative_lengths(&points);
     Route { lanes: ids.to_vec(), headings: geom::polyline_headings(&points), length_m: cum_m[cum_m.len() - 1], cum_m, points, width_m: lanes[ids[0] as usize].width_m }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Regression (found by `tests/fuzz.rs`): a finite but huge boundary was accepted and the
+    /// spatial grids' cell count overflowed (or their allocation aborted the process).
+    #[test]
+    fn a_huge_boundary_is_refused() {
+        let good = crate::scenarios::build("merge").expect("builder");
+        for (axis, v) in [(0, -1e9), (1, -1e30), (0, -f32::MAX)] {
+            let mut f = good.clone();
+            f.boundary.min[axis] = v;
+            let e = Map::from_file(&f, "big.json").expect_err("huge boundary").to_string();
+            assert!(e.contains("big.json") && e.contains("`boundary`") && e.contains("exceeds"), "{e}");
+        }
+        let mut f = good.clone();
+        f.boundary.min[0] = f.boundary.max[0] - MAX_EXTENT_M;
+        assert!(Map::from_file(&f, "wide.json").is_ok(), "the limit itself is allowed");
+    }
 }

@@ -101,6 +101,19 @@ fn check_layout(layout: Layout) {
                         }
                     }
                 }
+                // What the learner checks at ingest passes on every real row, and a row with one
+                // mask or segment id out of its range is refused.
+                spec.check_row(&row, ob.segments.len()).unwrap_or_else(|e| panic!("{name}: a real observation refused: {e}"));
+                let mut bad = row.clone();
+                bad[spec.agents_mask.start] = 0.5;
+                assert!(spec.check_row(&bad, ob.segments.len()).expect_err("fractional mask").contains("agents_mask[0]"));
+                if layout == Layout::QueryCentric {
+                    let mut bad = row.clone();
+                    bad[spec.seg_id.start] = ob.segments.len() as f32;
+                    assert!(spec.check_row(&bad, ob.segments.len()).expect_err("segment id past the map").contains("seg_id[0]"));
+                    bad[spec.seg_id.start] = -1.0;
+                    assert!(spec.check_row(&bad, ob.segments.len()).is_err());
+                }
                 actions[i] = route_follower(&spec, &row, &cfg.vehicle, 2, if step % 7 == 0 { 0.0 } else { 1.0 });
             }
             if env.done() {

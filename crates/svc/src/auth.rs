@@ -1,8 +1,11 @@
 //! Bearer-token authentication: the server-side check and the client-side header.
 //!
 //! Every RPC carries `authorization: Bearer <token>`; the server compares in constant time and
-//! answers UNAUTHENTICATED before any handler runs, so a refused call changes nothing.
+//! answers UNAUTHENTICATED before any handler runs, so a refused call changes nothing. Over
+//! plaintext the token is accepted only from loopback peers unless the operator allows it
+//! ([`Transport`]): a token sent in the clear across a network is refused, loudly.
 
+use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -59,16 +62,43 @@ impl Token {
     }
 }
 
+/// How the server's connections travel, for the plaintext-token rule.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Transport {
+    Tls,
+    /// `allow_remote`: the operator accepts tokens in the clear from any peer.
+    Plaintext {
+        allow_remote: bool,
+    },
+}
+
+impl Transport {
+    /// Whether a token may be accepted from `peer` (unknown peers are not on loopback).
+    pub fn accepts_token_from(self, peer: Option<SocketAddr>) -> bool {
+        match self {
+            Transport::Tls | Transport::Plaintext { allow_remote: true } => true,
+            Transport::Plaintext { allow_remote: false } => peer.is_some_and(|p| p.ip().to_canonical().is_loopback()),
+        }
+    }
+}
+
 /// Server-side check. `on_reject` counts refusals (metrics).
 #[derive(Clone)]
 pub struct RequireToken {
     want: Arc<[u8]>,
     on_reject: Arc<dyn Fn() + Send + Sync>,
+    transport: Transport,
 }
 
 impl RequireToken {
+    /// Plaintext from loopback only, until [`RequireToken::transport`] says otherwise.
     pub fn new(token: &Token, on_reject: impl Fn() + Send + Sync + 'static) -> Self {
-        Self { want: Arc::from(format!("Bearer {}", token.0).into_bytes()), on_reject: Arc::new(on_reject) }
+        Self { want: Arc::from(format!("Bearer {}", token.0).into_bytes()), on_reject: Arc::new(on_reject), transport: Transport::Plaintext { allow_remote: false } }
+    }
+
+    pub fn transport(mut self, t: Transport) -> Self {
+        self.transport = t;
+        self
     }
 }
 
@@ -81,6 +111,14 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 
 impl Interceptor for RequireToken {
     fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        let peer = req.remote_addr();
+        if !self.transport.accepts_token_from(peer) {
+            (self.on_reject)();
+            let from = peer.map_or_else(|| "an unknown peer".to_string(), |p| p.ip().to_string());
+            return Err(Status::unauthenticated(format!(
+                "bearer token over plaintext from {from} refused: the learner serves TLS-less tokens to loopback only (serve TLS, or start it with --allow-plaintext-token on a trusted network)"
+            )));
+        }
         let ok = req.metadata().get("authorization").is_some_and(|v| constant_time_eq(v.as_bytes(), &self.want));
         if ok {
             Ok(req)
@@ -115,9 +153,20 @@ mod tests {
     use super::*;
 
     #[test]
+    fn plaintext_tokens_come_from_loopback_only_unless_allowed() {
+        let strict = Transport::Plaintext { allow_remote: false };
+        for (peer, ok) in [("127.0.0.1:5", true), ("[::1]:5", true), ("[::ffff:127.0.0.1]:5", true), ("10.0.0.7:5", false), ("[2001:db8::1]:5", false)] {
+            assert_eq!(strict.accepts_token_from(Some(peer.parse().expect("addr"))), ok, "{peer}");
+        }
+        assert!(!strict.accepts_token_from(None));
+        assert!(Transport::Plaintext { allow_remote: true }.accepts_token_from(Some("10.0.0.7:5".parse().expect("addr"))));
+        assert!(Transport::Tls.accepts_token_from(None));
+    }
+
+    #[test]
     fn only_the_right_token_passes() {
         let t = Token::new("s3cret-token", "test").expect("valid");
-        let mut check = RequireToken::new(&t, || {});
+        let mut check = RequireToken::new(&t, || {}).transport(Transport::Plaintext { allow_remote: true });
         let mut attach = AttachToken::new(Some(t));
         let req = attach.call(Request::new(())).expect("attach");
         assert!(check.call(req).is_ok());
@@ -126,6 +175,13 @@ mod tests {
         let req = wrong.call(Request::new(())).expect("attach");
         assert_eq!(check.call(req).expect_err("wrong").code(), tonic::Code::Unauthenticated);
         assert!(Token::new("short", "t").is_err());
+        // A request with no known peer (as here) is not on loopback: refused over plaintext
+        // unless allowed, accepted under TLS.
+        let mut strict = RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {});
+        let e = strict.call(attach.call(Request::new(())).expect("attach")).expect_err("plaintext from an unknown peer");
+        assert!(e.message().contains("--allow-plaintext-token"), "{e:?}");
+        let mut tls = RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {}).transport(Transport::Tls);
+        assert!(tls.call(attach.call(Request::new(())).expect("attach")).is_ok());
         assert!(Token::new("has space inside", "t").is_err());
     }
 }

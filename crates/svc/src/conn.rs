@@ -20,6 +20,11 @@ pub struct LearnerConn {
     /// CA certificate (PEM) for an https:// learner.
     #[arg(long, env = "SOCIALFLOW_TLS_CA_FILE")]
     pub tls_ca_file: Option<PathBuf>,
+    /// Client certificate (PEM) for a learner that requires mutual TLS.
+    #[arg(long, env = "SOCIALFLOW_TLS_CLIENT_CERT_FILE", requires = "tls_client_key_file")]
+    pub tls_client_cert_file: Option<PathBuf>,
+    #[arg(long, env = "SOCIALFLOW_TLS_CLIENT_KEY_FILE", requires = "tls_client_cert_file")]
+    pub tls_client_key_file: Option<PathBuf>,
 }
 
 impl LearnerConn {
@@ -28,8 +33,14 @@ impl LearnerConn {
         Token::load(TOKEN_ENV, self.token_file.as_deref()).context("the learner's bearer token")
     }
 
-    /// The endpoint (TLS for https://, with the CA file).
+    /// TLS trust root and client identity from the flags.
+    pub fn tls(&self) -> crate::tls::ClientTls {
+        let identity = self.tls_client_cert_file.clone().zip(self.tls_client_key_file.clone());
+        crate::tls::ClientTls { ca_file: self.tls_ca_file.clone(), identity }
+    }
+
+    /// The endpoint (TLS for https://, with the CA file and client identity).
     pub fn endpoint(&self) -> anyhow::Result<Endpoint> {
-        crate::tls::endpoint(&self.learner, self.tls_ca_file.as_deref())
+        crate::tls::endpoint(&self.learner, &self.tls())
     }
 }

@@ -36,6 +36,13 @@ pub struct LearnerArgs {
     pub tls_cert_file: Option<PathBuf>,
     #[arg(long, env = "SOCIALFLOW_TLS_KEY_FILE", requires = "tls_cert_file")]
     pub tls_key_file: Option<PathBuf>,
+    /// CA certificate (PEM): require client certificates it signed (mutual TLS).
+    #[arg(long, env = "SOCIALFLOW_TLS_CLIENT_CA_FILE")]
+    pub tls_client_ca_file: Option<PathBuf>,
+    /// Accept the bearer token over plaintext from peers off loopback (a trusted private
+    /// network only; prefer TLS).
+    #[arg(long, env = "SOCIALFLOW_ALLOW_PLAINTEXT_TOKEN")]
+    pub allow_plaintext_token: bool,
     /// Log JSON lines (for containers).
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,
@@ -70,6 +77,10 @@ impl LearnerArgs {
             cfg.tls_cert_file = self.tls_cert_file.clone();
             cfg.tls_key_file = self.tls_key_file.clone();
         }
+        if self.tls_client_ca_file.is_some() {
+            cfg.tls_client_ca_file = self.tls_client_ca_file.clone();
+        }
+        cfg.allow_plaintext_token |= self.allow_plaintext_token;
         cfg.validate()?;
         let token = Token::load(sf_svc::auth::TOKEN_ENV, self.token_file.as_deref())?;
         Ok((cfg, token))

@@ -375,9 +375,25 @@ impl crate::Inner {
         let job = Arc::new(blocking_str(move || EvalJob::open(&r2, &jobs, m2)).await?);
         let store = Arc::clone(&self.store);
         let id = rec.id;
-        tokio::task::spawn_blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?.map_err(|e| e.to_string())?;
-        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().episodes, "evaluation started");
+        // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
         self.set_evaluating(Some(Arc::clone(&job)));
+        let started = tokio::task::spawn_blocking(move || {
+            store.update(id, |r| {
+                if !r.state.is_final() {
+                    r.state = JobState::Running
+                }
+            })
+        })
+        .await
+        .map_err(|e| e.to_string())
+        .and_then(|r| r.map_err(|e| e.to_string()));
+        if !matches!(&started, Ok(Some(r)) if r.state == JobState::Running) {
+            job.request_stop(StopReason::Cancelled);
+            self.set_evaluating(None);
+            self.wake.notify_one();
+            return started.map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
+        }
+        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().episodes, "evaluation started");
         let me = Arc::clone(self);
         tokio::spawn(async move {
             let out = loop {

@@ -52,6 +52,9 @@ pub struct Stats {
     pub losses: Losses,
     pub updates: u64,
     rate: VecDeque<(Instant, u64)>,
+    /// Policy lag of the batches since [`ActiveJob::take_mean_lag`] last read it.
+    lag_sum: u64,
+    lag_batches: u64,
 }
 
 /// The reply to one batch.
@@ -70,6 +73,10 @@ pub struct ActiveJob {
     pub frozen: Vec<sf_job::Frozen>,
     pub obs_len: usize,
     pub action_dim: usize,
+    /// The observation layout and, per map id, the map's segment count: what ingest checks
+    /// before a row can reach the networks.
+    spec: sf_sim::obs::ObsSpec,
+    segments: Vec<usize>,
     pub replay: Mutex<Replay>,
     pub limiter: RateLimiter,
     latest: RwLock<Option<Published>>,
@@ -92,7 +99,19 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 impl ActiveJob {
     #[allow(clippy::too_many_arguments)]
-    pub fn new(id: u64, cfg: JobConfig, frozen: Vec<sf_job::Frozen>, obs_len: usize, action_dim: usize, limiter: RateLimiter, restored: Counters, metrics: LearnerMetrics) -> Self {
+    /// `segments`: per map id (the job's scenarios in order), its query-centric segment count.
+    pub fn new(
+        id: u64,
+        cfg: JobConfig,
+        frozen: Vec<sf_job::Frozen>,
+        spec: sf_sim::obs::ObsSpec,
+        segments: Vec<usize>,
+        action_dim: usize,
+        limiter: RateLimiter,
+        restored: Counters,
+        metrics: LearnerMetrics,
+    ) -> Self {
+        let obs_len = spec.len;
         let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
         let complete = restored.env_steps >= cfg.train.env_steps;
         Self {
@@ -100,12 +119,14 @@ impl ActiveJob {
             frozen,
             obs_len,
             action_dim,
+            spec,
+            segments,
             replay: Mutex::new(replay),
             limiter,
             latest: RwLock::new(None),
             recent: Mutex::new(VecDeque::new()),
             versions: watch::channel(0).0,
-            stats: Mutex::new(Stats { reserved: restored.env_steps, c: restored, window: VecDeque::new(), losses: Losses::default(), updates: 0, rate: VecDeque::new() }),
+            stats: Mutex::new(Stats { reserved: restored.env_steps, c: restored, window: VecDeque::new(), losses: Losses::default(), updates: 0, rate: VecDeque::new(), lag_sum: 0, lag_batches: 0 }),
             stop: Mutex::new(None),
             stopping: AtomicBool::new(false),
             complete: AtomicBool::new(complete),
@@ -118,6 +139,13 @@ impl ActiveJob {
 
     pub fn request_stop(&self, why: StopReason) {
         lock(&self.stop).get_or_insert(why);
+        self.stopping.store(true, Ordering::Release);
+        self.limiter.close();
+    }
+
+    /// The job ended (failed, or finished): batches waiting on the rate limiter return at once
+    /// with FAILED_PRECONDITION, so workers move on instead of waiting out their deadline.
+    pub fn close(&self) {
         self.stopping.store(true, Ordering::Release);
         self.limiter.close();
     }
@@ -185,6 +213,16 @@ impl ActiveJob {
         if let Some(m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
             return Err(ServiceError::InvalidArgument(format!("map id {m} out of range: job {} has {n_maps} scenarios", self.id)));
         }
+        // What the networks index or branch on (masks, segment ids): one bad row refuses the
+        // batch here instead of failing the job in the trainer.
+        let ol = self.obs_len;
+        for i in 0..b.count {
+            let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
+            for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
+                let row: Vec<f32> = rows[i * ol..(i + 1) * ol].iter().map(|v| v.to_f32()).collect();
+                self.spec.check_row(&row, segments).map_err(|e| ServiceError::InvalidArgument(format!("batch field `{field}`, transition {i}: {e}")))?;
+            }
+        }
         let latest = self.latest_version();
         if b.policy_version > latest {
             return Err(ServiceError::InvalidArgument(format!("policy version {} was never published (latest {latest})", b.policy_version)));
@@ -195,6 +233,9 @@ impl ActiveJob {
         let lag = latest.saturating_sub(b.policy_version);
         if !random {
             self.metrics.policy_lag.observe(lag as f64);
+            let mut s = lock(&self.stats);
+            s.lag_sum += lag;
+            s.lag_batches += 1;
         }
         let stale = if random { !warm } else { lag > self.cfg.train.max_policy_lag };
         if stale {
@@ -284,6 +325,14 @@ impl ActiveJob {
     }
 
     /// Rolling means of how episodes ended (the window of [`ActiveJob::progress`]).
+    /// Mean policy lag (versions) of the policy batches since the previous call, if any.
+    pub fn take_mean_lag(&self) -> Option<f64> {
+        let mut s = lock(&self.stats);
+        let m = (s.lag_batches > 0).then(|| s.lag_sum as f64 / s.lag_batches as f64);
+        (s.lag_sum, s.lag_batches) = (0, 0);
+        m
+    }
+
     pub fn ends(&self) -> Ends {
         let s = lock(&self.stats);
         let n = s.window.len().max(1) as f32;

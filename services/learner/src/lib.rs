@@ -36,7 +36,7 @@ use sf_proto::pb::experience_service_server::ExperienceServiceServer;
 use sf_proto::pb::job_service_server::JobServiceServer;
 use sf_sac::{setup, RateLimiter};
 use sf_sim::Map;
-use sf_svc::auth::{RequireToken, Token};
+use sf_svc::auth::{RequireToken, Token, Transport};
 use sf_svc::ServiceError;
 use tokio::sync::{oneshot, Notify};
 use tonic::service::interceptor::InterceptedService;
@@ -66,6 +66,11 @@ pub struct LearnerConfig {
     /// PEM certificate chain and key: serve TLS only (both or neither).
     pub tls_cert_file: Option<PathBuf>,
     pub tls_key_file: Option<PathBuf>,
+    /// With TLS: accept only clients whose certificate this CA signed (mutual TLS).
+    pub tls_client_ca_file: Option<PathBuf>,
+    /// Without TLS, a bearer token from a peer that is not on loopback is refused unless this is
+    /// set (a private network the operator trusts: compose, a cluster's pod network).
+    pub allow_plaintext_token: bool,
 }
 
 impl Default for LearnerConfig {
@@ -81,6 +86,8 @@ impl Default for LearnerConfig {
             shutdown_grace_s: 120,
             tls_cert_file: None,
             tls_key_file: None,
+            tls_client_ca_file: None,
+            allow_plaintext_token: false,
         }
     }
 }
@@ -104,6 +111,10 @@ impl LearnerConfig {
             }
             (None, None) => {}
             _ => anyhow::bail!("fields `tls_cert_file` and `tls_key_file` go together"),
+        }
+        if let Some(ca) = &self.tls_client_ca_file {
+            anyhow::ensure!(self.tls_cert_file.is_some(), "field `tls_client_ca_file` needs `tls_cert_file` and `tls_key_file` (mutual TLS is TLS)");
+            anyhow::ensure!(ca.is_file(), "field `tls_client_ca_file`: {} is not a file", ca.display());
         }
         Ok(())
     }
@@ -280,20 +291,26 @@ impl Inner {
         self.workers.lock().unwrap_or_else(|p| p.into_inner()).keys().copied().collect()
     }
 
-    fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
-        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+    /// Forgets workers silent for longer than `worker_timeout_s` (except `keep`) and updates
+    /// the workers gauge, so it falls even when no worker calls at all.
+    fn prune_workers(&self, w: &mut HashMap<u64, WorkerInfo>, keep: Option<u64>) {
         let timeout = Duration::from_secs(self.cfg.worker_timeout_s);
         let before = w.len();
         w.retain(|wid, info| {
-            let keep = *wid == id || info.last_seen.elapsed() < timeout;
-            if !keep {
+            let stay = Some(*wid) == keep || info.last_seen.elapsed() < timeout;
+            if !stay {
                 tracing::info!(worker_id = *wid, name = %info.name, "worker timed out");
             }
-            keep
+            stay
         });
         if w.len() != before {
             self.metrics.workers.set(w.len() as i64);
         }
+    }
+
+    fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
+        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        self.prune_workers(&mut w, Some(id));
         match w.get_mut(&id) {
             Some(info) => {
                 info.last_seen = Instant::now();
@@ -355,7 +372,6 @@ impl Inner {
         let capacity = cfg.train.replay_capacity as u64;
         let fill = if resume.is_some() { 4 * cfg.sac.batch_size as u64 } else { cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64) };
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity).map_err(|e| e.to_string())?;
-        let obs_len = setup::obs_spec(&cfg).len;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
         let mut frozen = Vec::new();
         let mut init_dir = None;
@@ -377,18 +393,52 @@ impl Inner {
             }
         }
         let action_dim = setup::net_config(&cfg).action_dim;
-        let job = Arc::new(ActiveJob::new(rec.id, cfg, frozen, obs_len, action_dim, limiter, counters, self.metrics.clone()));
+        let spec = setup::obs_spec(&cfg);
+        let segment_points = setup::sim_config(&cfg, None).obs.segment_points;
+        let maps2 = maps.clone();
+        let segs = tokio::task::spawn_blocking(move || maps2.iter().map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points))).collect::<Vec<_>>()).await.map_err(|e| e.to_string())?;
+        let counts = segs.iter().map(|s| s.len()).collect();
+        let job = Arc::new(ActiveJob::new(rec.id, cfg, frozen, spec, counts, action_dim, limiter, counters, self.metrics.clone()));
         let store = Arc::clone(&self.store);
         let id = rec.id;
-        blocking(move || store.update(id, |r| r.state = JobState::Running)).await.map_err(|e| e.to_string())?;
+        // Active first, then RUNNING only if not cancelled meanwhile: a CancelJob either sees
+        // the active job (and stops it) or wrote CANCELLED before this update (which keeps it).
         self.set_active(Some(Arc::clone(&job)));
+        let started = blocking(move || {
+            store.update(id, |r| {
+                if !r.state.is_final() {
+                    r.state = JobState::Running
+                }
+            })
+        })
+        .await
+        .map_err(|e| e.to_string());
+        match started {
+            Ok(Some(r)) if r.state == JobState::Running => {}
+            other => {
+                job.request_stop(StopReason::Cancelled);
+                self.set_active(None);
+                self.wake.notify_one();
+                return match other {
+                    Err(e) => Err(e),
+                    _ => {
+                        tracing::info!(job_id = id, "job cancelled before it started");
+                        Ok(())
+                    }
+                };
+            }
+        }
         tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
         let (tx, rx) = oneshot::channel();
-        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, dir, resume, init_dir };
+        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, segs, dir, resume, init_dir };
         std::thread::Builder::new()
             .name(format!("trainer-{id}"))
             .spawn(move || {
-                let out = trainer::run(input);
+                // A panic is a defect, but it must not leave the job without its cause.
+                let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| trainer::run(input))).unwrap_or_else(|p| {
+                    let why = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "no message".into());
+                    Outcome::Failed(format!("the trainer panicked: {why}"))
+                });
                 let _ = tx.send(out);
             })
             .map_err(|e| format!("spawning the trainer thread: {e}"))?;
@@ -403,6 +453,9 @@ impl Inner {
     /// Records how a job ended and frees the slot.
     async fn finish(self: &Arc<Self>, id: u64, out: Outcome, progress: Option<sf_job::Progress>) {
         tracing::info!(job_id = id, outcome = ?out, "job stopped");
+        if let Some(j) = self.active().filter(|j| j.id == id) {
+            j.close();
+        }
         let store = Arc::clone(&self.store);
         let r = blocking(move || {
             store.update(id, |r| {
@@ -484,25 +537,40 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         shutting_down: AtomicBool::new(false),
     });
     let m3 = metrics.clone();
-    let auth = RequireToken::new(&token, move || m3.common.rpc("any", tonic::Code::Unauthenticated));
+    let transport = match (cfg.tls_cert_file.is_some(), cfg.allow_plaintext_token) {
+        (true, _) => Transport::Tls,
+        (false, allow_remote) => Transport::Plaintext { allow_remote },
+    };
+    if transport == (Transport::Plaintext { allow_remote: false }) && !cfg.grpc_addr.ip().is_loopback() {
+        tracing::warn!(%grpc_addr, "serving plaintext: tokens from peers off loopback are refused (serve TLS, or set allow_plaintext_token on a trusted network)");
+    }
+    let auth = RequireToken::new(&token, move || m3.common.rpc("any", tonic::Code::Unauthenticated)).transport(transport);
     let max = cfg.max_message_bytes;
     let jobs = JobServiceServer::new(service::Jobs(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
     let exp = ExperienceServiceServer::new(service::Experience(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
     let (health_reporter, health) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<JobServiceServer<service::Jobs>>().await;
     health_reporter.set_serving::<ExperienceServiceServer<service::Experience>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(sf_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .context("gRPC reflection service")?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
     let mut builder = tonic::transport::Server::builder();
     if let (Some(c), Some(k)) = (&cfg.tls_cert_file, &cfg.tls_key_file) {
-        builder = builder.tls_config(sf_svc::tls::server(c, k)?).context("TLS server configuration")?;
+        builder = builder.tls_config(sf_svc::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?).context("TLS server configuration")?;
     }
     let server = tokio::spawn(
         builder
             .layer(tower::util::MapResponseLayer::new(size_status))
             .add_service(InterceptedService::new(jobs, auth.clone()))
-            .add_service(InterceptedService::new(exp, auth.clone()))
-            .add_service(InterceptedService::new(health, auth))
+            .add_service(InterceptedService::new(exp, auth))
+            // Health and reflection answer without a token: Kubernetes' gRPC probes cannot send
+            // one, and neither reveals more than the public schema and "serving".
+            .add_service(health)
+            .add_service(reflection)
             .serve_with_incoming_shutdown(incoming, async {
                 let _ = stop_rx.await;
             }),
@@ -510,6 +578,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let sched = Arc::clone(&inner);
     tokio::spawn(async move {
         loop {
+            sched.prune_workers(&mut sched.workers.lock().unwrap_or_else(|p| p.into_inner()), None);
             sched.schedule_once().await;
             if sched.shutting_down.load(Ordering::Acquire) {
                 return;
@@ -521,7 +590,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         }
     });
     ready.store(true, Ordering::Release);
-    tracing::info!(%grpc_addr, %admin_addr, tls = cfg.tls_cert_file.is_some(), data_dir = %cfg.data_dir.display(), "learner serving");
+    tracing::info!(%grpc_addr, %admin_addr, tls = cfg.tls_cert_file.is_some(), mutual_tls = cfg.tls_client_ca_file.is_some(), data_dir = %cfg.data_dir.display(), "learner serving");
     Ok(RunningLearner { inner, grpc_addr, admin_addr, stop_server: Some(stop_tx), server })
 }
 

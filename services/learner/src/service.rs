@@ -61,7 +61,10 @@ impl JobService for Jobs {
 
     async fn list_jobs(&self, _req: Request<pb::ListJobsRequest>) -> Res<pb::ListJobsResponse> {
         let r = self.0.jobs().await;
-        done(&self.0, "ListJobs", r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(sf_proto::job_to_wire).collect() }))
+        // Summaries: configs can be megabytes each, and a list of them would outgrow a default
+        // client's 4 MiB receive limit. GetJob carries the config.
+        let summary = |j: &sf_job::JobRecord| pb::Job { config_toml: String::new(), ..sf_proto::job_to_wire(j) };
+        done(&self.0, "ListJobs", r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(summary).collect() }))
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Res<pb::Job> {

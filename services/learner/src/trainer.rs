@@ -9,7 +9,10 @@
 //! Artifacts in the job directory: `config.toml` (resolved), `checkpoint/` (SAC state),
 //! `state.json` (counters, policy version, curve), `curve.csv`, `curve.png`, `policy.bpk`
 //! (the final actor) with `policy.json` (its version); CoPO jobs then fit their Stage-2
-//! coordinator on that final actor and add `coordinator.json`.
+//! coordinator on that final actor and add `coordinator.json`. `tensorboard/` holds event files
+//! with the curve's scalars and more (losses, alpha, rates, policy lag). With `train.persist_replay`
+//! (the default) `replay/` holds the replay in segments, one per checkpoint, read back on
+//! resume and deleted when the job succeeds.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -18,8 +21,10 @@ use std::time::{Duration, Instant};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_eval::plot::{line_chart, Series};
+use sf_eval::tensorboard::EventWriter;
 use sf_sac::ego::CurvePoint;
 use sf_sac::rate_limiter::RateLimitError;
+use sf_sac::replay_store::{ReplayStore, Segment};
 use sf_sac::{checkpoint, setup, Batch, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
@@ -67,6 +72,8 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
 pub struct TrainerInput {
     pub job: Arc<ActiveJob>,
     pub maps: Vec<Arc<Map>>,
+    /// Each map's segments, as ingest checked the observations against them.
+    pub segs: Vec<Arc<MapSegments>>,
     pub dir: PathBuf,
     pub resume: Option<JobState>,
     /// `train.init_job`'s checkpoint: the SAC state a fresh job starts from.
@@ -82,11 +89,10 @@ pub fn run(input: TrainerInput) -> Outcome {
 }
 
 fn train(input: TrainerInput) -> Result<Outcome, String> {
-    let TrainerInput { job, maps, dir, resume, init_dir } = input;
+    let TrainerInput { job, maps, segs, dir, resume, init_dir } = input;
     let cfg = &job.cfg;
     let sim = setup::sim_config(cfg, None);
-    let segs: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
-    let seg_refs: Vec<&MapSegments> = segs.iter().collect();
+    let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
     let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(|e| format!("building SAC: {e}"))?;
     let ckpt = dir.join("checkpoint");
     let mut st = resume.unwrap_or_default();
@@ -99,10 +105,34 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
     }
     std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
-    let mut version = st.policy_version;
+    // The replay comes back before the first policy is published, i.e. before any worker
+    // can push.
+    let mut persist = None;
+    if cfg.train.persist_replay {
+        let store = ReplayStore::new(dir.join("replay"));
+        let mut next = 0;
+        if ckpt.exists() {
+            let t = Instant::now();
+            let (r, from) = store.restore(cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|e| format!("restoring the replay: {e}"))?;
+            tracing::info!(job_id = job.id, transitions = r.len(), ms = t.elapsed().as_millis() as u64, "replay restored");
+            job.metrics.replay_size.set(r.len() as i64);
+            next = from;
+            *job.replay.lock().unwrap_or_else(|p| p.into_inner()) = r;
+        }
+        persist = Some((store, next));
+    }
+    // TensorBoard scalars beside curve.csv (a new event file per start; TensorBoard reads all).
+    let mut tb = EventWriter::create(&dir.join("tensorboard")).map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file")).ok();
+    let mut last_rates: Option<(f64, u64, u64)> = None;
+    // Version numbers are never issued twice, even across a crash: the newest is written
+    // before workers can see it, and a restart continues above it (not above the checkpoint's).
+    let version_file = dir.join("published_version");
+    let issued = std::fs::read_to_string(&version_file).ok().and_then(|s| s.trim().parse::<u64>().ok()).unwrap_or(0);
+    let mut version = st.policy_version.max(issued);
     let publish = |sac: &Sac, version: &mut u64| -> Result<(), String> {
         *version += 1;
         let bytes = sac.actor_bytes().map_err(|e| format!("serialising the actor: {e}"))?;
+        write_atomic(&version_file, version.to_string().as_bytes())?;
         job.publish(*version, bytes);
         Ok(())
     };
@@ -177,16 +207,53 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
                 });
                 next_point += every;
             }
+            if let Some(w) = tb.as_mut() {
+                let (updates_per_s, transitions_per_s) = match last_rates {
+                    Some((t, u, e)) if p.wall_s > t => ((p.updates - u) as f64 / (p.wall_s - t), (p.env_steps - e) as f64 / (p.wall_s - t)),
+                    _ => (f64::NAN, f64::NAN),
+                };
+                last_rates = Some((p.wall_s, p.updates, p.env_steps));
+                let lag = job.take_mean_lag().unwrap_or(f64::NAN);
+                let scalars = [
+                    ("rollout/success", p.success as f64),
+                    ("rollout/safety", p.safety as f64),
+                    ("rollout/speed", p.speed as f64),
+                    ("ends/collision", ends.collision as f64),
+                    ("ends/off_road", ends.off_road as f64),
+                    ("ends/off_route", ends.off_route as f64),
+                    ("ends/wrong_lane", ends.wrong_lane as f64),
+                    ("ends/timeout", ends.timeout as f64),
+                    ("loss/critic", last_loss.critic as f64),
+                    ("loss/critic_mean", mean),
+                    ("loss/actor", last_loss.actor as f64),
+                    ("sac/alpha", last_loss.alpha as f64),
+                    ("sac/entropy", last_loss.entropy as f64),
+                    ("sac/q_mean", q),
+                    ("rate/updates_per_s", updates_per_s),
+                    ("rate/transitions_per_s", transitions_per_s),
+                    ("policy/lag_versions", lag),
+                    ("policy/version", version as f64),
+                    ("policy/dropped_stale", p.dropped_stale as f64),
+                ];
+                if let Err(e) = w.scalars(p.env_steps, &scalars) {
+                    tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events; no more for this run");
+                    tb = None;
+                }
+            }
         }
         if last_ckpt.elapsed() >= Duration::from_secs(cfg.train.checkpoint_every_s) {
-            save(&job, &sac, &dir, &mut st, version)?;
+            save(&job, &sac, &dir, &mut st, version, &mut persist)?;
             last_ckpt = Instant::now();
         }
     };
     if outcome == Outcome::Succeeded {
         publish(&sac, &mut version)?;
+        // A finished job never resumes: its replay need not be written, and goes.
+        if persist.take().is_some() {
+            let _ = std::fs::remove_dir_all(dir.join("replay"));
+        }
     }
-    save(&job, &sac, &dir, &mut st, version)?;
+    save(&job, &sac, &dir, &mut st, version, &mut persist)?;
     if outcome == Outcome::Succeeded {
         // The final policy is the version just published: write those bytes.
         let last = job.latest().expect("a version was published above");
@@ -201,7 +268,7 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
 
 /// CoPO Stage 2: fits the coordinator's Gaussian of every scenario of the job on its frozen
 /// final policy and writes `coordinator.json` (what ego jobs and evaluation read).
-fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[MapSegments], sim: sf_sim::SimConfig, c: &sf_job::config::CoordinatorSection, weights: &[u8], dir: &Path) -> Result<(), String> {
+fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[Arc<MapSegments>], sim: sf_sim::SimConfig, c: &sf_job::config::CoordinatorSection, weights: &[u8], dir: &Path) -> Result<(), String> {
     use sf_sac::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
     let cfg = &job.cfg;
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
@@ -210,8 +277,8 @@ fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[MapSegments], sim
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
-        let runner =
-            sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[seg], weights, 0, &device).map_err(|e| format!("loading the final policy: {e}"))?;
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[&**seg], weights, 0, &device)
+            .map_err(|e| format!("loading the final policy: {e}"))?;
         let settings = FitSettings {
             iterations: c.iterations,
             population: c.population,
@@ -234,11 +301,25 @@ fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[MapSegments], sim
 }
 
 /// Checkpoint + state + curve files.
-fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64) -> Result<(), String> {
+/// The replay's segment directory and the insertion number its next segment starts at.
+type Persist = Option<(ReplayStore, u64)>;
+
+fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64, persist: &mut Persist) -> Result<(), String> {
     let t = Instant::now();
     st.counters = job.counters();
     st.policy_version = version;
     checkpoint::save(sac, &dir.join("checkpoint")).map_err(|e| format!("checkpoint: {e}"))?;
+    // The replay segment before state.json: the counters written next never count a
+    // transition that is not on disk.
+    let mut replay_bytes = 0;
+    if let Some((store, next)) = persist.as_mut() {
+        let (seg, oldest) = {
+            let r = job.replay.lock().unwrap_or_else(|p| p.into_inner());
+            (Segment::snapshot(&r, *next), r.oldest())
+        };
+        replay_bytes = store.append(&seg, oldest).map_err(|e| format!("writing the replay: {e}"))?;
+        *next = seg.first + seg.len() as u64;
+    }
     write_atomic(&state_path(dir), serde_json::to_string(st).map_err(|e| e.to_string())?.as_bytes())?;
     let mut csv = String::from(CurvePoint::CSV_HEADER);
     csv.push('\n');
@@ -257,6 +338,6 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64)
         }
     }
     job.metrics.checkpoints.inc();
-    tracing::info!(job_id = job.id, updates = sac.updates, policy_version = version, ms = t.elapsed().as_millis() as u64, "checkpoint written");
+    tracing::info!(job_id = job.id, updates = sac.updates, policy_version = version, replay_bytes, ms = t.elapsed().as_millis() as u64, "checkpoint written");
     Ok(())
 }

@@ -58,7 +58,7 @@ impl WorkerArgs {
             rpc_timeout: Duration::from_secs(self.rpc_timeout_s),
             max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),
             threads: 0,
-            tls_ca_file: self.conn.tls_ca_file.clone(),
+            tls: self.conn.tls(),
         })
     }
 }

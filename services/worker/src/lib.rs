@@ -47,8 +47,8 @@ pub struct WorkerConfig {
     pub max_backoff: Duration,
     /// Rayon threads for stepping simulators (0 = rayon's default).
     pub threads: usize,
-    /// Trust root for an `https://` learner.
-    pub tls_ca_file: Option<PathBuf>,
+    /// Trust root for an `https://` learner and the worker's client certificate (mutual TLS).
+    pub tls: sf_svc::tls::ClientTls,
 }
 
 #[derive(Clone)]
@@ -62,7 +62,7 @@ pub struct WorkerMetrics {
     pub policy_fetches: Counter,
     pub sessions: Counter,
     pub inference_obs: Counter,
-    pub inference_ns: Counter<u64, AtomicU64>,
+    pub inference_seconds: Counter<f64, AtomicU64>,
     pub eval_cells: Counter,
 }
 
@@ -78,7 +78,7 @@ impl WorkerMetrics {
             policy_fetches: Counter::default(),
             sessions: Counter::default(),
             inference_obs: Counter::default(),
-            inference_ns: Counter::default(),
+            inference_seconds: Counter::default(),
             eval_cells: Counter::default(),
         };
         reg.register("socialflow_worker_env_steps", "Environment decision steps simulated", m.env_steps.clone());
@@ -89,7 +89,7 @@ impl WorkerMetrics {
         reg.register("socialflow_worker_policy_fetches", "Policy weights fetched", m.policy_fetches.clone());
         reg.register("socialflow_worker_sessions", "Sessions started (register + assignment); more than one means reconnects", m.sessions.clone());
         reg.register("socialflow_worker_inference_observations", "Observations run through the actor", m.inference_obs.clone());
-        reg.register("socialflow_worker_inference_nanoseconds", "Time spent in actor inference", m.inference_ns.clone());
+        reg.register("socialflow_worker_inference_seconds", "Time spent in actor inference", m.inference_seconds.clone());
         reg.register("socialflow_worker_eval_cells", "Evaluation cells run and pushed", m.eval_cells.clone());
         m
     }
@@ -144,7 +144,7 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
 }
 
 async fn connect(cfg: &WorkerConfig) -> anyhow::Result<Client> {
-    let ch = sf_svc::tls::endpoint(&cfg.learner_url, cfg.tls_ca_file.as_deref())?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
+    let ch = sf_svc::tls::endpoint(&cfg.learner_url, &cfg.tls)?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
     Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone())).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES).max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
 }
 

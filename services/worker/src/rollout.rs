@@ -200,7 +200,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         let t = Instant::now();
         let mut d = drive::decide(&mut venvs, &drivers, &mut rng);
         if d.inferred_rows > 0 {
-            metrics.inference_ns.inc_by(t.elapsed().as_nanos() as u64);
+            metrics.inference_seconds.inc_by(t.elapsed().as_secs_f64());
             metrics.inference_obs.inc_by(d.inferred_rows as u64);
         }
         // Braking segments belong to the warm-up: once the policy acts they are dropped.
