@@ -265,7 +265,7 @@ pub mod grpc {
     }
 
     pub fn progress(j: &pb::Job) -> pb::JobProgress {
-        j.progress.clone().unwrap_or_default()
+        j.progress.unwrap_or_default()
     }
 
     pub const SUCCEEDED: i32 = pb::JobState::Succeeded as i32;

@@ -48,7 +48,7 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
     if x1 <= x0 {
         x1 = x0 + 1.0;
     }
-    let (y0, y1) = y_range.unwrap_or_else(|| if y1 > y0 { (y0, y1 + 0.05 * (y1 - y0)) } else { (y0 - 1.0, y1 + 1.0) });
+    let (y0, y1) = y_range.unwrap_or(if y1 > y0 { (y0, y1 + 0.05 * (y1 - y0)) } else { (y0 - 1.0, y1 + 1.0) });
     let root = BitMapBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let mut chart = ChartBuilder::on(&root).caption(title, ("sans-serif", 22)).margin(12).x_label_area_size(40).y_label_area_size(56).build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(&e))?;

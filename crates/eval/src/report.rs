@@ -334,7 +334,7 @@ pub struct Findings {
     pub checks: Vec<(String, bool, Option<f64>)>,
 }
 
-fn by<'a>(rows: &'a [EpisodeRow], f: impl Fn(&EpisodeRow) -> bool) -> Vec<&'a EpisodeRow> {
+fn by(rows: &[EpisodeRow], f: impl Fn(&EpisodeRow) -> bool) -> Vec<&EpisodeRow> {
     rows.iter().filter(|r| f(r)).collect()
 }
 

@@ -139,10 +139,11 @@ mod tests {
     use super::*;
 
     #[test]
+    #[allow(clippy::manual_rotate)]
     fn crc32c_matches_the_tfrecord_reference() {
         // CRC-32C("123456789") = 0xE3069283 (the Castagnoli check value).
         assert_eq!(crc32c::crc32c(b"123456789"), 0xE306_9283);
-        // Masking as TensorFlow's crc32c::Mask.
+        // Masking as TensorFlow's crc32c::Mask writes it (the reference, not our rotate).
         let c = 0xE306_9283u32;
         assert_eq!(masked_crc(b"123456789"), ((c >> 15) | (c << 17)).wrapping_add(0xa282_ead8));
     }

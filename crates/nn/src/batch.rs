@@ -24,6 +24,8 @@ pub enum MapInput {
 
 /// Agent histories of a batch (the observer's own and its neighbours').
 #[derive(Clone, Debug)]
+// One value per batch, moved once: boxing the tensors would buy nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum AgentInput {
     /// Every observation carries its own copies: own history `ego: [B, 1, H, 5]`, neighbours'
     /// `agents: [B, N, H, 5]` with vector mask `vmask: [B, N, H]`.

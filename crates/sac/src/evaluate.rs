@@ -53,6 +53,8 @@ pub struct Policy {
 
 /// What drives a flow: IDM, or a learned background (with its adversary for SocialCommAdv).
 #[derive(Clone)]
+// A handful per grid, built once: boxing the policies would buy nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum FlowDef {
     Idm,
     Learned { background: Policy, adversary: Option<Policy> },

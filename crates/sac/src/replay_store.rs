@@ -12,7 +12,6 @@
 //! networks or the service; hold the replay's lock while writing (callers snapshot first).
 
 use std::collections::HashMap;
-use std::hash::{Hash, Hasher};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -35,6 +34,18 @@ pub enum ReplayStoreError {
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ReplayStoreError + '_ {
     move |source| ReplayStoreError::Io { path: path.display().to_string(), source }
+}
+
+/// A fast non-cryptographic hash of a row's bits (FNV-style over 64-bit words): SipHash made a
+/// full snapshot of 10^6 transitions hash-bound. Collisions only cost a comparison.
+fn row_hash(row: &[f16]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for c in row.chunks(4) {
+        let w = c.iter().enumerate().fold(0u64, |w, (i, v)| w | (u64::from(v.to_bits()) << (16 * i)));
+        h = (h ^ w).wrapping_mul(0x0000_0100_0000_01b3);
+        h ^= h >> 29;
+    }
+    h
 }
 
 /// Transitions `[first, first + count)` of a replay, observations deduplicated.
@@ -70,11 +81,7 @@ impl Segment {
         let mut s = Segment { first, obs_len: ol, act_dim: ad, ..Default::default() };
         let mut index: HashMap<u64, Vec<u32>> = HashMap::new();
         let mut row_of = |rows: &mut Vec<f16>, row: &[f16]| -> u32 {
-            let mut h = std::collections::hash_map::DefaultHasher::new();
-            for v in row {
-                v.to_bits().hash(&mut h);
-            }
-            let bucket = index.entry(h.finish()).or_default();
+            let bucket = index.entry(row_hash(row)).or_default();
             for &k in bucket.iter() {
                 let at = k as usize * ol;
                 if rows[at..at + ol].iter().zip(row).all(|(a, b)| a.to_bits() == b.to_bits()) {

@@ -255,8 +255,7 @@ fn the_adversary_message_reaches_only_background_agents_near_the_ego_as_the_egos
 #[test]
 fn the_svo_range_maps_stored_svos_linearly() {
     let m = common::map("merge");
-    let mut cfg = SimConfig::default();
-    cfg.svo_range_deg = [-90.0, 90.0];
+    let mut cfg = SimConfig { svo_range_deg: [-90.0, 90.0], ..SimConfig::default() };
     cfg.obs.svo = SvoVisibility::Own;
     let cfg = Arc::new(cfg);
     let c = common::case(&[(common::spawn_for(&m, 0, 0), 0, 0.0), (common::spawn_for(&m, 0, 1), 0, 45.0), (common::spawn_for(&m, 0, 2), 0, 90.0)]);

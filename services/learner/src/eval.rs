@@ -57,12 +57,15 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Str
     Ok(())
 }
 
+/// Per flow its frozen policies, per ego its frozen policy, and the grid resolved for checks.
+pub type GridPolicies = (BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>, Resolved);
+
 /// The policies behind a grid whose names are pinned ([`resolve_names`]): per flow the frozen
 /// policies a worker gets (none for IDM; background and adversary for SocialCommAdv, as a
 /// training job's background gets them: [`crate::flow_frozen`]), per ego its frozen policy, and
 /// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
 /// the runtime). Refuses an ego that is not an ego job and a flow that is.
-pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<(BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>, Resolved), String> {
+pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<GridPolicies, String> {
     let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or_else(|| format!("job {id} has not succeeded"));
     let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, String> {
         let id = n.job_id.ok_or_else(|| format!("`{}` is not pinned to a job", n.name))?;

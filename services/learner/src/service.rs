@@ -88,7 +88,7 @@ impl JobService for Jobs {
             loop {
                 let msg = sf_proto::progress_to_wire(cur.id, cur.state, &cur.progress);
                 if last.as_ref() != Some(&msg) {
-                    if tx.send(Ok(msg.clone())).await.is_err() {
+                    if tx.send(Ok(msg)).await.is_err() {
                         return;
                     }
                     last = Some(msg);

@@ -41,11 +41,11 @@ impl Cells {
         let started = Instant::now();
         let mut weights = Vec::with_capacity(w.policies.len());
         for p in &w.policies {
-            if !self.weights.contains_key(&p.job_id) {
+            if let std::collections::hash_map::Entry::Vacant(slot) = self.weights.entry(p.job_id) {
                 let got = client.get_policy(req(pb::GetPolicyRequest { job_id: p.job_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
                 metrics.common.rpc("GetPolicy", Code::Ok);
                 metrics.policy_fetches.inc();
-                self.weights.insert(p.job_id, Arc::new(got.weights));
+                slot.insert(Arc::new(got.weights));
             }
             weights.push(Arc::clone(&self.weights[&p.job_id]));
         }
