@@ -1,6 +1,6 @@
 //! The learner: owns all training state and serves the job and experience APIs.
 //!
-//! Owns: [`LearnerConfig`] (validated before any port is bound), [`start`] (binds the gRPC and
+//! Owns: [`start`] (validates the [`LearnerConfig`] before any port is bound, binds the gRPC and
 //! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
 //! behind the handlers: the job store, the one running job ([`job::ActiveJob`]), registered
 //! workers, metrics. The scheduler runs one job at a time — a RUNNING job left by a previous
@@ -13,6 +13,7 @@
 //! next start.
 
 pub mod cmd;
+pub mod config;
 pub mod eval;
 pub mod job;
 pub mod metrics;
@@ -29,7 +30,6 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use prometheus_client::registry::Registry;
-use serde::{Deserialize, Serialize};
 use sf_job::config::JobKind;
 use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobState};
 use sf_proto::pb::experience_service_server::ExperienceServiceServer;
@@ -41,84 +41,11 @@ use sf_svc::ServiceError;
 use tokio::sync::{oneshot, Notify};
 use tonic::service::interceptor::InterceptedService;
 
+pub use crate::config::LearnerConfig;
 use crate::job::{ActiveJob, StopReason};
 use crate::metrics::LearnerMetrics;
 use crate::store::Store;
 use crate::trainer::Outcome;
-
-/// The learner's deployment settings (`configs/learner.toml`).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct LearnerConfig {
-    pub grpc_addr: SocketAddr,
-    pub admin_addr: SocketAddr,
-    /// Job store (`jobs.redb`) and per-job artifact directories (`jobs/<id>-<name>/`).
-    pub data_dir: PathBuf,
-    /// Scenario files `<name>.json`.
-    pub scenarios_dir: PathBuf,
-    /// Stored evaluation cases `<name>.v<N>.json` (evaluation jobs).
-    pub cases_dir: PathBuf,
-    pub max_message_bytes: usize,
-    /// Seconds a worker may go without a heartbeat before it is forgotten.
-    pub worker_timeout_s: u64,
-    /// Seconds the trainer gets to write its checkpoint on shutdown.
-    pub shutdown_grace_s: u64,
-    /// PEM certificate chain and key: serve TLS only (both or neither).
-    pub tls_cert_file: Option<PathBuf>,
-    pub tls_key_file: Option<PathBuf>,
-    /// With TLS: accept only clients whose certificate this CA signed (mutual TLS).
-    pub tls_client_ca_file: Option<PathBuf>,
-    /// Without TLS, a bearer token from a peer that is not on loopback is refused unless this is
-    /// set (a private network the operator trusts: compose, a cluster's pod network).
-    pub allow_plaintext_token: bool,
-}
-
-impl Default for LearnerConfig {
-    fn default() -> Self {
-        Self {
-            grpc_addr: SocketAddr::from(([0, 0, 0, 0], 50051)),
-            admin_addr: SocketAddr::from(([0, 0, 0, 0], 9090)),
-            data_dir: PathBuf::from("runs/learner"),
-            scenarios_dir: PathBuf::from("configs/scenarios"),
-            cases_dir: PathBuf::from("configs/cases"),
-            max_message_bytes: sf_svc::MAX_MESSAGE_BYTES,
-            worker_timeout_s: 30,
-            shutdown_grace_s: 120,
-            tls_cert_file: None,
-            tls_key_file: None,
-            tls_client_ca_file: None,
-            allow_plaintext_token: false,
-        }
-    }
-}
-
-impl LearnerConfig {
-    pub fn from_toml(text: &str, origin: &str) -> anyhow::Result<Self> {
-        let c: Self = toml::from_str(text).with_context(|| format!("learner config {origin}"))?;
-        c.validate().with_context(|| format!("learner config {origin}"))?;
-        Ok(c)
-    }
-
-    pub fn validate(&self) -> anyhow::Result<()> {
-        anyhow::ensure!(self.max_message_bytes >= 1 << 16, "field `max_message_bytes`: {} is below 65536", self.max_message_bytes);
-        anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
-        anyhow::ensure!(self.scenarios_dir.is_dir(), "field `scenarios_dir`: {} is not a directory", self.scenarios_dir.display());
-        anyhow::ensure!(self.cases_dir.is_dir(), "field `cases_dir`: {} is not a directory", self.cases_dir.display());
-        match (&self.tls_cert_file, &self.tls_key_file) {
-            (Some(c), Some(k)) => {
-                anyhow::ensure!(c.is_file(), "field `tls_cert_file`: {} is not a file", c.display());
-                anyhow::ensure!(k.is_file(), "field `tls_key_file`: {} is not a file", k.display());
-            }
-            (None, None) => {}
-            _ => anyhow::bail!("fields `tls_cert_file` and `tls_key_file` go together"),
-        }
-        if let Some(ca) = &self.tls_client_ca_file {
-            anyhow::ensure!(self.tls_cert_file.is_some(), "field `tls_client_ca_file` needs `tls_cert_file` and `tls_key_file` (mutual TLS is TLS)");
-            anyhow::ensure!(ca.is_file(), "field `tls_client_ca_file`: {} is not a file", ca.display());
-        }
-        Ok(())
-    }
-}
 
 struct WorkerInfo {
     name: String,
