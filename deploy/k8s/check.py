@@ -489,7 +489,9 @@ def main():
     check({"/healthz", "/readyz"} <= routes, "admin.rs serves /healthz and /readyz")
     image = built_image(a.repo)
     check(image is not None, f"deploy/build-images.sh builds {image}")
-    lib = read(a.repo, "services/learner/src/lib.rs")
+    # LearnerConfig lives in one of the learner's modules (config.rs today): search them all.
+    src_dir = os.path.join(a.repo, "services/learner/src")
+    lib = "\n".join(read(a.repo, os.path.join("services/learner/src", f)) for f in sorted(os.listdir(src_dir)) if f.endswith(".rs"))
     lcfg = struct_fields(lib, "LearnerConfig")
     check(bool(lcfg), f"LearnerConfig fields: {sorted(lcfg)}")
     cfg_src = read(a.repo, "crates/job/src/config.rs")
