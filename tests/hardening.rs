@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use rand::Rng;
 use sf_proto::pb;
-use socialflow_e2e::grpc::{channel, exp, get, jobs, metric, progress, rt, submit, wait_final, Exp, SUCCEEDED};
+use socialflow_e2e::grpc::{channel, exp, get, jobs, metric, progress, push_one, rt, submit, wait_final, SUCCEEDED};
 use socialflow_e2e::{bin, free_port, http_get, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, TOKEN, TWO_MAPS};
 use tonic::Code;
 
@@ -224,17 +224,6 @@ fn a_plaintext_token_from_off_loopback_is_refused_unless_allowed() {
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// Pushes one batch on a fresh stream; the status that ended it (OK if it was accepted).
-fn push_one(rt: &tokio::runtime::Runtime, e: &mut Exp, b: pb::TransitionBatch) -> tonic::Status {
-    rt.block_on(async {
-        let mut acks = e.push_transitions(tokio_stream::iter(vec![b])).await?.into_inner();
-        while acks.message().await?.is_some() {}
-        Ok::<(), tonic::Status>(())
-    })
-    .err()
-    .unwrap_or_else(|| tonic::Status::ok(""))
 }
 
 #[test]

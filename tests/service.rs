@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use sf_proto::pb;
-use socialflow_e2e::grpc::{exp, get, jobs, metric, progress, rt, submit, wait_final, Exp, SUCCEEDED};
+use socialflow_e2e::grpc::{exp, get, jobs, metric, progress, push_one, rt, submit, wait_final, SUCCEEDED};
 use socialflow_e2e::{bin, http_get, restart, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, TOKEN, TWO_MAPS};
 use tonic::Code;
 
@@ -41,17 +41,6 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     let job = submit(&rt, &mut c, tiny_job(r#""roundabout", "merge", "bottleneck""#, "two-workers", 1500));
     let mut e = exp(&rt, &l.url);
     let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into() })).expect("register").into_inner().worker_id;
-    let push = |e: &mut Exp, b: pb::TransitionBatch| -> tonic::Status {
-        rt.block_on(async {
-            let mut acks = e.push_transitions(tokio_stream::iter(vec![b])).await?.into_inner();
-            loop {
-                if acks.message().await?.is_none() {
-                    return Ok::<(), tonic::Status>(());
-                }
-            }
-        })
-        .expect_err("the learner must refuse this batch")
-    };
     let good = || {
         let obs_len = 8usize;
         let mut b = sf_job::TransitionBatch::new(job.job_id, wid, obs_len, 2);
@@ -60,19 +49,19 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     };
     let mut short = sf_proto::batch_to_wire(&good());
     short.obs_f16.truncate(3);
-    assert_eq!(push(&mut e, short).code(), Code::InvalidArgument);
+    assert_eq!(push_one(&rt, &mut e, short).code(), Code::InvalidArgument);
     let mut nan = sf_proto::batch_to_wire(&good());
     nan.rewards[0] = f32::NAN;
-    assert_eq!(push(&mut e, nan).code(), Code::InvalidArgument);
+    assert_eq!(push_one(&rt, &mut e, nan).code(), Code::InvalidArgument);
     let mut unknown = sf_proto::batch_to_wire(&good());
     unknown.job_id = 777;
-    assert_eq!(push(&mut e, unknown).code(), Code::NotFound);
+    assert_eq!(push_one(&rt, &mut e, unknown).code(), Code::NotFound);
     let wrong_width = sf_proto::batch_to_wire(&good());
-    let st = push(&mut e, wrong_width);
+    let st = push_one(&rt, &mut e, wrong_width);
     assert!(matches!(st.code(), Code::InvalidArgument | Code::FailedPrecondition), "{st:?}");
     let mut huge = sf_proto::batch_to_wire(&good());
     huge.obs_f16 = vec![0; 2 << 20];
-    assert_eq!(push(&mut e, huge).code(), Code::ResourceExhausted);
+    assert_eq!(push_one(&rt, &mut e, huge).code(), Code::ResourceExhausted);
 
     let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
     let done = wait_final(&rt, &mut c, job.job_id, "the job to finish");

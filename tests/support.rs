@@ -277,4 +277,15 @@ pub mod grpc {
             (j.state == SUCCEEDED || j.state == pb::JobState::Failed as i32).then_some(j)
         })
     }
+
+    /// Pushes one batch on a fresh stream; the status that ended it (OK if it was accepted).
+    pub fn push_one(rt: &tokio::runtime::Runtime, e: &mut Exp, b: pb::TransitionBatch) -> tonic::Status {
+        rt.block_on(async {
+            let mut acks = e.push_transitions(tokio_stream::iter(vec![b])).await?.into_inner();
+            while acks.message().await?.is_some() {}
+            Ok::<(), tonic::Status>(())
+        })
+        .err()
+        .unwrap_or_else(|| tonic::Status::ok(""))
+    }
 }

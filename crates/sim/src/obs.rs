@@ -127,16 +127,19 @@ impl ObsSpec {
     /// Checks what a network will index or branch on in one observation row from outside
     /// (a worker's batch): every mask is 0 or 1 and every valid query-centric segment id is a
     /// whole number below `segments` (the map's piece count). The error names the block and slot.
-    pub fn check_row(&self, row: &[f32], segments: usize) -> Result<(), String> {
+    /// Generic over the stored value (`f32`, or the wire's half floats): only the checked
+    /// values are converted.
+    pub fn check_row<T: Copy + Into<f32>>(&self, row: &[T], segments: usize) -> Result<(), String> {
         if row.len() != self.len {
             return Err(format!("observation has {} values; the layout has {}", row.len(), self.len));
         }
+        let at = |r: &Range<usize>| row[r.clone()].iter().map(|&v| v.into());
         for (name, r) in [("agents_mask", &self.agents_mask), ("route_mask", &self.route_mask), ("map_mask", &self.map_mask), ("seg_mask", &self.seg_mask)] {
-            if let Some((k, v)) = row[r.clone()].iter().enumerate().find(|(_, &v)| v != 0.0 && v != 1.0) {
+            if let Some((k, v)) = at(r).enumerate().find(|&(_, v)| v != 0.0 && v != 1.0) {
                 return Err(format!("{name}[{k}] is {v}; masks are 0 or 1"));
             }
         }
-        for (k, (&id, &valid)) in row[self.seg_id.clone()].iter().zip(&row[self.seg_mask.clone()]).enumerate() {
+        for (k, (id, valid)) in at(&self.seg_id).zip(at(&self.seg_mask)).enumerate() {
             if valid == 1.0 && !(id >= 0.0 && id.fract() == 0.0 && (id as usize) < segments) {
                 return Err(format!("seg_id[{k}] is {id}; the map has {segments} segments"));
             }

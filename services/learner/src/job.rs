@@ -219,8 +219,7 @@ impl ActiveJob {
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                let row: Vec<f32> = rows[i * ol..(i + 1) * ol].iter().map(|v| v.to_f32()).collect();
-                self.spec.check_row(&row, segments).map_err(|e| ServiceError::InvalidArgument(format!("batch field `{field}`, transition {i}: {e}")))?;
+                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|e| ServiceError::InvalidArgument(format!("batch field `{field}`, transition {i}: {e}")))?;
             }
         }
         let latest = self.latest_version();
