@@ -89,6 +89,21 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
         }
         Err(_) => eprintln!("SOCIALFLOW_TB_PYTHON not set: the tensorboard package's read is skipped"),
     }
+    // ONNX export of the final actor; onnxruntime (CI: SOCIALFLOW_ONNX_PYTHON, a venv with it)
+    // must give burn's actions on the 100 stored observations of the check file within 1e-4.
+    let onnx = dir.join("policy.onnx");
+    let out = std::process::Command::new(socialflow_e2e::bin("socialflow")).current_dir(socialflow_e2e::repo()).arg("export-onnx").arg(&art).arg("--out").arg(&onnx).output().expect("export-onnx");
+    assert!(out.status.success(), "export-onnx: {}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("export-onnx prints JSON");
+    assert_eq!(report["observations"], 100, "{report}");
+    assert!(std::fs::metadata(&onnx).expect("model").len() > 10_000);
+    match std::env::var("SOCIALFLOW_ONNX_PYTHON") {
+        Ok(py) => {
+            let out = std::process::Command::new(py).arg(socialflow_e2e::repo().join("tests/python/check_onnx.py")).arg(&onnx).arg("1e-4").output().expect("python");
+            assert!(out.status.success(), "onnxruntime disagrees with burn: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        }
+        Err(_) => eprintln!("SOCIALFLOW_ONNX_PYTHON not set: the onnxruntime comparison is skipped"),
+    }
     let m = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(metric(&m, "socialflow_learner_updates_total") >= p.updates as f64);
     assert!(metric(&m, "socialflow_learner_transitions_received_total") >= 1500.0);

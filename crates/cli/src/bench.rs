@@ -43,16 +43,11 @@ pub struct SimArgs {
     /// Environments stepped together (default: 8 per thread).
     #[arg(long)]
     envs: Option<usize>,
-    #[arg(long, value_enum, default_value = "query-centric")]
-    layout: LayoutArg,
+    /// `ego-frame` or `query-centric`.
+    #[arg(long, value_parser = Layout::parse, default_value = "query-centric")]
+    layout: Layout,
     #[arg(long)]
     json: bool,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum LayoutArg {
-    EgoFrame,
-    QueryCentric,
 }
 
 pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
@@ -69,10 +64,7 @@ pub fn run(ctx: &Ctx, cmd: BenchCmd) -> Result<()> {
 fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
     let map = ctx.map(&a.scenario)?;
     let mut cfg = SimConfig::default();
-    cfg.obs.layout = match a.layout {
-        LayoutArg::EgoFrame => Layout::EgoFrame,
-        LayoutArg::QueryCentric => Layout::QueryCentric,
-    };
+    cfg.obs.layout = a.layout;
     let cfg = Arc::new(cfg);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(a.threads.max(1)).build().context("building the thread pool")?;
     let n_envs = a.envs.unwrap_or(8 * a.threads.max(1));

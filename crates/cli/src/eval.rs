@@ -18,7 +18,6 @@ use clap::Args;
 use sf_eval::report::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig};
-use sf_job::JobConfig;
 use sf_sac::evaluate::{self, CellSize, FlowDef, Policy, Runners};
 
 use crate::scenarios::Ctx;
@@ -66,12 +65,7 @@ pub(crate) fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Polic
 }
 
 pub(crate) fn load_job(dir: &Path) -> Result<Policy> {
-    let text = std::fs::read_to_string(dir.join("config.toml")).with_context(|| format!("reading {}/config.toml", dir.display()))?;
-    let cfg = JobConfig::from_toml(&text).with_context(|| format!("{}/config.toml", dir.display()))?;
-    let weights = std::fs::read(dir.join("policy.bpk")).with_context(|| format!("reading {}/policy.bpk", dir.display()))?;
-    let coordinator = sf_sac::coordinator::CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
-    let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
-    Ok(Policy { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
+    Policy::load(dir).map_err(anyhow::Error::msg)
 }
 
 fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {

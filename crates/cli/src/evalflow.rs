@@ -48,6 +48,20 @@ pub struct EvalFlowArgs {
     vehicles: Option<usize>,
     #[arg(long)]
     json: bool,
+    /// Score only the ego's seat (agent 0), driven by this driver among the flow, instead of
+    /// every vehicle; `--json` then also lists every episode. `idm`: the IDM driver (what the
+    /// Python package's `evaluate` gives for a zero acceleration residual).
+    #[arg(long, value_enum)]
+    ego: Option<EgoDriver>,
+    /// Simulators stepped together with `--ego` (a learned flow's samples depend on it).
+    #[arg(long, default_value_t = 16)]
+    envs: usize,
+}
+
+/// A driver for the ego's seat that needs no trained policy.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum EgoDriver {
+    Idm,
 }
 
 /// The environment mode of a flow that needs no trained policy.
@@ -162,6 +176,9 @@ pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
 }
 
 pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
+    if a.ego.is_some() {
+        return run_ego_seat(ctx, &a);
+    }
     let learned = a.policy.as_deref().map(|dir| LearnedFlow::config(dir).map(|job| (dir, job))).transpose()?;
     let flow_name = match (&learned, a.flow) {
         (Some((_, job)), _) => format!("{:?}", job.kind).to_lowercase(),
@@ -240,6 +257,56 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         println!("{flow_name} flow in {} over {} episodes", a.scenario, results.len());
         println!("  success {}\n  safety  {}\n  speed   {}", p(success), p(safety), p(speed));
         println!("  failures {failures}");
+    }
+    Ok(())
+}
+
+/// `eval-flow --ego idm`: the IDM driver in the ego's seat among the flow, over the stored
+/// cases x seeds, through the same loop as an evaluation cell (`sf_sac::evaluate::run_stored`).
+fn run_ego_seat(ctx: &Ctx, a: &EvalFlowArgs) -> Result<()> {
+    use sf_sac::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
+    let flow = match (&a.policy, a.flow) {
+        (Some(dir), _) => FlowDef::load(dir).map_err(anyhow::Error::msg)?,
+        (None, Some(Flow::Idm)) => FlowDef::Idm,
+        (None, Some(other)) => bail!("flow `{other:?}` needs a trained policy: give its job directory with --policy"),
+        (None, None) => bail!("give --flow or --policy"),
+    };
+    let map = ctx.map(&a.scenario)?;
+    let cases = ctx.cases(&map)?;
+    if a.cases as usize > cases.cases.len() {
+        bail!("--cases {} exceeds the {} stored cases of {}", a.cases, cases.cases.len(), a.scenario);
+    }
+    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
+    let setup = FlowSetup::new(&flow, &map, None, &mut runners).map_err(anyhow::Error::msg)?;
+    let gaussian = if a.stage1 { None } else { setup.svo_gaussian };
+    let drivers = setup.drivers(Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual });
+    let episodes = Episodes { cases: &cases.cases[..a.cases as usize], seeds: a.seeds, envs: a.envs, vehicles: a.vehicles, svo_deg: None };
+    let rows = sf_sac::evaluate::run_stored(&map, &setup.sim, setup.mode, gaussian, &episodes, &drivers).map_err(anyhow::Error::msg)?;
+    let col = |f: fn(&sf_job::eval::EvalEpisode) -> f32| Summary::of(&rows.iter().map(|r| f(r) as f64).collect::<Vec<_>>());
+    let (success, safety, speed, collision) = (col(|r| r.success), col(|r| r.safety), col(|r| r.speed), col(|r| r.collision));
+    let flow_name = flow.kind().map_or("idm", |k| k.as_str());
+    if a.json {
+        let s = |x: Summary| json!({"mean": x.mean, "ci95": x.ci95});
+        let episodes: Vec<_> = rows.iter().map(|r| json!({"case": r.case, "seed": r.seed, "success": r.success, "safety": r.safety, "speed": r.speed, "collision": r.collision})).collect();
+        let out = json!({
+            "flow": flow_name,
+            "policy": a.policy,
+            "ego": "idm",
+            "scenario": a.scenario,
+            "cases": a.cases,
+            "seeds": a.seeds,
+            "envs": a.envs,
+            "success": s(success),
+            "safety": s(safety),
+            "speed": s(speed),
+            "collision": s(collision),
+            "episodes": episodes,
+        });
+        println!("{out}");
+    } else {
+        let p = |x: Summary| format!("{:5.1}% +- {:.1}", 100.0 * x.mean, 100.0 * x.ci95);
+        println!("IDM ego among the {flow_name} flow in {} over {} episodes", a.scenario, rows.len());
+        println!("  success {}\n  safety  {}\n  speed   {}\n  collision {}", p(success), p(safety), p(speed), p(collision));
     }
     Ok(())
 }

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use clap::{Args, ValueEnum};
+use clap::Args;
 use serde_json::json;
 use sf_eval::plot::{line_chart, Series};
 use sf_nn::NetConfig;
@@ -17,12 +17,6 @@ use sf_sim::obs::MapSegments;
 use sf_sim::{Controller, Layout, SimConfig};
 
 use crate::scenarios::Ctx;
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum EncoderArg {
-    EgoFrame,
-    QueryCentric,
-}
 
 #[derive(Args, Debug)]
 pub struct LearnArgs {
@@ -38,8 +32,9 @@ pub struct LearnArgs {
     steps: u64,
     #[arg(long, default_value_t = 8)]
     envs: usize,
-    #[arg(long, value_enum, default_value = "query-centric")]
-    encoder: EncoderArg,
+    /// `ego-frame` or `query-centric`.
+    #[arg(long, value_parser = Layout::parse, default_value = "query-centric")]
+    encoder: Layout,
     /// Token width; the DeepSets use the same width, the heads twice it.
     #[arg(long, default_value_t = 64)]
     width: usize,
@@ -63,24 +58,12 @@ pub fn run(ctx: &Ctx, a: LearnArgs) -> Result<()> {
         bail!("--vehicles-min must be in 1..=--vehicles-max");
     }
     let mut sim = SimConfig::default();
-    sim.obs.layout = match a.encoder {
-        EncoderArg::EgoFrame => Layout::EgoFrame,
-        EncoderArg::QueryCentric => Layout::QueryCentric,
-    };
+    sim.obs.layout = a.encoder;
     let sim = Arc::new(sim);
     let maps = a.train_scenarios.iter().map(|s| ctx.map(s)).collect::<Result<Vec<_>>>()?;
     let segs: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let seg_refs: Vec<&MapSegments> = segs.iter().collect();
-    let net = NetConfig {
-        encoder: match a.encoder {
-            EncoderArg::EgoFrame => sf_nn::EncoderKind::EgoFrame,
-            EncoderArg::QueryCentric => sf_nn::EncoderKind::QueryCentric,
-        },
-        d_model: a.width,
-        set_hidden: a.width,
-        head_hidden: 2 * a.width,
-        ..NetConfig::fast()
-    };
+    let net = NetConfig { encoder: a.encoder, d_model: a.width, set_hidden: a.width, head_hidden: 2 * a.width, ..NetConfig::fast() };
     let cfg = SacConfig { warmup_steps: a.warmup, reward_scale: a.reward_scale, batch_size: a.batch, seed: a.seed, ..SacConfig::default() };
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let mut sac = Sac::new(cfg.clone(), net.clone(), spec, sim.dt_s, &seg_refs)?;
@@ -117,10 +100,7 @@ pub fn run(ctx: &Ctx, a: LearnArgs) -> Result<()> {
         return Err(e).context("writing curve.csv");
     }
     checkpoint::save(&sac, &a.out.join("checkpoint"))?;
-    let label = match a.encoder {
-        EncoderArg::EgoFrame => "ego-frame",
-        EncoderArg::QueryCentric => "query-centric",
-    };
+    let label = a.encoder.as_str();
     plot(&a.out.join("curve.png"), &format!("ego SAC in {} ({label})", a.train_scenarios.join("+")), &[(label, &curve)])?;
     let last = curve.last().copied().unwrap_or_default();
     println!("{}", json!({"out": a.out, "env_steps": last.env_steps, "updates": last.updates, "success": last.success, "safety": last.safety, "speed": last.speed, "wall_s": last.wall_s}));

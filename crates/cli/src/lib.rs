@@ -18,6 +18,7 @@ mod eval;
 mod evalflow;
 mod ladder;
 mod learn;
+mod onnx;
 mod pipeline;
 mod probe;
 mod remote;
@@ -54,6 +55,9 @@ enum Cmd {
     /// The critic probe: trains a job's critic on demonstrator data alone and scores how well
     /// it predicts failures on held-out episodes (AUROC, failure-row error).
     Probe(probe::ProbeArgs),
+    /// Writes a finished job's actor (its deterministic action) as an ONNX model, with a check
+    /// file of stored observations and burn's actions for them.
+    ExportOnnx(onnx::ExportOnnxArgs),
     /// Runs the learner service (same as the `socialflow-learner` binary).
     Learner(sf_learner::cmd::LearnerArgs),
     /// Runs a rollout worker (same as the `socialflow-worker` binary).
@@ -146,6 +150,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Pipeline(a) => pipeline::run(&ctx, a),
         Cmd::Ladder(a) => ladder::run(&ctx, a),
         Cmd::Probe(a) => probe::run(&ctx, a),
+        Cmd::ExportOnnx(a) => onnx::run(&ctx, a),
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
         Cmd::Bench { what } => bench::run(&ctx, what),

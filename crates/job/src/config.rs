@@ -46,14 +46,6 @@ pub enum JobKind {
     SocialcommAdv,
 }
 
-/// Whose SVO a policy sees.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SvoSeen {
-    None,
-    Own,
-    All,
-}
-
 impl JobKind {
     /// Every vehicle is a learner of the job's policy (Stage 1 flows).
     pub fn multi_agent(self) -> bool {
@@ -70,11 +62,12 @@ impl JobKind {
         matches!(self, Self::Failmaker | Self::SocialcommAdv)
     }
 
-    pub fn svo_seen(self) -> SvoSeen {
+    pub fn svo_seen(self) -> sf_sim::SvoVisibility {
+        use sf_sim::SvoVisibility as V;
         match self {
-            Self::Ego | Self::Macad | Self::SocialcommAdv => SvoSeen::None,
-            Self::Copo | Self::Failmaker => SvoSeen::Own,
-            Self::Socialcomm => SvoSeen::All,
+            Self::Ego | Self::Macad | Self::SocialcommAdv => V::None,
+            Self::Copo | Self::Failmaker => V::Own,
+            Self::Socialcomm => V::All,
         }
     }
 
@@ -117,13 +110,6 @@ pub enum NetPreset {
     Compact,
     #[default]
     Fast,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Encoder {
-    EgoFrame,
-    QueryCentric,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -243,8 +229,8 @@ fn d_vmax() -> u32 {
 #[serde(deny_unknown_fields, default)]
 pub struct NetSection {
     pub preset: NetPreset,
-    /// Overrides the preset's encoder.
-    pub encoder: Option<Encoder>,
+    /// Overrides the preset's encoder: the observation layout it reads (`ego-frame`, `query-centric`).
+    pub encoder: Option<sf_sim::Layout>,
     /// Overrides token width and DeepSets width (heads get twice it).
     pub width: Option<usize>,
     /// Overrides the preset's layers in the pose embeddings (`fast`: 1, a linear map, so the

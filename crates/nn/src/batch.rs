@@ -4,7 +4,7 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use sf_sim::obs::{ObsSpec, AGENT_CTX, AGENT_FEATS, EGO_CTX, MAP_FEATS, ROUTE_FEATS, SEG_POSE};
 use sf_sim::Layout;
 
-use crate::config::{NetConfig, SvoInput};
+use crate::config::{NetConfig, SvoVisibility};
 
 /// Features per history vector fed to the agent DeepSet: x, y, theta, v, time offset.
 pub const AGENT_IN: usize = AGENT_FEATS + 1;
@@ -103,8 +103,8 @@ impl ObsBatch {
         let mut ids: Vec<i64> = Vec::new();
         let mut pose = Vec::new();
         let time = |k: usize| (h - 1 - k) as f32 * frame_dt_s / TIME_SCALE_S;
-        let svo_own = cfg.svo != SvoInput::None;
-        let svo_all = cfg.svo == SvoInput::All;
+        let svo_own = cfg.svo != SvoVisibility::None;
+        let svo_all = cfg.svo == SvoVisibility::All;
         let shared = histories == Histories::Shared;
         let mut table = SharedHistories::default();
         let mut hist = vec![0f32; h * AGENT_IN];

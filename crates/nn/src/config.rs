@@ -2,31 +2,18 @@
 
 use serde::{Deserialize, Serialize};
 pub use sf_sim::DriveAction;
+/// Which encoder reads the observation: the observation layout it was built for (one type
+/// for the choice, from the simulator to the job config).
+pub use sf_sim::Layout;
 
-/// Which encoder reads the observation.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum EncoderKind {
-    EgoFrame,
-    QueryCentric,
-}
-
-/// Which SVO inputs the network consumes (observation channels it does not consume are zeroed).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum SvoInput {
-    /// MACAD, every ego policy, the adversary.
-    None,
-    /// CoPO: own SVO.
-    Own,
-    /// SocialComm: own and every neighbour's.
-    All,
-}
+/// Which SVO inputs the network consumes (observation channels it does not consume are
+/// zeroed): the simulator's visibility type, one type for the concept.
+pub use sf_sim::SvoVisibility;
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct NetConfig {
-    pub encoder: EncoderKind,
+    pub encoder: Layout,
     /// Token width D.
     pub d_model: usize,
     /// Width of the DeepSets' phi and rho MLPs.
@@ -39,7 +26,7 @@ pub struct NetConfig {
     /// Width of the actor and critic head MLPs.
     pub head_hidden: usize,
     pub heads: usize,
-    pub svo: SvoInput,
+    pub svo: SvoVisibility,
     /// FailMaker: the ego flag channel is consumed.
     pub ego_flag: bool,
     /// Action dimension (`action.dim()` for driving, 1 for the adversary).
@@ -71,14 +58,14 @@ impl NetConfig {
     /// The paper's network at the reference script's `paper` size (D = 128, hidden 256).
     pub fn paper() -> Self {
         Self {
-            encoder: EncoderKind::EgoFrame,
+            encoder: Layout::EgoFrame,
             d_model: 128,
             set_hidden: 256,
             phi_layers: 3,
             pose_layers: 2,
             head_hidden: 256,
             heads: 4,
-            svo: SvoInput::None,
+            svo: SvoVisibility::None,
             ego_flag: false,
             action_dim: 2,
             action: DriveAction::Direct,
@@ -96,7 +83,7 @@ impl NetConfig {
 
     /// Our default: query-centric encoder at widths this CPU can train.
     pub fn fast() -> Self {
-        Self { encoder: EncoderKind::QueryCentric, d_model: 64, set_hidden: 64, phi_layers: 1, pose_layers: 1, head_hidden: 128, ..Self::paper() }
+        Self { encoder: Layout::QueryCentric, d_model: 64, set_hidden: 64, phi_layers: 1, pose_layers: 1, head_hidden: 128, ..Self::paper() }
     }
 
     /// Checks sizes; names the field.

@@ -6,7 +6,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use sf_sim::obs::{MapSegments, AGENT_CTX, EGO_CTX, MAP_FEATS, SEG_POSE};
 
 use crate::batch::{AgentInput, MapInput, ObsBatch, AGENT_IN, STATIC_IN};
-use crate::config::{EncoderKind, NetConfig};
+use crate::config::{Layout, NetConfig};
 use crate::layers::{DeepSet, EgoAttention, Init, Mlp};
 
 /// Token types (rows of the type embedding added to keys).
@@ -29,7 +29,7 @@ pub struct Encoder {
     pub type_emb: Param<Tensor<2>>,
     pub attn: EgoAttention,
     #[module(skip)]
-    pub kind: EncoderKind,
+    pub kind: Layout,
     /// `NetConfig::ego_skip`: the output is `(attention + ego token) / 2`.
     #[module(skip)]
     pub ego_skip: bool,

@@ -16,9 +16,10 @@ pub mod config;
 pub mod device;
 pub mod encoder;
 pub mod layers;
+pub mod onnx;
 pub mod policy;
 pub mod weights;
 
 pub use batch::{AgentInput, Histories, ObsBatch};
-pub use config::{EncoderKind, NetConfig, SvoInput};
+pub use config::{Layout, NetConfig, SvoVisibility};
 pub use policy::{Actor, Critic};

@@ -29,6 +29,11 @@ pub enum Actor<'a> {
     Demo { noise: f32, action: DriveAction },
     /// A policy: sampled, or its mean action when `deterministic` (evaluation).
     Policy { runner: &'a PolicyRunner, deterministic: bool },
+    /// Actions chosen outside (a Python policy, or actions handed in by an environment's
+    /// caller): `act(rows, n)` gets the `n` observation rows of the role, flattened, and returns
+    /// `n * action.dim()` floats. It must not fail: a caller that can fail records its error
+    /// and returns zeros.
+    External { act: &'a dyn Fn(&[f32], usize) -> Vec<f32>, action: DriveAction },
 }
 
 impl<'a> Actor<'a> {
@@ -46,6 +51,7 @@ impl<'a> Actor<'a> {
             Actor::Random { .. } => DriveAction::Direct,
             Actor::Demo { action, .. } => *action,
             Actor::Policy { runner, .. } => runner.net().action,
+            Actor::External { action, .. } => *action,
         }
     }
 
@@ -55,6 +61,7 @@ impl<'a> Actor<'a> {
             Actor::Random { dim } => *dim,
             Actor::Demo { action, .. } => action.dim(),
             Actor::Policy { runner, .. } => runner.net().action_dim,
+            Actor::External { action, .. } => action.dim(),
         }
     }
 }
@@ -92,6 +99,20 @@ fn flagged(flags: &[f32]) -> Vec<usize> {
     (0..flags.len()).filter(|&r| flags[r] == 1.0).collect()
 }
 
+/// The listed rows' observations, flattened, and each row's map (batch) index.
+fn gather(venvs: &[VecEnv], rows: &[Vec<usize>], n: usize) -> (Vec<f32>, Vec<u32>) {
+    let len = venvs.first().map_or(0, |v| v.spec.len);
+    let mut obs = Vec::with_capacity(n * len);
+    let mut ids = Vec::with_capacity(n);
+    for (k, (v, rs)) in venvs.iter().zip(rows).enumerate() {
+        for &r in rs {
+            obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
+            ids.push(k as u32);
+        }
+    }
+    (obs, ids)
+}
+
 /// `actor.dim()` actions per listed row of every batch, one inference for all of them.
 fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) -> (Vec<Vec<f32>>, usize) {
     let n: usize = rows.iter().map(Vec::len).sum();
@@ -108,19 +129,17 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) 
             }
             a
         }
-        Actor::Policy { .. } if n == 0 => Vec::new(),
+        Actor::Policy { .. } | Actor::External { .. } if n == 0 => Vec::new(),
         Actor::Policy { runner, deterministic } => {
-            let len = venvs.first().map_or(0, |v| v.spec.len);
-            let mut obs = Vec::with_capacity(n * len);
-            let mut ids = Vec::with_capacity(n);
-            for (k, (v, rs)) in venvs.iter().zip(rows).enumerate() {
-                for &r in rs {
-                    obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
-                    ids.push(k as u32);
-                }
-            }
+            let (obs, ids) = gather(venvs, rows, n);
             let a = if deterministic { runner.mean(&obs, &ids) } else { runner.sample(&obs, &ids, rng) };
             assert_eq!(a.len(), n * dim, "policy action size differs from its role's");
+            a
+        }
+        Actor::External { act, .. } => {
+            let (obs, _) = gather(venvs, rows, n);
+            let a = act(&obs, n);
+            assert_eq!(a.len(), n * dim, "an external actor returned {} floats for {n} rows of {dim}", a.len());
             a
         }
     };
@@ -130,7 +149,7 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) 
         out.push(flat[at..at + rs.len() * dim].to_vec());
         at += rs.len() * dim;
     }
-    (out, if matches!(actor, Actor::Policy { .. }) { n } else { 0 })
+    (out, if matches!(actor, Actor::Policy { .. } | Actor::External { .. }) { n } else { 0 })
 }
 
 /// Decides the step: the adversary speaks first (its message reaches the background's

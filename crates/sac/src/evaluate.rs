@@ -51,6 +51,21 @@ pub struct Policy {
     pub svo_gaussians: Vec<(String, SvoGaussian)>,
 }
 
+impl Policy {
+    /// A finished job's final policy from its artifact directory (`config.toml`, `policy.bpk`,
+    /// and `coordinator.json` for a CoPO flow past Stage 2). Errors name the file.
+    pub fn load(dir: &Path) -> Result<Self, String> {
+        let path = dir.join("config.toml");
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+        let cfg = JobConfig::from_toml(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let path = dir.join("policy.bpk");
+        let weights = std::fs::read(&path).map_err(|e| format!("reading {} (is the job finished?): {e}", path.display()))?;
+        let coordinator = crate::coordinator::CoordinatorFile::load(dir)?;
+        let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
+        Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
+    }
+}
+
 /// What drives a flow: IDM, or a learned background (with its adversary for SocialCommAdv).
 #[derive(Clone)]
 // A handful per grid, built once: boxing the policies would buy nothing.
@@ -67,6 +82,30 @@ impl FlowDef {
             Self::Idm => None,
             Self::Learned { adversary: Some(_), .. } => Some(JobKind::SocialcommAdv),
             Self::Learned { background, .. } => Some(background.cfg.kind),
+        }
+    }
+}
+
+impl FlowDef {
+    /// A flow from a finished flow job's artifact directory. A SocialCommAdv job brings the
+    /// SocialComm flow it was trained against (`env.background_job`), found beside it in the
+    /// same `jobs/` directory (`<id>-<name>/`).
+    pub fn load(dir: &Path) -> Result<Self, String> {
+        let p = Policy::load(dir)?;
+        match p.cfg.kind {
+            JobKind::Ego => Err(format!("{} is an ego job, not a flow", dir.display())),
+            JobKind::SocialcommAdv => {
+                let id = p.cfg.env.background_job.ok_or_else(|| format!("{}: a socialcomm-adv job without its flow (env.background_job)", dir.display()))?;
+                let jobs = dir.parent().ok_or_else(|| format!("{} has no parent directory", dir.display()))?;
+                let entries = std::fs::read_dir(jobs).map_err(|e| format!("reading {}: {e}", jobs.display()))?;
+                let bg = entries
+                    .flatten()
+                    .map(|e| e.path())
+                    .find(|d| d.file_name().and_then(|n| n.to_str()).and_then(|n| n.split_once('-')).is_some_and(|(i, _)| i.parse::<u64>() == Ok(id)))
+                    .ok_or_else(|| format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display()))?;
+                Ok(Self::Learned { background: Policy::load(&bg)?, adversary: Some(p) })
+            }
+            _ => Ok(Self::Learned { background: p, adversary: None }),
         }
     }
 }
@@ -230,23 +269,88 @@ pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, f
         return Err("`envs` and `seeds` must be positive".into());
     }
     let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
-    let mut rows = Vec::with_capacity(n_cases * size.seeds as usize);
-    for seed in 0..size.seeds {
+    let episodes = Episodes { cases: &cases.cases[..n_cases], seeds: size.seeds, envs: size.envs, vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32) };
+    run_stored(map, &sim, mode, acting.svo_gaussian, &episodes, &acting.drivers())
+}
+
+/// Stored episodes to run: every case once per seed.
+pub struct Episodes<'a> {
+    pub cases: &'a [sf_sim::Case],
+    pub seeds: u32,
+    /// Simulators stepped together.
+    pub envs: usize,
+    /// Vehicles per case (the case's own when `None`) and every agent's SVO (the case's own).
+    pub vehicles: Option<usize>,
+    pub svo_deg: Option<f32>,
+}
+
+/// Runs `episodes` with `drivers` (one random stream per seed, seeded by the seed) and returns
+/// one row per episode in (seed, case) order. What a cell runs once its policies are chosen;
+/// also the loop of an ego chosen outside ([`FlowSetup`]).
+pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian: Option<SvoGaussian>, episodes: &Episodes, drivers: &Drivers) -> Result<Vec<EvalEpisode>, String> {
+    if episodes.envs == 0 || episodes.seeds == 0 {
+        return Err("`envs` and `seeds` must be positive".into());
+    }
+    let n_cases = episodes.cases.len();
+    let mut rows = Vec::with_capacity(n_cases * episodes.seeds as usize);
+    for seed in 0..episodes.seeds {
         let eps: Vec<EpisodeSpec> =
-            (0..n_cases).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32), tag: episode_tag(seed, c) }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, size.envs, eps)?;
-        v.set_svo_gaussian(acting.svo_gaussian);
+            episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
+        v.set_svo_gaussian(svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
-        for (tag, m) in drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |_, _| {}) {
+        for (tag, m) in drive::run_episodes(&mut v, drivers, &mut rng, |_, _| {}) {
             done[(tag & 0xffff_ffff) as usize] = Some(m);
         }
         for (c, m) in done.into_iter().enumerate() {
             let m = m.ok_or_else(|| format!("case {c} did not finish"))?;
-            rows.push(EvalEpisode { case: cases.cases[c].id, seed, success: m.success, safety: m.safety, speed: m.speed, collision: m.collision });
+            rows.push(EvalEpisode { case: episodes.cases[c].id, seed, success: m.success, safety: m.safety, speed: m.speed, collision: m.collision });
         }
     }
     Ok(rows)
+}
+
+/// A flow ready to drive around an ego chosen outside this crate (the IDM driver, or a Python
+/// policy through [`Actor::External`]): the simulator settings the flow's policies observe
+/// with, the mode, the flow's runners and CoPO's Gaussian for the scenario. The ego observes
+/// in the flow's layout (a learned flow fixes it; the IDM flow takes `layout`).
+pub struct FlowSetup {
+    pub sim: Arc<SimConfig>,
+    pub mode: Mode,
+    background: Option<Arc<PolicyRunner>>,
+    adversary: Option<Arc<PolicyRunner>>,
+    pub svo_gaussian: Option<SvoGaussian>,
+}
+
+impl FlowSetup {
+    /// `layout`: the ego's wish; refused when a learned flow observes in another layout.
+    pub fn new(flow: &FlowDef, map: &Map, layout: Option<sf_sim::Layout>, runners: &mut Runners) -> Result<Self, String> {
+        match flow {
+            FlowDef::Idm => {
+                let mut sim = SimConfig::default();
+                if let Some(l) = layout {
+                    sim.obs.layout = l;
+                }
+                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::Idm }, background: None, adversary: None, svo_gaussian: None })
+            }
+            FlowDef::Learned { background, adversary } => {
+                let sim = setup::sim_config(&background.cfg, Some(background.cfg.kind));
+                if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
+                    return Err(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str()));
+                }
+                let bg = runners.get(background, map, &sim)?;
+                let adv = adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?;
+                let svo_gaussian = background.svo_gaussians.iter().find(|(s, _)| *s == map.name).map(|(_, g)| *g);
+                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::External }, background: Some(bg), adversary: adv, svo_gaussian })
+            }
+        }
+    }
+
+    /// The ego acts with `ego`; the flow and its adversary sample.
+    pub fn drivers<'a>(&'a self, ego: Actor<'a>) -> Drivers<'a> {
+        Drivers { alive: ego, background: self.background.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) }
+    }
 }
 
 /// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side

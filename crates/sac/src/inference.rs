@@ -40,6 +40,13 @@ impl PolicyRunner {
         Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
     }
 
+    /// Its actor's deterministic action as an ONNX model (`sf_nn::onnx`), the segment table of
+    /// its maps included as constants (query-centric).
+    pub fn export_onnx(&self, producer_version: &str, doc: &str) -> Result<Vec<u8>, String> {
+        let x = sf_nn::onnx::ExportSpec { spec: &self.spec, net: &self.net, frame_dt_s: self.frame_dt_s, table: self.table.as_ref(), producer_version, doc };
+        sf_nn::onnx::export_actor(&self.actor, &x)
+    }
+
     /// The network it runs (its action kind and size among them).
     pub fn net(&self) -> &NetConfig {
         &self.net

@@ -4,13 +4,13 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, Encoder, JobKind, NetPreset, SacSection, SvoSeen};
+use sf_job::config::{Device, JobKind, NetPreset, SacSection};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
-use sf_nn::{EncoderKind, NetConfig, SvoInput};
+use sf_nn::NetConfig;
 use sf_sim::config::SvoVisibility;
 use sf_sim::env::Controller;
-use sf_sim::{Layout, Mode, ObsSpec, SimConfig};
+use sf_sim::{Mode, ObsSpec, SimConfig};
 
 use crate::{RateLimiterConfig, SacConfig};
 
@@ -22,21 +22,14 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
         NetPreset::Fast => NetConfig::fast(),
     };
     if let Some(e) = job.net.encoder {
-        n.encoder = match e {
-            Encoder::EgoFrame => EncoderKind::EgoFrame,
-            Encoder::QueryCentric => EncoderKind::QueryCentric,
-        };
+        n.encoder = e;
     }
     if let Some(w) = job.net.width {
         n.d_model = w;
         n.set_hidden = w;
         n.head_hidden = 2 * w;
     }
-    n.svo = match job.kind.svo_seen() {
-        SvoSeen::None => SvoInput::None,
-        SvoSeen::Own => SvoInput::Own,
-        SvoSeen::All => SvoInput::All,
-    };
+    n.svo = job.kind.svo_seen();
     n.ego_flag = job.kind == JobKind::Failmaker;
     n.action_dim = job.action_dim();
     n.action = if job.kind.drives() { job.env.action } else { sf_sim::DriveAction::Direct };
@@ -87,17 +80,12 @@ pub fn adversary_svo_deg(action: f32) -> f32 {
 /// decides what the background's observations must carry.
 pub fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
     let mut s = SimConfig::default();
-    s.obs.layout = match net_config(job).encoder {
-        EncoderKind::EgoFrame => Layout::EgoFrame,
-        EncoderKind::QueryCentric => Layout::QueryCentric,
-    };
+    s.obs.layout = net_config(job).encoder;
     s.obs.svo = match job.kind.svo_seen() {
         // A frozen flow in the background may read SVOs; every network zeroes the SVO channels
         // it does not consume (`ObsBatch::from_rows`), so the ego still sees none.
-        SvoSeen::None if background.is_some() => SvoVisibility::All,
-        SvoSeen::None => SvoVisibility::None,
-        SvoSeen::Own => SvoVisibility::Own,
-        SvoSeen::All => SvoVisibility::All,
+        SvoVisibility::None if background.is_some() => SvoVisibility::All,
+        seen => seen,
     };
     if let Some(n) = job.env.max_neighbours {
         s.obs.max_neighbours = n;
@@ -190,12 +178,12 @@ mod tests {
     fn each_kind_sees_and_is_rewarded_as_the_paper_says() {
         let r = sf_sim::env::Rewards { individual: 1.0, composed: 2.0, failmaker: 3.0 };
         for (kind, svo, vis, multi, want) in [
-            ("ego", SvoInput::None, SvoVisibility::None, false, 1.0),
-            ("macad", SvoInput::None, SvoVisibility::None, true, 1.0),
-            ("copo", SvoInput::Own, SvoVisibility::Own, true, 2.0),
-            ("socialcomm", SvoInput::All, SvoVisibility::All, true, 2.0),
-            ("failmaker", SvoInput::Own, SvoVisibility::Own, false, 3.0),
-            ("socialcomm-adv", SvoInput::None, SvoVisibility::All, false, -1.0),
+            ("ego", SvoVisibility::None, SvoVisibility::None, false, 1.0),
+            ("macad", SvoVisibility::None, SvoVisibility::None, true, 1.0),
+            ("copo", SvoVisibility::Own, SvoVisibility::Own, true, 2.0),
+            ("socialcomm", SvoVisibility::All, SvoVisibility::All, true, 2.0),
+            ("failmaker", SvoVisibility::Own, SvoVisibility::Own, false, 3.0),
+            ("socialcomm-adv", SvoVisibility::None, SvoVisibility::All, false, -1.0),
         ] {
             let j = job(kind);
             let bg = (kind == "socialcomm-adv").then_some(JobKind::Socialcomm);

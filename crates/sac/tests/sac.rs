@@ -464,3 +464,35 @@ fn braking_segments_hold_a_braking_residual_for_4_to_12_steps() {
     assert!(!finished_runs.is_empty(), "segments ended and new ones started");
     assert!(finished_runs.iter().all(|&n| (4..=12).contains(&n)), "{finished_runs:?}");
 }
+
+/// An ego whose actions come from outside (`Actor::External`, what the Python package hands
+/// in) runs through `evaluate::run_stored` exactly like the built-in IDM demonstrator when it
+/// returns the same actions (zero acceleration residuals), sees one observation row per live
+/// ego, and a different policy (always brake) gives different episodes.
+#[test]
+fn an_external_ego_evaluates_like_the_same_builtin_driver() {
+    use sf_sac::drive::Actor;
+    use sf_sac::evaluate::{run_stored, Episodes, FlowDef, FlowSetup, Runners};
+    use sf_sim::DriveAction;
+    let m = map();
+    let cases = sf_sim::case::generate(&m, 12, 7, (3, 6));
+    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu"));
+    let setup = FlowSetup::new(&FlowDef::Idm, &m, None, &mut runners).expect("idm flow");
+    let episodes = Episodes { cases: &cases.cases, seeds: 2, envs: 5, vehicles: None, svo_deg: None };
+    let demo = setup.drivers(Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual });
+    let want = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &demo).expect("demo");
+    let len = setup.sim.obs.layout;
+    let seen = std::cell::Cell::new(0usize);
+    let zero = |obs: &[f32], n: usize| {
+        assert_eq!(obs.len() % n.max(1), 0, "{n} whole rows");
+        seen.set(seen.get() + n);
+        vec![0.0; n]
+    };
+    let got = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &zero, action: DriveAction::IdmAccelResidual })).expect("external");
+    assert_eq!(got, want);
+    assert!(seen.get() > 24, "the external actor saw {} rows ({len:?})", seen.get());
+    let brake = |_: &[f32], n: usize| vec![-1.0; n];
+    let braked = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &brake, action: DriveAction::IdmAccelResidual })).expect("brake");
+    assert_ne!(braked, want);
+    assert!(braked.iter().map(|e| e.success).sum::<f32>() < want.iter().map(|e| e.success).sum::<f32>());
+}

@@ -142,7 +142,13 @@ impl CaseFile {
     pub fn load(path: &Path, map: &Map) -> Result<Self, CaseError> {
         let p = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|source| CaseError::Io { path: p.clone(), source })?;
-        let f: CaseFile = serde_json::from_str(&text).map_err(|source| CaseError::Parse { path: p.clone(), source })?;
+        Self::from_json(&text, &p, map)
+    }
+
+    /// Parses and validates a case file's text (`origin` names it in errors).
+    pub fn from_json(text: &str, origin: &str, map: &Map) -> Result<Self, CaseError> {
+        let p = origin.to_string();
+        let f: CaseFile = serde_json::from_str(text).map_err(|source| CaseError::Parse { path: p.clone(), source })?;
         let bad = |field: String, reason: String| CaseError::Invalid { path: p.clone(), field, reason };
         if f.format_version != CASES_VERSION {
             return Err(bad("format_version".into(), format!("{} is not supported (this build reads {CASES_VERSION})", f.format_version)));

@@ -20,6 +20,25 @@ pub enum Layout {
     QueryCentric,
 }
 
+impl Layout {
+    /// The name in configuration files (`ego-frame`, `query-centric`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::EgoFrame => "ego-frame",
+            Self::QueryCentric => "query-centric",
+        }
+    }
+
+    /// Parses [`Layout::as_str`]'s names; the error lists them.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "ego-frame" => Ok(Self::EgoFrame),
+            "query-centric" => Ok(Self::QueryCentric),
+            other => Err(format!("unknown layout `{other}` (expected `ego-frame` or `query-centric`)")),
+        }
+    }
+}
+
 /// Whose Social Value Orientation an observer sees.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "kebab-case")]

@@ -65,6 +65,18 @@ pub enum Termination {
 }
 
 impl Termination {
+    /// The name in files and Python (`collision`, `off-road`, ...).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Collision => "collision",
+            Self::OffRoad => "off-road",
+            Self::OffRoute => "off-route",
+            Self::WrongLane => "wrong-lane",
+            Self::Destination => "destination",
+            Self::Timeout => "timeout",
+        }
+    }
+
     pub fn is_failure(self) -> bool {
         matches!(self, Self::Collision | Self::OffRoad | Self::OffRoute | Self::WrongLane)
     }

@@ -119,6 +119,27 @@ impl ObsSpec {
         }
     }
 
+    /// The non-empty blocks of the layout in order, as `(name, range, shape)`: the arrays a
+    /// row splits into (the Python package's dict observations and the ONNX model's inputs).
+    pub fn blocks(&self) -> Vec<(&'static str, Range<usize>, Vec<usize>)> {
+        let (h, n, r, m, p) = (self.history, self.neighbours, self.route_points, self.map_pieces, self.piece_points);
+        let all = [
+            ("ego_hist", self.ego_hist.clone(), vec![h, AGENT_FEATS]),
+            ("ego_ctx", self.ego_ctx.clone(), vec![EGO_CTX]),
+            ("agents_hist", self.agents_hist.clone(), vec![n, h, AGENT_FEATS]),
+            ("agents_ctx", self.agents_ctx.clone(), vec![n, AGENT_CTX]),
+            ("agents_mask", self.agents_mask.clone(), vec![n]),
+            ("route", self.route.clone(), vec![r, ROUTE_FEATS]),
+            ("route_mask", self.route_mask.clone(), vec![r]),
+            ("map", self.map.clone(), vec![m, p, MAP_FEATS]),
+            ("map_mask", self.map_mask.clone(), vec![m, p]),
+            ("seg_id", self.seg_id.clone(), vec![m]),
+            ("seg_pose", self.seg_pose.clone(), vec![m, SEG_POSE]),
+            ("seg_mask", self.seg_mask.clone(), vec![m]),
+        ];
+        all.into_iter().filter(|(_, r, _)| !r.is_empty()).collect()
+    }
+
     /// Bytes of one observation stored as f32.
     pub fn bytes_f32(&self) -> usize {
         self.len * 4

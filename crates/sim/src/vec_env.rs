@@ -46,6 +46,8 @@ pub struct RowStep {
     /// The episode ended on this step (its learners are done) while this row's agent was still
     /// driving: a cut, not a terminal state (externally driven background rows).
     pub truncated: bool,
+    /// The agent's episode ended on this step and counts as a success (see `sf_sim::env`).
+    pub success: bool,
 }
 
 impl RowStep {
@@ -438,6 +440,7 @@ impl Slot {
             st.truncated = done && !ended;
             if ended || st.truncated {
                 st.ended = if ended { self.env.agents()[i].termination } else { None };
+                st.success = ended && self.env.agents()[i].outcome().success;
                 if !prepared {
                     self.observer.prepare(&self.env);
                     prepared = true;

@@ -111,6 +111,22 @@ pub enum DriveAction {
 }
 
 impl DriveAction {
+    pub const NAMES: [&'static str; 3] = ["direct", "idm-residual", "idm-accel-residual"];
+
+    /// The name in configuration files (`env.action`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Direct => Self::NAMES[0],
+            Self::IdmResidual => Self::NAMES[1],
+            Self::IdmAccelResidual => Self::NAMES[2],
+        }
+    }
+
+    /// Parses [`DriveAction::as_str`]'s names; the error lists them.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual].into_iter().find(|a| a.as_str() == s).ok_or_else(|| format!("unknown action `{s}` (expected one of {})", Self::NAMES.join(", ")))
+    }
+
     /// Floats per action.
     pub fn dim(self) -> usize {
         match self {

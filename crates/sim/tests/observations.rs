@@ -270,3 +270,30 @@ fn the_svo_range_maps_stored_svos_linearly() {
     let bad = SimConfig { svo_range_deg: [10.0, -10.0], ..SimConfig::default() };
     assert_eq!(bad.validate().expect_err("reversed").field, "svo_range_deg");
 }
+
+/// `ObsSpec::blocks` tiles the row exactly, in order, with shapes that multiply out to their
+/// ranges (the Python package's dict observations and the ONNX inputs rely on it).
+#[test]
+fn blocks_tile_the_row_in_both_layouts() {
+    for layout in [Layout::EgoFrame, Layout::QueryCentric] {
+        let mut cfg = SimConfig::default();
+        cfg.obs.layout = layout;
+        let spec = sf_sim::ObsSpec::new(&cfg.obs);
+        let mut at = 0;
+        for (name, r, shape) in spec.blocks() {
+            assert_eq!(r.start, at, "{name} starts where the previous block ended");
+            assert_eq!(r.len(), shape.iter().product::<usize>(), "{name}: {shape:?}");
+            at = r.end;
+        }
+        assert_eq!(at, spec.len);
+        let names: Vec<&str> = spec.blocks().iter().map(|b| b.0).collect();
+        assert_eq!(names.contains(&"seg_id"), layout == Layout::QueryCentric);
+        assert_eq!(names.contains(&"map"), layout == Layout::EgoFrame);
+        assert_eq!(Layout::parse(layout.as_str()), Ok(layout));
+    }
+    assert!(Layout::parse("polar").unwrap_err().contains("ego-frame"));
+    for a in [sf_sim::DriveAction::Direct, sf_sim::DriveAction::IdmResidual, sf_sim::DriveAction::IdmAccelResidual] {
+        assert_eq!(sf_sim::DriveAction::parse(a.as_str()), Ok(a));
+    }
+    assert!(sf_sim::DriveAction::parse("fly").unwrap_err().contains("idm-accel-residual"));
+}

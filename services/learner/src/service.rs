@@ -193,18 +193,6 @@ impl ExperienceService for Experience {
         let out = self.0.policy(r.job_id, r.version).await;
         done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
     }
-
-    type WatchPolicyStream = BoxStream<pb::PolicyVersion>;
-
-    async fn watch_policy(&self, req: Request<pb::WatchPolicyRequest>) -> Res<Self::WatchPolicyStream> {
-        let job_id = req.into_inner().job_id;
-        let job = match self.0.running(job_id).await {
-            Ok(j) => j,
-            Err(e) => return done(&self.0, "WatchPolicy", Err(e)),
-        };
-        let stream = tokio_stream::wrappers::WatchStream::new(job.versions.subscribe()).map(move |v| Ok(pb::PolicyVersion { job_id, version: v }));
-        done(&self.0, "WatchPolicy", Ok(Box::pin(stream) as Self::WatchPolicyStream))
-    }
 }
 
 impl Inner {

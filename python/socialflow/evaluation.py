@@ -1,0 +1,132 @@
+"""`evaluate`: a Python driving policy in the ego's seat over socialflow's stored evaluation
+cases x seeds, among the chosen flows, through the same Rust loop as `socialflow eval`'s cells
+(so the same policy gives the same numbers). Rows have the columns of `episodes.csv`."""
+
+import csv
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _socialflow
+from ._common import check_choice, flow_arg
+from .envs import split_obs
+
+EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision")
+_GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_deg", "experiment", "ego"}
+
+
+def zero_residual_policy(dim=1):
+    """The IDM driver as a policy: with `action="idm-accel-residual"` a zero residual drives
+    exactly like IDM."""
+
+    def policy(obs):
+        return np.zeros((len(obs), dim), np.float32)
+
+    return policy
+
+
+def _t95(n):
+    """Two-sided 95 % Student-t quantile with n - 1 degrees of freedom (as `sf_eval::Summary`)."""
+    if n < 2:
+        return float("nan")
+    try:
+        from scipy.stats import t  # optional: exact quantile
+
+        return float(t.ppf(0.975, n - 1))
+    except ImportError:
+        # Cornish-Fisher expansion of the t quantile around the normal's 1.959964.
+        z, df = 1.959963984540054, n - 1
+        g1 = (z**3 + z) / 4
+        g2 = (5 * z**5 + 16 * z**3 + 3 * z) / 96
+        g3 = (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384
+        return z + g1 / df + g2 / df**2 + g3 / df**3
+
+
+def _summary(xs):
+    xs = np.asarray(xs, dtype=np.float64)
+    n = len(xs)
+    mean = float(xs.mean()) if n else float("nan")
+    sd = float(xs.std(ddof=1)) if n > 1 else float("nan")
+    return {"mean": mean, "ci95": _t95(n) * sd / math.sqrt(n) if n > 1 else float("nan")}
+
+
+@dataclass
+class EvalResult:
+    """Per-episode `rows` (dicts with `EPISODE_COLUMNS`) and a `summary` per (flow, scenario)."""
+
+    rows: list = field(default_factory=list)
+    summary: list = field(default_factory=list)
+
+    def to_csv(self, path):
+        """Writes the rows as an `episodes.csv` (the format `socialflow report` reads)."""
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(EPISODE_COLUMNS)
+            for r in self.rows:
+                w.writerow(["" if r[c] is None else r[c] for c in EPISODE_COLUMNS])
+
+
+def _grid(grid, kw):
+    g = dict(grid or {})
+    g.update({k: v for k, v in kw.items() if v is not None})
+    unknown = set(g) - _GRID_KEYS
+    if unknown:
+        raise ValueError(f"grid: unknown key(s) {sorted(unknown)} (expected some of {sorted(_GRID_KEYS)})")
+    flows = g.get("flows", {"idm": "idm"})
+    if isinstance(flows, (list, tuple)):
+        flows = {("idm" if f == "idm" else str(f)): f for f in flows}
+    if not isinstance(flows, dict) or not flows:
+        raise ValueError("grid['flows']: give a dict {name: 'idm' | job directory} (or a list)")
+    scenarios = g.get("scenarios", list(_socialflow.scenarios()))
+    if isinstance(scenarios, str):
+        scenarios = [scenarios]
+    for key in ("cases", "seeds", "envs"):
+        v = g.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+            raise ValueError(f"grid['{key}']: {v!r} is not a positive integer")
+    return g, flows, scenarios
+
+
+def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="flat", cases=None, seeds=None, envs=None, scenarios=None, flows=None):
+    """Runs `policy` in the ego's seat over the grid: for every flow and scenario, the first
+    `cases` stored cases (200) x `seeds` (10), `envs` (16) simulators stepped together.
+
+    `policy(obs)` gets a batch of observations (`[n, obs_len]` float32, or a dict of blocks with
+    `obs_format="dict"`) and returns `[n, action_dim]` actions in [-1, 1] of the kind `action`.
+    `grid`: `{"flows": {name: "idm" | flow job dir}, "scenarios": [...], "cases", "seeds",
+    "envs", "vehicles", "svo_deg", "experiment", "ego"}`; keyword arguments override it.
+    Learned flows sample one random stream per seed, so results depend on `envs` as in
+    `socialflow eval`. Returns an `EvalResult`."""
+    if not callable(policy):
+        raise ValueError(f"policy: {policy!r} is not callable")
+    check_choice("obs_format", obs_format, ("flat", "dict"))
+    g, flow_map, scenario_list = _grid(grid, {"cases": cases, "seeds": seeds, "envs": envs, "scenarios": scenarios, "flows": flows})
+    n_cases, n_seeds, n_envs = int(g.get("cases", 200)), int(g.get("seeds", 10)), int(g.get("envs", 16))
+    vehicles, svo = g.get("vehicles"), g.get("svo_deg")
+    experiment, ego = g.get("experiment", "python"), g.get("ego", "python")
+    result = EvalResult()
+    for name, flow in flow_map.items():
+        for scenario in scenario_list:
+            call = policy
+            if obs_format == "dict":
+                spec = _socialflow.Core(scenario, flow_arg(flow), (1, 1), layout, action).spec()
+
+                def call(obs, _spec=spec):
+                    return policy(split_obs(_spec, obs))
+
+            def wrapped(obs, _call=call):
+                a = np.ascontiguousarray(np.asarray(_call(obs), dtype=np.float32))
+                return a.reshape(len(obs), -1) if a.ndim == 1 else a
+
+            rows = _socialflow.evaluate(wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
+            mine = [
+                dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision)))
+                for case, seed, success, safety, speed, collision in rows
+            ]
+            result.rows.extend(mine)
+            s = {"flow": name, "scenario": scenario, "episodes": len(mine)}
+            for col in ("success", "safety", "speed", "collision"):
+                s[col] = _summary([r[col] for r in mine])
+            result.summary.append(s)
+    return result

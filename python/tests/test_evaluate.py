@@ -1,0 +1,77 @@
+"""`socialflow.evaluate` gives the Rust CLI's numbers for the same policy."""
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import socialflow
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def socialflow_bin():
+    path = os.environ.get("SOCIALFLOW_BIN")
+    if not path:
+        target = Path(os.environ.get("CARGO_TARGET_DIR", REPO / "target"))
+        for profile in ("debug", "release"):
+            if (target / profile / "socialflow").exists():
+                path = str(target / profile / "socialflow")
+                break
+    if not path:
+        pytest.fail("set SOCIALFLOW_BIN to the socialflow binary (cargo build --bins)")
+    return path
+
+
+@pytest.mark.parametrize("scenario", ["roundabout", "intersection"])
+def test_idm_as_policy_equals_the_cli(scenario):
+    cases, seeds = 24, 2
+    out = subprocess.run(
+        [socialflow_bin(), "eval-flow", "--flow", "idm", "--ego", "idm", "--scenario", scenario, "--cases", str(cases), "--seeds", str(seeds), "--json"],
+        cwd=REPO,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    cli = json.loads(out.stdout)
+    res = socialflow.evaluate(socialflow.zero_residual_policy(), grid={"flows": {"idm": "idm"}, "scenarios": [scenario], "cases": cases, "seeds": seeds}, action="idm-accel-residual")
+    assert len(res.rows) == len(cli["episodes"]) == cases * seeds
+    for mine, theirs in zip(res.rows, cli["episodes"]):
+        assert (mine["case"], mine["seed"]) == (theirs["case"], theirs["seed"])
+        for k in ("success", "safety", "speed", "collision"):
+            assert mine[k] == pytest.approx(theirs[k], abs=1e-6), (k, mine, theirs)
+    (s,) = res.summary
+    assert s["success"]["mean"] == pytest.approx(cli["success"]["mean"], abs=1e-9)
+    assert s["collision"]["mean"] == pytest.approx(cli["collision"]["mean"], abs=1e-9)
+    assert s["success"]["ci95"] == pytest.approx(cli["success"]["ci95"], rel=1e-3)
+
+
+def test_direct_policy_and_dict_observations(tmp_path):
+    seen = []
+
+    def brake(obs):
+        seen.append(obs["ego_hist"].shape)
+        return np.tile(np.array([-1.0, 0.0], np.float32), (len(obs["ego_hist"]), 1))
+
+    res = socialflow.evaluate(brake, flows=["idm"], scenarios=["merge"], cases=4, seeds=1, obs_format="dict")
+    assert len(res.rows) == 4 and seen and len(seen[0]) == 3
+    # A car that never moves never succeeds.
+    assert all(r["success"] == 0.0 for r in res.rows)
+    res.to_csv(tmp_path / "episodes.csv")
+    assert (tmp_path / "episodes.csv").read_text().startswith("experiment,ego,flow,scenario,svo_deg,vehicles,case,seed")
+
+
+def test_bad_policy_and_grid():
+    with pytest.raises(ValueError, match="policy"):
+        socialflow.evaluate(lambda obs: np.zeros((len(obs), 5), np.float32), scenarios=["merge"], cases=2, seeds=1)
+    with pytest.raises(ZeroDivisionError):
+        socialflow.evaluate(lambda obs: 1 / 0, scenarios=["merge"], cases=2, seeds=1)
+    with pytest.raises(ValueError, match="grid"):
+        socialflow.evaluate(lambda obs: obs, grid={"casez": 3})
+    with pytest.raises(ValueError, match="cases"):
+        socialflow.evaluate(lambda obs: obs, scenarios=["merge"], cases=100_000)
+    with pytest.raises(ValueError, match="policy"):
+        socialflow.evaluate(42)
