@@ -184,6 +184,8 @@ fn stage_one_flows_train_through_the_service() {
             assert_eq!(c["scenarios"][0]["history"].as_array().map(Vec::len), Some(1), "{c}");
             let stage1 = json_of(&socialflow(&["eval-flow", "--policy", &art, "--scenario", "merge", "--cases", "2", "--seeds", "2", "--json", "--stage1"], T));
             assert_eq!(stage1["episodes"], 4);
+            // An ego among the CoPO flow from Python: Stage 2's SVO draws included.
+            python_ego_equals_cli(&art, "the CoPO flow");
         } else {
             let out = socialflow(&["copo-coordinator", "--policy", &art, "--scenario", "merge"], T);
             assert!(!out.status.success(), "the coordinator needs a CoPO flow");
@@ -222,6 +224,32 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere"));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// With `SOCIALFLOW_PKG_PYTHON` (an interpreter with the socialflow package): the IDM driver as a
+/// Python policy among the trained flow in `flow` (a job directory) scores what
+/// `eval-flow --policy <flow> --ego idm` scores, episode by episode, and the Gymnasium
+/// environment steps among that flow (`tests/python/flow_ego_equality.py`).
+fn python_ego_equals_cli(flow: &str, what: &str) {
+    let Ok(py) = std::env::var("SOCIALFLOW_PKG_PYTHON") else {
+        eprintln!("SOCIALFLOW_PKG_PYTHON not set: the Python package's run among {what} is skipped");
+        return;
+    };
+    let cli = socialflow(&["eval-flow", "--policy", flow, "--ego", "idm", "--scenario", "merge", "--cases", "6", "--seeds", "2", "--json"], T);
+    assert!(cli.status.success(), "{what}: {}", String::from_utf8_lossy(&cli.stderr));
+    let cli: serde_json::Value = serde_json::from_slice(&cli.stdout).expect("JSON");
+    let out = std::process::Command::new(&py).arg(socialflow_e2e::repo().join("tests/python/flow_ego_equality.py")).args([flow, "merge", "6", "2"]).output().expect("python");
+    assert!(out.status.success(), "{what}: {}", String::from_utf8_lossy(&out.stderr));
+    let py: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let (a, b) = (cli["episodes"].as_array().expect("rows"), py["episodes"].as_array().expect("rows"));
+    assert_eq!(a.len(), 12, "{what}");
+    assert_eq!(a.len(), b.len(), "{what}");
+    for (x, y) in a.iter().zip(b) {
+        for k in ["case", "seed", "success", "safety", "speed", "collision"] {
+            let (x, y) = (x[k].as_f64().expect("number"), y[k].as_f64().expect("number"));
+            assert!((x - y).abs() < 1e-6, "{what} {k}: CLI {x} vs Python {y}");
+        }
+    }
 }
 
 /// FNV-1a (64-bit) checksum of a file's bytes: enough to see any change.
@@ -278,6 +306,12 @@ fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
         assert_eq!(v["progress"]["env_steps"], 600, "{n}");
         assert!(v["progress"]["episodes"].as_u64().unwrap_or(0) > 0, "{n}: {v}");
     }
+    // The Python package drives an ego among these flows (SocialCommAdv with its adversary and
+    // its SocialComm flow, FailMaker) and scores what the CLI scores, episode by episode.
+    for n in ["adv-1", "fm-1"] {
+        python_ego_equals_cli(&art(&second, n).display().to_string(), n);
+    }
+
     // The resolved configs carry the ids the names became.
     let cfg = std::fs::read_to_string(art(&second, "ego-adv-1").join("config.toml")).expect("config");
     assert!(cfg.contains(&format!("background_job = {}", id("adv-1"))) && cfg.contains(&format!("init_job = {}", id("ego-sc"))), "{cfg}");

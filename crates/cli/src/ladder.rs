@@ -8,7 +8,7 @@
 //! Must not: change how jobs train (it submits ordinary job configs) or how episodes run
 //! (`sf_sac::drive`).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -171,7 +171,7 @@ impl Row {
 }
 
 /// One seed's verdict.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 struct SeedSummary {
     train_seed: u64,
     job_dir: String,
@@ -253,9 +253,22 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         rows.extend(mine);
     }
 
-    // 3. Write episodes, summary and curves.
+    // 3. Write episodes, summary and curves, keeping the seeds of earlier runs into `out` that
+    // this run did not redo (a rung run seed by seed adds up to one summary).
+    let ran: BTreeSet<u64> = summaries.iter().map(|s| s.train_seed).collect();
+    let (kept, kept_rows) = earlier_seeds(&out, &rung, &ran)?;
+    for s in kept {
+        curves.push((s.train_seed, read_curve(&out.join(format!("seed-{}", s.train_seed)).join("curve.csv"))?));
+        summaries.push(s);
+    }
+    summaries.sort_by_key(|s| s.train_seed);
+    curves.sort_by_key(|c| c.0);
     let mut csv = String::from(Row::HEADER);
     csv.push('\n');
+    for line in &kept_rows {
+        csv.push_str(line);
+        csv.push('\n');
+    }
     for r in &rows {
         csv.push_str(&r.csv());
         csv.push('\n');
@@ -269,6 +282,30 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     println!("{}", serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()}));
     print!("{}", summary_md(&rung, &summaries, passed));
     Ok(())
+}
+
+/// The seed summaries and episode lines already in `out` from earlier runs of the same rung,
+/// except the seeds in `ran` (nothing when `out` holds no summary yet).
+fn earlier_seeds(out: &Path, rung: &Rung, ran: &BTreeSet<u64>) -> Result<(Vec<SeedSummary>, Vec<String>)> {
+    let path = out.join("summary.json");
+    if !path.exists() {
+        return Ok((Vec::new(), Vec::new()));
+    }
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}", path.display()))?;
+    if v["name"] != rung.name.as_str() {
+        bail!("{} belongs to rung `{}`, not `{}`: give another --out", path.display(), v["name"], rung.name);
+    }
+    let all: Vec<SeedSummary> = serde_json::from_value(v["seeds"].clone()).with_context(|| format!("{}: field `seeds`", path.display()))?;
+    let kept: Vec<SeedSummary> = all.into_iter().filter(|s| !ran.contains(&s.train_seed)).collect();
+    let keep: BTreeSet<u64> = kept.iter().map(|s| s.train_seed).collect();
+    let episodes = out.join("episodes.csv");
+    let lines = match std::fs::read_to_string(&episodes) {
+        Ok(t) => t.lines().skip(1).filter(|l| l.split(',').next().and_then(|f| f.parse::<u64>().ok()).is_some_and(|s| keep.contains(&s))).map(str::to_string).collect(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", episodes.display())),
+    };
+    Ok((kept, lines))
 }
 
 /// The final policy of the newest finished job named `cfg.name` in the data directory, found on

@@ -25,7 +25,7 @@ pub enum Actor<'a> {
     Random { dim: usize },
     /// The IDM demonstrator ([`VecEnv::demo_action`]) expressed as `action` (for residual
     /// kinds: zero) with Gaussian noise of this standard deviation per component, clipped to
-    /// [-1, 1] (the IDM warm-up). Driving roles only.
+    /// [-1, 1] (the IDM warm-up; a noise of 0 draws no random numbers). Driving roles only.
     Demo { noise: f32, action: DriveAction },
     /// A policy: sampled, or its mean action when `deterministic` (evaluation).
     Policy { runner: &'a PolicyRunner, deterministic: bool },
@@ -123,9 +123,13 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) 
             // Residual kinds demonstrate with zeros: no IDM action to compute.
             let mut a: Vec<f32> =
                 if action == DriveAction::Direct { venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect() } else { vec![0.0; n * dim] };
-            for x in &mut a {
-                let e: f32 = rng.sample(StandardNormal);
-                *x = (*x + noise * e).clamp(-1.0, 1.0);
+            // Noise-free demonstrations draw nothing, so the stream other roles sample from (a
+            // learned flow's) is the one an outside actor with the same actions would leave.
+            if noise > 0.0 {
+                for x in &mut a {
+                    let e: f32 = rng.sample(StandardNormal);
+                    *x = (*x + noise * e).clamp(-1.0, 1.0);
+                }
             }
             a
         }
