@@ -31,12 +31,37 @@ use crate::drive::{self, Actor, Drivers};
 use crate::inference::PolicyRunner;
 use crate::setup;
 
+/// Why an evaluation (or a policy's loading) could not go on. Messages name the file, job,
+/// cell or field.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    /// A file could not be read or created.
+    #[error("{action} {}: {source}", path.display())]
+    Io { action: &'static str, path: std::path::PathBuf, source: std::io::Error },
+    /// A scenario, case file, job config or coordinator file does not parse or validate.
+    #[error("{0}")]
+    Invalid(String),
+    /// What was asked for does not fit together (ego and flow, cells, sizes, names).
+    #[error("{0}")]
+    Misfit(String),
+    /// A policy's weights do not load into its network.
+    #[error("loading the policy of {key}: {source}")]
+    Weights { key: String, source: sf_nn::weights::WeightsError },
+    /// Simulating or drawing failed.
+    #[error("{0}")]
+    Run(String),
+}
+
+fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> EvalError + 'a {
+    move |source| EvalError::Io { action, path: path.to_path_buf(), source }
+}
+
 /// A scenario's map (`<scenarios_dir>/<name>.json`) and its stored evaluation cases
 /// (`<cases_dir>/<name>.v<CASES_VERSION>.json`).
-pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), String> {
-    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|e| format!("scenario `{name}`: {e}"))?;
+pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), EvalError> {
+    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|e| EvalError::Invalid(format!("scenario `{name}`: {e}")))?;
     let path = cases_dir.join(format!("{name}.v{}.json", sf_sim::case::CASES_VERSION));
-    let cases = CaseFile::load(&path, &map).map_err(|e| format!("cases of `{name}` ({}): {e}", path.display()))?;
+    let cases = CaseFile::load(&path, &map).map_err(|e| EvalError::Invalid(format!("cases of `{name}` ({}): {e}", path.display())))?;
     Ok((Arc::new(map), cases))
 }
 
@@ -54,13 +79,13 @@ pub struct Policy {
 impl Policy {
     /// A finished job's final policy from its artifact directory (`config.toml`, `policy.bpk`,
     /// and `coordinator.json` for a CoPO flow past Stage 2). Errors name the file.
-    pub fn load(dir: &Path) -> Result<Self, String> {
+    pub fn load(dir: &Path) -> Result<Self, EvalError> {
         let path = dir.join("config.toml");
-        let text = std::fs::read_to_string(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
-        let cfg = JobConfig::from_toml(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let text = std::fs::read_to_string(&path).map_err(io("reading", &path))?;
+        let cfg = JobConfig::from_toml(&text).map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
         let path = dir.join("policy.bpk");
-        let weights = std::fs::read(&path).map_err(|e| format!("reading {} (is the job finished?): {e}", path.display()))?;
-        let coordinator = crate::coordinator::CoordinatorFile::load(dir)?;
+        let weights = std::fs::read(&path).map_err(io("reading (is the job finished?)", &path))?;
+        let coordinator = crate::coordinator::CoordinatorFile::load(dir).map_err(EvalError::Invalid)?;
         let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
         Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
     }
@@ -90,19 +115,19 @@ impl FlowDef {
     /// A flow from a finished flow job's artifact directory. A SocialCommAdv job brings the
     /// SocialComm flow it was trained against (`env.background_job`), found beside it in the
     /// same `jobs/` directory (`<id>-<name>/`).
-    pub fn load(dir: &Path) -> Result<Self, String> {
+    pub fn load(dir: &Path) -> Result<Self, EvalError> {
         let p = Policy::load(dir)?;
         match p.cfg.kind {
-            JobKind::Ego => Err(format!("{} is an ego job, not a flow", dir.display())),
+            JobKind::Ego => Err(EvalError::Misfit(format!("{} is an ego job, not a flow", dir.display()))),
             JobKind::SocialcommAdv => {
-                let id = p.cfg.env.background_job.ok_or_else(|| format!("{}: a socialcomm-adv job without its flow (env.background_job)", dir.display()))?;
-                let jobs = dir.parent().ok_or_else(|| format!("{} has no parent directory", dir.display()))?;
-                let entries = std::fs::read_dir(jobs).map_err(|e| format!("reading {}: {e}", jobs.display()))?;
+                let id = p.cfg.env.background_job.ok_or_else(|| EvalError::Invalid(format!("{}: a socialcomm-adv job without its flow (env.background_job)", dir.display())))?;
+                let jobs = dir.parent().ok_or_else(|| EvalError::Misfit(format!("{} has no parent directory", dir.display())))?;
+                let entries = std::fs::read_dir(jobs).map_err(io("reading", jobs))?;
                 let bg = entries
                     .flatten()
                     .map(|e| e.path())
                     .find(|d| d.file_name().and_then(|n| n.to_str()).and_then(|n| n.split_once('-')).is_some_and(|(i, _)| i.parse::<u64>() == Ok(id)))
-                    .ok_or_else(|| format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display()))?;
+                    .ok_or_else(|| EvalError::Misfit(format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display())))?;
                 Ok(Self::Learned { background: Policy::load(&bg)?, adversary: Some(p) })
             }
             _ => Ok(Self::Learned { background: p, adversary: None }),
@@ -112,25 +137,25 @@ impl FlowDef {
 
 /// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
 /// their fetched weights (`weights[i]` belongs to `policies[i]`).
-pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), String> {
+pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), EvalError> {
     if policies.len() != weights.len() {
-        return Err(format!("{} policies but {} weights", policies.len(), weights.len()));
+        return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())));
     }
     let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
-        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| format!("config of job {}: {e}", f.job_id))?;
+        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| EvalError::Invalid(format!("config of job {}: {e}", f.job_id)))?;
         let slot = match f.role {
             FrozenRole::Ego => &mut ego,
             FrozenRole::Background => &mut background,
             FrozenRole::Adversary => &mut adversary,
         };
         if slot.replace(Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
-            return Err(format!("two policies in the role {:?}", f.role));
+            return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)));
         }
     }
     let flow = match background {
         Some(background) => FlowDef::Learned { background, adversary },
-        None if adversary.is_some() => return Err("an adversary without the flow it talks to".into()),
+        None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into())),
         None => FlowDef::Idm,
     };
     Ok((flow, ego))
@@ -138,22 +163,22 @@ pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(Flo
 
 /// Whether `ego` (or none) can be evaluated in `flow`: an ego is an ego job observing in the
 /// flow's layout; a flow on its own is a Stage-1 flow that drives every vehicle.
-pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(), String> {
+pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(), EvalError> {
     if let Some(e) = ego {
         if e.cfg.kind != JobKind::Ego {
-            return Err(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str()));
+            return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str())));
         }
     }
     match (ego, flow) {
         (None, FlowDef::Learned { .. }) => {
             let kind = flow.kind().unwrap_or_default();
             if !kind.multi_agent() {
-                return Err(format!("flow `{}` ({}) needs an ego to act against; evaluate it with an ego", cell.flow, kind.as_str()));
+                return Err(EvalError::Misfit(format!("flow `{}` ({}) needs an ego to act against; evaluate it with an ego", cell.flow, kind.as_str())));
             }
         }
         (Some(e), FlowDef::Learned { background, .. }) => {
             if setup::obs_spec(&e.cfg).layout != setup::obs_spec(&background.cfg).layout {
-                return Err(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow));
+                return Err(EvalError::Misfit(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow)));
             }
         }
         (_, FlowDef::Idm) => {}
@@ -178,14 +203,14 @@ impl Runners {
     }
 
     /// The runner of `p` on `map` (built once, then cached).
-    pub fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, String> {
+    pub fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, EvalError> {
         let key = (p.key.clone(), map.name.clone());
         if let Some(r) = self.cache.get(&key) {
             return Ok(Arc::clone(r));
         }
         let segs = self.segments(map);
         let r = PolicyRunner::from_bytes(&setup::net_config(&p.cfg), &setup::obs_spec(&p.cfg), sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device)
-            .map_err(|e| format!("loading the policy of {}: {e}", p.key))?;
+            .map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
         let r = Arc::new(r);
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
@@ -215,7 +240,7 @@ impl Acting {
 }
 
 /// Simulator settings, mode and acting policies of a cell.
-fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), String> {
+fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
     check_cell(cell, flow, ego)?;
     // The layout comes from whichever job acts; what the background's observations carry from the flow.
     let bg_kind = match flow {
@@ -257,16 +282,13 @@ pub struct CellSize {
 
 /// Runs one cell on `map` (the cell's scenario) over its stored `cases`; episodes in (seed,
 /// case) order.
-pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, String> {
+pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
     if map.name != cell.scenario {
-        return Err(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name));
+        return Err(EvalError::Misfit(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name)));
     }
     let n_cases = size.cases as usize;
     if n_cases > cases.cases.len() {
-        return Err(format!("eval config field `cases`: {} exceeds the {} stored cases of {}", n_cases, cases.cases.len(), cell.scenario));
-    }
-    if size.envs == 0 || size.seeds == 0 {
-        return Err("`envs` and `seeds` must be positive".into());
+        return Err(EvalError::Misfit(format!("eval config field `cases`: {} exceeds the {} stored cases of {}", n_cases, cases.cases.len(), cell.scenario)));
     }
     let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
     let episodes = Episodes { cases: &cases.cases[..n_cases], seeds: size.seeds, envs: size.envs, vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32) };
@@ -287,16 +309,16 @@ pub struct Episodes<'a> {
 /// Runs `episodes` with `drivers` (one random stream per seed, seeded by the seed) and returns
 /// one row per episode in (seed, case) order. What a cell runs once its policies are chosen;
 /// also the loop of an ego chosen outside ([`FlowSetup`]).
-pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian: Option<SvoGaussian>, episodes: &Episodes, drivers: &Drivers) -> Result<Vec<EvalEpisode>, String> {
+pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian: Option<SvoGaussian>, episodes: &Episodes, drivers: &Drivers) -> Result<Vec<EvalEpisode>, EvalError> {
     if episodes.envs == 0 || episodes.seeds == 0 {
-        return Err("`envs` and `seeds` must be positive".into());
+        return Err(EvalError::Misfit("`envs` and `seeds` must be positive".into()));
     }
     let n_cases = episodes.cases.len();
     let mut rows = Vec::with_capacity(n_cases * episodes.seeds as usize);
     for seed in 0..episodes.seeds {
         let eps: Vec<EpisodeSpec> =
             episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps).map_err(EvalError::Misfit)?;
         v.set_svo_gaussian(svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
@@ -304,7 +326,7 @@ pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian
             done[(tag & 0xffff_ffff) as usize] = Some(m);
         }
         for (c, m) in done.into_iter().enumerate() {
-            let m = m.ok_or_else(|| format!("case {c} did not finish"))?;
+            let m = m.ok_or_else(|| EvalError::Run(format!("case {c} did not finish")))?;
             rows.push(EvalEpisode { case: episodes.cases[c].id, seed, success: m.success, safety: m.safety, speed: m.speed, collision: m.collision });
         }
     }
@@ -325,7 +347,7 @@ pub struct FlowSetup {
 
 impl FlowSetup {
     /// `layout`: the ego's wish; refused when a learned flow observes in another layout.
-    pub fn new(flow: &FlowDef, map: &Map, layout: Option<sf_sim::Layout>, runners: &mut Runners) -> Result<Self, String> {
+    pub fn new(flow: &FlowDef, map: &Map, layout: Option<sf_sim::Layout>, runners: &mut Runners) -> Result<Self, EvalError> {
         match flow {
             FlowDef::Idm => {
                 let mut sim = SimConfig::default();
@@ -337,7 +359,7 @@ impl FlowSetup {
             FlowDef::Learned { background, adversary } => {
                 let sim = setup::sim_config(&background.cfg, Some(background.cfg.kind));
                 if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
-                    return Err(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str()));
+                    return Err(EvalError::Misfit(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str())));
                 }
                 let bg = runners.get(background, map, &sim)?;
                 let adv = adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?;
@@ -355,16 +377,16 @@ impl FlowSetup {
 
 /// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
 /// into a GIF at `path`.
-pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), String> {
+pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), EvalError> {
     use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
-    let case = cases.cases.get(case as usize).ok_or_else(|| format!("experiments.gifs.case {case} is not stored for {scenario}"))?;
-    let renderer = Renderer::new(map, 320, ColourBy::Svo).map_err(|e| e.to_string())?;
+    let case = cases.cases.get(case as usize).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}")))?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo).map_err(|e| EvalError::Run(e.to_string()))?;
     let mut films = Vec::new();
     for (name, flow) in flows {
         let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
         let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
-        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }])?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(EvalError::Misfit)?;
         v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut frames = vec![renderer.frame(v.env(0))];
@@ -372,17 +394,17 @@ pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, m
         films.push(frames);
     }
     let len = films.iter().map(Vec::len).max().unwrap_or(0);
-    let file = std::fs::File::create(path).map_err(|e| format!("creating {}: {e}", path.display()))?;
+    let file = std::fs::File::create(path).map_err(io("creating", path))?;
     let mut out = Some(std::io::BufWriter::new(file));
     let mut gif: Option<GifWriter<_>> = None;
     for k in 0..len {
         let row: Vec<&sf_sim::render::Pixmap> = films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
-        let pm = side_by_side(&row).ok_or("composing frames")?;
+        let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
         if let Some(o) = out.take() {
-            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10).map_err(|e| e.to_string())?);
+            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10).map_err(|e| EvalError::Run(e.to_string()))?);
         }
         if let Some(w) = gif.as_mut() {
-            w.push(&pm).map_err(|e| e.to_string())?;
+            w.push(&pm).map_err(|e| EvalError::Run(e.to_string()))?;
         }
     }
     Ok(())
@@ -397,33 +419,37 @@ pub struct Resolved {
 
 impl Resolved {
     /// The flow and ego (if any) acting in `cell`.
-    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&Policy>), String> {
-        let flow = self.flows.get(&cell.flow).ok_or_else(|| format!("flow `{}` is not in the grid", cell.flow))?;
-        let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| format!("ego `{}` is not in the grid", cell.ego))?) };
+    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&Policy>), EvalError> {
+        let flow = self.flows.get(&cell.flow).ok_or_else(|| EvalError::Misfit(format!("flow `{}` is not in the grid", cell.flow)))?;
+        let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| EvalError::Misfit(format!("ego `{}` is not in the grid", cell.ego)))?) };
         Ok((flow, ego))
     }
 
     /// Every cell's ego and flow fit together (checked before anything runs).
-    pub fn check(&self, cells: &[Cell]) -> Result<(), String> {
+    pub fn check(&self, cells: &[Cell]) -> Result<(), EvalError> {
         for c in cells {
             let (flow, ego) = self.cell(c)?;
-            check_cell(c, flow, ego).map_err(|e| format!("cell {}: {e}", c.key()))?;
+            check_cell(c, flow, ego).map_err(|e| EvalError::Misfit(format!("cell {}: {e}", c.key())))?;
         }
         Ok(())
     }
 
     /// The config's GIFs (`gif-<scenario>.gif` in `out`) not already there; the paths written.
-    pub fn render_gifs(&self, g: &sf_job::eval::Gifs, out: &Path, maps: &BTreeMap<String, (Arc<Map>, CaseFile)>, runners: &mut Runners) -> Result<Vec<std::path::PathBuf>, String> {
-        let ego = self.egos.get(&g.ego).ok_or_else(|| format!("experiments.gifs.ego `{}` is not in the grid", g.ego))?;
-        let flows = g.flows.iter().map(|f| self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| format!("experiments.gifs.flows: `{f}` is not in the grid"))).collect::<Result<Vec<_>, _>>()?;
+    pub fn render_gifs(&self, g: &sf_job::eval::Gifs, out: &Path, maps: &BTreeMap<String, (Arc<Map>, CaseFile)>, runners: &mut Runners) -> Result<Vec<std::path::PathBuf>, EvalError> {
+        let ego = self.egos.get(&g.ego).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego)))?;
+        let flows = g
+            .flows
+            .iter()
+            .map(|f| self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.flows: `{f}` is not in the grid"))))
+            .collect::<Result<Vec<_>, _>>()?;
         let mut written = Vec::new();
         for s in &g.scenarios {
             let path = out.join(format!("gif-{s}.gif"));
             if path.exists() {
                 continue;
             }
-            let (map, cases) = maps.get(s).ok_or_else(|| format!("scenario `{s}` is not loaded"))?;
-            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| format!("rendering {}: {e}", path.display()))?;
+            let (map, cases) = maps.get(s).ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
+            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| EvalError::Run(format!("rendering {}: {e}", path.display())))?;
             written.push(path);
         }
         Ok(written)

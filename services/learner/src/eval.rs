@@ -87,7 +87,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     let mut flows = BTreeMap::new();
     for f in &cfg.flows {
         let fz = if f.is_idm() { Vec::new() } else { crate::flow_frozen(pinned(f)?, |id| find(id).cloned())? };
-        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?)?;
+        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?).map_err(|e| e.to_string())?;
         if flow.kind() == Some(JobKind::Ego) {
             return Err(format!("eval config field `flows.job` of `{}`: job {} is an ego job, not a flow", f.name, fz[0].job_id));
         }
@@ -98,7 +98,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     for e in &cfg.egos {
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
-        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
+        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?).map_err(|e| e.to_string())?;
         let p = ego.ok_or_else(|| format!("ego `{}`: no policy", e.name))?;
         if p.cfg.kind != JobKind::Ego {
             return Err(format!("eval config field `egos.job` of `{}`: job {} is a {} job, not an ego policy", e.name, r.id, p.cfg.kind.as_str()));
@@ -157,7 +157,7 @@ impl EvalJob {
         let cfg = EvalConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
         let (flows, egos, grid) = resolve_policies(&cfg, jobs, true)?;
         let cells = cfg.cells();
-        grid.check(&cells)?;
+        grid.check(&cells).map_err(|e| e.to_string())?;
         let work = cells
             .iter()
             .map(|c| {
@@ -327,7 +327,7 @@ impl EvalJob {
 pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, String> {
     let mut maps = BTreeMap::new();
     for s in cfg.all_scenarios() {
-        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
+        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s).map_err(|e| e.to_string())?;
         if (cfg.cases as usize) > cases.cases.len() {
             return Err(format!("eval config field `cases`: {} exceeds the {} stored cases of {s}", cfg.cases, cases.cases.len()));
         }
@@ -351,7 +351,7 @@ impl crate::Inner {
         let c2 = cfg.clone();
         blocking_str(move || {
             let (_, _, grid) = resolve_policies(&c2, &jobs, false)?;
-            grid.check(&c2.cells())?;
+            grid.check(&c2.cells()).map_err(|e| e.to_string())?;
             load_maps(&c2, &scen, &cases).map(|_| ())
         })
         .await
@@ -427,7 +427,7 @@ impl crate::Inner {
             let maps = load_maps(&j.cfg, &scen, &cases)?;
             let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
             let mut runners = sf_sac::evaluate::Runners::new(device);
-            j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)
+            j.grid.render_gifs(&g, &j.dir, &maps, &mut runners).map_err(|e| e.to_string())
         })
         .await;
         match r {

@@ -63,7 +63,7 @@ impl Cells {
         let (state, result) = tokio::task::spawn_blocking(move || {
             let r = (|| {
                 let (flow, ego) = evaluate::from_frozen(&work.policies, &weights)?;
-                let (map, cases) = maps.get(&work.cell.scenario).ok_or("scenario not loaded")?;
+                let (map, cases) = maps.get(&work.cell.scenario).ok_or_else(|| evaluate::EvalError::Misfit("scenario not loaded".into()))?;
                 let size = CellSize { cases: work.cases, seeds: work.seeds, envs: work.envs as usize };
                 evaluate::run_cell(&work.cell, size, map, cases, &flow, ego.as_ref(), &mut runners)
             })();
@@ -76,7 +76,7 @@ impl Cells {
             Ok(eps) => (eps.iter().map(sf_proto::eval_episode_to_wire).collect::<Vec<_>>(), String::new()),
             Err(e) => {
                 tracing::error!(job_id = w.job_id, cell = %w.cell.key(), error = %e, "evaluation cell could not run");
-                (Vec::new(), e)
+                (Vec::new(), e.to_string())
             }
         };
         let n = episodes.len() as u64;
