@@ -33,6 +33,7 @@ use tokio_stream::StreamExt;
 use crate::remote;
 use crate::scenarios::Ctx;
 use crate::train::runtime;
+use sf_svc::sync::lock;
 
 #[derive(Args, Debug)]
 pub struct SoakArgs {
@@ -95,7 +96,7 @@ fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
 
 /// One worker stream until `until`: register, take the assignment, push until the end.
 async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: usize, act: usize, until: Instant, st: Arc<StreamStats>) {
-    let note = |st: &StreamStats, code: tonic::Code| *st.errors.lock().unwrap_or_else(|p| p.into_inner()).entry(format!("{code:?}")).or_default() += 1;
+    let note = |st: &StreamStats, code: tonic::Code| *lock(&st.errors).entry(format!("{code:?}")).or_default() += 1;
     let wid = match exp.register(pb::RegisterRequest { name: "soak".into() }).await {
         Ok(r) => r.into_inner().worker_id,
         Err(s) => return note(&st, s.code()),
@@ -260,7 +261,7 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
         let acked = sum(&mut live.iter().map(|(s, _)| s).chain(&killed), |s| s.acked.load(Ordering::Relaxed));
         let mut errors: BTreeMap<String, u64> = BTreeMap::new();
         for (s, _) in &live {
-            for (k, v) in s.errors.lock().unwrap_or_else(|p| p.into_inner()).iter() {
+            for (k, v) in lock(&s.errors).iter() {
                 *errors.entry(k.clone()).or_default() += v;
             }
         }

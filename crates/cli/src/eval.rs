@@ -15,7 +15,7 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use sf_eval::report::{EpisodeRow, EpisodesWriter, Meta};
+use sf_eval::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig};
 use sf_sac::evaluate::{self, CellSize, FlowDef, Policy, Runners};
@@ -119,7 +119,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let meta_path = out.join("meta.json");
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?).with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
-    let stored = sf_eval::report::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
+    let stored = sf_eval::episodes::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
     let have: BTreeSet<Cell> = stored.iter().map(EpisodeRow::cell).collect();
     let todo: Vec<Cell> = all.into_iter().filter(|c| !have.contains(c)).collect();
     eprintln!("{} cells to run ({} stored), {} episodes each", todo.len(), have.len(), cfg.cases * cfg.seeds);
@@ -132,7 +132,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         let eps = evaluate::run_cell(cell, size, map, cases, flow, ego, &mut runners).map_err(anyhow::Error::msg).with_context(|| format!("cell {}", cell.key()))?;
         let rows: Vec<EpisodeRow> = eps.iter().map(|e| EpisodeRow::new(cell, e)).collect();
         file.append(&rows)?;
-        let s = rows.iter().map(|r| r.success as f64).sum::<f64>() / rows.len().max(1) as f64;
+        let s = rows.iter().map(|r| r.ep.success as f64).sum::<f64>() / rows.len().max(1) as f64;
         eprintln!("[{}/{}] {:<64} success {:5.1}%  ({:.1} s)", k + 1, todo.len(), cell.key(), 100.0 * s, t.elapsed().as_secs_f64());
     }
     eprintln!("wrote {}", path.display());
@@ -155,11 +155,11 @@ pub struct ReportArgs {
 
 /// Builds the report from stored results; prints the findings as JSON.
 pub fn report(a: ReportArgs) -> Result<()> {
-    let rows = sf_eval::report::read_episodes(&a.results.join("episodes.csv"))?;
+    let rows = sf_eval::episodes::read_episodes(&a.results.join("episodes.csv"))?;
     if rows.is_empty() {
         bail!("{} holds no evaluated episodes (run `socialflow eval` first)", a.results.join("episodes.csv").display());
     }
-    let meta = sf_eval::report::read_meta(&a.results.join("meta.json"))?;
+    let meta = sf_eval::episodes::read_meta(&a.results.join("meta.json"))?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     for e in std::fs::read_dir(&a.results).with_context(|| format!("reading {}", a.results.display()))?.flatten() {
         let name = e.file_name().to_string_lossy().to_string();

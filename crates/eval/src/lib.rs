@@ -1,10 +1,14 @@
 //! socialflow-eval: the statistics of the paper's evaluation protocol.
 //!
-//! Owns: [`Summary`] (mean with a Student-t 95% confidence interval), [`paired_t_test`], the
-//! charts ([`plot`]), TensorBoard event files ([`tensorboard`]) and the reproduction report
-//! built from stored per-episode results ([`report`]). Must not: run simulations; callers pass
+//! Owns: [`Summary`] (mean with a Student-t 95% confidence interval), [`paired_t_test`],
+//! [`welch_t_test`], the
+//! charts ([`plot`]), TensorBoard event files ([`tensorboard`]), the paper's findings as tested
+//! claims ([`findings`]), the evaluation's result files ([`episodes`]) and the reproduction
+//! report built from them ([`report`]). Must not: run simulations; callers pass
 //! per-episode values.
 
+pub mod episodes;
+pub mod findings;
 pub mod plot;
 pub mod report;
 pub mod tensorboard;
@@ -92,6 +96,40 @@ pub fn paired_t_test(a: &[f64], b: &[f64]) -> Result<PairedT, StatsError> {
     Ok(PairedT { n, mean_diff: s.mean, t, p_value })
 }
 
+/// Result of Welch's two-sided t-test (unequal variances) of `mean(a) - mean(b)`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WelchT {
+    pub n_a: usize,
+    pub n_b: usize,
+    pub mean_diff: f64,
+    pub t: f64,
+    /// Welch-Satterthwaite degrees of freedom.
+    pub df: f64,
+    pub p_value: f64,
+}
+
+/// Welch's two-sided t-test of `mean(a) - mean(b)` for two independent samples. Two samples
+/// without variance give p = 1 if their means are equal and 0 otherwise.
+pub fn welch_t_test(a: &[f64], b: &[f64]) -> Result<WelchT, StatsError> {
+    let (sa, sb) = (Summary::of(a), Summary::of(b));
+    if sa.n < 2 || sb.n < 2 {
+        return Err(StatsError::TooFew(sa.n.min(sb.n)));
+    }
+    let (va, vb) = (sa.std * sa.std / sa.n as f64, sb.std * sb.std / sb.n as f64);
+    let mean_diff = sa.mean - sb.mean;
+    let se = (va + vb).sqrt();
+    if se == 0.0 {
+        let p_value = if mean_diff == 0.0 { 1.0 } else { 0.0 };
+        let t = if mean_diff == 0.0 { 0.0 } else { mean_diff.signum() * f64::INFINITY };
+        return Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, t, df: (sa.n + sb.n - 2) as f64, p_value });
+    }
+    let t = mean_diff / se;
+    let df = (va + vb).powi(2) / (va * va / (sa.n - 1) as f64 + vb * vb / (sb.n - 1) as f64);
+    let dist = StudentsT::new(0.0, 1.0, df).map_err(|_| StatsError::TooFew(sa.n.min(sb.n)))?;
+    let p_value = 2.0 * (1.0 - dist.cdf(t.abs()));
+    Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, t, df, p_value })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -116,5 +154,16 @@ mod tests {
         assert!((r.p_value - 0.034109).abs() < 1e-4, "{}", r.p_value);
         assert_eq!(paired_t_test(&a, &a).expect("valid").p_value, 1.0);
         assert_eq!(paired_t_test(&a, &b[..3]), Err(StatsError::LengthMismatch(5, 3)));
+    }
+
+    #[test]
+    fn welch_t_matches_reference() {
+        // Means 3 and 5, variances 2.5 each, n = 5 each: t = -2, df = 8, two-sided p = 0.0805
+        // (scipy.stats.ttest_ind(a, b, equal_var=False)).
+        let w = welch_t_test(&[1.0, 2.0, 3.0, 4.0, 5.0], &[3.0, 4.0, 5.0, 6.0, 7.0]).expect("valid");
+        assert!((w.t + 2.0).abs() < 1e-12 && (w.df - 8.0).abs() < 1e-9, "{w:?}");
+        assert!((w.p_value - 0.08052).abs() < 1e-4, "{}", w.p_value);
+        assert_eq!(welch_t_test(&[1.0, 1.0], &[1.0, 1.0]).expect("valid").p_value, 1.0);
+        assert_eq!(welch_t_test(&[1.0], &[1.0, 2.0]), Err(StatsError::TooFew(1)));
     }
 }

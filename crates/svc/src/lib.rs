@@ -3,7 +3,8 @@
 //! Owns: the one table from domain errors to gRPC status codes ([`error`]), bearer-token auth
 //! on both ends ([`auth`]), the clients' learner connection flags ([`conn`]), the admin HTTP server with Prometheus metrics, liveness and
 //! readiness ([`admin`]), RPC counters and process gauges ([`metrics`]), bounded backoff
-//! ([`backoff`]), logging set-up ([`logging`]) and optional TLS ([`tls`]). Must not: hold learner or worker logic.
+//! ([`backoff`]), logging set-up ([`logging`]), poison-tolerant locks ([`sync`]) and optional TLS
+//! ([`tls`]). Must not: hold learner or worker logic.
 
 pub mod admin;
 pub mod auth;
@@ -13,6 +14,7 @@ pub mod error;
 pub mod logging;
 pub mod metrics;
 pub mod signal;
+pub mod sync;
 pub mod tls;
 
 pub use error::ServiceError;

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use sf_eval::report::{EpisodeRow, EpisodesWriter, Meta};
+use sf_eval::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
 use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
@@ -23,27 +23,28 @@ use sf_sac::evaluate::Resolved;
 use sf_svc::ServiceError;
 use tokio::sync::Notify;
 
+use crate::error::LearnerError;
 use crate::job::StopReason;
 use crate::metrics::LearnerMetrics;
+use sf_svc::sync::lock;
 
 /// Pins every flow and ego of `cfg` to a job id: the newest succeeded job of its name, or the
 /// id it already names (which must have succeeded). Errors name the field.
-pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), String> {
-    let pin = |field: &str, n: &mut sf_job::eval::Named| -> Result<(), String> {
+pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), LearnerError> {
+    let pin = |field: &'static str, n: &mut sf_job::eval::Named| -> Result<(), LearnerError> {
+        let bad = |reason: String| LearnerError::BadEvalConfig { field, name: n.name.clone(), reason };
         if n.is_idm() {
             n.job_id = None;
             return Ok(());
         }
         let found = match n.job_id {
-            Some(id) => jobs.iter().find(|r| r.id == id).ok_or_else(|| format!("eval config field `{field}` of `{}`: job {id} does not exist", n.name))?,
-            None => jobs
-                .iter()
-                .filter(|r| r.name == n.job && r.state == JobState::Succeeded)
-                .max_by_key(|r| r.id)
-                .ok_or_else(|| format!("eval config field `{field}` of `{}`: this learner has no succeeded job named `{}`", n.name, n.job))?,
+            Some(id) => jobs.iter().find(|r| r.id == id).ok_or_else(|| bad(format!("job {id} does not exist")))?,
+            None => {
+                jobs.iter().filter(|r| r.name == n.job && r.state == JobState::Succeeded).max_by_key(|r| r.id).ok_or_else(|| bad(format!("this learner has no succeeded job named `{}`", n.job)))?
+            }
         };
         if found.state != JobState::Succeeded {
-            return Err(format!("eval config field `{field}` of `{}`: job {} is {}, not succeeded", n.name, found.id, found.state.as_str()));
+            return Err(bad(format!("job {} is {}, not succeeded", found.id, found.state.as_str())));
         }
         n.job_id = Some(found.id);
         Ok(())
@@ -65,21 +66,21 @@ pub type GridPolicies = (BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>
 /// training job's background gets them: [`crate::flow_frozen`]), per ego its frozen policy, and
 /// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
 /// the runtime). Refuses an ego that is not an ego job and a flow that is.
-pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<GridPolicies, String> {
-    let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or_else(|| format!("job {id} has not succeeded"));
-    let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, String> {
-        let id = n.job_id.ok_or_else(|| format!("`{}` is not pinned to a job", n.name))?;
-        find(id).map_err(|e| format!("`{}`: {e}", n.name))
+pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<GridPolicies, LearnerError> {
+    let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or(LearnerError::NotSucceeded { job_id: id });
+    let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, LearnerError> {
+        let id = n.job_id.ok_or_else(|| LearnerError::NotPinned { name: n.name.clone() })?;
+        find(id).map_err(|e| LearnerError::Grid { name: n.name.clone(), source: Box::new(e) })
     };
     // Each policy's final weights, or nothing when only the configs are checked.
-    let load = |fz: &[Frozen]| -> Result<Vec<Arc<Vec<u8>>>, String> {
+    let load = |fz: &[Frozen]| -> Result<Vec<Arc<Vec<u8>>>, LearnerError> {
         fz.iter()
             .map(|f| {
                 if !weights {
                     return Ok(Arc::new(Vec::new()));
                 }
                 let dir = PathBuf::from(&find(f.job_id)?.artifact_dir);
-                std::fs::read(dir.join("policy.bpk")).map(Arc::new).map_err(|e| format!("reading the final policy of job {}: {e}", f.job_id))
+                std::fs::read(dir.join("policy.bpk")).map(Arc::new).map_err(|source| LearnerError::FinalPolicy { job_id: f.job_id, source })
             })
             .collect()
     };
@@ -87,9 +88,9 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     let mut flows = BTreeMap::new();
     for f in &cfg.flows {
         let fz = if f.is_idm() { Vec::new() } else { crate::flow_frozen(pinned(f)?, |id| find(id).cloned())? };
-        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?).map_err(|e| e.to_string())?;
+        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?)?;
         if flow.kind() == Some(JobKind::Ego) {
-            return Err(format!("eval config field `flows.job` of `{}`: job {} is an ego job, not a flow", f.name, fz[0].job_id));
+            return Err(LearnerError::BadEvalConfig { field: "flows.job", name: f.name.clone(), reason: format!("job {} is an ego job, not a flow", fz[0].job_id) });
         }
         flows.insert(f.name.clone(), fz);
         grid.flows.insert(f.name.clone(), flow);
@@ -98,10 +99,10 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     for e in &cfg.egos {
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
-        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?).map_err(|e| e.to_string())?;
-        let p = ego.ok_or_else(|| format!("ego `{}`: no policy", e.name))?;
+        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
+        let p = ego.ok_or_else(|| LearnerError::NoEgoPolicy { name: e.name.clone() })?;
         if p.cfg.kind != JobKind::Ego {
-            return Err(format!("eval config field `egos.job` of `{}`: job {} is a {} job, not an ego policy", e.name, r.id, p.cfg.kind.as_str()));
+            return Err(LearnerError::BadEvalConfig { field: "egos.job", name: e.name.clone(), reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()) });
         }
         egos.insert(e.name.clone(), fz);
         grid.egos.insert(e.name.clone(), p);
@@ -146,18 +147,14 @@ pub struct EvalJob {
     metrics: LearnerMetrics,
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 impl EvalJob {
     /// Builds the job from its pinned config, the learner's job records and the cells its
     /// `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking file IO.
-    pub fn open(rec: &JobRecord, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, String> {
-        let cfg = EvalConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
+    pub fn open(rec: &JobRecord, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, LearnerError> {
+        let cfg = EvalConfig::from_toml(&rec.config_toml)?;
         let (flows, egos, grid) = resolve_policies(&cfg, jobs, true)?;
         let cells = cfg.cells();
-        grid.check(&cells).map_err(|e| e.to_string())?;
+        grid.check(&cells)?;
         let work = cells
             .iter()
             .map(|c| {
@@ -169,23 +166,27 @@ impl EvalJob {
             })
             .collect();
         let dir = PathBuf::from(&rec.artifact_dir);
-        std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-        let meta = serde_json::to_string_pretty(&Meta::of(&cfg)).map_err(|e| e.to_string())?;
-        std::fs::write(dir.join("meta.json"), meta).map_err(|e| format!("writing {}/meta.json: {e}", dir.display()))?;
+        std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
+        let meta = serde_json::to_string_pretty(&Meta::of(&cfg))?;
+        let write = |name: &str, bytes: &[u8]| {
+            let path = dir.join(name);
+            std::fs::write(&path, bytes).map_err(|source| LearnerError::Io { action: "writing", path, source })
+        };
+        write("meta.json", meta.as_bytes())?;
         // The grid as it runs (names pinned to job ids), beside its results.
-        std::fs::write(dir.join("config.toml"), &rec.config_toml).map_err(|e| format!("writing {}/config.toml: {e}", dir.display()))?;
+        write("config.toml", rec.config_toml.as_bytes())?;
         let path = dir.join("episodes.csv");
-        let rows = sf_eval::report::read_episodes(&path).map_err(|e| e.to_string())?;
+        let rows = sf_eval::episodes::read_episodes(&path)?;
         let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
         let stored: Vec<bool> = cells.iter().map(|c| have.contains(c)).collect();
         let mut sums = [0.0; 3];
         for r in &rows {
-            sums[0] += r.success as f64;
-            sums[1] += r.safety as f64;
-            sums[2] += r.speed as f64;
+            sums[0] += r.ep.success as f64;
+            sums[1] += r.ep.safety as f64;
+            sums[2] += r.ep.speed as f64;
         }
         let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
-        let writer = EpisodesWriter::open(&path).map_err(|e| e.to_string())?;
+        let writer = EpisodesWriter::open(&path)?;
         metrics.eval_cells_pending.set(queued.len() as i64);
         let state = State { queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
         Ok(Self {
@@ -304,9 +305,9 @@ impl EvalJob {
         s.leased.remove(&c);
         s.episodes += rows.len() as u64;
         for r in &rows {
-            s.sums[0] += r.success as f64;
-            s.sums[1] += r.safety as f64;
-            s.sums[2] += r.speed as f64;
+            s.sums[0] += r.ep.success as f64;
+            s.sums[1] += r.ep.safety as f64;
+            s.sums[2] += r.ep.speed as f64;
         }
         // A cell that went back to the queue (its worker looked dead) and is now stored.
         s.queued.retain(|&q| q != c);
@@ -324,20 +325,21 @@ impl EvalJob {
 }
 
 /// Loads the map and stored cases of every scenario the grid runs in (blocking file IO).
-pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, String> {
+pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
     let mut maps = BTreeMap::new();
     for s in cfg.all_scenarios() {
-        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s).map_err(|e| e.to_string())?;
+        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
         if (cfg.cases as usize) > cases.cases.len() {
-            return Err(format!("eval config field `cases`: {} exceeds the {} stored cases of {s}", cfg.cases, cases.cases.len()));
+            return Err(LearnerError::TooFewCases { cases: cfg.cases, stored: cases.cases.len(), scenario: s });
         }
         maps.insert(s, (map, cases));
     }
     Ok(maps)
 }
 
-async fn blocking_str<T: Send + 'static>(f: impl FnOnce() -> Result<T, String> + Send + 'static) -> Result<T, String> {
-    tokio::task::spawn_blocking(f).await.map_err(|e| format!("blocking task: {e}"))?
+/// Runs `f` on a blocking thread.
+async fn blocking_task<T: Send + 'static>(f: impl FnOnce() -> Result<T, LearnerError> + Send + 'static) -> Result<T, LearnerError> {
+    tokio::task::spawn_blocking(f).await.map_err(|source| LearnerError::Task { task: "blocking task", source })?
 }
 
 impl crate::Inner {
@@ -346,16 +348,15 @@ impl crate::Inner {
     pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, text: &str) -> Result<JobRecord, ServiceError> {
         let mut cfg = EvalConfig::from_toml(text).map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
         let jobs = self.jobs().await?;
-        resolve_names(&mut cfg, &jobs).map_err(ServiceError::InvalidArgument)?;
+        resolve_names(&mut cfg, &jobs)?;
         let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
         let c2 = cfg.clone();
-        blocking_str(move || {
+        blocking_task(move || {
             let (_, _, grid) = resolve_policies(&c2, &jobs, false)?;
-            grid.check(&c2.cells()).map_err(|e| e.to_string())?;
+            grid.check(&c2.cells())?;
             load_maps(&c2, &scen, &cases).map(|_| ())
         })
-        .await
-        .map_err(ServiceError::InvalidArgument)?;
+        .await?;
         let store = Arc::clone(&self.store);
         let root = self.cfg.data_dir.join("jobs");
         let name = cfg.name.clone();
@@ -372,10 +373,10 @@ impl crate::Inner {
 
     /// Opens the evaluation (resuming from its stored cells), marks it RUNNING and follows it
     /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
-    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
-        let jobs = self.jobs().await.map_err(|e| e.to_string())?;
+    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord) -> Result<(), LearnerError> {
+        let jobs = self.jobs().await?;
         let (r2, m2) = (rec.clone(), self.metrics.clone());
-        let job = Arc::new(blocking_str(move || EvalJob::open(&r2, &jobs, m2)).await?);
+        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, &jobs, m2)).await?);
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
@@ -388,8 +389,8 @@ impl crate::Inner {
             })
         })
         .await
-        .map_err(|e| e.to_string())
-        .and_then(|r| r.map_err(|e| e.to_string()));
+        .map_err(LearnerError::from)
+        .and_then(|r| r.map_err(LearnerError::from));
         if !matches!(&started, Ok(Some(r)) if r.state == JobState::Running) {
             job.request_stop(StopReason::Cancelled);
             self.set_evaluating(None);
@@ -423,11 +424,11 @@ impl crate::Inner {
     async fn finish_eval(&self, job: &Arc<EvalJob>) -> crate::trainer::Outcome {
         let Some(g) = job.cfg.experiments.gifs.clone() else { return crate::trainer::Outcome::Succeeded };
         let (j, scen, cases) = (Arc::clone(job), self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
-        let r = blocking_str(move || {
+        let r = blocking_task(move || {
             let maps = load_maps(&j.cfg, &scen, &cases)?;
-            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
+            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
             let mut runners = sf_sac::evaluate::Runners::new(device);
-            j.grid.render_gifs(&g, &j.dir, &maps, &mut runners).map_err(|e| e.to_string())
+            Ok(j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)?)
         })
         .await;
         match r {

@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use sf_job::{Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
@@ -18,6 +18,7 @@ use sf_svc::ServiceError;
 use tokio::sync::watch;
 
 use crate::metrics::LearnerMetrics;
+use sf_svc::sync::{lock, read, write};
 
 /// Why the trainer should stop.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -93,10 +94,6 @@ pub struct ActiveJob {
     pub metrics: LearnerMetrics,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 impl ActiveJob {
     #[allow(clippy::too_many_arguments)]
     /// `segments`: per map id (the job's scenarios in order), its query-centric segment count.
@@ -164,7 +161,7 @@ impl ActiveJob {
     }
 
     pub fn latest(&self) -> Option<Published> {
-        self.latest.read().unwrap_or_else(|p| p.into_inner()).clone()
+        read(&self.latest).clone()
     }
 
     pub fn latest_version(&self) -> u64 {
@@ -186,7 +183,7 @@ impl ActiveJob {
                 r.pop_front();
             }
         }
-        *self.latest.write().unwrap_or_else(|e| e.into_inner()) = Some(p);
+        *write(&self.latest) = Some(p);
         self.versions.send_replace(version);
         self.metrics.policy_version.set(version as i64);
     }

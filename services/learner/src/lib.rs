@@ -14,6 +14,7 @@
 
 pub mod cmd;
 pub mod config;
+mod error;
 pub mod eval;
 pub mod job;
 pub mod metrics;
@@ -42,10 +43,12 @@ use tokio::sync::{oneshot, Notify};
 use tonic::service::interceptor::InterceptedService;
 
 pub use crate::config::LearnerConfig;
+pub use crate::error::LearnerError;
 use crate::job::{ActiveJob, StopReason};
 use crate::metrics::LearnerMetrics;
 use crate::store::Store;
 use crate::trainer::Outcome;
+use sf_svc::sync::{lock, read, write};
 
 struct WorkerInfo {
     name: String,
@@ -78,19 +81,19 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, store::StoreE
 
 impl Inner {
     pub fn active(&self) -> Option<Arc<ActiveJob>> {
-        self.active.read().unwrap_or_else(|p| p.into_inner()).clone()
+        read(&self.active).clone()
     }
 
     fn set_active(&self, j: Option<Arc<ActiveJob>>) {
-        *self.active.write().unwrap_or_else(|p| p.into_inner()) = j;
+        *write(&self.active) = j;
     }
 
     pub fn evaluating(&self) -> Option<Arc<eval::EvalJob>> {
-        self.evaluating.read().unwrap_or_else(|p| p.into_inner()).clone()
+        read(&self.evaluating).clone()
     }
 
     fn set_evaluating(&self, j: Option<Arc<eval::EvalJob>>) {
-        *self.evaluating.write().unwrap_or_else(|p| p.into_inner()) = j;
+        *write(&self.evaluating) = j;
     }
 
     /// A job of either kind is running.
@@ -108,14 +111,14 @@ impl Inner {
     }
 
     /// Loads and validates the job's scenario files off the async runtime (file IO).
-    async fn load_maps(&self, names: &[String]) -> Result<Vec<Arc<Map>>, String> {
+    async fn load_maps(&self, names: &[String]) -> Result<Vec<Arc<Map>>, LearnerError> {
         let dir = self.cfg.scenarios_dir.clone();
         let names = names.to_vec();
         tokio::task::spawn_blocking(move || {
-            names.iter().map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|e| format!("scenario `{name}`: {e}"))).collect::<Result<Vec<_>, _>>()
+            names.iter().map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|source| LearnerError::Scenario { name: name.clone(), source })).collect::<Result<Vec<_>, _>>()
         })
         .await
-        .map_err(|e| format!("scenario loading task: {e}"))?
+        .map_err(|source| LearnerError::Task { task: "scenario loading task", source })?
     }
 
     /// Validates a config and queues it.
@@ -127,7 +130,7 @@ impl Inner {
             return self.submit_eval(&toml_text).await;
         }
         let cfg = JobConfig::from_toml(&toml_text)?;
-        self.load_maps(&cfg.env.scenarios).await.map_err(ServiceError::InvalidArgument)?;
+        self.load_maps(&cfg.env.scenarios).await?;
         sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
         if let Some((_, name)) = cfg.deps_by_name().first() {
             return Err(ServiceError::InvalidArgument(format!(
@@ -141,7 +144,7 @@ impl Inner {
                 return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is an evaluation, not a training job")));
             }
             let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
-            check_dep(&cfg, role, &dep_cfg).map_err(|e| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} {e}")))?;
+            check_dep(&cfg, role, dep, &dep_cfg)?;
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
                 return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is {}", rec.state.as_str())));
             }
@@ -202,7 +205,7 @@ impl Inner {
 
     pub fn register_worker(&self, name: &str) -> u64 {
         let id = self.next_worker.fetch_add(1, Ordering::Relaxed);
-        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut w = lock(&self.workers);
         w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now() });
         self.metrics.workers.set(w.len() as i64);
         tracing::info!(worker_id = id, name, "worker registered");
@@ -215,7 +218,7 @@ impl Inner {
 
     /// Workers not yet forgotten for missing heartbeats.
     fn live_workers(&self) -> std::collections::BTreeSet<u64> {
-        self.workers.lock().unwrap_or_else(|p| p.into_inner()).keys().copied().collect()
+        lock(&self.workers).keys().copied().collect()
     }
 
     /// Forgets workers silent for longer than `worker_timeout_s` (except `keep`) and updates
@@ -236,7 +239,7 @@ impl Inner {
     }
 
     fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
-        let mut w = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut w = lock(&self.workers);
         self.prune_workers(&mut w, Some(id));
         match w.get_mut(&id) {
             Some(info) => {
@@ -280,41 +283,39 @@ impl Inner {
         let ready = |r: &&JobRecord| r.state == JobState::Queued && dep_state(r).is_none_or(|(_, s)| s == JobState::Succeeded);
         let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
         if let Some(rec) = next.cloned() {
-            if let Err(msg) = self.start_job(&rec).await {
-                tracing::error!(job_id = rec.id, error = %msg, "job failed to start");
-                self.finish(rec.id, Outcome::Failed(msg), None).await;
+            if let Err(e) = self.start_job(&rec).await {
+                tracing::error!(job_id = rec.id, error = %e, "job failed to start");
+                self.finish(rec.id, Outcome::Failed(e.to_string()), None).await;
             }
         }
     }
 
-    async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), String> {
+    async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), LearnerError> {
         if sf_job::eval::is_eval_toml(&rec.config_toml) {
             return self.start_eval(rec).await;
         }
-        let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| e.to_string())?;
+        let cfg = JobConfig::from_toml(&rec.config_toml)?;
         let maps = self.load_maps(&cfg.env.scenarios).await?;
         let dir = PathBuf::from(&rec.artifact_dir);
         let dir2 = dir.clone();
-        let resume = tokio::task::spawn_blocking(move || trainer::load_state(&dir2)).await.map_err(|e| e.to_string())??;
+        let resume = tokio::task::spawn_blocking(move || trainer::load_state(&dir2)).await??;
         let capacity = cfg.train.replay_capacity as u64;
         let fill = if resume.is_some() { 4 * cfg.sac.batch_size as u64 } else { cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64) };
-        let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity).map_err(|e| e.to_string())?;
+        let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity)?;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
         let mut frozen = Vec::new();
         let mut init_dir = None;
         for (role, dep) in cfg.deps() {
-            let d = self.job(dep).await.map_err(|e| format!("job {dep} ({}): {e}", role.field()))?;
+            let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup { dep, field: role.field(), source })?;
             if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
-                return Err(format!("job {dep} ({}) has no final policy ({})", role.field(), d.state.as_str()));
+                return Err(LearnerError::NoFinalPolicy { dep, field: role.field(), state: d.state.as_str() });
             }
             match role {
                 DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
                 DepRole::Ego => frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml)),
                 DepRole::Background => {
-                    let jobs = self.jobs().await.map_err(|e| e.to_string())?;
-                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or_else(|| format!("job {id} not found"))))
-                        .await
-                        .map_err(|e| e.to_string())??;
+                    let jobs = self.jobs().await?;
+                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or(LearnerError::JobNotFound { job_id: id }))).await??;
                     frozen.extend(fz);
                 }
             }
@@ -323,7 +324,7 @@ impl Inner {
         let spec = setup::obs_spec(&cfg);
         let segment_points = setup::sim_config(&cfg, None).obs.segment_points;
         let maps2 = maps.clone();
-        let segs = tokio::task::spawn_blocking(move || maps2.iter().map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points))).collect::<Vec<_>>()).await.map_err(|e| e.to_string())?;
+        let segs = tokio::task::spawn_blocking(move || maps2.iter().map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points))).collect::<Vec<_>>()).await?;
         let counts = segs.iter().map(|s| s.len()).collect();
         let job = Arc::new(ActiveJob::new(rec.id, cfg, frozen, spec, counts, action_dim, limiter, counters, self.metrics.clone()));
         let store = Arc::clone(&self.store);
@@ -338,8 +339,7 @@ impl Inner {
                 }
             })
         })
-        .await
-        .map_err(|e| e.to_string());
+        .await;
         match started {
             Ok(Some(r)) if r.state == JobState::Running => {}
             other => {
@@ -347,7 +347,7 @@ impl Inner {
                 self.set_active(None);
                 self.wake.notify_one();
                 return match other {
-                    Err(e) => Err(e),
+                    Err(e) => Err(e.into()),
                     _ => {
                         tracing::info!(job_id = id, "job cancelled before it started");
                         Ok(())
@@ -368,7 +368,7 @@ impl Inner {
                 });
                 let _ = tx.send(out);
             })
-            .map_err(|e| format!("spawning the trainer thread: {e}"))?;
+            .map_err(LearnerError::SpawnTrainer)?;
         let me = Arc::clone(self);
         tokio::spawn(async move {
             let out = rx.await.unwrap_or_else(|_| Outcome::Failed("the trainer thread panicked".into()));
@@ -505,7 +505,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let sched = Arc::clone(&inner);
     tokio::spawn(async move {
         loop {
-            sched.prune_workers(&mut sched.workers.lock().unwrap_or_else(|p| p.into_inner()), None);
+            sched.prune_workers(&mut lock(&sched.workers), None);
             sched.schedule_once().await;
             if sched.shutting_down.load(Ordering::Acquire) {
                 return;
@@ -559,30 +559,32 @@ impl RunningLearner {
 /// training job or an evaluation: a SocialCommAdv job brings its SocialComm flow (`find` looks it
 /// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
 /// coordinator's Gaussians if it has fitted them (Stage 2). Blocking file IO (`coordinator.json`).
-pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecord, String>) -> Result<Vec<Frozen>, String> {
-    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| format!("stored config of job {}: {e}", rec.id))?;
+pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecord, LearnerError>) -> Result<Vec<Frozen>, LearnerError> {
+    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source })?;
     if cfg.kind == JobKind::SocialcommAdv {
-        let flow = cfg.env.background_job.ok_or_else(|| format!("socialcomm-adv job {} has no background flow", rec.id))?;
-        let f = find(flow).map_err(|e| format!("job {flow} (the flow of job {}): {e}", rec.id))?;
+        let flow = cfg.env.background_job.ok_or(LearnerError::NoBackgroundFlow { job_id: rec.id })?;
+        let f = find(flow).map_err(|e| LearnerError::BackgroundFlow { flow, job_id: rec.id, source: Box::new(e) })?;
         return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
     }
     let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir))? {
+    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])
 }
 
-/// Whether `dep` can serve `job` in `role`: its kind (`DepRole::accepts`), for `train.init_job`
-/// the same network, and the same observation layout. The error completes "job N ...".
-fn check_dep(job: &JobConfig, role: DepRole, dep: &JobConfig) -> Result<(), String> {
-    role.accepts(job.kind, dep.kind)?;
+/// Whether job `dep_id` (config `dep`) can serve `job` in `role`: its kind (`DepRole::accepts`),
+/// for `train.init_job` the same network, and the same observation layout. The error names the
+/// field and the job.
+fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobConfig) -> Result<(), LearnerError> {
+    let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
+    role.accepts(job.kind, dep.kind).map_err(refuse)?;
     if role == DepRole::Init && setup::net_config(dep) != setup::net_config(job) {
-        return Err(format!("has network {:?}; a job starts only from one of its own kind and network", setup::net_config(dep)));
+        return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", setup::net_config(dep))));
     }
     let layout = |c: &JobConfig| setup::obs_spec(c).layout;
     if layout(dep) != layout(job) {
-        return Err(format!("observes in the {:?} layout, this job in {:?}", layout(dep), layout(job)));
+        return Err(refuse(format!("observes in the {:?} layout, this job in {:?}", layout(dep), layout(job))));
     }
     Ok(())
 }

@@ -29,7 +29,9 @@ use sf_sac::{checkpoint, setup, Batch, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
 
+use crate::error::LearnerError;
 use crate::job::{ActiveJob, Counters, StopReason};
+use sf_svc::sync::lock;
 
 /// How the trainer ended.
 #[derive(Clone, Debug, PartialEq)]
@@ -54,19 +56,19 @@ pub fn state_path(dir: &Path) -> PathBuf {
 }
 
 /// Reads `state.json` if the job has one (a resumed job).
-pub fn load_state(dir: &Path) -> Result<Option<JobState>, String> {
+pub fn load_state(dir: &Path) -> Result<Option<JobState>, LearnerError> {
     let p = state_path(dir);
     if !p.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(&p).map_err(|e| format!("reading {}: {e}", p.display()))?;
-    serde_json::from_str(&text).map(Some).map_err(|e| format!("{}: {e}", p.display()))
+    let text = std::fs::read_to_string(&p).map_err(|source| LearnerError::Io { action: "reading", path: p.clone(), source })?;
+    serde_json::from_str(&text).map(Some).map_err(|source| LearnerError::StateFile { path: p, source })
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("renaming {}: {e}", path.display()))
+    std::fs::write(&tmp, bytes).map_err(|source| LearnerError::Io { action: "writing", path: tmp.clone(), source })?;
+    std::fs::rename(&tmp, path).map_err(|source| LearnerError::Io { action: "renaming", path: path.to_path_buf(), source })
 }
 
 pub struct TrainerInput {
@@ -84,26 +86,26 @@ pub struct TrainerInput {
 pub fn run(input: TrainerInput) -> Outcome {
     match train(input) {
         Ok(o) => o,
-        Err(e) => Outcome::Failed(e),
+        Err(e) => Outcome::Failed(e.to_string()),
     }
 }
 
-fn train(input: TrainerInput) -> Result<Outcome, String> {
+fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     let TrainerInput { job, maps, segs, dir, resume, init_dir } = input;
     let cfg = &job.cfg;
     let sim = setup::sim_config(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
-    let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(|e| format!("building SAC: {e}"))?;
+    let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
     let ckpt = dir.join("checkpoint");
     let mut st = resume.unwrap_or_default();
     if ckpt.exists() {
-        checkpoint::restore(&mut sac, &ckpt).map_err(|e| format!("restoring {}: {e}", ckpt.display()))?;
+        checkpoint::restore(&mut sac, &ckpt).map_err(|source| LearnerError::Checkpoint { action: "restoring", path: ckpt.clone(), source })?;
         tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
     } else if let Some(init) = &init_dir {
-        checkpoint::warm_start(&mut sac, init).map_err(|e| format!("starting from {}: {e}", init.display()))?;
+        checkpoint::warm_start(&mut sac, init).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: init.clone(), source })?;
         tracing::info!(job_id = job.id, from = %init.display(), "started from another job's final state");
     }
-    std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+    std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
     // The replay comes back before the first policy is published, i.e. before any worker
     // can push.
@@ -113,11 +115,11 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
         let mut next = 0;
         if ckpt.exists() {
             let t = Instant::now();
-            let (r, from) = store.restore(cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|e| format!("restoring the replay: {e}"))?;
+            let (r, from) = store.restore(cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|source| LearnerError::Replay { action: "restoring", source })?;
             tracing::info!(job_id = job.id, transitions = r.len(), ms = t.elapsed().as_millis() as u64, "replay restored");
             job.metrics.replay_size.set(r.len() as i64);
             next = from;
-            *job.replay.lock().unwrap_or_else(|p| p.into_inner()) = r;
+            *lock(&job.replay) = r;
         }
         persist = Some((store, next));
     }
@@ -129,9 +131,9 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
     let version_file = dir.join("published_version");
     let issued = std::fs::read_to_string(&version_file).ok().and_then(|s| s.trim().parse::<u64>().ok()).unwrap_or(0);
     let mut version = st.policy_version.max(issued);
-    let publish = |sac: &Sac, version: &mut u64| -> Result<(), String> {
+    let publish = |sac: &Sac, version: &mut u64| -> Result<(), LearnerError> {
         *version += 1;
-        let bytes = sac.actor_bytes().map_err(|e| format!("serialising the actor: {e}"))?;
+        let bytes = sac.actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
         write_atomic(&version_file, version.to_string().as_bytes())?;
         job.publish(*version, bytes);
         Ok(())
@@ -161,7 +163,7 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
         match job.limiter.sample(Duration::from_millis(100)) {
             Ok(()) => {
                 let sampled = {
-                    let r = job.replay.lock().unwrap_or_else(|p| p.into_inner());
+                    let r = lock(&job.replay);
                     r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)
                 };
                 if sampled.is_ok() {
@@ -176,7 +178,7 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
             }
             Err(RateLimitError::Timeout(_)) => {}
             Err(RateLimitError::Closed) => continue,
-            Err(e) => return Err(e.to_string()),
+            Err(e) => return Err(e.into()),
         }
         let p = job.progress();
         if p.env_steps >= next_point {
@@ -268,17 +270,25 @@ fn train(input: TrainerInput) -> Result<Outcome, String> {
 
 /// CoPO Stage 2: fits the coordinator's Gaussian of every scenario of the job on its frozen
 /// final policy and writes `coordinator.json` (what ego jobs and evaluation read).
-fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[Arc<MapSegments>], sim: sf_sim::SimConfig, c: &sf_job::config::CoordinatorSection, weights: &[u8], dir: &Path) -> Result<(), String> {
+fn fit_coordinator(
+    job: &ActiveJob,
+    maps: &[Arc<Map>],
+    segs: &[Arc<MapSegments>],
+    sim: sf_sim::SimConfig,
+    c: &sf_job::config::CoordinatorSection,
+    weights: &[u8],
+    dir: &Path,
+) -> Result<(), LearnerError> {
     use sf_sac::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
     let cfg = &job.cfg;
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| e.to_string())?;
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
     let sim = Arc::new(sim);
     let t = Instant::now();
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
         let runner = sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[&**seg], weights, 0, &device)
-            .map_err(|e| format!("loading the final policy: {e}"))?;
+            .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
         let settings = FitSettings {
             iterations: c.iterations,
             population: c.population,
@@ -291,11 +301,11 @@ fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[Arc<MapSegments>]
         let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
             tracing::info!(job_id = job.id, scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
         })
-        .map_err(|e| format!("fitting the coordinator of {scenario}: {e}"))?;
+        .map_err(|reason| LearnerError::FitCoordinator { scenario: scenario.clone(), reason })?;
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
     }
     let file = CoordinatorFile { scenarios: fits };
-    write_atomic(&dir.join(CoordinatorFile::FILE), serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?.as_bytes())?;
+    write_atomic(&dir.join(CoordinatorFile::FILE), serde_json::to_string_pretty(&file)?.as_bytes())?;
     tracing::info!(job_id = job.id, s = t.elapsed().as_secs_f32(), "CoPO Stage 2: coordinator fitted");
     Ok(())
 }
@@ -304,23 +314,23 @@ fn fit_coordinator(job: &ActiveJob, maps: &[Arc<Map>], segs: &[Arc<MapSegments>]
 /// The replay's segment directory and the insertion number its next segment starts at.
 type Persist = Option<(ReplayStore, u64)>;
 
-fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64, persist: &mut Persist) -> Result<(), String> {
+fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64, persist: &mut Persist) -> Result<(), LearnerError> {
     let t = Instant::now();
     st.counters = job.counters();
     st.policy_version = version;
-    checkpoint::save(sac, &dir.join("checkpoint")).map_err(|e| format!("checkpoint: {e}"))?;
+    checkpoint::save(sac, &dir.join("checkpoint")).map_err(LearnerError::SaveCheckpoint)?;
     // The replay segment before state.json: the counters written next never count a
     // transition that is not on disk.
     let mut replay_bytes = 0;
     if let Some((store, next)) = persist.as_mut() {
         let (seg, oldest) = {
-            let r = job.replay.lock().unwrap_or_else(|p| p.into_inner());
+            let r = lock(&job.replay);
             (Segment::snapshot(&r, *next), r.oldest())
         };
-        replay_bytes = store.append(&seg, oldest).map_err(|e| format!("writing the replay: {e}"))?;
+        replay_bytes = store.append(&seg, oldest).map_err(|source| LearnerError::Replay { action: "writing", source })?;
         *next = seg.first + seg.len() as u64;
     }
-    write_atomic(&state_path(dir), serde_json::to_string(st).map_err(|e| e.to_string())?.as_bytes())?;
+    write_atomic(&state_path(dir), serde_json::to_string(st)?.as_bytes())?;
     let mut csv = String::from(CurvePoint::CSV_HEADER);
     csv.push('\n');
     for p in &st.curve {

@@ -32,6 +32,7 @@ use tonic::transport::Channel;
 use tonic::{Code, Request};
 
 use crate::rollout::{Control, Credits, RolloutSpec};
+use sf_svc::sync::lock;
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -248,7 +249,7 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut
     let control = Arc::new(Mutex::new(Control { warmup: asg.warmup, policy: None, stop: false }));
     if !asg.warmup {
         let (v, w) = fetch(0).await?;
-        control.lock().unwrap_or_else(|p| p.into_inner()).policy = Some((v, w));
+        lock(&control).policy = Some((v, w));
     }
     let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
     // CoPO Stage 2 in the background: each scenario's coordinator Gaussian, if it has one.
@@ -287,15 +288,15 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut
         metrics.common.rpc("PushTransitions", Code::Ok);
         credits.grant();
         let warm = ack.warmup;
-        let need = !warm && (ack.latest_policy_version > held || control.lock().unwrap_or_else(|p| p.into_inner()).policy.is_none());
+        let need = !warm && (ack.latest_policy_version > held || lock(&control).policy.is_none());
         if need {
             let (v, w) = fetch(0).await?;
             held = v;
-            let mut c = control.lock().unwrap_or_else(|p| p.into_inner());
+            let mut c = lock(&control);
             c.policy = Some((v, w));
             c.warmup = false;
         } else if !warm {
-            control.lock().unwrap_or_else(|p| p.into_inner()).warmup = false;
+            lock(&control).warmup = false;
         }
     }
 }
@@ -310,6 +311,6 @@ impl Drop for AbortOnDrop {
 struct StopOnDrop(Arc<Mutex<Control>>);
 impl Drop for StopOnDrop {
     fn drop(&mut self) {
-        self.0.lock().unwrap_or_else(|p| p.into_inner()).stop = true;
+        lock(&self.0).stop = true;
     }
 }

@@ -25,6 +25,7 @@ use sf_sim::Map;
 use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
+use sf_svc::sync::lock;
 
 const STREAM_CLOSED: &str = "the transition stream closed";
 
@@ -50,19 +51,19 @@ impl Credits {
 
     /// One acknowledgement arrived.
     pub fn grant(&self) {
-        *self.n.lock().unwrap_or_else(|p| p.into_inner()) += 1;
+        *lock(&self.n) += 1;
         self.changed.notify_all();
     }
 
     /// Waits for a credit; `false` if `stop` turned true first.
     fn take(&self, control: &Mutex<Control>) -> bool {
-        let mut n = self.n.lock().unwrap_or_else(|p| p.into_inner());
+        let mut n = lock(&self.n);
         loop {
             if *n > 0 {
                 *n -= 1;
                 return true;
             }
-            if control.lock().unwrap_or_else(|p| p.into_inner()).stop {
+            if lock(control).stop {
                 return false;
             }
             n = self.changed.wait_timeout(n, std::time::Duration::from_millis(100)).unwrap_or_else(|p| p.into_inner()).0;
@@ -100,7 +101,7 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credi
             let stop = Arc::clone(&control);
             if let Err(e) = rollout(spec, sim, control, &credits, tx, metrics) {
                 // The session closes the stream when it ends; only other failures are errors.
-                if stop.lock().unwrap_or_else(|p| p.into_inner()).stop || e.to_string() == STREAM_CLOSED {
+                if lock(&stop).stop || e.to_string() == STREAM_CLOSED {
                     tracing::debug!(error = %format!("{e:#}"), "rollout thread stopped");
                 } else {
                     tracing::error!(error = %format!("{e:#}"), "rollout thread failed");
@@ -165,7 +166,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
     let mut batch_version = None;
     loop {
         let (stop, warmup, new_policy) = {
-            let c = control.lock().unwrap_or_else(|p| p.into_inner());
+            let c = lock(&control);
             let newer = c.policy.as_ref().filter(|(v, _)| runner.as_ref().is_none_or(|r| r.version != *v)).cloned();
             (c.stop, c.warmup, newer)
         };
