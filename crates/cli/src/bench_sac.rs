@@ -80,11 +80,11 @@ pub fn size_config(size: Size) -> (SimConfig, NetConfig) {
     (sim, net)
 }
 
-fn sac_device(d: DeviceArg) -> sf_nn::device::DeviceKind {
+fn sac_device(d: DeviceArg) -> sf_job::config::Device {
     match d {
-        DeviceArg::Cpu => sf_nn::device::DeviceKind::Cpu,
-        DeviceArg::Ndarray => sf_nn::device::DeviceKind::Ndarray,
-        DeviceArg::Cuda => sf_nn::device::DeviceKind::Cuda,
+        DeviceArg::Cpu => sf_job::config::Device::Cpu,
+        DeviceArg::Ndarray => sf_job::config::Device::Ndarray,
+        DeviceArg::Cuda => sf_job::config::Device::Cuda,
     }
 }
 
@@ -132,7 +132,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let cfg = match &job {
         // The job's SAC settings past its cloning and critic-only updates: full updates.
         Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates: 0, critic_pretrain_updates: 0, ..sf_sac::setup::sac_config(j) },
-        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), ..SacConfig::default() },
+        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), reward_scale: 1.0, ..SacConfig::default() },
     };
     let reuse = cfg.reuse_critic_features;
     let mut sac = Sac::new(cfg, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
@@ -155,7 +155,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     // each agent's history encoded once for all its observers (query-centric), and the same rows
     // with a copy per observation for comparison.
     let (actor, _) = sac.policy();
-    let device = sf_nn::device::device(sac_device(a.device))?;
+    let device = sf_nn::device::device(sf_sac::setup::device_kind(sac_device(a.device)))?;
     let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], 0, &device);
     let live: Vec<usize> = (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
     anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());

@@ -132,7 +132,7 @@ pub struct JobConfig {
     #[serde(default)]
     pub net: NetSection,
     #[serde(default)]
-    pub sac: SacSection,
+    pub sac: SacConfig,
     pub train: TrainSection,
     #[serde(default)]
     pub worker: WorkerSection,
@@ -245,9 +245,12 @@ pub struct NetSection {
     pub squash_mean_twice: bool,
 }
 
+/// The `[sac]` section *is* the SAC learner's configuration: the paper's table (its
+/// [`Default`]) plus the released code's and this project's levers. `sf_sac::Sac` takes it as
+/// it is; nothing copies it field by field.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct SacSection {
+pub struct SacConfig {
     pub gamma: f32,
     pub tau: f32,
     pub lr_actor: f64,
@@ -298,8 +301,20 @@ pub struct SacSection {
     /// critic's encoder instead of training its own: one encoder pass forward and backward
     /// fewer per update.
     pub shared_encoder: bool,
+    /// Take the actor loss's critic features from the critic step's forward pass (detached,
+    /// before that step) instead of a fresh no-grad pass after it, saving one encoder pass.
+    /// The reference script recomputes them (`false`; `socialflow bench sac` compares both).
+    pub reuse_critic_features: bool,
     pub seed: u64,
     pub device: Device,
+}
+
+impl SacConfig {
+    /// The log-std the cloning updates fit: the demonstrator's noise as the cloned policy's
+    /// spread, inside the actor's log-std range.
+    pub fn bc_log_std(&self) -> f32 {
+        self.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5)
+    }
 }
 
 /// `sac.critic_loss`.
@@ -333,7 +348,9 @@ pub enum WarmupPolicy {
     Idm,
 }
 
-impl Default for SacSection {
+impl Default for SacConfig {
+    /// The paper's table (gamma 0.9, batch 128, Adam 1e-4 / 5e-4 / 1e-4, tau 0.005, alpha 1,
+    /// 30k random warm-up steps, the ego's reward scale 50), no levers.
     fn default() -> Self {
         Self {
             gamma: 0.9,
@@ -358,6 +375,7 @@ impl Default for SacSection {
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
             shared_encoder: false,
+            reuse_critic_features: true,
             seed: 0,
             device: Device::Cpu,
         }

@@ -16,7 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use sf_nn::weights;
 
-use crate::sac::{Sac, SacConfig};
+use crate::sac::Sac;
 
 /// Version of the checkpoint layout.
 pub const CHECKPOINT_VERSION: u32 = 1;
@@ -28,7 +28,10 @@ struct State {
     updates: u64,
     rng_seed: [u8; 32],
     rng_word_pos: u128,
-    sac: SacConfig,
+    /// The SAC settings the run had, for the reader's information: a restored run takes its
+    /// settings from its job config, so this is never read back (older checkpoints' fields
+    /// stay readable whatever the config struct became).
+    sac: serde_json::Value,
     net: sf_nn::NetConfig,
 }
 
@@ -83,7 +86,14 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
         let p = tmp.join(name);
         std::fs::write(&p, bytes).map_err(io(&p))?;
     }
-    let state = State { version: CHECKPOINT_VERSION, updates: sac.updates, rng_seed: sac.rng.get_seed(), rng_word_pos: sac.rng.get_word_pos(), sac: sac.cfg.clone(), net: sac.net.clone() };
+    let state = State {
+        version: CHECKPOINT_VERSION,
+        updates: sac.updates,
+        rng_seed: sac.rng.get_seed(),
+        rng_word_pos: sac.rng.get_word_pos(),
+        sac: serde_json::to_value(&sac.cfg).map_err(|e| CheckpointError::State { path: dir.display().to_string(), reason: e.to_string() })?,
+        net: sac.net.clone(),
+    };
     let p = tmp.join("state.json");
     let text = serde_json::to_string_pretty(&state).map_err(|e| CheckpointError::State { path: p.display().to_string(), reason: e.to_string() })?;
     std::fs::write(&p, text).map_err(io(&p))?;
@@ -104,11 +114,9 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
 
 /// Starts a new run from another run's checkpoint (a RARL phase continuing the previous one of
 /// its side): weights, target, alpha and optimizer states are restored; this run's SAC
-/// settings are kept and its update counter starts at 0.
+/// settings are kept (as [`restore`] does) and its update counter starts at 0.
 pub fn warm_start(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
-    let cfg = sac.cfg.clone();
     restore(sac, dir)?;
-    sac.cfg = cfg;
     sac.updates = 0;
     Ok(())
 }
@@ -119,7 +127,8 @@ fn sibling(dir: &Path, suffix: &str) -> PathBuf {
 }
 
 /// Restores a checkpoint into `sac`, which must have been built with the same network and
-/// observation layout (the usual case: the same job config). Nothing is changed on error.
+/// observation layout (the usual case: the same job config); `sac` keeps its own SAC settings
+/// (the job config is their one source). Nothing is changed on error.
 pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     let read = |name: &str| {
         let p = dir.join(name);
@@ -154,6 +163,5 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     sac.opt_alpha = opt_alpha;
     sac.rng = rng;
     sac.updates = state.updates;
-    sac.cfg = state.sac;
     Ok(())
 }

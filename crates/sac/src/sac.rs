@@ -13,73 +13,16 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
-use sf_nn::device::{self, DeviceKind};
+use sf_nn::device;
 use sf_nn::encoder::{SegmentInput, SegmentTable};
 use sf_nn::{Actor, Critic, Histories, NetConfig, ObsBatch};
 use sf_sim::obs::{MapSegments, ObsSpec};
 
 use crate::replay::Batch;
 
-/// The paper's SAC table, plus what the released code adds.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct SacConfig {
-    pub gamma: f32,
-    pub tau: f32,
-    pub lr_actor: f64,
-    pub lr_critic: f64,
-    pub lr_alpha: f64,
-    pub batch_size: usize,
-    pub initial_alpha: f32,
-    /// Default: minus the action dimension.
-    pub target_entropy: Option<f32>,
-    /// Rewards are multiplied by this before the update (the ego and adversary used 50).
-    pub reward_scale: f32,
-    /// Environment steps of uniformly random actions before learning starts.
-    pub warmup_steps: u64,
-    pub seed: u64,
-    pub device: DeviceKind,
-    /// Take the actor loss's critic features from the critic step's forward pass (detached,
-    /// before that step) instead of a fresh no-grad pass after it, saving one encoder pass.
-    /// The reference script recomputes them (`false`).
-    pub reuse_critic_features: bool,
-    /// The first this many updates clone the behaviour in the replay (the IDM warm-up's
-    /// demonstrations) instead of the SAC actor step: the actor's mean action is fitted to the
-    /// stored actions and its log-std to `bc_log_std`; alpha is not tuned meanwhile.
-    pub bc_updates: u64,
-    pub bc_log_std: f32,
-    /// After the cloning updates, the SAC actor loss keeps the cloning loss as a term,
-    /// `w * mean|Q| * bc` (TD3+BC's normalisation; it anchors the log-std too, which the entropy
-    /// bonus would otherwise inflate at Adam's full step size while alpha adapts), with
-    /// `w = bc_weight` throughout when `bc_decay_updates` is 0, else falling linearly from
-    /// `bc_weight` to 0 over `bc_decay_updates` updates.
-    pub bc_weight: f32,
-    pub bc_decay_updates: u64,
-    /// After the cloning updates, this many updates train the critic alone (the actor and
-    /// alpha stay put): policy evaluation of the cloned policy before it improves.
-    pub critic_pretrain_updates: u64,
-    pub critic_loss: CriticLoss,
-    /// Huber's threshold, in scaled-reward units.
-    pub huber_delta: f32,
-    /// What the cloning *term* (after the cloning updates) pulls the mean action to.
-    pub bc_target: BcTarget,
-    /// The actor reads the critic's encoder features (detached) instead of training its own
-    /// encoder; its published encoder is a copy of the critic's. Saves the actor's encoder
-    /// pass forward and backward (SAC-AE / DrQ practice).
-    pub shared_encoder: bool,
-    /// With `BcTarget::Zero`: clone zero only in the batch's states where the critic rates it
-    /// at least as high as the policy's sampled action (Q-filtered cloning, Nair et al. 2018).
-    pub bc_q_filter: bool,
-}
-
-pub use sf_job::config::{BcTarget, CriticLoss};
-
-impl Default for SacConfig {
-    /// The paper's table, kept once in `sf_job::config::SacSection`, with rewards unscaled.
-    fn default() -> Self {
-        Self { reward_scale: 1.0, ..crate::setup::sac_from_section(&sf_job::config::SacSection::default()) }
-    }
-}
+/// The `[sac]` section of a job config is the SAC config (one struct, one default: the
+/// paper's table).
+pub use sf_job::config::{BcTarget, CriticLoss, SacConfig};
 
 /// `log(alpha)` as a module so Adam can optimise it.
 #[derive(Module, Debug)]
@@ -136,7 +79,7 @@ impl Sac {
         if !(cfg.gamma > 0.0 && cfg.gamma <= 1.0 && cfg.tau > 0.0 && cfg.tau <= 1.0 && cfg.batch_size > 0 && cfg.initial_alpha > 0.0) {
             return Err(SacError::Config(format!("gamma, tau in (0, 1], batch_size and initial_alpha positive; got {cfg:?}")));
         }
-        let plain = device::device(cfg.device)?;
+        let plain = device::device(crate::setup::device_kind(cfg.device))?;
         let ad = plain.clone().autodiff();
         let mut actor = Actor::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(1), &ad);
         let critic = Critic::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(2), &ad);
@@ -250,7 +193,7 @@ impl Sac {
             let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
             // Behaviour cloning: mean action to `target` (row weights `w_rows`, or all rows),
             // log-std to `bc_log_std`.
-            let bc_log_std = self.cfg.bc_log_std;
+            let bc_log_std = self.cfg.bc_log_std();
             let bc = |mean: Tensor<2>, log_std: Tensor<2>, target: Tensor<2>, w_rows: Option<Tensor<2>>| {
                 let err = (mean.tanh() - target).square();
                 let err = match w_rows {

@@ -4,7 +4,7 @@
 //! and the rate limiter, shared by the learner and the workers so both build the same shapes.
 //! Must not: read files.
 
-use sf_job::config::{Device, JobKind, NetPreset, SacSection};
+use sf_job::config::{Device, JobKind, NetPreset};
 use sf_job::JobConfig;
 use sf_nn::device::DeviceKind;
 use sf_nn::NetConfig;
@@ -41,7 +41,7 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
     n.squash_mean_twice = job.net.squash_mean_twice;
     // A demonstrator's warm-up: the first policy is as spread as the demonstrator.
     if job.sac.warmup_policy == sf_job::config::WarmupPolicy::Idm {
-        n.init_log_std = bc_log_std(&job.sac);
+        n.init_log_std = job.sac.bc_log_std();
     }
     n
 }
@@ -106,42 +106,9 @@ pub fn obs_spec(job: &JobConfig) -> ObsSpec {
     ObsSpec::new(&sim_config(job, None).obs)
 }
 
+/// The job's `[sac]` section, which is the SAC config.
 pub fn sac_config(job: &JobConfig) -> SacConfig {
-    sac_from_section(&job.sac)
-}
-
-/// A job config's `[sac]` section as the SAC crate's config.
-pub fn sac_from_section(s: &SacSection) -> SacConfig {
-    SacConfig {
-        gamma: s.gamma,
-        tau: s.tau,
-        lr_actor: s.lr_actor,
-        lr_critic: s.lr_critic,
-        lr_alpha: s.lr_alpha,
-        batch_size: s.batch_size,
-        initial_alpha: s.initial_alpha,
-        target_entropy: s.target_entropy,
-        reward_scale: s.reward_scale,
-        warmup_steps: s.warmup_steps,
-        seed: s.seed,
-        device: device_kind(s.device),
-        reuse_critic_features: true,
-        bc_updates: s.bc_updates,
-        bc_log_std: bc_log_std(s),
-        bc_weight: s.bc_weight,
-        bc_decay_updates: s.bc_decay_updates,
-        critic_pretrain_updates: s.critic_pretrain_updates,
-        critic_loss: s.critic_loss,
-        huber_delta: s.huber_delta,
-        bc_target: s.bc_target,
-        bc_q_filter: s.bc_q_filter,
-        shared_encoder: s.shared_encoder,
-    }
-}
-
-/// The demonstrator's noise as the cloned policy's spread, inside the actor's log-std range.
-pub fn bc_log_std(s: &SacSection) -> f32 {
-    s.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5)
+    job.sac.clone()
 }
 
 pub fn device_kind(d: Device) -> DeviceKind {
@@ -216,11 +183,12 @@ mod tests {
 mod defaults {
     use super::*;
 
-    /// The paper's table (gamma 0.9, batch 128, Adam 1e-4 / 5e-4 / 1e-4, tau 0.005, alpha 1).
+    /// The paper's table (gamma 0.9, batch 128, Adam 1e-4 / 5e-4 / 1e-4, tau 0.005, alpha 1,
+    /// reward scale 50), and a job's `[sac]` section is what SAC runs with.
     #[test]
     fn sac_defaults_are_the_papers() {
         let c = SacConfig::default();
-        assert_eq!((c.gamma, c.tau, c.batch_size, c.initial_alpha, c.reward_scale), (0.9, 0.005, 128, 1.0, 1.0));
+        assert_eq!((c.gamma, c.tau, c.batch_size, c.initial_alpha, c.reward_scale), (0.9, 0.005, 128, 1.0, 50.0));
         assert_eq!((c.lr_actor, c.lr_critic, c.lr_alpha), (1e-4, 5e-4, 1e-4));
         assert_eq!((c.warmup_steps, c.target_entropy, c.reuse_critic_features), (30_000, None, true));
     }

@@ -35,7 +35,7 @@ fn learns_a_contextual_bandit_with_a_known_optimum() {
     }
     let net = NetConfig { d_model: 32, set_hidden: 32, head_hidden: 64, heads: 2, ..NetConfig::fast() };
     let segs = MapSegments::build(&map, sim.obs.segment_points);
-    let cfg = SacConfig { batch_size: 64, lr_actor: 1e-3, lr_critic: 1e-3, lr_alpha: 1e-3, initial_alpha: 0.05, seed: 1, ..SacConfig::default() };
+    let cfg = SacConfig { batch_size: 64, lr_actor: 1e-3, lr_critic: 1e-3, lr_alpha: 1e-3, initial_alpha: 0.05, seed: 1, reward_scale: 1.0, ..SacConfig::default() };
     let mut sac = Sac::new(cfg, net, spec.clone(), sim.dt_s, &[&segs]).expect("sac");
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let mut replay = Replay::new(50_000, spec.len, 2);

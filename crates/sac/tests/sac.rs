@@ -51,7 +51,7 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
 fn sac_for(sim: &SimConfig, m: &Map, seed: u64) -> Sac {
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(m, sim.obs.segment_points);
-    Sac::new(SacConfig { seed, batch_size: 16, ..SacConfig::default() }, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac")
+    Sac::new(SacConfig { seed, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() }, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac")
 }
 
 struct Flat(Vec<f32>);
@@ -222,7 +222,7 @@ fn cloning_updates_fit_the_stored_actions_and_hold_alpha() {
     let (r, m) = replay_from_sim(&sim, 512);
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let cfg = SacConfig { seed: 2, batch_size: 32, lr_actor: 1e-3, initial_alpha: 0.5, bc_updates: 300, bc_log_std: -2.0, ..SacConfig::default() };
+    let cfg = SacConfig { seed: 2, batch_size: 32, lr_actor: 1e-3, initial_alpha: 0.5, bc_updates: 300, warmup_noise: (-2.0f32).exp(), reward_scale: 1.0, ..SacConfig::default() };
     let mut sac = Sac::new(cfg, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac");
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(5), 128).expect("probe batch");
     let mse = |sac: &Sac| -> f32 {
@@ -302,7 +302,7 @@ fn the_mean_action_reaches_the_full_range_unless_squashed_twice() {
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 8).expect("batch");
     for twice in [false, true] {
         let net = NetConfig { squash_mean_twice: twice, ..tiny_net() };
-        let mut sac = Sac::new(SacConfig::default(), net, spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+        let mut sac = Sac::new(SacConfig { reward_scale: 1.0, ..SacConfig::default() }, net, spec.clone(), sim.dt_s, &[&segs]).expect("sac");
         // A mean head that outputs 3 whatever it reads.
         let last = sac.actor.mean.layers.last_mut().expect("layers");
         last.weight = Param::from_tensor(Tensor::zeros(last.weight.dims(), &sac.ad));
@@ -335,7 +335,7 @@ fn critic_pretraining_holds_the_actor_and_shared_encoders_follow_the_critic() {
     let (r, m) = replay_from_sim(&sim, 128);
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let cfg = SacConfig { seed: 4, batch_size: 16, bc_updates: 2, critic_pretrain_updates: 3, shared_encoder: true, ..SacConfig::default() };
+    let cfg = SacConfig { seed: 4, batch_size: 16, bc_updates: 2, critic_pretrain_updates: 3, shared_encoder: true, reward_scale: 1.0, ..SacConfig::default() };
     let mut sac = Sac::new(cfg, NetConfig { critic_layer_norm: true, ego_skip: true, pose_layers: 2, ..tiny_net() }, spec, sim.dt_s, &[&segs]).expect("sac");
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     for _ in 0..2 {
@@ -378,7 +378,18 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
     let segs = MapSegments::build(&m, sim.obs.segment_points);
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(2), 64).expect("probe");
     let run = |slope: f32| -> (f32, f32) {
-        let cfg = SacConfig { seed: 5, batch_size: 32, lr_actor: 1e-3, lr_critic: 1e-12, initial_alpha: 1e-4, bc_weight: 5.0, bc_target: BcTarget::Zero, bc_q_filter: true, ..SacConfig::default() };
+        let cfg = SacConfig {
+            seed: 5,
+            batch_size: 32,
+            lr_actor: 1e-3,
+            lr_critic: 1e-12,
+            initial_alpha: 1e-4,
+            bc_weight: 5.0,
+            bc_target: BcTarget::Zero,
+            bc_q_filter: true,
+            reward_scale: 1.0,
+            ..SacConfig::default()
+        };
         let mut sac = Sac::new(cfg, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
         let mean = |sac: &Sac| -> f32 {
             let (actor, table) = sac.policy();
