@@ -278,22 +278,20 @@ fn flow_quality(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), Re
         }
         // The paper: SocialComm beats CoPO, MACAD and IDM as a flow, most in dense merge.
         if flows.iter().any(|f| f == "SocialComm") {
+            // A flow's rows, in merge (`Some(true)`), elsewhere (`Some(false)`) or everywhere.
+            let fq = |flow: &str, merge: Option<bool>| by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == flow && merge.is_none_or(|m| (r.cell.scenario == "merge") == m));
             for other in flows.iter().filter(|f| *f != "SocialComm") {
-                let a = by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == "SocialComm");
-                let b = by(rows, |r| r.cell.experiment == "flow_quality" && &r.cell.flow == other);
-                if let Some(t) = paired_across_flows(&a, &b, |r| r.ep.success) {
+                if let Some(t) = paired_across_flows(&fq("SocialComm", None), &fq(other, None), |r| r.ep.success) {
                     found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} (flow quality, all scenarios)"), &format!("success, SocialComm - {other}"), &t));
                 }
-                let a = by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == "SocialComm" && r.cell.scenario == "merge");
-                let b = by(rows, |r| r.cell.experiment == "flow_quality" && &r.cell.flow == other && r.cell.scenario == "merge");
-                if let Some(t) = paired_across_flows(&a, &b, |r| r.ep.success) {
+                let (sc_merge, other_merge) = (fq("SocialComm", Some(true)), fq(other, Some(true)));
+                if let Some(t) = paired_across_flows(&sc_merge, &other_merge, |r| r.ep.success) {
                     found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} in merge"), &format!("success, SocialComm - {other}"), &t));
                 }
                 // "Most in dense merge": SocialComm's per-start advantage in merge against its
                 // advantage in the other scenarios (independent starts, so Welch's test).
-                let fq_in = |flow: &str, merge: bool| by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == flow && (r.cell.scenario == "merge") == merge);
-                let in_merge = diffs_across_flows(&fq_in("SocialComm", true), &fq_in(other, true), |r| r.ep.success);
-                let elsewhere = diffs_across_flows(&fq_in("SocialComm", false), &fq_in(other, false), |r| r.ep.success);
+                let in_merge = diffs_across_flows(&sc_merge, &other_merge, |r| r.ep.success);
+                let elsewhere = diffs_across_flows(&fq("SocialComm", Some(false)), &fq(other, Some(false)), |r| r.ep.success);
                 if let Ok(w) = crate::welch_t_test(&in_merge, &elsewhere) {
                     found.checks.push(Check::from_welch(
                         format!("SocialComm's advantage over {other} is larger in merge than elsewhere"),

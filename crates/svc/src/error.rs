@@ -36,6 +36,21 @@ impl ServiceError {
             Self::Unauthenticated(_) => Code::Unauthenticated,
         }
     }
+
+    /// The constructor of this error's kind: a wrapper that passes a handler's error on with a
+    /// new message keeps its status.
+    pub fn kind(&self) -> fn(String) -> ServiceError {
+        match self {
+            Self::InvalidArgument(_) => Self::InvalidArgument,
+            Self::NotFound(_) => Self::NotFound,
+            Self::FailedPrecondition(_) => Self::FailedPrecondition,
+            Self::ResourceExhausted(_) => Self::ResourceExhausted,
+            Self::Unavailable(_) => Self::Unavailable,
+            Self::DeadlineExceeded(_) => Self::DeadlineExceeded,
+            Self::Internal(_) => Self::Internal,
+            Self::Unauthenticated(_) => Self::Unauthenticated,
+        }
+    }
 }
 
 impl From<ServiceError> for Status {

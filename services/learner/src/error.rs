@@ -149,16 +149,7 @@ impl LearnerError {
             | L::Task { .. } => S::InvalidArgument,
             L::JobNotFound { .. } => S::NotFound,
             L::DependencyLookup { .. } | L::NoFinalPolicy { .. } => S::FailedPrecondition,
-            L::Service(s) => match s {
-                S::InvalidArgument(_) => S::InvalidArgument,
-                S::NotFound(_) => S::NotFound,
-                S::FailedPrecondition(_) => S::FailedPrecondition,
-                S::ResourceExhausted(_) => S::ResourceExhausted,
-                S::Unavailable(_) => S::Unavailable,
-                S::DeadlineExceeded(_) => S::DeadlineExceeded,
-                S::Internal(_) => S::Internal,
-                S::Unauthenticated(_) => S::Unauthenticated,
-            },
+            L::Service(s) => s.kind(),
             L::FinalPolicy { .. }
             | L::Episodes(_)
             | L::Io { .. }
