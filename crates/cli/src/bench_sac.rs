@@ -97,7 +97,10 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         None => None,
     };
     let (sim, net) = match &job {
-        Some(j) => (sf_sac::setup::sim_config(j, None), sf_sac::setup::net_config(j)),
+        Some(j) => {
+            let r = sf_sac::setup::resolve(j, None);
+            (r.sim, r.net)
+        }
         None => size_config(a.size),
     };
     let sim = Arc::new(sim);
@@ -131,7 +134,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let reuse = matches!(a.size, Size::Default);
     let cfg = match &job {
         // The job's SAC settings past its cloning and critic-only updates: full updates.
-        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates: 0, critic_pretrain_updates: 0, ..sf_sac::setup::sac_config(j) },
+        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates: 0, critic_pretrain_updates: 0, ..j.sac.clone() },
         None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), reward_scale: 1.0, ..SacConfig::default() },
     };
     let reuse = cfg.reuse_critic_features;

@@ -77,7 +77,7 @@ struct StreamStats {
 /// Real observation rows of the job's first scenario, for synthetic batches that pass ingest.
 fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
     let map = ctx.map(&cfg.env.scenarios[0])?;
-    let sim = Arc::new(setup::sim_config(cfg, None));
+    let sim = Arc::new(setup::resolve(cfg, None).sim);
     let mut venv = VecEnv::new(map, sim, VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (cfg.env.vehicles_min, cfg.env.vehicles_max), seed: 5 });
     let len = venv.spec.len;
     let mut pool = Vec::new();
@@ -183,7 +183,7 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
     cfg.train.max_policy_lag = 1 << 20;
     cfg.sac.warmup_steps = cfg.sac.warmup_steps.min(a.replay_capacity as u64 / 2);
     cfg.validate().context("job config after the soak's overrides")?;
-    let act = setup::net_config(&cfg).action_dim;
+    let act = setup::resolve(&cfg, None).net.action_dim;
     let pool = Arc::new(observation_pool(ctx, &cfg)?);
 
     let dir = std::env::temp_dir().join(format!("socialflow-soak-{}", std::process::id()));

@@ -96,11 +96,11 @@ impl LearnedFlow {
     fn load(dir: &std::path::Path, job: &sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
         let p = dir.join("policy.bpk");
         let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
-        let sim = std::sync::Arc::new(sf_sac::setup::sim_config(job, None));
+        let r = sf_sac::setup::resolve(job, None);
+        let sim = std::sync::Arc::new(r.sim);
         let segments = sf_sim::obs::MapSegments::build(map, sim.obs.segment_points);
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&sf_sac::setup::net_config(job), &sf_sac::setup::obs_spec(job), sim.dt_s, &[&segments], &weights, 0, &device)
-            .with_context(|| format!("loading {}", p.display()))?;
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&r.net, &r.obs, sim.dt_s, &[&segments], &weights, 0, &device).with_context(|| format!("loading {}", p.display()))?;
         let coordinator = CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
         Ok(Self { sim, runner, coordinator })
     }

@@ -351,7 +351,7 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
         bail!("eval.cases: {n} exceeds the {} stored cases of {}", cases.cases.len(), map.name);
     }
     let sim = Arc::new(match policy {
-        Some(p) => setup::sim_config(&p.cfg, None),
+        Some(p) => setup::resolve(&p.cfg, None).sim,
         None => SimConfig::default(),
     });
     let runner = policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;

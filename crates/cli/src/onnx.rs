@@ -36,7 +36,8 @@ pub struct ExportOnnxArgs {
 pub fn run(ctx: &Ctx, a: ExportOnnxArgs) -> Result<()> {
     let policy = Policy::load(&a.job).map_err(anyhow::Error::msg)?;
     let cfg = &policy.cfg;
-    let (net, spec, sim) = (setup::net_config(cfg), setup::obs_spec(cfg), Arc::new(setup::sim_config(cfg, None)));
+    let setup::ResolvedJob { net, obs: spec, sim, .. } = setup::resolve(cfg, None);
+    let sim = Arc::new(sim);
     let maps = cfg.env.scenarios.iter().map(|s| ctx.map(s)).collect::<Result<Vec<_>>>()?;
     let segments: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;

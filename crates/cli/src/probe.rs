@@ -35,8 +35,8 @@ pub fn run(dirs: &Ctx, a: ProbeArgs) -> Result<()> {
     let data = probe::collect(&job, &maps, a.transitions, a.horizon, a.seed).map_err(anyhow::Error::msg)?;
     let segs = probe::segments(&maps, &job);
     let seg_refs: Vec<_> = segs.iter().collect();
-    let sim = setup::sim_config(&job, None);
-    let mut sac = Sac::new(setup::sac_config(&job), setup::net_config(&job), setup::obs_spec(&job), sim.dt_s, &seg_refs)?;
+    let r = setup::resolve(&job, None);
+    let mut sac = Sac::new(r.sac, r.net, r.obs, r.sim.dt_s, &seg_refs)?;
     let score = probe::train_and_score(&mut sac, &data, a.updates, a.seed).map_err(anyhow::Error::msg)?;
     println!("{}", serde_json::json!({"job": a.job.display().to_string(), "horizon": a.horizon, "score": score}));
     Ok(())

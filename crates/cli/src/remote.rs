@@ -144,11 +144,7 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
             RemoteCmd::Submit { config, conn, watch: w } => {
                 let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
                 // Checked here first, so a bad file is named before any connection.
-                if sf_job::eval::is_eval_toml(&text) {
-                    sf_job::eval::EvalConfig::from_toml(&text).with_context(|| config.display().to_string())?;
-                } else {
-                    sf_job::JobConfig::from_toml(&text).with_context(|| config.display().to_string())?;
-                }
+                sf_job::JobSpec::from_toml(&text).with_context(|| config.display().to_string())?;
                 let mut c = connect(&conn).await?;
                 let j = submit(&mut c, text).await?;
                 println!("{}", job_json(&j));

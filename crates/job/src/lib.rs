@@ -3,16 +3,19 @@
 //!
 //! Owns: [`JobConfig`] (the TOML a user submits; `deny_unknown_fields`, validated with errors
 //! that name the field), [`JobState`], [`JobRecord`], [`Progress`], [`Assignment`],
-//! [`TransitionBatch`] with its shape and finiteness checks, evaluation grids ([`eval`]). Must not: depend on burn, tokio or
-//! the wire format (`sf_proto` converts to and from these types).
+//! [`TransitionBatch`] with its shape and finiteness checks, evaluation grids ([`eval`]), and
+//! [`JobSpec`], the one parse of a submitted or stored text into either. Must not: depend on
+//! burn, tokio or the wire format (`sf_proto` converts to and from these types).
 
 pub use sf_sim::SvoGaussian;
 pub mod batch;
 pub mod config;
 pub mod eval;
+pub mod spec;
 
 pub use batch::{BatchError, Ends, EpisodeResult, TransitionBatch};
 pub use config::{ConfigError, DepRole, JobConfig};
+pub use spec::{JobSpec, SpecError};
 
 use serde::{Deserialize, Serialize};
 

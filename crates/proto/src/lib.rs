@@ -4,8 +4,9 @@
 //! the only conversions between wire messages and the domain types of `sf_job` (training
 //! assignments and batches, evaluation cells and their episodes). Decoding
 //! validates: enum values, shapes (every array holds `count` rows of the declared widths),
-//! finiteness, size caps. Must not: appear in other crates' public APIs (they pass domain
-//! types); hold service logic.
+//! finiteness, size caps. Must not: hold service logic. Other crates pass domain types
+//! between their modules; wire types appear only at their gRPC edges (the learner's tonic
+//! service, the worker's session and the rollout thread's outgoing batches).
 
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};

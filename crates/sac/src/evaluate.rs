@@ -177,7 +177,7 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(
             }
         }
         (Some(e), FlowDef::Learned { background, .. }) => {
-            if setup::obs_spec(&e.cfg).layout != setup::obs_spec(&background.cfg).layout {
+            if setup::resolve(&e.cfg, None).obs.layout != setup::resolve(&background.cfg, None).obs.layout {
                 return Err(EvalError::Misfit(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow)));
             }
         }
@@ -209,8 +209,8 @@ impl Runners {
             return Ok(Arc::clone(r));
         }
         let segs = self.segments(map);
-        let r = PolicyRunner::from_bytes(&setup::net_config(&p.cfg), &setup::obs_spec(&p.cfg), sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device)
-            .map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
+        let own = setup::resolve(&p.cfg, None);
+        let r = PolicyRunner::from_bytes(&own.net, &own.obs, sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device).map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
         let r = Arc::new(r);
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
@@ -248,10 +248,10 @@ fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runn
         FlowDef::Learned { background, .. } => Some(background.cfg.kind),
     };
     let (sim, mode) = match (ego, flow) {
-        (Some(e), FlowDef::Idm) => (setup::sim_config(&e.cfg, None), Mode::Ego { background: Controller::Idm }),
-        (Some(e), FlowDef::Learned { .. }) => (setup::sim_config(&e.cfg, bg_kind), Mode::Ego { background: Controller::External }),
+        (Some(e), FlowDef::Idm) => (setup::resolve(&e.cfg, None).sim, Mode::Ego { background: Controller::Idm }),
+        (Some(e), FlowDef::Learned { .. }) => (setup::resolve(&e.cfg, bg_kind).sim, Mode::Ego { background: Controller::External }),
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
-        (None, FlowDef::Learned { background, .. }) => (setup::sim_config(&background.cfg, None), Mode::MultiAgent),
+        (None, FlowDef::Learned { background, .. }) => (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent),
     };
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
@@ -357,7 +357,7 @@ impl FlowSetup {
                 Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::Idm }, background: None, adversary: None, svo_gaussian: None })
             }
             FlowDef::Learned { background, adversary } => {
-                let sim = setup::sim_config(&background.cfg, Some(background.cfg.kind));
+                let sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
                 if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
                     return Err(EvalError::Misfit(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str())));
                 }

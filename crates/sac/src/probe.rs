@@ -48,8 +48,8 @@ struct Pending {
 
 /// Runs the demonstrator for at least `transitions` ego transitions over the job's scenarios.
 pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: usize, seed: u64) -> Result<ProbeData, String> {
-    let sim = Arc::new(setup::sim_config(job, None));
-    let net = setup::net_config(job);
+    let setup::ResolvedJob { sim, net, .. } = setup::resolve(job, None);
+    let sim = Arc::new(sim);
     let per_map = 8;
     let mut venvs: Vec<VecEnv> = maps
         .iter()
@@ -217,7 +217,7 @@ pub fn auroc(scores: &[f32], labels: &[bool]) -> f64 {
 
 /// The maps' segments the job's SAC needs (query-centric observations index them).
 pub fn segments(maps: &[Arc<Map>], job: &JobConfig) -> Vec<MapSegments> {
-    let sim = setup::sim_config(job, None);
+    let sim = setup::resolve(job, None).sim;
     maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect()
 }
 

@@ -1,8 +1,11 @@
-//! A job config (`sf_job::JobConfig`) resolved into the simulator, network and SAC configs.
+//! A job config (`sf_job::JobConfig`) resolved once into everything that runs it.
 //!
-//! Owns: the one mapping from job-config sections to `SimConfig`, `NetConfig`, `SacConfig`
-//! and the rate limiter, shared by the learner and the workers so both build the same shapes.
-//! Must not: read files.
+//! Owns: [`resolve`], the one mapping from job-config sections to a [`ResolvedJob`] (the
+//! simulator config, the network, the observation layout, the SAC config and the mode), shared
+//! by the learner, the workers, evaluation and the CLI so all build the same shapes; the
+//! per-transition reward and the adversary's SVO ([`reward`], [`adversary_svo_deg`]); the rate
+//! limiter and the device kind. Callers take the resolved value's fields instead of deriving
+//! them one by one. Must not: read files.
 
 use sf_job::config::{Device, JobKind, NetPreset};
 use sf_job::JobConfig;
@@ -14,8 +17,30 @@ use sf_sim::{Mode, ObsSpec, SimConfig};
 
 use crate::{RateLimiterConfig, SacConfig};
 
+/// A job config resolved: everything that runs the job or one of its policies.
+#[derive(Clone, Debug)]
+pub struct ResolvedJob {
+    /// The simulators its episodes run in (observation layout, SVO visibility and range).
+    pub sim: SimConfig,
+    /// The network of its policy.
+    pub net: NetConfig,
+    /// The observation layout that network reads (the same whatever the background).
+    pub obs: ObsSpec,
+    /// Its `[sac]` section, which is the SAC config.
+    pub sac: SacConfig,
+    /// Who drives what in its simulators.
+    pub mode: Mode,
+}
+
+/// Resolves `job`. `background` is the kind of the job named in `env.background_job` (the
+/// frozen flow), which decides what the background's observations must carry; it changes
+/// `sim` only.
+pub fn resolve(job: &JobConfig, background: Option<JobKind>) -> ResolvedJob {
+    ResolvedJob { sim: sim_config(job, background), net: net_config(job), obs: obs_spec(job), sac: job.sac.clone(), mode: mode(job) }
+}
+
 /// The network of the job's ego policy.
-pub fn net_config(job: &JobConfig) -> NetConfig {
+fn net_config(job: &JobConfig) -> NetConfig {
     let mut n = match job.net.preset {
         NetPreset::Paper => NetConfig::paper(),
         NetPreset::Compact => NetConfig::compact(),
@@ -49,7 +74,7 @@ pub fn net_config(job: &JobConfig) -> NetConfig {
 /// How the job's simulators run: every vehicle a learner for a Stage-1 flow; otherwise agent 0
 /// is the ego (the learner of ego jobs, the frozen ego of RARL phases, whose episode decides
 /// the episode's end) among IDM cars or an externally driven background.
-pub fn mode(job: &JobConfig) -> Mode {
+fn mode(job: &JobConfig) -> Mode {
     if job.kind.multi_agent() {
         Mode::MultiAgent
     } else if job.env.background_job.is_some() || job.kind == JobKind::Failmaker {
@@ -78,7 +103,7 @@ pub fn adversary_svo_deg(action: f32) -> f32 {
 /// Simulator settings: digest defaults with the observation layout the encoder reads.
 /// `background` is the kind of the job named in `env.background_job` (the frozen flow), which
 /// decides what the background's observations must carry.
-pub fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
+fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
     let mut s = SimConfig::default();
     s.obs.layout = net_config(job).encoder;
     s.obs.svo = match job.kind.svo_seen() {
@@ -102,13 +127,8 @@ pub fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
 }
 
 /// The observation layout (independent of the background: only SVO and flag values vary).
-pub fn obs_spec(job: &JobConfig) -> ObsSpec {
+fn obs_spec(job: &JobConfig) -> ObsSpec {
     ObsSpec::new(&sim_config(job, None).obs)
-}
-
-/// The job's `[sac]` section, which is the SAC config.
-pub fn sac_config(job: &JobConfig) -> SacConfig {
-    job.sac.clone()
 }
 
 pub fn device_kind(d: Device) -> DeviceKind {
@@ -173,6 +193,12 @@ mod tests {
             assert_eq!((s.obs.ego_flag, s.svo_range_deg[0]), (flag, lo), "{bg:?}");
         }
         let s = sim_config(&job("failmaker"), None);
+        // `resolve` is the parts together; the background changes the simulator only.
+        let (plain, with_bg) = (resolve(&ego, None), resolve(&ego, Some(JobKind::Failmaker)));
+        assert_eq!((&plain.net, &plain.obs, plain.mode), (&net_config(&ego), &obs_spec(&ego), mode(&ego)));
+        assert_eq!((&with_bg.net, &with_bg.obs), (&plain.net, &plain.obs));
+        assert!(with_bg.sim.obs.ego_flag && !plain.sim.obs.ego_flag);
+        assert_eq!(plain.sac, ego.sac);
         assert_eq!((s.obs.ego_flag, s.svo_range_deg), (true, [-90.0, 90.0]));
         assert_eq!(adversary_svo_deg(-1.0), 0.0);
         assert_eq!(adversary_svo_deg(1.0), 90.0);

@@ -71,6 +71,12 @@ impl From<sf_job::ConfigError> for ServiceError {
     }
 }
 
+impl From<sf_job::SpecError> for ServiceError {
+    fn from(e: sf_job::SpecError) -> Self {
+        Self::InvalidArgument(e.to_string())
+    }
+}
+
 impl From<sf_job::BatchError> for ServiceError {
     fn from(e: sf_job::BatchError) -> Self {
         Self::InvalidArgument(e.to_string())

@@ -2,8 +2,9 @@
 //!
 //! Owns: [`LearnerError`] — why a submitted job or grid is refused, why a job cannot start
 //! (pinning a grid's names, loading its policies, a job's dependencies, files, blocking tasks),
-//! and why the trainer thread stops with a failure — and `impl From<LearnerError> for
-//! ServiceError`, the table from each variant to a status kind. Messages are lowercase without
+//! and why the trainer thread stops with a failure — and [`IngestError`], why a transition
+//! batch is refused; for each, its `From<_> for ServiceError`, the table from each variant to
+//! a status kind. Messages are lowercase without
 //! a trailing period and name the field, job or file; they are what clients see in a status and
 //! what a failed job records as its message, so their text is part of the interface.
 //! Must not: build `tonic::Status` or pick gRPC codes (`sf_svc::ServiceError` is the one table
@@ -49,6 +50,38 @@ pub enum LearnerError {
     #[error(transparent)]
     Episodes(#[from] sf_eval::episodes::FileError),
 
+    // --- Requests: the learner's state, jobs, workers and policies.
+    #[error("the learner is shutting down")]
+    ShuttingDown,
+    #[error("worker {worker_id} is not registered (the learner may have restarted): register again")]
+    WorkerNotRegistered { worker_id: u64 },
+    #[error("job {job_id} is {state}, not running")]
+    NotRunning { job_id: u64, state: &'static str },
+    /// A policy version the running job does not hold (never published, or evicted).
+    #[error("job {job_id} holds no policy version {version}")]
+    NoPolicyVersion { job_id: u64, version: u64 },
+    /// A finished job keeps only its final version.
+    #[error("job {job_id} finished at policy version {final_version}; version {version} is gone")]
+    VersionGone { job_id: u64, final_version: u64, version: u64 },
+    /// A submitted job that names its dependencies instead of giving their ids.
+    #[error("job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids")]
+    UnresolvedName { name: String },
+    /// A submitted job's `sac.device` this learner cannot open.
+    #[error("job config field `sac.device`: {0}")]
+    DeviceField(#[source] sf_nn::device::DeviceError),
+
+    // --- A worker's results for one cell of a running evaluation.
+    #[error("evaluation job {job_id} has no cell {cell_id}")]
+    NoCell { job_id: u64, cell_id: u64 },
+    /// The worker could not run the cell: the evaluation fails with this message.
+    #[error("cell {cell} failed on worker {worker}: {error}")]
+    CellFailed { cell: String, worker: u64, error: String },
+    /// Results that are not one valid episode per stored case and seed of the grid.
+    #[error("cell {cell_id}: {reason}")]
+    BadCellResults { cell_id: u64, reason: String },
+    #[error("job {job_id} is {state}, not a running evaluation")]
+    NotEvaluating { job_id: u64, state: &'static str },
+
     // --- Jobs and their dependencies.
     /// A job config that does not parse or validate.
     #[error(transparent)]
@@ -57,7 +90,7 @@ pub enum LearnerError {
     JobNotFound { job_id: u64 },
     /// The stored config of a job this one depends on does not parse (any more).
     #[error("stored config of job {job_id}: {source}")]
-    StoredConfig { job_id: u64, source: sf_job::ConfigError },
+    StoredConfig { job_id: u64, source: sf_job::SpecError },
     #[error("socialcomm-adv job {job_id} has no background flow")]
     NoBackgroundFlow { job_id: u64 },
     /// Looking up the flow a SocialCommAdv job `job_id` talks to failed.
@@ -147,7 +180,12 @@ impl LearnerError {
             | L::Dependency { .. }
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
-            L::JobNotFound { .. } => S::NotFound,
+            L::UnresolvedName { .. } | L::DeviceField(_) => S::InvalidArgument,
+            L::ShuttingDown => S::Unavailable,
+            L::JobNotFound { .. } | L::WorkerNotRegistered { .. } | L::NoPolicyVersion { .. } | L::VersionGone { .. } => S::NotFound,
+            L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => S::FailedPrecondition,
+            L::NoCell { .. } => S::NotFound,
+            L::BadCellResults { .. } => S::InvalidArgument,
             L::DependencyLookup { .. } | L::NoFinalPolicy { .. } => S::FailedPrecondition,
             L::Service(s) => s.kind(),
             L::FinalPolicy { .. }
@@ -176,6 +214,49 @@ impl From<LearnerError> for ServiceError {
     }
 }
 
+/// Why a worker's transition batch was refused (`PushTransitions`; `ActiveJob::ingest`).
+/// `Display` is the status message the worker sees.
+#[derive(Debug, thiserror::Error)]
+pub enum IngestError {
+    /// The job is being cancelled, shut down or has finished its updates: the worker should
+    /// ask for its next assignment.
+    #[error("job {job_id} is stopping")]
+    Stopping { job_id: u64 },
+    /// Every transition the job needs is in; the trainer is finishing its updates.
+    #[error("job {job_id} has all its transitions")]
+    Complete { job_id: u64 },
+    #[error("batch rows are {obs_len} observation floats and {action_dim} actions; job {job_id} expects {want_obs_len} and {want_action_dim}")]
+    Shape { obs_len: usize, action_dim: usize, job_id: u64, want_obs_len: usize, want_action_dim: usize },
+    #[error("map id {map_id} out of range: job {job_id} has {maps} scenarios")]
+    MapOutOfRange { map_id: u32, job_id: u64, maps: u32 },
+    /// A row the networks would index or branch on wrongly (masks, segment ids).
+    #[error("batch field `{field}`, transition {index}: {reason}")]
+    BadRow { field: &'static str, index: usize, reason: String },
+    #[error("policy version {version} was never published (latest {latest})")]
+    UnpublishedVersion { version: u64, latest: u64 },
+    #[error("deadline passed waiting for the trainer (rate limiter)")]
+    Deadline,
+    /// The rate limiter refused an insert it should have taken (a bug, not the worker's).
+    #[error(transparent)]
+    RateLimit(sf_sac::rate_limiter::RateLimitError),
+    /// The replay refused a row that decoding had accepted.
+    #[error(transparent)]
+    Replay(#[from] sf_sac::replay::ReplayError),
+}
+
+impl From<IngestError> for ServiceError {
+    fn from(e: IngestError) -> Self {
+        use IngestError as I;
+        let kind: fn(String) -> ServiceError = match &e {
+            I::Stopping { .. } | I::Complete { .. } => ServiceError::FailedPrecondition,
+            I::Shape { .. } | I::MapOutOfRange { .. } | I::BadRow { .. } | I::UnpublishedVersion { .. } | I::Replay(_) => ServiceError::InvalidArgument,
+            I::Deadline => ServiceError::DeadlineExceeded,
+            I::RateLimit(_) => ServiceError::Internal,
+        };
+        kind(e.to_string())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -201,6 +282,14 @@ mod tests {
 
         let e = ServiceError::from(LearnerError::Io { action: "writing", path: "/jobs/3-x/meta.json".into(), source: std::io::Error::other("disk full") });
         assert_eq!((e.code(), e.to_string().as_str()), (Code::Internal, "writing /jobs/3-x/meta.json: disk full"));
+
+        // Ingest: the worker moves on (stopping), fixes its batch (shape) or retries (deadline).
+        let e = ServiceError::from(IngestError::Stopping { job_id: 4 });
+        assert_eq!((e.code(), e.to_string().as_str()), (Code::FailedPrecondition, "job 4 is stopping"));
+        let e = ServiceError::from(IngestError::Shape { obs_len: 10, action_dim: 2, job_id: 4, want_obs_len: 12, want_action_dim: 2 });
+        assert_eq!((e.code(), e.to_string().as_str()), (Code::InvalidArgument, "batch rows are 10 observation floats and 2 actions; job 4 expects 12 and 2"));
+        assert_eq!(ServiceError::from(IngestError::Deadline).code(), Code::DeadlineExceeded);
+        assert_eq!(ServiceError::from(IngestError::UnpublishedVersion { version: 9, latest: 3 }).to_string(), "policy version 9 was never published (latest 3)");
 
         // A handler's own error passes through unchanged.
         let e = ServiceError::from(LearnerError::from(ServiceError::Unavailable("the learner is shutting down".into())));

@@ -148,10 +148,10 @@ pub struct EvalJob {
 }
 
 impl EvalJob {
-    /// Builds the job from its pinned config, the learner's job records and the cells its
-    /// `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking file IO.
-    pub fn open(rec: &JobRecord, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, LearnerError> {
-        let cfg = EvalConfig::from_toml(&rec.config_toml)?;
+    /// Builds the job from its pinned config `cfg` (job `rec`'s), the learner's job records and
+    /// the cells its `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking
+    /// file IO.
+    pub fn open(rec: &JobRecord, cfg: EvalConfig, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, LearnerError> {
         let (flows, egos, grid) = resolve_policies(&cfg, jobs, true)?;
         let cells = cfg.cells();
         grid.check(&cells)?;
@@ -277,30 +277,31 @@ impl EvalJob {
     /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell
     /// was already stored. The episodes must be exactly one per stored case and seed of the
     /// grid; nothing is written otherwise.
-    pub fn store(&self, worker: u64, cell_id: u64, episodes: &[EvalEpisode], error: &str) -> Result<bool, ServiceError> {
-        let c = usize::try_from(cell_id).ok().filter(|&c| c < self.cells.len()).ok_or_else(|| ServiceError::NotFound(format!("evaluation job {} has no cell {cell_id}", self.id)))?;
+    pub fn store(&self, worker: u64, cell_id: u64, episodes: &[EvalEpisode], error: &str) -> Result<bool, LearnerError> {
+        let c = usize::try_from(cell_id).ok().filter(|&c| c < self.cells.len()).ok_or(LearnerError::NoCell { job_id: self.id, cell_id })?;
         let cell = &self.cells[c];
         let mut s = lock(&self.state);
         if s.stored[c] {
             return Ok(false);
         }
         if !error.is_empty() {
-            let msg = format!("cell {} failed on worker {worker}: {error}", cell.key());
-            s.failed = Some(msg.clone());
+            let failed = LearnerError::CellFailed { cell: cell.key(), worker, error: error.into() };
+            s.failed = Some(failed.to_string());
             drop(s);
             self.changed.notify_one();
-            return Err(ServiceError::FailedPrecondition(msg));
+            return Err(failed);
         }
         let want = self.episodes_per_cell() as usize;
         let seeds: BTreeSet<(u32, u32)> = episodes.iter().map(|e| (e.case, e.seed)).collect();
         if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= self.cfg.seeds) {
-            return Err(ServiceError::InvalidArgument(format!("cell {cell_id}: {} episodes, expected {want} distinct (case, seed) pairs with seeds below {}", episodes.len(), self.cfg.seeds)));
+            let reason = format!("{} episodes, expected {want} distinct (case, seed) pairs with seeds below {}", episodes.len(), self.cfg.seeds);
+            return Err(LearnerError::BadCellResults { cell_id, reason });
         }
         if let Some(bad) = episodes.iter().find_map(|e| e.validate().err()) {
-            return Err(ServiceError::InvalidArgument(format!("cell {cell_id}: {bad}")));
+            return Err(LearnerError::BadCellResults { cell_id, reason: bad.to_string() });
         }
         let rows: Vec<EpisodeRow> = episodes.iter().map(|e| EpisodeRow::new(cell, e)).collect();
-        s.writer.append(&rows).map_err(|e| ServiceError::Internal(e.to_string()))?;
+        s.writer.append(&rows)?;
         s.stored[c] = true;
         s.leased.remove(&c);
         s.episodes += rows.len() as u64;
@@ -345,8 +346,7 @@ async fn blocking_task<T: Send + 'static>(f: impl FnOnce() -> Result<T, LearnerE
 impl crate::Inner {
     /// Validates an evaluation grid, pins its names to this learner's succeeded jobs, checks
     /// every cell's ego and flow fit and that the cases exist, and queues it.
-    pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, text: &str) -> Result<JobRecord, ServiceError> {
-        let mut cfg = EvalConfig::from_toml(text).map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
+    pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, mut cfg: EvalConfig) -> Result<JobRecord, ServiceError> {
         let jobs = self.jobs().await?;
         resolve_names(&mut cfg, &jobs)?;
         let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
@@ -362,21 +362,19 @@ impl crate::Inner {
         let name = cfg.name.clone();
         let target = cfg.cells().len() as u64 * cfg.cases as u64 * cfg.seeds as u64;
         let resolved = cfg.to_toml();
-        let rec = tokio::task::spawn_blocking(move || store.create(&name, &resolved, target, |id| root.join(format!("{id}-{name}")).display().to_string()))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("store task: {e}")))?
-            .map_err(|e| ServiceError::Internal(e.to_string()))?;
+        let rec = crate::blocking(move || store.create(&name, &resolved, target, |id| root.join(format!("{id}-{name}")).display().to_string())).await?;
         tracing::info!(job_id = rec.id, name = %rec.name, cells = cfg.cells().len(), "evaluation queued");
+        self.keep_spec(rec.id, sf_job::JobSpec::Eval(cfg));
         self.wake.notify_one();
         Ok(rec)
     }
 
     /// Opens the evaluation (resuming from its stored cells), marks it RUNNING and follows it
     /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
-    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord) -> Result<(), LearnerError> {
+    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord, cfg: EvalConfig) -> Result<(), LearnerError> {
         let jobs = self.jobs().await?;
         let (r2, m2) = (rec.clone(), self.metrics.clone());
-        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, &jobs, m2)).await?);
+        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, cfg, &jobs, m2)).await?);
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
@@ -453,9 +451,9 @@ impl crate::Inner {
             Some(e) if e.id == job_id && e.stop_reason().is_none() => e,
             _ => {
                 let rec = self.job(job_id).await?;
-                return Err(ServiceError::FailedPrecondition(format!("job {job_id} is {}, not a running evaluation", rec.state.as_str())));
+                return Err(LearnerError::NotEvaluating { job_id, state: rec.state.as_str() }.into());
             }
         };
-        tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(|e| ServiceError::Internal(format!("store task: {e}")))?
+        Ok(tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(LearnerError::from)??)
     }
 }

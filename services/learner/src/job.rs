@@ -14,9 +14,9 @@ use std::time::{Duration, Instant};
 use sf_job::{Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::{Losses, RateLimiter, Replay};
-use sf_svc::ServiceError;
 use tokio::sync::watch;
 
+use crate::error::IngestError;
 use crate::metrics::LearnerMetrics;
 use sf_svc::sync::{lock, read, write};
 
@@ -196,19 +196,16 @@ impl ActiveJob {
 
     /// Validates `b` against the job, drops it if stale, waits on the rate limiter until
     /// `deadline`, then stores it. Blocking.
-    pub fn ingest(&self, b: &TransitionBatch, deadline: Instant) -> Result<Ack, ServiceError> {
+    pub fn ingest(&self, b: &TransitionBatch, deadline: Instant) -> Result<Ack, IngestError> {
         if self.stopping.load(Ordering::Acquire) {
-            return Err(ServiceError::FailedPrecondition(format!("job {} is stopping", self.id)));
+            return Err(IngestError::Stopping { job_id: self.id });
         }
         if b.obs_len != self.obs_len || b.action_dim != self.action_dim {
-            return Err(ServiceError::InvalidArgument(format!(
-                "batch rows are {} observation floats and {} actions; job {} expects {} and {}",
-                b.obs_len, b.action_dim, self.id, self.obs_len, self.action_dim
-            )));
+            return Err(IngestError::Shape { obs_len: b.obs_len, action_dim: b.action_dim, job_id: self.id, want_obs_len: self.obs_len, want_action_dim: self.action_dim });
         }
         let n_maps = self.cfg.env.scenarios.len() as u32;
-        if let Some(m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
-            return Err(ServiceError::InvalidArgument(format!("map id {m} out of range: job {} has {n_maps} scenarios", self.id)));
+        if let Some(&m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
+            return Err(IngestError::MapOutOfRange { map_id: m, job_id: self.id, maps: n_maps });
         }
         // What the networks index or branch on (masks, segment ids): one bad row refuses the
         // batch here instead of failing the job in the trainer.
@@ -216,12 +213,12 @@ impl ActiveJob {
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|e| ServiceError::InvalidArgument(format!("batch field `{field}`, transition {i}: {e}")))?;
+                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
             }
         }
         let latest = self.latest_version();
         if b.policy_version > latest {
-            return Err(ServiceError::InvalidArgument(format!("policy version {} was never published (latest {latest})", b.policy_version)));
+            return Err(IngestError::UnpublishedVersion { version: b.policy_version, latest });
         }
         let warm = self.in_warmup();
         let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
@@ -244,7 +241,7 @@ impl ActiveJob {
             let take = (b.count as u64).min(self.cfg.train.env_steps.saturating_sub(s.reserved));
             if take == 0 {
                 // Every transition the job needs is in; the trainer is finishing its updates.
-                return Err(ServiceError::FailedPrecondition(format!("job {} has all its transitions", self.id)));
+                return Err(IngestError::Complete { job_id: self.id });
             }
             s.reserved += take;
             take as usize
@@ -254,16 +251,16 @@ impl ActiveJob {
                 let now = Instant::now();
                 if now >= deadline {
                     self.unreserve(take);
-                    return Err(ServiceError::DeadlineExceeded("deadline passed waiting for the trainer (rate limiter)".into()));
+                    return Err(IngestError::Deadline);
                 }
                 match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250))) {
                     Ok(()) => break,
                     Err(RateLimitError::Timeout(_)) => continue,
                     Err(RateLimitError::Closed) => {
                         self.unreserve(take);
-                        return Err(ServiceError::FailedPrecondition(format!("job {} is stopping", self.id)));
+                        return Err(IngestError::Stopping { job_id: self.id });
                     }
-                    Err(e @ RateLimitError::Invalid { .. }) => return Err(ServiceError::Internal(e.to_string())),
+                    Err(e @ RateLimitError::Invalid { .. }) => return Err(IngestError::RateLimit(e)),
                 }
             }
             let mut r = lock(&self.replay);
@@ -276,7 +273,7 @@ impl ActiveJob {
                     let mut s = lock(&self.stats);
                     s.reserved -= (take - i) as u64;
                     s.c.env_steps += i as u64;
-                    return Err(ServiceError::InvalidArgument(e.to_string()));
+                    return Err(IngestError::Replay(e));
                 }
             }
             self.metrics.replay_size.set(r.len() as i64);

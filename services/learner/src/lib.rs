@@ -2,11 +2,13 @@
 //!
 //! Owns: [`start`] (validates the [`LearnerConfig`] before any port is bound, binds the gRPC and
 //! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
-//! behind the handlers: the job store, the one running job ([`job::ActiveJob`]), registered
-//! workers, metrics. The scheduler runs one job at a time — a RUNNING job left by a previous
-//! process first (auto-resume from its checkpoint), then QUEUED jobs in id order — a training
-//! job on a dedicated trainer thread ([`trainer`]), an evaluation job ([`eval`]) by leasing
-//! its cells to the workers. Must not: expose wire types in its public API.
+//! behind the handlers: the job store and every stored job's parsed [`sf_job::JobSpec`]
+//! (parsed once), the one running job ([`job::ActiveJob`]), registered workers, metrics. The
+//! scheduler runs one job at a time — a RUNNING job left by a previous process first
+//! (auto-resume from its checkpoint), then QUEUED jobs in id order — a training job on a
+//! dedicated trainer thread ([`trainer`]), an evaluation job ([`eval`]) by leasing its cells to
+//! the workers. Must not: expose wire types outside [`service`] (the gRPC edge), or pick a
+//! status for an error (`error.rs` maps each domain error to one).
 //!
 //! Shutdown ([`RunningLearner::shutdown`], SIGTERM in the binary): the running job is asked to
 //! stop, its trainer writes a checkpoint, the job stays RUNNING in the store and resumes on the
@@ -22,7 +24,7 @@ pub mod service;
 pub mod store;
 pub mod trainer;
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -32,7 +34,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use prometheus_client::registry::Registry;
 use sf_job::config::JobKind;
-use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobState};
+use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobSpec, JobState};
 use sf_proto::pb::experience_service_server::ExperienceServiceServer;
 use sf_proto::pb::job_service_server::JobServiceServer;
 use sf_sac::{setup, RateLimiter};
@@ -43,7 +45,7 @@ use tokio::sync::{oneshot, Notify};
 use tonic::service::interceptor::InterceptedService;
 
 pub use crate::config::LearnerConfig;
-pub use crate::error::LearnerError;
+pub use crate::error::{IngestError, LearnerError};
 use crate::job::{ActiveJob, StopReason};
 use crate::metrics::LearnerMetrics;
 use crate::store::Store;
@@ -69,13 +71,16 @@ pub struct Inner {
     next_worker: AtomicU64,
     assignments: AtomicU64,
     shutting_down: AtomicBool,
+    /// Every stored job's text, parsed once (by submit, or on first use after a restart): a
+    /// stored config never changes, so the scheduler and job starts read it here.
+    specs: Mutex<BTreeMap<u64, Arc<JobSpec>>>,
 }
 
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, store::StoreError> + Send + 'static) -> Result<T, ServiceError> {
     match tokio::task::spawn_blocking(f).await {
         Ok(Ok(v)) => Ok(v),
-        Ok(Err(e)) => Err(ServiceError::Internal(e.to_string())),
-        Err(e) => Err(ServiceError::Internal(format!("store task: {e}"))),
+        Ok(Err(e)) => Err(LearnerError::Store(e).into()),
+        Err(e) => Err(LearnerError::Join(e).into()),
     }
 }
 
@@ -94,6 +99,21 @@ impl Inner {
 
     fn set_evaluating(&self, j: Option<Arc<eval::EvalJob>>) {
         *write(&self.evaluating) = j;
+    }
+
+    /// The parsed config of stored job `rec`, parsed on first use and kept.
+    pub(crate) fn spec(&self, rec: &JobRecord) -> Result<Arc<JobSpec>, LearnerError> {
+        if let Some(s) = lock(&self.specs).get(&rec.id) {
+            return Ok(Arc::clone(s));
+        }
+        let s = Arc::new(JobSpec::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source })?);
+        lock(&self.specs).insert(rec.id, Arc::clone(&s));
+        Ok(s)
+    }
+
+    /// Keeps the spec a job was submitted with (its text was parsed by submit).
+    pub(crate) fn keep_spec(&self, id: u64, spec: JobSpec) {
+        lock(&self.specs).insert(id, Arc::new(spec));
     }
 
     /// A job of either kind is running.
@@ -124,29 +144,28 @@ impl Inner {
     /// Validates a config and queues it.
     pub async fn submit(self: &Arc<Self>, toml_text: String) -> Result<JobRecord, ServiceError> {
         if self.shutting_down.load(Ordering::Acquire) {
-            return Err(ServiceError::Unavailable("the learner is shutting down".into()));
+            return Err(LearnerError::ShuttingDown.into());
         }
-        if sf_job::eval::is_eval_toml(&toml_text) {
-            return self.submit_eval(&toml_text).await;
-        }
-        let cfg = JobConfig::from_toml(&toml_text)?;
+        let cfg = match JobSpec::from_toml(&toml_text)? {
+            JobSpec::Eval(grid) => return self.submit_eval(grid).await,
+            JobSpec::Train(cfg) => cfg,
+        };
         self.load_maps(&cfg.env.scenarios).await?;
-        sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(|e| ServiceError::InvalidArgument(format!("job config field `sac.device`: {e}")))?;
+        sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(LearnerError::DeviceField)?;
         if let Some((_, name)) = cfg.deps_by_name().first() {
-            return Err(ServiceError::InvalidArgument(format!(
-                "job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids"
-            )));
+            return Err(LearnerError::UnresolvedName { name: name.to_string() }.into());
         }
         for (role, dep) in cfg.deps() {
             let field = role.field();
-            let rec = self.job(dep).await.map_err(|_| ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} does not exist")))?;
-            if sf_job::eval::is_eval_toml(&rec.config_toml) {
-                return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is an evaluation, not a training job")));
-            }
-            let dep_cfg = JobConfig::from_toml(&rec.config_toml).map_err(|e| ServiceError::Internal(format!("stored config of job {dep}: {e}")))?;
-            check_dep(&cfg, role, dep, &dep_cfg)?;
+            let refuse = |reason: &str| LearnerError::Dependency { field, dep, reason: reason.into() };
+            let rec = self.job(dep).await.map_err(|_| refuse("does not exist"))?;
+            let dep_spec = self.spec(&rec)?;
+            let Some(dep_cfg) = dep_spec.train() else {
+                return Err(refuse("is an evaluation, not a training job").into());
+            };
+            check_dep(&cfg, role, dep, dep_cfg)?;
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
-                return Err(ServiceError::InvalidArgument(format!("job config field `{field}`: job {dep} is {}", rec.state.as_str())));
+                return Err(refuse(&format!("is {}", rec.state.as_str())).into());
             }
         }
         let store = Arc::clone(&self.store);
@@ -154,6 +173,7 @@ impl Inner {
         let name = cfg.name.clone();
         let target = cfg.train.env_steps;
         let rec = blocking(move || store.create(&name, &toml_text, target, |id| root.join(format!("{id}-{name}")).display().to_string())).await?;
+        self.keep_spec(rec.id, JobSpec::Train(cfg));
         tracing::info!(job_id = rec.id, name = %rec.name, "job queued");
         self.wake.notify_one();
         Ok(rec)
@@ -162,7 +182,7 @@ impl Inner {
     /// A job with live progress if it is running.
     pub async fn job(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
         let store = Arc::clone(&self.store);
-        let mut rec = blocking(move || store.get(id)).await?.ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
+        let mut rec = blocking(move || store.get(id)).await?.ok_or(LearnerError::JobNotFound { job_id: id })?;
         if let Some(p) = self.live_progress(id).filter(|_| !rec.state.is_final()) {
             rec.progress = p;
             rec.state = JobState::Running;
@@ -192,7 +212,7 @@ impl Inner {
             })
         })
         .await?
-        .ok_or_else(|| ServiceError::NotFound(format!("job {id} not found")))?;
+        .ok_or(LearnerError::JobNotFound { job_id: id })?;
         if let Some(j) = self.active().filter(|j| j.id == id) {
             j.request_stop(StopReason::Cancelled);
         }
@@ -246,7 +266,7 @@ impl Inner {
                 info.last_seen = Instant::now();
                 Ok(())
             }
-            None => Err(ServiceError::NotFound(format!("worker {id} is not registered (the learner may have restarted): register again"))),
+            None => Err(LearnerError::WorkerNotRegistered { worker_id: id }.into()),
         }
     }
 
@@ -265,7 +285,7 @@ impl Inner {
         // A job waits until every job it depends on has succeeded; it fails if one did not.
         // (An evaluation's jobs succeeded before it was accepted: it has none to wait for.)
         let dep_state = |r: &JobRecord| -> Option<(u64, JobState)> {
-            let deps = JobConfig::from_toml(&r.config_toml).ok()?.deps();
+            let deps = self.spec(r).ok()?.deps();
             let states = deps.iter().map(|&(_, dep)| (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state)));
             // The worst: a failed one, else an unfinished one, else succeeded.
             states.max_by_key(|(_, s)| match s {
@@ -291,10 +311,11 @@ impl Inner {
     }
 
     async fn start_job(self: &Arc<Self>, rec: &JobRecord) -> Result<(), LearnerError> {
-        if sf_job::eval::is_eval_toml(&rec.config_toml) {
-            return self.start_eval(rec).await;
-        }
-        let cfg = JobConfig::from_toml(&rec.config_toml)?;
+        let spec = self.spec(rec)?;
+        let cfg = match &*spec {
+            JobSpec::Eval(grid) => return self.start_eval(rec, grid.clone()).await,
+            JobSpec::Train(cfg) => cfg.clone(),
+        };
         let maps = self.load_maps(&cfg.env.scenarios).await?;
         let dir = PathBuf::from(&rec.artifact_dir);
         let dir2 = dir.clone();
@@ -320,9 +341,8 @@ impl Inner {
                 }
             }
         }
-        let action_dim = setup::net_config(&cfg).action_dim;
-        let spec = setup::obs_spec(&cfg);
-        let segment_points = setup::sim_config(&cfg, None).obs.segment_points;
+        let r = setup::resolve(&cfg, None);
+        let (action_dim, spec, segment_points) = (r.net.action_dim, r.obs, r.sim.obs.segment_points);
         let maps2 = maps.clone();
         let segs = tokio::task::spawn_blocking(move || maps2.iter().map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points))).collect::<Vec<_>>()).await?;
         let counts = segs.iter().map(|s| s.len()).collect();
@@ -462,6 +482,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         next_worker: AtomicU64::new(first_worker.max(1)),
         assignments: AtomicU64::new(0),
         shutting_down: AtomicBool::new(false),
+        specs: Mutex::new(BTreeMap::new()),
     });
     let m3 = metrics.clone();
     let transport = match (cfg.tls_cert_file.is_some(), cfg.allow_plaintext_token) {
@@ -560,7 +581,7 @@ impl RunningLearner {
 /// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
 /// coordinator's Gaussians if it has fitted them (Stage 2). Blocking file IO (`coordinator.json`).
 pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecord, LearnerError>) -> Result<Vec<Frozen>, LearnerError> {
-    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source })?;
+    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source: source.into() })?;
     if cfg.kind == JobKind::SocialcommAdv {
         let flow = cfg.env.background_job.ok_or(LearnerError::NoBackgroundFlow { job_id: rec.id })?;
         let f = find(flow).map_err(|e| LearnerError::BackgroundFlow { flow, job_id: rec.id, source: Box::new(e) })?;
@@ -579,12 +600,12 @@ pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecor
 fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobConfig) -> Result<(), LearnerError> {
     let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
     role.accepts(job.kind, dep.kind).map_err(refuse)?;
-    if role == DepRole::Init && setup::net_config(dep) != setup::net_config(job) {
-        return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", setup::net_config(dep))));
+    let (mine, theirs) = (setup::resolve(job, None), setup::resolve(dep, None));
+    if role == DepRole::Init && theirs.net != mine.net {
+        return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", theirs.net)));
     }
-    let layout = |c: &JobConfig| setup::obs_spec(c).layout;
-    if layout(dep) != layout(job) {
-        return Err(refuse(format!("observes in the {:?} layout, this job in {:?}", layout(dep), layout(job))));
+    if theirs.obs.layout != mine.obs.layout {
+        return Err(refuse(format!("observes in the {:?} layout, this job in {:?}", theirs.obs.layout, mine.obs.layout)));
     }
     Ok(())
 }

@@ -19,7 +19,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
 
-use crate::Inner;
+use crate::{Inner, LearnerError};
 
 type Res<T> = Result<Response<T>, Status>;
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
@@ -143,7 +143,7 @@ impl ExperienceService for Experience {
         let episodes = m.episodes.iter().map(sf_proto::eval_episode_from_wire).collect::<Result<Vec<_>, WireError>>();
         let r = match episodes {
             Ok(eps) => self.0.eval_results(m.job_id, m.worker_id, m.cell_id, eps, m.error).await,
-            Err(e) => Err(ServiceError::InvalidArgument(e.to_string())),
+            Err(e) => Err(e.into()),
         };
         done(&self.0, "PushEvalResults", r.map(|stored| pb::EvalAck { stored }))
     }
@@ -190,59 +190,60 @@ impl ExperienceService for Experience {
 
     async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
         let r = req.into_inner();
-        let out = self.0.policy(r.job_id, r.version).await;
+        let out = self.0.policy(r.job_id, r.version).await.map_err(ServiceError::from);
         done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
     }
 }
 
 impl Inner {
-    /// Decodes, validates and stores one batch.
+    /// Decodes, validates and stores one batch. Decoding checks every value of up to a few MiB,
+    /// so it runs on a blocking thread like the store that follows.
     async fn ingest(self: &Arc<Self>, msg: pb::TransitionBatch) -> Result<crate::job::Ack, ServiceError> {
         let worker = msg.worker_id;
-        let b = sf_proto::batch_from_wire(msg).map_err(|e: WireError| ServiceError::InvalidArgument(e.to_string()))?;
+        let task = |e| ServiceError::from(LearnerError::Join(e));
+        let b = tokio::task::spawn_blocking(move || sf_proto::batch_from_wire(msg)).await.map_err(task)??;
         self.touch_worker(worker)?;
         let job = self.running(b.job_id).await?;
         let deadline = Instant::now() + INGEST_DEADLINE;
-        tokio::task::spawn_blocking(move || job.ingest(&b, deadline)).await.map_err(|e| ServiceError::Internal(format!("ingest task: {e}")))?
+        Ok(tokio::task::spawn_blocking(move || job.ingest(&b, deadline)).await.map_err(task)??)
     }
 
     /// The running job with this id; NOT_FOUND for unknown ids, FAILED_PRECONDITION otherwise.
-    pub(crate) async fn running(self: &Arc<Self>, id: u64) -> Result<Arc<crate::job::ActiveJob>, ServiceError> {
+    pub(crate) async fn running(self: &Arc<Self>, id: u64) -> Result<Arc<crate::job::ActiveJob>, LearnerError> {
         if let Some(j) = self.active() {
             if j.id == id {
                 return Ok(j);
             }
         }
         let rec = self.job(id).await?;
-        Err(ServiceError::FailedPrecondition(format!("job {id} is {}, not running", rec.state.as_str())))
+        Err(LearnerError::NotRunning { job_id: id, state: rec.state.as_str() })
     }
 
     /// Policy weights by version (0 = latest) of the running job, or the final policy of a
     /// succeeded one.
-    async fn policy(self: &Arc<Self>, job_id: u64, version: u64) -> Result<(u64, Arc<Vec<u8>>), ServiceError> {
+    async fn policy(self: &Arc<Self>, job_id: u64, version: u64) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
         match self.running(job_id).await {
             Ok(j) => {
                 let p = if version == 0 { j.latest() } else { j.version(version) };
-                p.map(|p| (p.version, p.weights)).ok_or_else(|| ServiceError::NotFound(format!("job {job_id} holds no policy version {version}")))
+                p.map(|p| (p.version, p.weights)).ok_or(LearnerError::NoPolicyVersion { job_id, version })
             }
-            Err(ServiceError::FailedPrecondition(m)) => {
+            Err(not_running @ LearnerError::NotRunning { .. }) => {
                 let rec = self.job(job_id).await?;
                 if rec.state != JobState::Succeeded {
-                    return Err(ServiceError::FailedPrecondition(m));
+                    return Err(not_running);
                 }
                 let dir = std::path::PathBuf::from(&rec.artifact_dir);
-                let read = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), String> {
-                    let w = std::fs::read(dir.join("policy.bpk")).map_err(|e| e.to_string())?;
-                    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("policy.json")).map_err(|e| e.to_string())?).map_err(|e| e.to_string())?;
-                    Ok((meta["version"].as_u64().unwrap_or(0), w))
+                let (final_version, weights) = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), LearnerError> {
+                    let read = |name: &str| std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source });
+                    let weights = read("policy.bpk")?;
+                    let meta: serde_json::Value = serde_json::from_slice(&read("policy.json")?).map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
+                    Ok((meta["version"].as_u64().unwrap_or(0), weights))
                 })
-                .await
-                .map_err(|e| ServiceError::Internal(e.to_string()))?
-                .map_err(|e| ServiceError::Internal(format!("reading the final policy of job {job_id}: {e}")))?;
-                if version != 0 && version != read.0 {
-                    return Err(ServiceError::NotFound(format!("job {job_id} finished at policy version {}; version {version} is gone", read.0)));
+                .await??;
+                if version != 0 && version != final_version {
+                    return Err(LearnerError::VersionGone { job_id, final_version, version });
                 }
-                Ok((read.0, Arc::new(read.1)))
+                Ok((final_version, Arc::new(weights)))
             }
             Err(e) => Err(e),
         }

@@ -93,9 +93,9 @@ pub fn run(input: TrainerInput) -> Outcome {
 fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     let TrainerInput { job, maps, segs, dir, resume, init_dir } = input;
     let cfg = &job.cfg;
-    let sim = setup::sim_config(cfg, None);
+    let resolved = setup::resolve(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
-    let mut sac = Sac::new(setup::sac_config(cfg), setup::net_config(cfg), setup::obs_spec(cfg), sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
+    let mut sac = Sac::new(resolved.sac.clone(), resolved.net.clone(), resolved.obs.clone(), resolved.sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
     let ckpt = dir.join("checkpoint");
     let mut st = resume.unwrap_or_default();
     if ckpt.exists() {
@@ -262,7 +262,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
         write_atomic(&dir.join("policy.bpk"), &last.weights)?;
         write_atomic(&dir.join("policy.json"), serde_json::json!({"version": last.version, "updates": sac.updates}).to_string().as_bytes())?;
         if let Some(c) = cfg.coordinator() {
-            fit_coordinator(&job, &maps, &segs, sim, &c, &last.weights, &dir)?;
+            fit_coordinator(&job, &maps, &segs, &resolved, &c, &last.weights, &dir)?;
         }
     }
     Ok(outcome)
@@ -274,7 +274,7 @@ fn fit_coordinator(
     job: &ActiveJob,
     maps: &[Arc<Map>],
     segs: &[Arc<MapSegments>],
-    sim: sf_sim::SimConfig,
+    resolved: &setup::ResolvedJob,
     c: &sf_job::config::CoordinatorSection,
     weights: &[u8],
     dir: &Path,
@@ -282,12 +282,12 @@ fn fit_coordinator(
     use sf_sac::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
     let cfg = &job.cfg;
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-    let sim = Arc::new(sim);
+    let sim = Arc::new(resolved.sim.clone());
     let t = Instant::now();
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&setup::net_config(cfg), &setup::obs_spec(cfg), sim.dt_s, &[&**seg], weights, 0, &device)
+        let runner = sf_sac::inference::PolicyRunner::from_bytes(&resolved.net, &resolved.obs, sim.dt_s, &[&**seg], weights, 0, &device)
             .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
         let settings = FitSettings {
             iterations: c.iterations,

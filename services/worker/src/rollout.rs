@@ -90,16 +90,15 @@ pub struct RolloutSpec {
 /// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
 pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
     let bg_kind = spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
-    let sim = Arc::new(setup::sim_config(&spec.job, bg_kind));
-    let obs = setup::obs_spec(&spec.job);
-    if obs.len != spec.obs_len {
-        bail!("the learner expects {}-float observations; this worker's build makes {}", spec.obs_len, obs.len);
+    let resolved = setup::resolve(&spec.job, bg_kind);
+    if resolved.obs.len != spec.obs_len {
+        bail!("the learner expects {}-float observations; this worker's build makes {}", spec.obs_len, resolved.obs.len);
     }
     std::thread::Builder::new()
         .name(format!("rollout-{}", spec.worker_id))
         .spawn(move || {
             let stop = Arc::clone(&control);
-            if let Err(e) = rollout(spec, sim, control, &credits, tx, metrics) {
+            if let Err(e) = rollout(spec, resolved, control, &credits, tx, metrics) {
                 // The session closes the stream when it ends; only other failures are errors.
                 if lock(&stop).stop || e.to_string() == STREAM_CLOSED {
                     tracing::debug!(error = %format!("{e:#}"), "rollout thread stopped");
@@ -111,10 +110,10 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credi
         .context("spawning the rollout thread")
 }
 
-fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Control>>, credits: &Credits, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
+fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<Control>>, credits: &Credits, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
     let job = &spec.job;
-    let net = setup::net_config(job);
-    let obs_spec = setup::obs_spec(job);
+    let setup::ResolvedJob { sim, net, obs: obs_spec, mode, .. } = resolved;
+    let sim = Arc::new(sim);
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
     let segs: Vec<MapSegments> = spec.maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let seg_refs: Vec<&MapSegments> = segs.iter().collect();
@@ -126,7 +125,7 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
         .enumerate()
         .map(|(k, m)| {
             let seed = spec.seed.wrapping_add(k as u64 * 0x9e37_79b9);
-            VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode: setup::mode(job), vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
+            VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
         })
         .collect();
     if let Some(share) = job.env.conflict_share {
@@ -139,9 +138,9 @@ fn rollout(spec: RolloutSpec, sim: Arc<sf_sim::SimConfig>, control: Arc<Mutex<Co
     let len = obs_spec.len;
     let (mut frozen_bg, mut frozen_ego, mut frozen_adv) = (None, None, None);
     for (role, cfg, bytes) in &spec.frozen {
-        let fs = setup::obs_spec(cfg);
-        anyhow::ensure!(fs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fs.len);
-        let runner = PolicyRunner::from_bytes(&setup::net_config(cfg), &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).with_context(|| format!("loading the frozen {role:?} policy"))?;
+        let fz = setup::resolve(cfg, None);
+        anyhow::ensure!(fz.obs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fz.obs.len);
+        let runner = PolicyRunner::from_bytes(&fz.net, &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).with_context(|| format!("loading the frozen {role:?} policy"))?;
         *match role {
             FrozenRole::Background => &mut frozen_bg,
             FrozenRole::Ego => &mut frozen_ego,
