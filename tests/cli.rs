@@ -359,6 +359,25 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     assert!(gif.starts_with(b"GIF89a") && gif.len() > 10_000, "{} bytes", gif.len());
     assert!(std::fs::read_to_string(report.join("report.html")).expect("html").contains("data:image/gif;base64,"));
 
+    // Two result sets as replicates of one graph: each its own report, the pooled one beside;
+    // a result set of another grid is refused by name before anything is written.
+    let both = dir.join("report-replicates");
+    let (ea, eb) = (dir.join("eval-a").display().to_string(), dir.join("eval-b").display().to_string());
+    let r = json_of(&socialflow(&["report", &ea, &eb, "--out", &both.display().to_string()], T));
+    assert_eq!(r["replicates"].as_array().map(Vec::len), Some(2), "{r}");
+    assert_eq!(r["episodes"].as_u64(), Some(2 * (a.lines().count() as u64 - 1)), "{r}");
+    assert!(both.join("run-1/report.md").exists() && both.join("run-2/report.md").exists());
+    let other = dir.join("eval-other");
+    std::fs::create_dir_all(&other).expect("dir");
+    std::fs::copy(dir.join("eval-a/episodes.csv"), other.join("episodes.csv")).expect("copy");
+    let mut meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("eval-a/meta.json")).expect("meta")).expect("meta JSON");
+    meta["cases"] = serde_json::json!(3);
+    std::fs::write(other.join("meta.json"), meta.to_string()).expect("meta");
+    let bad = socialflow(&["report", &ea, &other.display().to_string(), "--out", &dir.join("report-bad").display().to_string()], T);
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("eval-other") && err.contains("same grid"), "{err}");
+    assert!(!dir.join("report-bad").exists(), "nothing written");
+
     // The same file submitted to a learner on that data directory: its cells shared by two
     // worker processes, the same episodes and the same GIF.
     let l = socialflow_e2e::start_learner(&dir, 64 << 20);

@@ -146,8 +146,11 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
 
 #[derive(Args, Debug)]
 pub struct ReportArgs {
-    /// A results directory written by `socialflow eval` (`episodes.csv`, `meta.json`).
-    pub results: PathBuf,
+    /// A results directory written by `socialflow eval` (`episodes.csv`, `meta.json`); several
+    /// are replicates of one graph evaluated on the same grid (their own reports go to
+    /// `<out>/run-1`, `<out>/run-2`, ..., the pooled one to `<out>`).
+    #[arg(required = true, num_args = 1..)]
+    pub results: Vec<PathBuf>,
     /// Where `report.md`, `report.html` and the figures go.
     #[arg(long, default_value = "report")]
     pub out: PathBuf,
@@ -155,19 +158,31 @@ pub struct ReportArgs {
 
 /// Builds the report from stored results; prints the findings as JSON.
 pub fn report(a: ReportArgs) -> Result<()> {
-    let rows = sf_eval::episodes::read_episodes(&a.results.join("episodes.csv"))?;
-    if rows.is_empty() {
-        bail!("{} holds no evaluated episodes (run `socialflow eval` first)", a.results.join("episodes.csv").display());
+    let mut sets = Vec::with_capacity(a.results.len());
+    let mut meta: Option<(PathBuf, sf_eval::episodes::Meta)> = None;
+    for dir in &a.results {
+        let rows = sf_eval::episodes::read_episodes(&dir.join("episodes.csv"))?;
+        if rows.is_empty() {
+            bail!("{} holds no evaluated episodes (run `socialflow eval` first)", dir.join("episodes.csv").display());
+        }
+        let m = sf_eval::episodes::read_meta(&dir.join("meta.json"))?;
+        match &meta {
+            Some((first, m0)) if *m0 != m => bail!("{} and {} were not evaluated on the same grid (their meta.json differ): replicates must share one", first.display(), dir.display()),
+            Some(_) => {}
+            None => meta = Some((dir.clone(), m)),
+        }
+        sets.push(rows);
     }
-    let meta = sf_eval::episodes::read_meta(&a.results.join("meta.json"))?;
+    let Some((_, meta)) = meta else { bail!("no results directory given") };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    for e in std::fs::read_dir(&a.results).with_context(|| format!("reading {}", a.results.display()))?.flatten() {
+    // Episode GIFs of the first replicate.
+    for e in std::fs::read_dir(&a.results[0]).with_context(|| format!("reading {}", a.results[0].display()))?.flatten() {
         let name = e.file_name().to_string_lossy().to_string();
         if name.starts_with("gif-") && name.ends_with(".gif") {
             std::fs::copy(e.path(), a.out.join(&name)).with_context(|| format!("copying {name}"))?;
         }
     }
-    let f = sf_eval::report::build(&rows, &meta, &a.out)?;
+    let f = sf_eval::report::build_replicates(&sets, &meta, &a.out)?;
     println!("{}", serde_json::to_string(&f)?);
     eprintln!("wrote {}/report.md and report.html", a.out.display());
     Ok(())

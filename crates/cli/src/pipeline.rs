@@ -41,6 +41,12 @@ pub struct PipelineArgs {
     /// learner's artifact directory must be on this machine, as with `--embedded`).
     #[arg(long, requires = "eval")]
     pub report: Option<PathBuf>,
+    /// Train every job of the graph with this seed (`sac.seed`: network initialisation,
+    /// sampling and the training episodes) instead of its config's: a replicate of the graph
+    /// from scratch. The evaluation grid keeps its own seeds, so replicates meet the same
+    /// episodes. Use a fresh `--data-dir` per replicate.
+    #[arg(long)]
+    pub seed: Option<u64>,
     #[command(flatten)]
     pub conn: Conn,
 }
@@ -126,7 +132,7 @@ async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String
     // Newest first: the first of its name that is an evaluation.
     for j in remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)) {
         let full = remote::get(c, j.id).await?;
-        if sf_job::eval::is_eval_toml(&full.config_toml) {
+        if sf_job::JobSpec::from_toml(&full.config_toml).is_ok_and(|s| s.is_eval()) {
             existing = Some(full);
             break;
         }
@@ -149,7 +155,7 @@ async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String
         if !results.join("episodes.csv").exists() {
             bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", results.display());
         }
-        crate::eval::report(crate::eval::ReportArgs { results, out: out.to_path_buf() })?;
+        crate::eval::report(crate::eval::ReportArgs { results: vec![results], out: out.to_path_buf() })?;
     }
     Ok(())
 }
@@ -176,8 +182,18 @@ async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
     }
 }
 
+/// Sets `sac.seed` of every job (the `--seed` replicate).
+pub fn reseed(jobs: &mut [(PathBuf, JobConfig, String)], seed: u64) {
+    for (_, cfg, _) in jobs {
+        cfg.sac.seed = seed;
+    }
+}
+
 pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
-    let jobs = load(&a.dir)?;
+    let mut jobs = load(&a.dir)?;
+    if let Some(seed) = a.seed {
+        reseed(&mut jobs, seed);
+    }
     // The grid is checked before anything is submitted.
     let grid = match &a.eval {
         Some(p) => {
@@ -264,6 +280,24 @@ mod tests {
         }
         assert_eq!(jobs[pos("failmaker-3")].1.train.init_from.as_deref(), Some("failmaker-2"));
         assert_eq!(jobs[pos("failmaker-3")].1.env.ego_from.as_deref(), Some("ego-failmaker-2"));
+    }
+
+    /// A replicate changes the seed of every job and nothing else; what is submitted carries it.
+    #[test]
+    fn a_replicate_reseeds_every_job_and_only_the_seed() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper-small");
+        let before = load(&dir).expect("a valid pipeline");
+        let mut after = before.clone();
+        reseed(&mut after, 7);
+        assert_eq!(before.len(), after.len());
+        for ((_, b, _), (_, a, _)) in before.iter().zip(&after) {
+            assert_ne!(b.sac.seed, 7, "{}: the configs must not already use the test's seed", b.name);
+            assert_eq!(a.sac.seed, 7, "{}", a.name);
+            let mut a = a.clone();
+            a.sac.seed = b.sac.seed;
+            assert_eq!(a.to_toml(), b.to_toml(), "{}: only the seed changes", b.name);
+            assert!(JobConfig::from_toml(&after.iter().find(|(_, c, _)| c.name == b.name).expect("same names").1.to_toml()).expect("parses").sac.seed == 7);
+        }
     }
 
     #[test]

@@ -20,12 +20,16 @@ pub const EPISODES_HEADER: &str = "experiment,ego,flow,scenario,svo_deg,vehicles
 pub struct EpisodeRow {
     pub cell: Cell,
     pub ep: EvalEpisode,
+    /// Which replicate of the graph (trained from scratch with its own seed) the episode
+    /// belongs to when several result sets are reported together; 0 in a single set. Not a
+    /// column of `episodes.csv`: a results directory holds one replicate.
+    pub replicate: u32,
 }
 
 impl EpisodeRow {
     /// An evaluated episode of `cell`.
     pub fn new(cell: &Cell, e: &EvalEpisode) -> Self {
-        Self { cell: cell.clone(), ep: *e }
+        Self { cell: cell.clone(), ep: *e, replicate: 0 }
     }
 
     /// The cell the episode belongs to.
@@ -77,7 +81,7 @@ impl EpisodeRow {
             speed: num(10, "speed")?,
             collision: num(11, "collision")?,
         };
-        Ok(Self { cell, ep })
+        Ok(Self { cell, ep, replicate: 0 })
     }
 }
 
@@ -109,7 +113,7 @@ pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
 }
 
 /// What the report needs to know besides the episodes.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Meta {
     /// Ego name -> the flow (by name) it was trained in; its cell in that column is grey.

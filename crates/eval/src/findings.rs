@@ -47,6 +47,10 @@ pub struct Check {
     pub n: usize,
     pub p_value: f64,
     pub verdict: Verdict,
+    /// What identifies the claim across result sets (replicates of a graph): the claim itself
+    /// unless the claim quotes measured values (see [`Check::keyed`]).
+    #[serde(skip)]
+    pub key: String,
 }
 
 impl Check {
@@ -70,7 +74,13 @@ impl Check {
             p if p.is_finite() && p < ALPHA && effect_points < 0.0 => Verdict::Opposite,
             _ => Verdict::NotSignificant,
         };
-        Check { claim, test, effect_points, n, p_value, verdict }
+        Check { key: claim.clone(), claim, test, effect_points, n, p_value, verdict }
+    }
+
+    /// The same check identified by `key` instead of its claim: for a claim whose text quotes
+    /// measured values, which differ between result sets.
+    pub fn keyed(self, key: impl Into<String>) -> Check {
+        Check { key: key.into(), ..self }
     }
 
     pub fn holds(&self) -> bool {

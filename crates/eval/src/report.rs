@@ -65,7 +65,7 @@ fn pct(s: Summary) -> String {
 }
 
 /// Paired t-test of metric `m` between two row sets, paired on the same episode start
-/// (scenario, SVO, vehicles, case, seed) and the dimension that is not compared: with
+/// (replicate, scenario, SVO, vehicles, case, seed) and the dimension that is not compared: with
 /// `same_flow` two egos are compared on the same flow; otherwise two flows with the same ego
 /// (pooled rows of several egos pair each ego with itself, never with another ego).
 fn paired_on(a: &[&EpisodeRow], b: &[&EpisodeRow], m: Metric, same_flow: bool) -> Option<crate::PairedT> {
@@ -75,7 +75,7 @@ fn paired_on(a: &[&EpisodeRow], b: &[&EpisodeRow], m: Metric, same_flow: bool) -
 
 /// The metric's values of `a` and `b` on the episode starts they share (see [`paired_on`]).
 fn pairs(a: &[&EpisodeRow], b: &[&EpisodeRow], m: Metric, same_flow: bool) -> (Vec<f64>, Vec<f64>) {
-    let key = |r: &EpisodeRow| (if same_flow { r.cell.flow.clone() } else { r.cell.ego.clone() }, r.cell.scenario.clone(), r.cell.svo_deg, r.cell.vehicles, r.ep.case, r.ep.seed);
+    let key = |r: &EpisodeRow| (r.replicate, if same_flow { r.cell.flow.clone() } else { r.cell.ego.clone() }, r.cell.scenario.clone(), r.cell.svo_deg, r.cell.vehicles, r.ep.case, r.ep.seed);
     let bm: BTreeMap<_, f64> = b.iter().map(|r| (key(r), m(r) as f64)).collect();
     let (mut x, mut y) = (Vec::new(), Vec::new());
     for r in a {
@@ -179,8 +179,12 @@ fn b64(bytes: &[u8]) -> String {
 pub struct Findings {
     pub episodes: usize,
     pub experiments: Vec<String>,
-    /// The paper's findings this result set can test, each with its test, effect and p-value.
+    /// The paper's findings this result set can test, each with its test, effect and p-value
+    /// (over every replicate when there are several).
     pub checks: Vec<Check>,
+    /// With several replicates: each replicate's own findings, in replicate order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub replicates: Vec<Findings>,
 }
 
 fn by(rows: &[EpisodeRow], f: impl Fn(&EpisodeRow) -> bool) -> Vec<&EpisodeRow> {
@@ -205,11 +209,40 @@ struct Ctx<'a> {
 
 /// Builds `report.md`, `report.html` and the figures in `out` from `episodes` and `meta`.
 pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, ReportError> {
+    build_doc(rows, meta, out, Vec::new())
+}
+
+/// The report of several replicates of one graph (each trained from scratch with its own seed,
+/// evaluated on the same grid, `meta`): each replicate's own report in `out/run-<k>/`
+/// (k from 1), and in `out` the report of all their episodes together, in which paired tests
+/// pair episodes within a replicate (the same start under two flows or egos of the same
+/// replicate) and the findings table shows every replicate's effect and p beside the pooled
+/// one. One set is [`build`].
+pub fn build_replicates(sets: &[Vec<EpisodeRow>], meta: &Meta, out: &Path) -> Result<Findings, ReportError> {
+    if sets.len() == 1 {
+        return build(&sets[0], meta, out);
+    }
+    let mut each = Vec::with_capacity(sets.len());
+    let mut pooled = Vec::with_capacity(sets.iter().map(Vec::len).sum());
+    for (k, rows) in sets.iter().enumerate() {
+        each.push(build(rows, meta, &out.join(format!("run-{}", k + 1)))?);
+        pooled.extend(rows.iter().map(|r| EpisodeRow { replicate: k as u32, ..r.clone() }));
+    }
+    build_doc(&pooled, meta, out, each)
+}
+
+fn build_doc(rows: &[EpisodeRow], meta: &Meta, out: &Path, replicates: Vec<Findings>) -> Result<Findings, ReportError> {
     std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
     let mut doc = Doc { md: String::new(), html: String::new(), dir: out.to_path_buf() };
     let mut found = Findings { episodes: rows.len(), ..Findings::default() };
     doc.h(1, "socialflow: reproduction report");
-    doc.p(&format!("{} evaluated episodes ({} stored cases x {} seeds per cell). Values are percent, mean ± 95 % confidence half-width (Student t); p-values from paired two-sided t-tests over the same (case, seed) pairs. Stars: **** p < 0.0001, *** p < 0.001, ** p < 0.01, * p < 0.05.", rows.len(), meta.cases, meta.seeds));
+    let over = match replicates.len() {
+        0 => String::new(),
+        n => format!(
+            ", over {n} replicates of the graph (each trained from scratch with its own seed; each replicate's own report in run-1/ .. run-{n}/; paired tests pair episodes within a replicate)"
+        ),
+    };
+    doc.p(&format!("{} evaluated episodes ({} stored cases x {} seeds per cell{over}). Values are percent, mean ± 95 % confidence half-width (Student t); p-values from paired two-sided t-tests over the same (case, seed) pairs. Stars: **** p < 0.0001, *** p < 0.001, ** p < 0.01, * p < 0.05.", rows.len(), meta.cases, meta.seeds));
     let ctx = Ctx { rows, meta, out, scen_pref: ["intersection", "bottleneck", "merge", "roundabout"].iter().map(|s| s.to_string()).collect() };
     for section in [flow_quality, svo_sweep, density, adversary, cross] {
         section(&ctx, &mut doc, &mut found)?;
@@ -231,9 +264,37 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
     if !found.checks.is_empty() {
         doc.h(2, "The paper's findings at this budget");
         doc.p("Each finding in the paper's direction; effect: mean paired difference in points, positive where the paper says it should be; verdict at p < 0.05 with its direction (a significant effect the other way reads \"opposite\").");
-        let table: Vec<Vec<String>> = found.checks.iter().map(|c| vec![c.claim.clone(), c.test.clone(), format!("{:+.1}", c.effect_points), fmt_p(c.p_value), c.verdict.as_str().into()]).collect();
-        doc.table(&["Finding".into(), "Test".into(), "Effect (points)".into(), "p".into(), "Here".into()], &table);
+        if !replicates.is_empty() {
+            doc.p("Effect, p and verdict over every replicate's episodes, then each run's own; \"every run\": the verdict when all runs reach the same one, else \"runs disagree\". A \"-\": that run did not test the claim (the zero-shot comparisons are against each run's own two nearest egos).");
+        }
+        let mut head: Vec<String> = ["Finding", "Test", "Effect (points)", "p", "Here"].map(String::from).into();
+        head.extend((1..=replicates.len()).map(|k| format!("Run {k}: effect, p")));
+        if !replicates.is_empty() {
+            head.push("Every run".into());
+        }
+        let table: Vec<Vec<String>> = found
+            .checks
+            .iter()
+            .map(|c| {
+                let mut row = vec![c.claim.clone(), c.test.clone(), format!("{:+.1}", c.effect_points), fmt_p(c.p_value), c.verdict.as_str().into()];
+                let runs: Vec<Option<&Check>> = replicates.iter().map(|f| f.checks.iter().find(|r| r.key == c.key)).collect();
+                row.extend(runs.iter().map(|r| match r {
+                    Some(r) => format!("{:+.1}, {} ({})", r.effect_points, fmt_p(r.p_value), r.verdict.as_str()),
+                    None => "-".into(),
+                }));
+                if !runs.is_empty() {
+                    row.push(match runs.iter().map(|r| r.map(|r| r.verdict)).collect::<Option<Vec<_>>>() {
+                        Some(v) if v.windows(2).all(|w| w[0] == w[1]) => v[0].as_str().into(),
+                        Some(_) => "runs disagree".into(),
+                        None => "-".into(),
+                    });
+                }
+                row
+            })
+            .collect();
+        doc.table(&head, &table);
     }
+    found.replicates = replicates;
     let md_path = out.join("report.md");
     std::fs::write(&md_path, &doc.md).map_err(|e| file_err(&md_path, e))?;
     let html = format!("<!doctype html><html><head><meta charset=\"utf-8\"><title>socialflow report</title><style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}table{{border-collapse:collapse;margin:1em 0}}td,th{{border:1px solid #ccc;padding:3px 8px;font-size:13px}}img{{max-width:100%}}</style></head><body>{}</body></html>", doc.html);
@@ -443,7 +504,8 @@ fn adversary(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), Repor
                     flows[2],
                     100.0 * fm
                 );
-                found.checks.push(Check::from_paired(claim, &format!("success, {} - {}", flows[1], flows[2]), &t));
+                let key = format!("{} degrades egos more than {}", flows[2], flows[1]);
+                found.checks.push(Check::from_paired(claim, &format!("success, {} - {}", flows[1], flows[2]), &t).keyed(key));
             }
         }
     }
@@ -544,6 +606,7 @@ mod tests {
         EpisodeRow {
             cell: Cell { experiment: experiment.into(), ego: ego.into(), flow: flow.into(), scenario: "merge".into(), svo_deg: None, vehicles: None },
             ep: EvalEpisode { case, seed, success, safety: success, speed: 0.5, collision: 0.0 },
+            replicate: 0,
         }
     }
 
@@ -592,6 +655,45 @@ mod tests {
     fn stars_follow_the_paper() {
         assert_eq!((stars(1e-5), stars(5e-4), stars(5e-3), stars(0.03), stars(0.2)), ("****", "***", "**", "*", "n.s."));
         assert_eq!((fmt_p(0.0), fmt_p(0.0123)), ("< 1e-15".to_string(), "1.23e-2".to_string()));
+    }
+
+    /// Replicates pair within themselves: the same (case, seed) in two replicates are different
+    /// episodes. Here each replicate's SocialComm beats CoPO by ~10 points on every start while
+    /// the replicates' values are opposite, so pairing across them would see +-90 points.
+    #[test]
+    fn replicates_pair_within_themselves_and_report_each_run() {
+        let set = |rep: u32| {
+            let mut rows = Vec::new();
+            for case in 0..16 {
+                let base = if (case % 2 == 0) == (rep == 0) { 1.0 } else { 0.0 };
+                let jitter = (case % 3) as f32 * 0.01;
+                rows.push(row("flow_quality", "", "SocialComm", case, 0, base));
+                rows.push(row("flow_quality", "", "CoPO", case, 0, base - 0.1 - jitter));
+                // The adversary claim quotes measured values, which differ between replicates.
+                for (flow, v) in [("SocialComm", 0.7), ("SocialCommAdv", 0.6 - 0.1 * rep as f32), ("FailMaker", 0.2)] {
+                    rows.push(row("adversary", "RL/IDM", flow, case, 0, v + jitter));
+                }
+            }
+            rows
+        };
+        let meta = Meta { flows: vec!["CoPO".into(), "SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()], cases: 16, seeds: 1, ..Meta::default() };
+        let out = std::env::temp_dir().join(format!("sf-report-replicates-{}", std::process::id()));
+        let f = build_replicates(&[set(0), set(1)], &meta, &out).expect("report");
+        let copo = f.checks.iter().find(|c| c.claim == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)").expect("flow check");
+        assert_eq!(copo.n, 32, "both replicates' starts");
+        assert!(copo.holds() && (copo.effect_points - 11.0).abs() < 1.0, "{copo:?}");
+        assert_eq!(f.replicates.len(), 2);
+        for (k, r) in f.replicates.iter().enumerate() {
+            assert_eq!(r.episodes, 16 * 5, "run {k}");
+            assert!(out.join(format!("run-{}", k + 1)).join("report.md").exists(), "run {k}'s own report");
+        }
+        let md = std::fs::read_to_string(out.join("report.md")).expect("md");
+        assert!(md.contains("over 2 replicates") && md.contains("| Run 1: effect, p | Run 2: effect, p | Every run |"), "{md}");
+        let fm = md.lines().find(|l| l.starts_with("| FailMaker degrades egos more")).expect("adversary row");
+        assert!(!fm.contains("| - |") && fm.contains("3.3x"), "each run's check is found by its key although its claim differs: {fm}");
+        assert!(fm.ends_with("| holds |"), "both runs hold: {fm}");
+        assert_ne!(f.replicates[0].checks.iter().find(|c| c.key.starts_with("FailMaker")).map(|c| &c.claim), f.replicates[1].checks.iter().find(|c| c.key.starts_with("FailMaker")).map(|c| &c.claim));
+        let _ = std::fs::remove_dir_all(&out);
     }
 
     /// A tiny stored result set builds the whole report, and a clearly better ego is found
