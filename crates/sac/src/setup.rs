@@ -193,15 +193,20 @@ mod tests {
             assert_eq!((s.obs.ego_flag, s.svo_range_deg[0]), (flag, lo), "{bg:?}");
         }
         let s = sim_config(&job("failmaker"), None);
-        // `resolve` is the parts together; the background changes the simulator only.
+        assert_eq!((s.obs.ego_flag, s.svo_range_deg), (true, [-90.0, 90.0]));
+        assert_eq!(adversary_svo_deg(-1.0), 0.0);
+        assert_eq!(adversary_svo_deg(1.0), 90.0);
+    }
+
+    /// `resolve` is the parts together; the background changes the simulator only.
+    #[test]
+    fn resolve_is_the_parts_and_the_background_changes_only_the_simulator() {
+        let ego = job("ego");
         let (plain, with_bg) = (resolve(&ego, None), resolve(&ego, Some(JobKind::Failmaker)));
         assert_eq!((&plain.net, &plain.obs, plain.mode), (&net_config(&ego), &obs_spec(&ego), mode(&ego)));
         assert_eq!((&with_bg.net, &with_bg.obs), (&plain.net, &plain.obs));
         assert!(with_bg.sim.obs.ego_flag && !plain.sim.obs.ego_flag);
         assert_eq!(plain.sac, ego.sac);
-        assert_eq!((s.obs.ego_flag, s.svo_range_deg), (true, [-90.0, 90.0]));
-        assert_eq!(adversary_svo_deg(-1.0), 0.0);
-        assert_eq!(adversary_svo_deg(1.0), 90.0);
     }
 }
 
