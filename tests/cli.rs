@@ -121,6 +121,32 @@ fn train_runs_a_job_embedded_and_writes_its_artifacts() {
 }
 
 #[test]
+fn train_with_validation_keeps_the_best_validated_actor() {
+    let dir = socialflow_e2e::scratch("validation");
+    let cfg = dir.join("tiny.toml");
+    let job = socialflow_e2e::tiny_job(r#""roundabout", "merge""#, "tiny-val", 1000) + "[validation]\nevery_updates = 20\nepisodes = 3\nenvs = 3\n";
+    std::fs::write(&cfg, job).expect("config");
+    let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &dir.join("data").display().to_string(), "--quiet"], T));
+    assert_eq!(v["state"], "succeeded", "{v}");
+    let updates = v["progress"]["updates"].as_u64().expect("updates");
+    let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+    // One point every 20 updates and one for the last actor, each over 3 cases of 2 scenarios.
+    let csv = std::fs::read_to_string(art.join("validation.csv")).expect("validation.csv");
+    let rows: Vec<Vec<f64>> = csv.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().expect("number")).collect()).collect();
+    assert!(csv.starts_with("updates,env_steps,episodes,success,safety"), "{csv}");
+    assert_eq!(rows.len() as u64, updates / 20 + u64::from(!updates.is_multiple_of(20)), "{csv}");
+    assert!(rows.iter().all(|r| r[2] == 6.0 && (0.0..=1.0).contains(&r[3])), "{csv}");
+    assert_eq!(rows.last().map(|r| r[0] as u64), Some(updates));
+    // The final policy is the best point's actor, with the point in policy.json.
+    let best = rows.iter().fold(&rows[0], |b, r| if r[3] > b[3] || (r[3] == b[3] && r[4] > b[4]) { r } else { b });
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json")).expect("json");
+    assert_eq!(meta["selected_by"], "validation", "{meta}");
+    assert_eq!(meta["updates"].as_u64(), Some(best[0] as u64), "{meta} vs {csv}");
+    assert_eq!(std::fs::read(art.join("policy.bpk")).expect("policy"), std::fs::read(art.join("best_policy.bpk")).expect("best"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn invalid_configs_are_refused_with_the_field_named() {
     let dir = socialflow_e2e::scratch("badcfg");
     let job = dir.join("bad.toml");

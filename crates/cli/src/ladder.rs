@@ -186,6 +186,9 @@ struct SeedSummary {
     p_value: f64,
     per_scenario: BTreeMap<String, [f64; 2]>,
     updates: u64,
+    /// With `[validation]`: the update whose actor became the final policy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    selected_updates: Option<u64>,
     wall_s: f64,
     passed: bool,
     failed_checks: Vec<String>,
@@ -234,7 +237,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         let dir = &PathBuf::from(&policy.key);
         let seed_out = out.join(format!("seed-{seed}"));
         std::fs::create_dir_all(&seed_out)?;
-        for f in ["curve.csv", "curve.png", "config.toml"] {
+        for f in ["curve.csv", "curve.png", "config.toml", "validation.csv"] {
             if dir.join(f).exists() {
                 std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
             }
@@ -247,6 +250,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         mine.extend(idm.iter().map(|r| Row { train_seed: *seed, ..r.clone() }));
         let [updates, _, wall_s] = curve.last().copied().unwrap_or_default();
         let mut s = summarise(*seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
+        s.selected_updates = selected_updates(dir)?;
         check_curve(&mut s, &rung.gate, &curve);
         summaries.push(s);
         curves.push((*seed, curve));
@@ -279,6 +283,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&json)?)?;
     std::fs::write(out.join("summary.md"), summary_md(&rung, &summaries, passed))?;
     plot_curves(&out, &rung, &curves)?;
+    plot_validation(&out, &rung, &summaries)?;
     println!("{}", serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()}));
     print!("{}", summary_md(&rung, &summaries, passed));
     Ok(())
@@ -433,6 +438,7 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
         p_value,
         per_scenario,
         updates,
+        selected_updates: None,
         wall_s,
         passed: true,
         failed_checks: Vec::new(),
@@ -461,6 +467,15 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
     Ok(s)
 }
 
+/// The update at which a job's final policy was selected by its validation (`policy.json`),
+/// `None` when the final policy is the last actor.
+fn selected_updates(dir: &Path) -> Result<Option<u64>> {
+    let path = dir.join("policy.json");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| path.display().to_string())?;
+    Ok(v.get("selected_by").and_then(|b| (b == "validation").then(|| v.get("updates")?.as_u64())).flatten())
+}
+
 /// The gate's checks on the training curve.
 fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[CurvePt]) {
     if let Some(v) = g.curve_min_success {
@@ -486,9 +501,10 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     for s in seeds {
         let _ = writeln!(
             m,
-            "| {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} |",
+            "| {} | {}{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} |",
             s.train_seed,
             s.updates,
+            s.selected_updates.map(|u| format!(" (policy of {u})")).unwrap_or_default(),
             s.success,
             s.idm_success,
             s.collision,
@@ -531,6 +547,37 @@ fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
 }
 
 /// Rolling success against updates, one line per seed.
+/// `validation.png`: every seed's held-out success against updates (jobs with `[validation]`;
+/// nothing is drawn when no seed has a `validation.csv`).
+fn plot_validation(out: &Path, r: &Rung, seeds: &[SeedSummary]) -> Result<()> {
+    let mut series = Vec::new();
+    for s in seeds {
+        let path = out.join(format!("seed-{}", s.train_seed)).join("validation.csv");
+        if !path.exists() {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let mut lines = text.lines();
+        let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+        let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
+        let (u, v) = (col("updates")?, col("success")?);
+        let points = lines
+            .map(|l| {
+                let f: Vec<&str> = l.split(',').collect();
+                let num = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).with_context(|| format!("{}: bad row `{l}`", path.display()));
+                Ok((num(u)?, num(v)?))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        series.push((format!("seed {}", s.train_seed), points));
+    }
+    if series.is_empty() {
+        return Ok(());
+    }
+    let series: Vec<Series> = series.iter().map(|(name, points)| Series { name, points: points.clone() }).collect();
+    line_chart(&out.join("validation.png"), &format!("{} {}: held-out success (mean action)", r.rung, r.name), "updates", "validation success", &series, Some((0.0, 1.0)), (800, 500))
+        .map_err(|e| anyhow::anyhow!("drawing validation.png: {e}"))
+}
+
 fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<()> {
     let names: Vec<String> = curves.iter().map(|(s, _)| format!("seed {s}")).collect();
     let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() }).collect();

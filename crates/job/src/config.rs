@@ -140,6 +140,34 @@ pub struct JobConfig {
     /// fitted once Stage 1 has all its transitions. Absent: the defaults below.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coordinator: Option<CoordinatorSection>,
+    /// Policy selection by a held-out evaluation during training: absent, the job's final
+    /// policy is its last actor; present, the actor that scored best on the validation cases.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<ValidationSection>,
+}
+
+/// A held-out evaluation of the training actor (mean action) every `every_updates` updates on
+/// `episodes` generated cases per scenario, drawn once from `seed` like the training episodes
+/// (the job's vehicle range and `env.conflict_share`) and the same at every point, so points
+/// are paired. The job's final policy (`policy.bpk`) is the best-scoring actor (success, then
+/// safety; the earlier on ties); `validation.csv` holds every point. The checkpoint, and so
+/// `train.init_job` continuations, keep the last SAC state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ValidationSection {
+    pub every_updates: u64,
+    /// Generated cases per scenario.
+    pub episodes: u32,
+    /// Seeds the cases: keep it apart from evaluation's (the ladder's generated cases use 2026).
+    pub seed: u64,
+    /// Simulators stepped together.
+    pub envs: usize,
+}
+
+impl Default for ValidationSection {
+    fn default() -> Self {
+        Self { every_updates: 500, episodes: 100, seed: 0x76_616c, envs: 25 }
+    }
 }
 
 /// CoPO's Stage-2 coordinator: the cross-entropy method over a Gaussian on the SVO, per
@@ -297,6 +325,12 @@ pub struct SacConfig {
     /// critic rates the zero action at least as high as the policy's (`bc_q_filter`).
     pub bc_target: BcTarget,
     pub bc_q_filter: bool,
+    /// A Polyak average of the actor's weights (`avg <- (1 - t) avg + t actor` after every
+    /// update; absent: none). With it, validation scores and the final policy is the average,
+    /// while rollouts keep acting with the online actor. Smooths the policy's oscillation
+    /// between neighbouring updates.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub actor_average_tau: Option<f32>,
     /// The actor reads the critic's (detached) encoder features and publishes a copy of the
     /// critic's encoder instead of training its own: one encoder pass forward and backward
     /// fewer per update.
@@ -374,6 +408,7 @@ impl Default for SacConfig {
             huber_delta: 10.0,
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
+            actor_average_tau: None,
             shared_encoder: false,
             reuse_critic_features: true,
             seed: 0,
@@ -642,6 +677,9 @@ impl JobConfig {
         if s.bc_target == BcTarget::Zero && self.env.action == ActionMode::Direct {
             return bad("sac.bc_target", "\"zero\" is the IDM driver only for residual actions: set env.action to a residual kind");
         }
+        if s.actor_average_tau.is_some_and(|t| !(t > 0.0 && t <= 1.0)) {
+            return bad("sac.actor_average_tau", format!("{:?} must be in (0, 1]", s.actor_average_tau));
+        }
         if s.bc_q_filter && s.bc_target != BcTarget::Zero {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the zero action: set sac.bc_target = \"zero\"");
         }
@@ -732,6 +770,20 @@ impl JobConfig {
                 return bad("coordinator.envs", format!("{} must be in 1..=256", c.envs));
             }
         }
+        if let Some(v) = &self.validation {
+            if !(self.kind == JobKind::Ego || self.kind.multi_agent()) {
+                return bad("validation", format!("selects drivers by success: ego and flow jobs only, not {} (an adversary)", self.kind.as_str()));
+            }
+            if v.every_updates == 0 {
+                return bad("validation.every_updates", "must be positive");
+            }
+            if v.episodes == 0 || v.episodes > 10_000 {
+                return bad("validation.episodes", format!("{} must be in 1..=10000", v.episodes));
+            }
+            if v.envs == 0 || v.envs > 256 {
+                return bad("validation.envs", format!("{} must be in 1..=256", v.envs));
+            }
+        }
         Ok(())
     }
 }
@@ -767,6 +819,22 @@ mod tests {
         assert!(e.to_string().contains("coordinator.elite_frac"), "{e}");
         assert_eq!(JobConfig::from_toml(&copo).expect("copo").coordinator(), Some(CoordinatorSection::default()), "copo fits one by default");
         assert_eq!(JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n")).expect("stage 1 only").coordinator(), None);
+    }
+
+    #[test]
+    fn validation_section_is_checked_and_round_trips() {
+        let ego = MIN.replace("name = \"t\"\n", "name = \"t\"\nkind = \"ego\"\n");
+        let cfg = JobConfig::from_toml(&format!("{ego}[validation]\nevery_updates = 250\n")).expect("ego with validation");
+        assert_eq!(cfg.validation, Some(ValidationSection { every_updates: 250, ..Default::default() }));
+        assert_eq!(JobConfig::from_toml(&cfg.to_toml()).expect("round trip").validation, cfg.validation);
+        assert_eq!(JobConfig::from_toml(&ego).expect("no section").validation, None);
+        for (body, field) in [("every_updates = 0", "validation.every_updates"), ("episodes = 0", "validation.episodes"), ("envs = 0", "validation.envs"), ("shots = 3", "shots")] {
+            let e = JobConfig::from_toml(&format!("{ego}[validation]\n{body}\n")).expect_err(body);
+            assert!(e.to_string().contains(field), "{body}: {e}");
+        }
+        let fm = MIN.replace("name = \"t\"\n", "name = \"t\"\nkind = \"failmaker\"\n").replace("[train]", "ego_job = 1\n[train]");
+        let e = JobConfig::from_toml(&format!("{fm}[validation]\n")).expect_err("an adversary");
+        assert!(e.to_string().contains("validation") && e.to_string().contains("failmaker"), "{e}");
     }
 
     #[test]

@@ -10,6 +10,17 @@ pub use sf_sim::Layout;
 /// zeroed): the simulator's visibility type, one type for the concept.
 pub use sf_sim::SvoVisibility;
 
+/// A [`NetConfig`] that [`NetConfig::validate`] refuses; names the field and its value.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum NetConfigError {
+    #[error("net config field `{field}` must be positive")]
+    NotPositive { field: &'static str },
+    #[error("net config field `init_log_std` must lie in the actor's log-std range [-2.5, 0.5], got {init_log_std}")]
+    InitLogStd { init_log_std: f32 },
+    #[error("net config field `heads`: d_model {d_model} is not divisible by {heads}")]
+    Heads { d_model: usize, heads: usize },
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct NetConfig {
@@ -87,7 +98,7 @@ impl NetConfig {
     }
 
     /// Checks sizes; names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), NetConfigError> {
         for (f, v) in [
             ("d_model", self.d_model),
             ("set_hidden", self.set_hidden),
@@ -98,14 +109,14 @@ impl NetConfig {
             ("action_dim", self.action_dim),
         ] {
             if v == 0 {
-                return Err(format!("net config field `{f}` must be positive"));
+                return Err(NetConfigError::NotPositive { field: f });
             }
         }
         if !(-2.5..=0.5).contains(&self.init_log_std) {
-            return Err(format!("net config field `init_log_std` must lie in the actor's log-std range [-2.5, 0.5], got {}", self.init_log_std));
+            return Err(NetConfigError::InitLogStd { init_log_std: self.init_log_std });
         }
         if !self.d_model.is_multiple_of(self.heads) {
-            return Err(format!("net config field `heads`: d_model {} is not divisible by {}", self.d_model, self.heads));
+            return Err(NetConfigError::Heads { d_model: self.d_model, heads: self.heads });
         }
         Ok(())
     }

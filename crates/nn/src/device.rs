@@ -17,7 +17,7 @@ pub enum DeviceKind {
     Ndarray,
 }
 
-#[derive(Debug, thiserror::Error)]
+#[derive(Clone, Debug, thiserror::Error)]
 pub enum DeviceError {
     #[error("device `{0}` needs a build with the `{0}` feature of socialflow-nn")]
     NotBuilt(&'static str),
@@ -46,7 +46,7 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
 #[cfg(feature = "cuda")]
 fn probe_cuda() -> Result<Device, DeviceError> {
     use std::sync::OnceLock;
-    static PROBE: OnceLock<Result<(), String>> = OnceLock::new();
+    static PROBE: OnceLock<Result<(), DeviceError>> = OnceLock::new();
     let r = PROBE.get_or_init(|| {
         let quiet = std::panic::take_hook();
         std::panic::set_hook(Box::new(|_| {}));
@@ -58,11 +58,13 @@ fn probe_cuda() -> Result<Device, DeviceError> {
         std::panic::set_hook(quiet);
         match r {
             Ok(2) => Ok(()),
-            Ok(n) => Err(format!("a test tensor came back with {n} values")),
-            Err(p) => Err(p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "CUDA initialisation panicked".into())),
+            Ok(n) => Err(DeviceError::Unavailable(format!("a test tensor came back with {n} values"))),
+            Err(p) => {
+                Err(DeviceError::Unavailable(p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "CUDA initialisation panicked".into())))
+            }
         }
     });
-    r.clone().map(|()| Device::cuda(0)).map_err(DeviceError::Unavailable)
+    r.clone().map(|()| Device::cuda(0))
 }
 
 /// The training device of a kind (autodiff enabled).

@@ -277,8 +277,16 @@ pub fn input_names(spec: &ObsSpec) -> Vec<&'static str> {
     v
 }
 
+/// What [`export_actor`] cannot export.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum OnnxError {
+    /// [`ExportSpec::table`] is `None` for a query-centric layout.
+    #[error("a query-centric actor needs its maps' segment table")]
+    NoSegmentTable,
+}
+
 /// The actor's deterministic action as a serialized ONNX model.
-pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, String> {
+pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError> {
     let (spec, net) = (x.spec, x.net);
     let enc: &Encoder = &actor.enc;
     let d = enc.d();
@@ -349,7 +357,7 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, String> {
             (tok, any)
         }
         Layout::QueryCentric => {
-            let table = x.table.ok_or("a query-centric actor needs its maps' segment table")?;
+            let table = x.table.ok_or(OnnxError::NoSegmentTable)?;
             let seg_id = g.input("seg_id", FLOAT, &[m]);
             let seg_pose = g.input("seg_pose", FLOAT, &[m, 4]);
             let seg_mask = g.input("seg_mask", FLOAT, &[m]);

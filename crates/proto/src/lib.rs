@@ -171,7 +171,7 @@ fn frozen_from_wire(f: &pb::FrozenPolicy) -> Result<Frozen, WireError> {
         if g.scenario.is_empty() {
             return wire("assignment.frozen.svo_gaussians.scenario", "must be set");
         }
-        gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e })?;
+        gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e.to_string() })?;
         svo_gaussians.push((g.scenario.clone(), gauss));
     }
     Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })

@@ -6,7 +6,8 @@
 //! restored learner refills it) or run during an update.
 //!
 //! Layout: `actor.bpk`, `critic.bpk`, `target.bpk`, `log_alpha.bpk`, `opt_actor.bpk`,
-//! `opt_critic.bpk`, `opt_alpha.bpk`, `state.json`.
+//! `opt_critic.bpk`, `opt_alpha.bpk`, `state.json`, and `actor_avg.bpk` with
+//! `sac.actor_average_tau`.
 
 use std::path::{Path, PathBuf};
 
@@ -53,16 +54,19 @@ fn rec_err<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(String) -> Che
     move |reason| CheckpointError::Record { path: path.display().to_string(), what, reason }
 }
 
-fn module_bytes<M: Module + Clone>(m: &M) -> Result<Vec<u8>, String> {
-    weights::to_bytes(m).map_err(|e| e.to_string())
+/// `m`'s record; the error names `what` in checkpoint `dir`.
+fn module_bytes<M: Module + Clone>(m: &M, dir: &Path, what: &'static str) -> Result<Vec<u8>, CheckpointError> {
+    weights::to_bytes(m).map_err(|e| rec_err(dir, what)(e.to_string()))
 }
 
-fn opt_bytes(o: &burn::optim::ModuleOptimizer) -> Result<Vec<u8>, String> {
-    o.into_bytes().map(|b| b.to_vec()).map_err(|e| format!("{e:?}"))
+/// `o`'s state; the error names `what` in checkpoint `dir`.
+fn opt_bytes(o: &burn::optim::ModuleOptimizer, dir: &Path, what: &'static str) -> Result<Vec<u8>, CheckpointError> {
+    o.into_bytes().map(|b| b.to_vec()).map_err(|e| rec_err(dir, what)(format!("{e:?}")))
 }
 
-fn load_module<M: Module>(m: M, bytes: Vec<u8>) -> Result<M, String> {
-    weights::from_bytes(m, &bytes).map_err(|e| e.to_string())
+/// `bytes` loaded into `m`; the error names `what` in checkpoint `dir`.
+fn load_module<M: Module>(m: M, bytes: Vec<u8>, dir: &Path, what: &'static str) -> Result<M, CheckpointError> {
+    weights::from_bytes(m, &bytes).map_err(|e| rec_err(dir, what)(e.to_string()))
 }
 
 /// Writes `sac` into `dir` atomically: readers see either the old or the new checkpoint.
@@ -73,16 +77,17 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
     }
     std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
     let files = [
-        ("actor.bpk", "actor", module_bytes(&sac.actor)),
-        ("critic.bpk", "critic", module_bytes(&sac.critic)),
-        ("target.bpk", "target critic", module_bytes(&sac.target)),
-        ("log_alpha.bpk", "log alpha", module_bytes(&sac.log_alpha)),
-        ("opt_actor.bpk", "actor optimizer", opt_bytes(&sac.opt_actor)),
-        ("opt_critic.bpk", "critic optimizer", opt_bytes(&sac.opt_critic)),
-        ("opt_alpha.bpk", "alpha optimizer", opt_bytes(&sac.opt_alpha)),
+        ("actor.bpk", module_bytes(&sac.actor, dir, "actor")),
+        ("critic.bpk", module_bytes(&sac.critic, dir, "critic")),
+        ("target.bpk", module_bytes(&sac.target, dir, "target critic")),
+        ("log_alpha.bpk", module_bytes(&sac.log_alpha, dir, "log alpha")),
+        ("opt_actor.bpk", opt_bytes(&sac.opt_actor, dir, "actor optimizer")),
+        ("opt_critic.bpk", opt_bytes(&sac.opt_critic, dir, "critic optimizer")),
+        ("opt_alpha.bpk", opt_bytes(&sac.opt_alpha, dir, "alpha optimizer")),
     ];
-    for (name, what, bytes) in files {
-        let bytes = bytes.map_err(rec_err(dir, what))?;
+    let avg = sac.actor_avg.as_ref().map(|a| ("actor_avg.bpk", module_bytes(a, dir, "averaged actor")));
+    for (name, bytes) in files.into_iter().chain(avg) {
+        let bytes = bytes?;
         let p = tmp.join(name);
         std::fs::write(&p, bytes).map_err(io(&p))?;
     }
@@ -143,10 +148,17 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     if state.net != sac.net {
         return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net) });
     }
-    let actor = load_module(sac.actor.clone(), read("actor.bpk")?).map_err(rec_err(dir, "actor"))?;
-    let critic = load_module(sac.critic.clone(), read("critic.bpk")?).map_err(rec_err(dir, "critic"))?;
-    let target = load_module(sac.target.clone(), read("target.bpk")?).map_err(rec_err(dir, "target critic"))?;
-    let log_alpha = load_module(sac.log_alpha.clone(), read("log_alpha.bpk")?).map_err(rec_err(dir, "log alpha"))?;
+    let actor = load_module(sac.actor.clone(), read("actor.bpk")?, dir, "actor")?;
+    let critic = load_module(sac.critic.clone(), read("critic.bpk")?, dir, "critic")?;
+    let target = load_module(sac.target.clone(), read("target.bpk")?, dir, "target critic")?;
+    let log_alpha = load_module(sac.log_alpha.clone(), read("log_alpha.bpk")?, dir, "log alpha")?;
+    // A checkpoint without an averaged actor (written without `sac.actor_average_tau`) starts
+    // the average at the restored actor.
+    let actor_avg = match &sac.actor_avg {
+        Some(avg) if dir.join("actor_avg.bpk").exists() => Some(load_module(avg.clone(), read("actor_avg.bpk")?, dir, "averaged actor")?),
+        Some(_) => Some(actor.valid()),
+        None => None,
+    };
     let opt = |name: &str| -> Result<Bytes, CheckpointError> { Ok(Bytes::from_bytes_vec(read(name)?)) };
     let fresh = || burn::optim::AdamConfig::new().init();
     let opt_actor = fresh().from_bytes(opt("opt_actor.bpk")?).map_err(|e| rec_err(dir, "actor optimizer")(format!("{e:?}")))?;
@@ -157,6 +169,7 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     sac.actor = actor;
     sac.critic = critic;
     sac.target = target;
+    sac.actor_avg = actor_avg;
     sac.log_alpha = log_alpha;
     sac.opt_actor = opt_actor;
     sac.opt_critic = opt_critic;

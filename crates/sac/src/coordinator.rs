@@ -15,8 +15,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
-use sf_sim::case::random_case;
-use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::case::{random_case, SvoGaussianError};
+use sf_sim::vec_env::{EpisodeSpec, VecEnv, VecEnvError};
 use sf_sim::{Map, Mode, SimConfig, SvoGaussian};
 
 use crate::drive::{run_episodes, Actor, Drivers};
@@ -97,19 +97,36 @@ pub struct CoordinatorFile {
     pub scenarios: Vec<ScenarioFit>,
 }
 
+/// What failed reading a [`CoordinatorFile`] or running [`fit_scenario`]; names the file,
+/// scenario or setting.
+#[derive(Debug, thiserror::Error)]
+pub enum CoordinatorError {
+    #[error("reading {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("{path}: {source}")]
+    Parse { path: String, source: serde_json::Error },
+    #[error("{path}: scenario {scenario}: {source}")]
+    Gaussian { path: String, scenario: String, source: SvoGaussianError },
+    #[error("coordinator settings out of range: {0:?}")]
+    Settings(FitSettings),
+    /// The generated episodes do not fit the map.
+    #[error(transparent)]
+    Episodes(#[from] VecEnvError),
+}
+
 impl CoordinatorFile {
     pub const FILE: &'static str = "coordinator.json";
 
     /// The file of a job's artifact directory, if it has one (a CoPO flow past Stage 2).
-    pub fn load(dir: &Path) -> Result<Option<Self>, String> {
+    pub fn load(dir: &Path) -> Result<Option<Self>, CoordinatorError> {
         let p = dir.join(Self::FILE);
         if !p.exists() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&p).map_err(|e| format!("reading {}: {e}", p.display()))?;
-        let f: Self = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
+        let text = std::fs::read_to_string(&p).map_err(|source| CoordinatorError::Read { path: p.display().to_string(), source })?;
+        let f: Self = serde_json::from_str(&text).map_err(|source| CoordinatorError::Parse { path: p.display().to_string(), source })?;
         for s in &f.scenarios {
-            s.gaussian.validate().map_err(|e| format!("{}: scenario {}: {e}", p.display(), s.scenario))?;
+            s.gaussian.validate().map_err(|source| CoordinatorError::Gaussian { path: p.display().to_string(), scenario: s.scenario.clone(), source })?;
         }
         Ok(Some(f))
     }
@@ -136,9 +153,15 @@ pub struct FitSettings {
 /// candidate SVO given to every agent of `episodes` generated cases, driven by the frozen
 /// flow (`runner`, sampled; its map index 0 is `map`), scored by the mean individual reward
 /// per agent-step. `progress` sees every iteration.
-pub fn fit_scenario(map: &Arc<Map>, sim: &Arc<SimConfig>, runner: &PolicyRunner, s: &FitSettings, mut progress: impl FnMut(&IterationLog)) -> Result<(Coordinator, Vec<IterationLog>), String> {
+pub fn fit_scenario(
+    map: &Arc<Map>,
+    sim: &Arc<SimConfig>,
+    runner: &PolicyRunner,
+    s: &FitSettings,
+    mut progress: impl FnMut(&IterationLog),
+) -> Result<(Coordinator, Vec<IterationLog>), CoordinatorError> {
     if s.population == 0 || s.episodes == 0 || s.envs == 0 || s.vehicles.0 == 0 || s.vehicles.0 > s.vehicles.1 || !(s.elite_frac > 0.0 && s.elite_frac <= 1.0) {
-        return Err(format!("coordinator settings out of range: {s:?}"));
+        return Err(CoordinatorError::Settings(s.clone()));
     }
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
     let mut coord = Coordinator::default();

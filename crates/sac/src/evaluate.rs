@@ -5,7 +5,8 @@
 //! together ([`check_cell`]), the per-scenario policy cache ([`Runners`]), [`run_cell`] and the
 //! side-by-side GIF of one case under several flows ([`render_gif`]). `socialflow eval`
 //! (embedded) and the worker (an evaluation job's cells) both call these, so the same cell
-//! gives the same numbers wherever it runs. Must not: find jobs (callers hand over configs and
+//! gives the same numbers wherever it runs; a training job's validation runs its generated
+//! cases through the same settings ([`run_cases`]). Must not: find jobs (callers hand over configs and
 //! weights) or write results.
 //!
 //! Actions: ego policies act with their mean action; learned flows and the adversary sample,
@@ -85,7 +86,7 @@ impl Policy {
         let cfg = JobConfig::from_toml(&text).map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
         let path = dir.join("policy.bpk");
         let weights = std::fs::read(&path).map_err(io("reading (is the job finished?)", &path))?;
-        let coordinator = crate::coordinator::CoordinatorFile::load(dir).map_err(EvalError::Invalid)?;
+        let coordinator = crate::coordinator::CoordinatorFile::load(dir).map_err(|e| EvalError::Invalid(e.to_string()))?;
         let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
         Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
     }
@@ -215,6 +216,12 @@ impl Runners {
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
     }
+
+    /// Drops every cached runner of the policy `key` (one that will not act again, such as a
+    /// training actor once validated).
+    pub fn forget(&mut self, key: &str) {
+        self.cache.retain(|(k, _), _| k != key);
+    }
 }
 
 /// The policies acting in a cell.
@@ -295,6 +302,22 @@ pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, f
     run_stored(map, &sim, mode, acting.svo_gaussian, &episodes, &acting.drivers())
 }
 
+/// Runs `cases` chosen outside (a training job's generated validation cases, say) once per
+/// seed, as a cell of `ego` (or the flow on its own) in `flow` would: the same settings, mode
+/// and acting policies; episodes in (seed, case) order.
+pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+    let cell = Cell {
+        experiment: String::new(),
+        ego: ego.map(|e| e.key.clone()).unwrap_or_default(),
+        flow: flow.kind().map_or("idm", JobKind::as_str).to_string(),
+        scenario: map.name.clone(),
+        svo_deg: None,
+        vehicles: None,
+    };
+    let (sim, mode, acting) = cell_setup(&cell, map, flow, ego, runners)?;
+    run_stored(map, &sim, mode, acting.svo_gaussian, &Episodes { cases, seeds, envs, vehicles: None, svo_deg: None }, &acting.drivers())
+}
+
 /// Stored episodes to run: every case once per seed.
 pub struct Episodes<'a> {
     pub cases: &'a [sf_sim::Case],
@@ -318,7 +341,7 @@ pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian
     for seed in 0..episodes.seeds {
         let eps: Vec<EpisodeSpec> =
             episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps).map_err(EvalError::Misfit)?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps).map_err(|e| EvalError::Misfit(e.to_string()))?;
         v.set_svo_gaussian(svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
@@ -386,7 +409,8 @@ pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, m
     for (name, flow) in flows {
         let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
         let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
-        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(EvalError::Misfit)?;
+        let mut v =
+            VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(|e| EvalError::Misfit(e.to_string()))?;
         v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut frames = vec![renderer.frame(v.env(0))];

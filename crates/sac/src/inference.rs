@@ -42,7 +42,7 @@ impl PolicyRunner {
 
     /// Its actor's deterministic action as an ONNX model (`sf_nn::onnx`), the segment table of
     /// its maps included as constants (query-centric).
-    pub fn export_onnx(&self, producer_version: &str, doc: &str) -> Result<Vec<u8>, String> {
+    pub fn export_onnx(&self, producer_version: &str, doc: &str) -> Result<Vec<u8>, sf_nn::onnx::OnnxError> {
         let x = sf_nn::onnx::ExportSpec { spec: &self.spec, net: &self.net, frame_dt_s: self.frame_dt_s, table: self.table.as_ref(), producer_version, doc };
         sf_nn::onnx::export_actor(&self.actor, &x)
     }

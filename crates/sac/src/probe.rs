@@ -22,8 +22,16 @@ use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::Map;
 
 use crate::drive::{self, Actor, Drivers};
-use crate::replay::{Batch, Replay, Transition};
+use crate::replay::{Batch, Replay, ReplayError, Transition};
 use crate::{setup, Sac};
+
+/// What failed collecting or training on the probe's transitions.
+#[derive(Debug, thiserror::Error)]
+pub enum ProbeError {
+    /// The replay refused a transition or a sample (the replay's error names the field).
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+}
 
 /// Demonstrator transitions with their failure labels, split by episode.
 pub struct ProbeData {
@@ -47,7 +55,7 @@ struct Pending {
 }
 
 /// Runs the demonstrator for at least `transitions` ego transitions over the job's scenarios.
-pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: usize, seed: u64) -> Result<ProbeData, String> {
+pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: usize, seed: u64) -> Result<ProbeData, ProbeError> {
     let setup::ResolvedJob { sim, net, .. } = setup::resolve(job, None);
     let sim = Arc::new(sim);
     let per_map = 8;
@@ -115,7 +123,7 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
         let fail_at = ep.iter().position(|p| p.failed);
         for (t, p) in ep.iter().enumerate() {
             if i < n_train {
-                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, map_id: p.map_id }).map_err(|e| e.to_string())?;
+                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, map_id: p.map_id })?;
             } else {
                 test.obs.extend_from_slice(&p.obs);
                 test.next_obs.extend_from_slice(&p.next_obs);
@@ -151,13 +159,13 @@ pub struct ProbeScore {
 
 /// Trains `sac` (cloning updates as configured, then the critic alone) for `updates` updates
 /// on the training split and scores its critic on the held-out rows.
-pub fn train_and_score(sac: &mut Sac, data: &ProbeData, updates: u64, seed: u64) -> Result<ProbeScore, String> {
+pub fn train_and_score(sac: &mut Sac, data: &ProbeData, updates: u64, seed: u64) -> Result<ProbeScore, ProbeError> {
     sac.cfg.critic_pretrain_updates = u64::MAX / 2;
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x70_726f_6265);
     let mut batch = Batch::default();
     let t = std::time::Instant::now();
     for _ in 0..updates {
-        data.train.sample_into(&mut rng, sac.cfg.batch_size, &mut batch).map_err(|e| e.to_string())?;
+        data.train.sample_into(&mut rng, sac.cfg.batch_size, &mut batch)?;
         sac.update(&batch);
     }
     let updates_per_s = updates as f64 / t.elapsed().as_secs_f64().max(1e-9);

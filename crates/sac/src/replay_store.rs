@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use half::f16;
 
-use crate::replay::Replay;
+use crate::replay::{Replay, ReplayError};
 
 const MAGIC: &[u8; 8] = b"SFREPLAY";
 const VERSION: u32 = 1;
@@ -30,6 +30,9 @@ pub enum ReplayStoreError {
     Corrupt { path: String, reason: String },
     #[error("replay segment {path} holds {got} (obs floats, action dims); the job has {want:?}")]
     Shape { path: String, got: String, want: (usize, usize) },
+    /// The replay refused one of the segment's transitions (a non-finite value, a wrong shape).
+    #[error("replay segment {path}: {source}")]
+    Refused { path: String, source: ReplayError },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ReplayStoreError + '_ {
@@ -177,7 +180,7 @@ impl Segment {
 
     /// Pushes transitions with insertion numbers below `upto` into `r` (in order).
     /// Returns how many it pushed.
-    pub fn push_into(&self, r: &mut Replay, upto: u64) -> Result<u64, String> {
+    pub fn push_into(&self, r: &mut Replay, upto: u64) -> Result<u64, ReplayError> {
         let (ol, ad) = (self.obs_len, self.act_dim);
         let mut n = 0;
         for i in 0..self.len() {
@@ -189,7 +192,7 @@ impl Segment {
                 break;
             }
             let row = |j: u32| &self.rows[j as usize * ol..(j as usize + 1) * ol];
-            r.push_f16(row(self.obs_row[i]), &self.actions[i * ad..(i + 1) * ad], self.rewards[i], row(self.next_row[i]), self.terminals[i], self.map_ids[i]).map_err(|e| e.to_string())?;
+            r.push_f16(row(self.obs_row[i]), &self.actions[i * ad..(i + 1) * ad], self.rewards[i], row(self.next_row[i]), self.terminals[i], self.map_ids[i])?;
             n += 1;
         }
         Ok(n)
@@ -285,7 +288,7 @@ impl ReplayStore {
             if (seg.obs_len, seg.act_dim) != (obs_len, act_dim) {
                 return Err(ReplayStoreError::Shape { path: s.path.display().to_string(), got: format!("({}, {})", seg.obs_len, seg.act_dim), want: (obs_len, act_dim) });
             }
-            seg.push_into(&mut r, reach).map_err(|reason| ReplayStoreError::Corrupt { path: s.path.display().to_string(), reason })?;
+            seg.push_into(&mut r, reach).map_err(|source| ReplayStoreError::Refused { path: s.path.display().to_string(), source })?;
         }
         if r.inserted() < upto {
             r.renumber(upto);

@@ -61,6 +61,8 @@ pub struct Sac {
     pub actor: Actor,
     pub critic: Critic,
     pub target: Critic,
+    /// `sac.actor_average_tau`: the Polyak average of the actor (inference copy).
+    pub actor_avg: Option<Actor>,
     pub log_alpha: LogAlpha,
     pub(crate) opt_actor: burn::optim::ModuleOptimizer,
     pub(crate) opt_critic: burn::optim::ModuleOptimizer,
@@ -75,7 +77,7 @@ pub struct Sac {
 impl Sac {
     /// `maps` are the maps whose segments query-centric observations index (by map id).
     pub fn new(cfg: SacConfig, net: NetConfig, spec: ObsSpec, frame_dt_s: f32, maps: &[&MapSegments]) -> Result<Self, SacError> {
-        net.validate().map_err(SacError::Config)?;
+        net.validate().map_err(|e| SacError::Config(e.to_string()))?;
         if !(cfg.gamma > 0.0 && cfg.gamma <= 1.0 && cfg.tau > 0.0 && cfg.tau <= 1.0 && cfg.batch_size > 0 && cfg.initial_alpha > 0.0) {
             return Err(SacError::Config(format!("gamma, tau in (0, 1], batch_size and initial_alpha positive; got {cfg:?}")));
         }
@@ -87,6 +89,7 @@ impl Sac {
             actor.enc = critic.enc.clone();
         }
         let target = critic.valid();
+        let actor_avg = cfg.actor_average_tau.map(|_| actor.valid());
         let la = Tensor::from_data(TensorData::new(vec![cfg.initial_alpha.ln()], [1]), &ad);
         let qc = spec.layout == sf_sim::Layout::QueryCentric;
         Ok(Self {
@@ -106,6 +109,7 @@ impl Sac {
             actor,
             critic,
             target,
+            actor_avg,
             updates: 0,
         })
     }
@@ -254,6 +258,9 @@ impl Sac {
 
         // 5. Polyak: target <- (1 - tau) target + tau critic.
         self.target = polyak(self.target.clone(), &self.critic.valid(), self.cfg.tau);
+        if let (Some(avg), Some(t)) = (self.actor_avg.take(), self.cfg.actor_average_tau) {
+            self.actor_avg = Some(polyak(avg, &self.actor.valid(), t));
+        }
         self.updates += 1;
         Losses { critic: critic_loss, actor: actor_loss, alpha_loss, alpha: self.alpha(), entropy, q_mean }
     }
@@ -269,6 +276,15 @@ impl Sac {
     /// The actor's weights (inference copy) as `sf_nn::weights` bytes: what workers load.
     pub fn actor_bytes(&self) -> Result<Vec<u8>, sf_nn::weights::WeightsError> {
         sf_nn::weights::to_bytes(&self.actor.valid())
+    }
+
+    /// The weights a job's validation scores and its final policy takes: the averaged actor
+    /// with `sac.actor_average_tau`, else the actor itself.
+    pub fn selected_actor_bytes(&self) -> Result<Vec<u8>, sf_nn::weights::WeightsError> {
+        match &self.actor_avg {
+            Some(avg) => sf_nn::weights::to_bytes(avg),
+            None => self.actor_bytes(),
+        }
     }
 
     /// `min(Q1, Q2)(s, a)` of the online critic for rows of observations and actions, in

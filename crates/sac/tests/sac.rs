@@ -121,6 +121,41 @@ fn one_update_moves_online_nets_and_the_target_only_by_polyak() {
 }
 
 #[test]
+fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let spec = sf_sim::ObsSpec::new(&sim.obs);
+    let segs = MapSegments::build(&m, sim.obs.segment_points);
+    let make = |seed| Sac::new(SacConfig { seed, batch_size: 16, reward_scale: 1.0, actor_average_tau: Some(0.1), ..SacConfig::default() }, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+    let mut a = make(4);
+    let avg0 = flat(a.actor_avg.as_ref().expect("an average"));
+    assert_eq!(avg0, flat(&a.actor), "the average starts at the actor");
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let batches: Vec<Batch> = (0..4).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
+    a.update(&batches[0]);
+    let (actor1, avg1) = (flat(&a.actor), flat(a.actor_avg.as_ref().expect("an average")));
+    assert!(actor1.iter().zip(&avg0).any(|(x, y)| x != y), "the actor moved");
+    for i in 0..avg1.len() {
+        let want = 0.9 * avg0[i] + 0.1 * actor1[i];
+        assert!((avg1[i] - want).abs() <= 1e-6 * want.abs().max(1.0), "param {i}: {} vs {want}", avg1[i]);
+    }
+    // What validation scores and the final policy takes is the average, not the actor.
+    assert_ne!(a.selected_actor_bytes().expect("bytes"), a.actor_bytes().expect("bytes"));
+    let dir = std::env::temp_dir().join(format!("sf-sac-avg-{}", std::process::id()));
+    checkpoint::save(&a, &dir).expect("save");
+    a.update(&batches[1]);
+    let mut b = make(99);
+    checkpoint::restore(&mut b, &dir).expect("restore");
+    b.update(&batches[1]);
+    assert_eq!(flat(a.actor_avg.as_ref().expect("avg")), flat(b.actor_avg.as_ref().expect("avg")), "the average continues exactly");
+    // Without the setting there is no average and the actor is what is selected.
+    let plain = sac_for(&sim, &m, 4);
+    assert!(plain.actor_avg.is_none());
+    assert_eq!(plain.selected_actor_bytes().expect("bytes"), plain.actor_bytes().expect("bytes"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn gradients_do_not_reach_frozen_modules() {
     let sim = Arc::new(SimConfig::default());
     let m = map();

@@ -32,12 +32,12 @@ pub struct SvoGaussian {
 
 impl SvoGaussian {
     /// Checks the parameters; names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SvoGaussianError> {
         if !self.mean_deg.is_finite() || !(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1).contains(&self.mean_deg) {
-            return Err(format!("mean_deg {} must lie in [0, 90]", self.mean_deg));
+            return Err(SvoGaussianError::Mean { mean_deg: self.mean_deg });
         }
         if !self.std_deg.is_finite() || self.std_deg < 0.0 {
-            return Err(format!("std_deg {} must be finite and >= 0", self.std_deg));
+            return Err(SvoGaussianError::Std { std_deg: self.std_deg });
         }
         Ok(())
     }
@@ -46,6 +46,15 @@ impl SvoGaussian {
         let z: f32 = rand_distr::StandardNormal.sample(rng);
         (self.mean_deg + self.std_deg * z).clamp(SVO_RANGE_DEG.0, SVO_RANGE_DEG.1)
     }
+}
+
+/// An [`SvoGaussian`] whose parameters are out of range; names the field and its value.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+pub enum SvoGaussianError {
+    #[error("mean_deg {mean_deg} must lie in [0, 90]")]
+    Mean { mean_deg: f32 },
+    #[error("std_deg {std_deg} must be finite and >= 0")]
+    Std { std_deg: f32 },
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]

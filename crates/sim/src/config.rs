@@ -30,13 +30,20 @@ impl Layout {
     }
 
     /// Parses [`Layout::as_str`]'s names; the error lists them.
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, LayoutError> {
         match s {
             "ego-frame" => Ok(Self::EgoFrame),
             "query-centric" => Ok(Self::QueryCentric),
-            other => Err(format!("unknown layout `{other}` (expected `ego-frame` or `query-centric`)")),
+            other => Err(LayoutError::Unknown { name: other.to_string() }),
         }
     }
+}
+
+/// A layout name [`Layout::parse`] does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum LayoutError {
+    #[error("unknown layout `{name}` (expected `ego-frame` or `query-centric`)")]
+    Unknown { name: String },
 }
 
 /// Whose Social Value Orientation an observer sees.

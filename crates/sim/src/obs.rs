@@ -150,23 +150,34 @@ impl ObsSpec {
     /// whole number below `segments` (the map's piece count). The error names the block and slot.
     /// Generic over the stored value (`f32`, or the wire's half floats): only the checked
     /// values are converted.
-    pub fn check_row<T: Copy + Into<f32>>(&self, row: &[T], segments: usize) -> Result<(), String> {
+    pub fn check_row<T: Copy + Into<f32>>(&self, row: &[T], segments: usize) -> Result<(), ObsRowError> {
         if row.len() != self.len {
-            return Err(format!("observation has {} values; the layout has {}", row.len(), self.len));
+            return Err(ObsRowError::Length { got: row.len(), want: self.len });
         }
         let at = |r: &Range<usize>| row[r.clone()].iter().map(|&v| v.into());
-        for (name, r) in [("agents_mask", &self.agents_mask), ("route_mask", &self.route_mask), ("map_mask", &self.map_mask), ("seg_mask", &self.seg_mask)] {
-            if let Some((k, v)) = at(r).enumerate().find(|&(_, v)| v != 0.0 && v != 1.0) {
-                return Err(format!("{name}[{k}] is {v}; masks are 0 or 1"));
+        for (block, r) in [("agents_mask", &self.agents_mask), ("route_mask", &self.route_mask), ("map_mask", &self.map_mask), ("seg_mask", &self.seg_mask)] {
+            if let Some((slot, value)) = at(r).enumerate().find(|&(_, v)| v != 0.0 && v != 1.0) {
+                return Err(ObsRowError::Mask { block, slot, value });
             }
         }
-        for (k, (id, valid)) in at(&self.seg_id).zip(at(&self.seg_mask)).enumerate() {
+        for (slot, (id, valid)) in at(&self.seg_id).zip(at(&self.seg_mask)).enumerate() {
             if valid == 1.0 && !(id >= 0.0 && id.fract() == 0.0 && (id as usize) < segments) {
-                return Err(format!("seg_id[{k}] is {id}; the map has {segments} segments"));
+                return Err(ObsRowError::SegmentId { slot, id, segments });
             }
         }
         Ok(())
     }
+}
+
+/// An observation row from outside that [`ObsSpec::check_row`] refuses; names the block and slot.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ObsRowError {
+    #[error("observation has {got} values; the layout has {want}")]
+    Length { got: usize, want: usize },
+    #[error("{block}[{slot}] is {value}; masks are 0 or 1")]
+    Mask { block: &'static str, slot: usize, value: f32 },
+    #[error("seg_id[{slot}] is {id}; the map has {segments} segments")]
+    SegmentId { slot: usize, id: f32, segments: usize },
 }
 
 /// Map polylines cut into pieces of `points` points (consecutive pieces share an end point),

@@ -93,6 +93,14 @@ pub fn idm_ego_collides(map: &Arc<Map>, sim: &Arc<SimConfig>, case: &Case) -> bo
     e.agents()[0].termination == Some(Termination::Collision)
 }
 
+/// Stored episodes that [`VecEnv::from_episodes`] refuses.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum VecEnvError {
+    /// A case does not fit the map (`field` inside the case, as [`Case::check`] names it).
+    #[error("case {case}: {field}: {reason}")]
+    Case { case: u32, field: String, reason: String },
+}
+
 /// One stored episode to run (evaluation): a case, optionally truncated to `vehicles`, with
 /// every agent's SVO set to `svo_deg` if given; `tag` comes back with its metrics.
 #[derive(Clone, Debug)]
@@ -145,9 +153,9 @@ impl VecEnv {
     /// that finishes takes the next one (slots in index order, so results do not depend on
     /// thread timing). Rows of slots with nothing left stay zero; [`VecEnv::is_finished`] tells
     /// when all are done and [`VecEnv::take_finished_tagged`] returns their metrics by tag.
-    pub fn from_episodes(map: Arc<Map>, sim: Arc<SimConfig>, mode: Mode, n_envs: usize, episodes: Vec<EpisodeSpec>) -> Result<Self, String> {
+    pub fn from_episodes(map: Arc<Map>, sim: Arc<SimConfig>, mode: Mode, n_envs: usize, episodes: Vec<EpisodeSpec>) -> Result<Self, VecEnvError> {
         for e in &episodes {
-            e.case.check(&map).map_err(|(field, reason)| format!("case {}: {field}: {reason}", e.case.id))?;
+            e.case.check(&map).map_err(|(field, reason)| VecEnvError::Case { case: e.case.id, field, reason })?;
         }
         let most = episodes.iter().map(|e| e.vehicles.unwrap_or(usize::MAX).min(e.case.vehicles.len())).max().unwrap_or(1);
         let cfg = VecEnvConfig { n_envs: n_envs.max(1), mode, vehicles: (1, most.max(1) as u32), seed: 0 };

@@ -110,6 +110,13 @@ pub enum DriveAction {
     IdmAccelResidual,
 }
 
+/// An action name [`DriveAction::parse`] does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum DriveActionError {
+    #[error("unknown action `{name}` (expected one of {})", DriveAction::NAMES.join(", "))]
+    Unknown { name: String },
+}
+
 impl DriveAction {
     pub const NAMES: [&'static str; 3] = ["direct", "idm-residual", "idm-accel-residual"];
 
@@ -123,8 +130,8 @@ impl DriveAction {
     }
 
     /// Parses [`DriveAction::as_str`]'s names; the error lists them.
-    pub fn parse(s: &str) -> Result<Self, String> {
-        [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual].into_iter().find(|a| a.as_str() == s).ok_or_else(|| format!("unknown action `{s}` (expected one of {})", Self::NAMES.join(", ")))
+    pub fn parse(s: &str) -> Result<Self, DriveActionError> {
+        [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual].into_iter().find(|a| a.as_str() == s).ok_or_else(|| DriveActionError::Unknown { name: s.to_string() })
     }
 
     /// Floats per action.

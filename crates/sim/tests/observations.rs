@@ -106,11 +106,11 @@ fn check_layout(layout: Layout) {
                 spec.check_row(&row, ob.segments.len()).unwrap_or_else(|e| panic!("{name}: a real observation refused: {e}"));
                 let mut bad = row.clone();
                 bad[spec.agents_mask.start] = 0.5;
-                assert!(spec.check_row(&bad, ob.segments.len()).expect_err("fractional mask").contains("agents_mask[0]"));
+                assert!(spec.check_row(&bad, ob.segments.len()).expect_err("fractional mask").to_string().contains("agents_mask[0]"));
                 if layout == Layout::QueryCentric {
                     let mut bad = row.clone();
                     bad[spec.seg_id.start] = ob.segments.len() as f32;
-                    assert!(spec.check_row(&bad, ob.segments.len()).expect_err("segment id past the map").contains("seg_id[0]"));
+                    assert!(spec.check_row(&bad, ob.segments.len()).expect_err("segment id past the map").to_string().contains("seg_id[0]"));
                     bad[spec.seg_id.start] = -1.0;
                     assert!(spec.check_row(&bad, ob.segments.len()).is_err());
                 }
@@ -291,9 +291,9 @@ fn blocks_tile_the_row_in_both_layouts() {
         assert_eq!(names.contains(&"map"), layout == Layout::EgoFrame);
         assert_eq!(Layout::parse(layout.as_str()), Ok(layout));
     }
-    assert!(Layout::parse("polar").unwrap_err().contains("ego-frame"));
+    assert!(Layout::parse("polar").unwrap_err().to_string().contains("ego-frame"));
     for a in [sf_sim::DriveAction::Direct, sf_sim::DriveAction::IdmResidual, sf_sim::DriveAction::IdmAccelResidual] {
         assert_eq!(sf_sim::DriveAction::parse(a.as_str()), Ok(a));
     }
-    assert!(sf_sim::DriveAction::parse("fly").unwrap_err().contains("idm-accel-residual"));
+    assert!(sf_sim::DriveAction::parse("fly").unwrap_err().to_string().contains("idm-accel-residual"));
 }

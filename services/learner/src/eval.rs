@@ -378,7 +378,7 @@ impl crate::Inner {
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
-        self.set_evaluating(Some(Arc::clone(&job)));
+        self.slot.fill(crate::slot::Running::Eval(Arc::clone(&job)));
         let started = tokio::task::spawn_blocking(move || {
             store.update(id, |r| {
                 if !r.state.is_final() {
@@ -391,7 +391,7 @@ impl crate::Inner {
         .and_then(|r| r.map_err(LearnerError::from));
         if !matches!(&started, Ok(Some(r)) if r.state == JobState::Running) {
             job.request_stop(StopReason::Cancelled);
-            self.set_evaluating(None);
+            self.slot.clear();
             self.wake.notify_one();
             return started.map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
         }

@@ -197,6 +197,29 @@ impl ActiveJob {
     /// Validates `b` against the job, drops it if stale, waits on the rate limiter until
     /// `deadline`, then stores it. Blocking.
     pub fn ingest(&self, b: &TransitionBatch, deadline: Instant) -> Result<Ack, IngestError> {
+        self.check(b)?;
+        let latest = self.latest_version();
+        if b.policy_version > latest {
+            return Err(IngestError::UnpublishedVersion { version: b.policy_version, latest });
+        }
+        let warm = self.in_warmup();
+        let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
+        if self.is_stale(b.policy_version, latest, warm) {
+            lock(&self.stats).c.dropped_stale += b.count as u64;
+            self.metrics.transitions_dropped.get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() }).inc_by(b.count as u64);
+            return Ok(ack(0, b.count));
+        }
+        let take = self.reserve(b.count)?;
+        self.admit(take, deadline)?;
+        self.store(b, take)?;
+        self.count(b, take);
+        Ok(ack(take, b.count - take))
+    }
+
+    /// What the networks index or branch on: widths, map ids, and every observation row
+    /// (masks, segment ids), so one bad row refuses the batch here instead of failing the job
+    /// in the trainer.
+    fn check(&self, b: &TransitionBatch) -> Result<(), IngestError> {
         if self.stopping.load(Ordering::Acquire) {
             return Err(IngestError::Stopping { job_id: self.id });
         }
@@ -207,78 +230,86 @@ impl ActiveJob {
         if let Some(&m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
             return Err(IngestError::MapOutOfRange { map_id: m, job_id: self.id, maps: n_maps });
         }
-        // What the networks index or branch on (masks, segment ids): one bad row refuses the
-        // batch here instead of failing the job in the trainer.
         let ol = self.obs_len;
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
+                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|e| IngestError::BadRow { field, index: i, reason: e.to_string() })?;
             }
         }
-        let latest = self.latest_version();
-        if b.policy_version > latest {
-            return Err(IngestError::UnpublishedVersion { version: b.policy_version, latest });
+        Ok(())
+    }
+
+    /// Whether a batch acted with `version` is dropped: warm-up data (version 0) once the
+    /// warm-up is over, a policy's data more than `max_policy_lag` versions old. Records the lag.
+    fn is_stale(&self, version: u64, latest: u64, warm: bool) -> bool {
+        if version == 0 {
+            return !warm;
         }
-        let warm = self.in_warmup();
-        let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
-        let random = b.policy_version == 0;
-        let lag = latest.saturating_sub(b.policy_version);
-        if !random {
-            self.metrics.policy_lag.observe(lag as f64);
-            let mut s = lock(&self.stats);
-            s.lag_sum += lag;
-            s.lag_batches += 1;
+        let lag = latest.saturating_sub(version);
+        self.metrics.policy_lag.observe(lag as f64);
+        let mut s = lock(&self.stats);
+        s.lag_sum += lag;
+        s.lag_batches += 1;
+        lag > self.cfg.train.max_policy_lag
+    }
+
+    /// Reserves up to `count` of the transitions the job still needs.
+    fn reserve(&self, count: usize) -> Result<usize, IngestError> {
+        let mut s = lock(&self.stats);
+        let take = (count as u64).min(self.cfg.train.env_steps.saturating_sub(s.reserved));
+        if take == 0 {
+            // Every transition the job needs is in; the trainer is finishing its updates.
+            return Err(IngestError::Complete { job_id: self.id });
         }
-        let stale = if random { !warm } else { lag > self.cfg.train.max_policy_lag };
-        if stale {
-            lock(&self.stats).c.dropped_stale += b.count as u64;
-            self.metrics.transitions_dropped.get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() }).inc_by(b.count as u64);
-            return Ok(ack(0, b.count));
-        }
-        let take = {
-            let mut s = lock(&self.stats);
-            let take = (b.count as u64).min(self.cfg.train.env_steps.saturating_sub(s.reserved));
-            if take == 0 {
-                // Every transition the job needs is in; the trainer is finishing its updates.
-                return Err(IngestError::Complete { job_id: self.id });
+        s.reserved += take;
+        Ok(take as usize)
+    }
+
+    /// Waits until the rate limiter lets `take` transitions in (or `deadline`, or the job
+    /// stops: the reservation is released).
+    fn admit(&self, take: usize, deadline: Instant) -> Result<(), IngestError> {
+        loop {
+            let now = Instant::now();
+            if now >= deadline {
+                self.unreserve(take);
+                return Err(IngestError::Deadline);
             }
-            s.reserved += take;
-            take as usize
-        };
-        if take > 0 {
-            loop {
-                let now = Instant::now();
-                if now >= deadline {
+            match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250))) {
+                Ok(()) => return Ok(()),
+                Err(RateLimitError::Timeout(_)) => continue,
+                Err(RateLimitError::Closed) => {
                     self.unreserve(take);
-                    return Err(IngestError::Deadline);
+                    return Err(IngestError::Stopping { job_id: self.id });
                 }
-                match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250))) {
-                    Ok(()) => break,
-                    Err(RateLimitError::Timeout(_)) => continue,
-                    Err(RateLimitError::Closed) => {
-                        self.unreserve(take);
-                        return Err(IngestError::Stopping { job_id: self.id });
-                    }
-                    Err(e @ RateLimitError::Invalid { .. }) => return Err(IngestError::RateLimit(e)),
-                }
+                Err(e @ RateLimitError::Invalid { .. }) => return Err(IngestError::RateLimit(e)),
             }
-            let mut r = lock(&self.replay);
-            let (ol, ad) = (self.obs_len, self.action_dim);
-            for i in 0..take {
-                // Decoding validated shapes and values, so this cannot fail; if it did, the rows
-                // already stored stay and the rest is released so the job can still complete.
-                if let Err(e) = r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i]) {
-                    drop(r);
-                    let mut s = lock(&self.stats);
-                    s.reserved -= (take - i) as u64;
-                    s.c.env_steps += i as u64;
-                    return Err(IngestError::Replay(e));
-                }
-            }
-            self.metrics.replay_size.set(r.len() as i64);
-            self.metrics.replay_bytes.set((r.len() * r.bytes_per_transition()) as i64);
         }
+    }
+
+    /// Copies the first `take` rows into the replay.
+    fn store(&self, b: &TransitionBatch, take: usize) -> Result<(), IngestError> {
+        let mut r = lock(&self.replay);
+        let (ol, ad) = (self.obs_len, self.action_dim);
+        for i in 0..take {
+            // Decoding validated shapes and values, so this cannot fail; if it did, the rows
+            // already stored stay and the rest is released so the job can still complete.
+            if let Err(e) = r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i]) {
+                drop(r);
+                let mut s = lock(&self.stats);
+                s.reserved -= (take - i) as u64;
+                s.c.env_steps += i as u64;
+                return Err(IngestError::Replay(e));
+            }
+        }
+        self.metrics.replay_size.set(r.len() as i64);
+        self.metrics.replay_bytes.set((r.len() * r.bytes_per_transition()) as i64);
+        Ok(())
+    }
+
+    /// Counts a stored batch: counters, the rolling episode window, the transition rate,
+    /// completion and the metrics.
+    fn count(&self, b: &TransitionBatch, take: usize) {
         self.metrics.transitions_received.inc_by(take as u64);
         self.metrics.env_steps.inc_by(b.sim_steps);
         for e in &b.episodes {
@@ -297,9 +328,7 @@ impl ActiveJob {
         }
         let now = Instant::now();
         let steps = s.c.env_steps;
-        if take > 0 {
-            s.rate.push_back((now, steps));
-        }
+        s.rate.push_back((now, steps));
         while s.rate.len() > 2 && now.duration_since(s.rate[0].0) > Duration::from_secs(10) {
             s.rate.pop_front();
         }
@@ -310,7 +339,6 @@ impl ActiveJob {
         self.metrics.success.set(succ as f64);
         self.metrics.safety.set(safe as f64);
         self.metrics.speed.set(speed as f64);
-        Ok(ack(take, b.count - take))
     }
 
     fn unreserve(&self, n: usize) {

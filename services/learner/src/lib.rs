@@ -3,7 +3,8 @@
 //! Owns: [`start`] (validates the [`LearnerConfig`] before any port is bound, binds the gRPC and
 //! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
 //! behind the handlers: the job store and every stored job's parsed [`sf_job::JobSpec`]
-//! (parsed once), the one running job ([`job::ActiveJob`]), registered workers, metrics. The
+//! (parsed once), the one running slot ([`slot::Slot`]: a training [`job::ActiveJob`] or an
+//! evaluation [`eval::EvalJob`]), the worker registry ([`workers::Workers`]), metrics. The
 //! scheduler runs one job at a time — a RUNNING job left by a previous process first
 //! (auto-resume from its checkpoint), then QUEUED jobs in id order — a training job on a
 //! dedicated trainer thread ([`trainer`]), an evaluation job ([`eval`]) by leasing its cells to
@@ -18,18 +19,22 @@ pub mod cmd;
 pub mod config;
 mod error;
 pub mod eval;
+mod experience;
 pub mod job;
 pub mod metrics;
 pub mod service;
+pub mod slot;
 pub mod store;
 pub mod trainer;
+pub mod validation;
+pub mod workers;
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
-use std::time::{Duration, Instant};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use anyhow::Context;
 use prometheus_client::registry::Registry;
@@ -48,27 +53,22 @@ pub use crate::config::LearnerConfig;
 pub use crate::error::{IngestError, LearnerError};
 use crate::job::{ActiveJob, StopReason};
 use crate::metrics::LearnerMetrics;
+use crate::slot::{Running, Slot};
 use crate::store::Store;
 use crate::trainer::Outcome;
-use sf_svc::sync::{lock, read, write};
-
-struct WorkerInfo {
-    name: String,
-    last_seen: Instant,
-}
+use crate::workers::Workers;
+use sf_svc::sync::lock;
 
 /// State shared by the handlers, the scheduler and the trainer's completion task.
 pub struct Inner {
     cfg: LearnerConfig,
     store: Arc<Store>,
     pub metrics: LearnerMetrics,
-    active: RwLock<Option<Arc<ActiveJob>>>,
-    /// The running evaluation job (never together with a training job).
-    evaluating: RwLock<Option<Arc<eval::EvalJob>>>,
+    /// The running training or evaluation job.
+    slot: Slot,
     wake: Notify,
     idle: Notify,
-    workers: Mutex<HashMap<u64, WorkerInfo>>,
-    next_worker: AtomicU64,
+    workers: Workers,
     assignments: AtomicU64,
     shutting_down: AtomicBool,
     /// Every stored job's text, parsed once (by submit, or on first use after a restart): a
@@ -85,20 +85,14 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, store::StoreE
 }
 
 impl Inner {
+    /// The running training job.
     pub fn active(&self) -> Option<Arc<ActiveJob>> {
-        read(&self.active).clone()
+        self.slot.train()
     }
 
-    fn set_active(&self, j: Option<Arc<ActiveJob>>) {
-        *write(&self.active) = j;
-    }
-
+    /// The running evaluation job.
     pub fn evaluating(&self) -> Option<Arc<eval::EvalJob>> {
-        read(&self.evaluating).clone()
-    }
-
-    fn set_evaluating(&self, j: Option<Arc<eval::EvalJob>>) {
-        *write(&self.evaluating) = j;
+        self.slot.eval()
     }
 
     /// The parsed config of stored job `rec`, parsed on first use and kept.
@@ -116,18 +110,9 @@ impl Inner {
         lock(&self.specs).insert(id, Arc::new(spec));
     }
 
-    /// A job of either kind is running.
-    fn busy(&self) -> bool {
-        self.active().is_some() || self.evaluating().is_some()
-    }
-
     /// Live progress of the running job `id`, if it is running.
     fn live_progress(&self, id: u64) -> Option<sf_job::Progress> {
-        match (self.active(), self.evaluating()) {
-            (Some(j), _) if j.id == id => Some(j.progress()),
-            (_, Some(e)) if e.id == id => Some(e.progress()),
-            _ => None,
-        }
+        self.slot.progress(id)
     }
 
     /// Loads and validates the job's scenario files off the async runtime (file IO).
@@ -224,12 +209,7 @@ impl Inner {
     }
 
     pub fn register_worker(&self, name: &str) -> u64 {
-        let id = self.next_worker.fetch_add(1, Ordering::Relaxed);
-        let mut w = lock(&self.workers);
-        w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now() });
-        self.metrics.workers.set(w.len() as i64);
-        tracing::info!(worker_id = id, name, "worker registered");
-        id
+        self.workers.register(name)
     }
 
     pub fn heartbeat(&self, id: u64) -> Result<(), ServiceError> {
@@ -238,41 +218,16 @@ impl Inner {
 
     /// Workers not yet forgotten for missing heartbeats.
     fn live_workers(&self) -> std::collections::BTreeSet<u64> {
-        lock(&self.workers).keys().copied().collect()
-    }
-
-    /// Forgets workers silent for longer than `worker_timeout_s` (except `keep`) and updates
-    /// the workers gauge, so it falls even when no worker calls at all.
-    fn prune_workers(&self, w: &mut HashMap<u64, WorkerInfo>, keep: Option<u64>) {
-        let timeout = Duration::from_secs(self.cfg.worker_timeout_s);
-        let before = w.len();
-        w.retain(|wid, info| {
-            let stay = Some(*wid) == keep || info.last_seen.elapsed() < timeout;
-            if !stay {
-                tracing::info!(worker_id = *wid, name = %info.name, "worker timed out");
-            }
-            stay
-        });
-        if w.len() != before {
-            self.metrics.workers.set(w.len() as i64);
-        }
+        self.workers.live()
     }
 
     fn touch_worker(&self, id: u64) -> Result<(), ServiceError> {
-        let mut w = lock(&self.workers);
-        self.prune_workers(&mut w, Some(id));
-        match w.get_mut(&id) {
-            Some(info) => {
-                info.last_seen = Instant::now();
-                Ok(())
-            }
-            None => Err(LearnerError::WorkerNotRegistered { worker_id: id }.into()),
-        }
+        Ok(self.workers.touch(id)?)
     }
 
     /// Starts the next job if none is running.
     async fn schedule_once(self: &Arc<Self>) {
-        if self.busy() || self.shutting_down.load(Ordering::Acquire) {
+        if self.slot.busy() || self.shutting_down.load(Ordering::Acquire) {
             return;
         }
         let all = match self.jobs().await {
@@ -341,6 +296,16 @@ impl Inner {
                 }
             }
         }
+        // `[validation]` runs episodes with the frozen policies the workers fetch.
+        let mut frozen_weights = Vec::new();
+        if cfg.validation.is_some() {
+            for f in &frozen {
+                let d = self.job(f.job_id).await.map_err(|source| LearnerError::DependencyLookup { dep: f.job_id, field: "validation", source })?;
+                let (p, job_id) = (PathBuf::from(&d.artifact_dir).join("policy.bpk"), f.job_id);
+                let bytes = tokio::task::spawn_blocking(move || std::fs::read(p)).await.map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
+                frozen_weights.push(Arc::new(bytes.map_err(|source| LearnerError::FinalPolicy { job_id, source })?));
+            }
+        }
         let r = setup::resolve(&cfg, None);
         let (action_dim, spec, segment_points) = (r.net.action_dim, r.obs, r.sim.obs.segment_points);
         let maps2 = maps.clone();
@@ -351,7 +316,7 @@ impl Inner {
         let id = rec.id;
         // Active first, then RUNNING only if not cancelled meanwhile: a CancelJob either sees
         // the active job (and stops it) or wrote CANCELLED before this update (which keeps it).
-        self.set_active(Some(Arc::clone(&job)));
+        self.slot.fill(Running::Train(Arc::clone(&job)));
         let started = blocking(move || {
             store.update(id, |r| {
                 if !r.state.is_final() {
@@ -364,7 +329,7 @@ impl Inner {
             Ok(Some(r)) if r.state == JobState::Running => {}
             other => {
                 job.request_stop(StopReason::Cancelled);
-                self.set_active(None);
+                self.slot.clear();
                 self.wake.notify_one();
                 return match other {
                     Err(e) => Err(e.into()),
@@ -377,7 +342,7 @@ impl Inner {
         }
         tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
         let (tx, rx) = oneshot::channel();
-        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, segs, dir, resume, init_dir };
+        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, segs, dir, resume, init_dir, frozen_weights };
         std::thread::Builder::new()
             .name(format!("trainer-{id}"))
             .spawn(move || {
@@ -429,8 +394,7 @@ impl Inner {
         if let Err(e) = r {
             tracing::error!(job_id = id, error = %e, "recording the job's end");
         }
-        self.set_active(None);
-        self.set_evaluating(None);
+        self.slot.clear();
         self.idle.notify_waiters();
         self.wake.notify_one();
     }
@@ -474,12 +438,10 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         cfg: cfg.clone(),
         store,
         metrics: metrics.clone(),
-        active: RwLock::new(None),
-        evaluating: RwLock::new(None),
+        slot: Slot::default(),
         wake: Notify::new(),
         idle: Notify::new(),
-        workers: Mutex::new(HashMap::new()),
-        next_worker: AtomicU64::new(first_worker.max(1)),
+        workers: Workers::new(first_worker, Duration::from_secs(cfg.worker_timeout_s), metrics.workers.clone()),
         assignments: AtomicU64::new(0),
         shutting_down: AtomicBool::new(false),
         specs: Mutex::new(BTreeMap::new()),
@@ -526,7 +488,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let sched = Arc::clone(&inner);
     tokio::spawn(async move {
         loop {
-            sched.prune_workers(&mut lock(&sched.workers), None);
+            sched.workers.prune();
             sched.schedule_once().await;
             if sched.shutting_down.load(Ordering::Acquire) {
                 return;
@@ -588,7 +550,7 @@ pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecor
         return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
     }
     let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
+    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(|e| LearnerError::Coordinator(e.to_string()))? {
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])

@@ -1,15 +1,16 @@
 //! The learner's gRPC handlers: `JobService` and `ExperienceService`.
 //!
 //! Owns: request decoding (through `sf_proto`), the calls into [`crate::Inner`] and the mapping
-//! of results to responses; errors become statuses only through `sf_svc::ServiceError`.
+//! of results to responses; errors become statuses only through `sf_svc::ServiceError`. What
+//! the calls do lives beside `Inner`: jobs in `lib.rs`, a training job's worker calls in
+//! `experience.rs`, an evaluation's in `eval.rs`.
 //! Must not: block the runtime (store IO and ingest go through `spawn_blocking`) or run
 //! tensor code.
 
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use sf_job::{Assignment, JobState};
 use sf_proto::pb::experience_service_server::ExperienceService;
 use sf_proto::pb::job_service_server::JobService;
 use sf_proto::{pb, WireError};
@@ -19,13 +20,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
 
-use crate::{Inner, LearnerError};
+use crate::Inner;
 
 type Res<T> = Result<Response<T>, Status>;
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
-
-/// How long one batch may wait on the rate limiter before the call fails.
-const INGEST_DEADLINE: Duration = Duration::from_secs(120);
 
 #[derive(Clone)]
 pub struct Jobs(pub Arc<Inner>);
@@ -192,81 +190,5 @@ impl ExperienceService for Experience {
         let r = req.into_inner();
         let out = self.0.policy(r.job_id, r.version).await.map_err(ServiceError::from);
         done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
-    }
-}
-
-impl Inner {
-    /// Decodes, validates and stores one batch. Decoding checks every value of up to a few MiB,
-    /// so it runs on a blocking thread like the store that follows.
-    async fn ingest(self: &Arc<Self>, msg: pb::TransitionBatch) -> Result<crate::job::Ack, ServiceError> {
-        let worker = msg.worker_id;
-        let task = |e| ServiceError::from(LearnerError::Join(e));
-        let b = tokio::task::spawn_blocking(move || sf_proto::batch_from_wire(msg)).await.map_err(task)??;
-        self.touch_worker(worker)?;
-        let job = self.running(b.job_id).await?;
-        let deadline = Instant::now() + INGEST_DEADLINE;
-        Ok(tokio::task::spawn_blocking(move || job.ingest(&b, deadline)).await.map_err(task)??)
-    }
-
-    /// The running job with this id; NOT_FOUND for unknown ids, FAILED_PRECONDITION otherwise.
-    pub(crate) async fn running(self: &Arc<Self>, id: u64) -> Result<Arc<crate::job::ActiveJob>, LearnerError> {
-        if let Some(j) = self.active() {
-            if j.id == id {
-                return Ok(j);
-            }
-        }
-        let rec = self.job(id).await?;
-        Err(LearnerError::NotRunning { job_id: id, state: rec.state.as_str() })
-    }
-
-    /// Policy weights by version (0 = latest) of the running job, or the final policy of a
-    /// succeeded one.
-    async fn policy(self: &Arc<Self>, job_id: u64, version: u64) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
-        match self.running(job_id).await {
-            Ok(j) => {
-                let p = if version == 0 { j.latest() } else { j.version(version) };
-                p.map(|p| (p.version, p.weights)).ok_or(LearnerError::NoPolicyVersion { job_id, version })
-            }
-            Err(not_running @ LearnerError::NotRunning { .. }) => {
-                let rec = self.job(job_id).await?;
-                if rec.state != JobState::Succeeded {
-                    return Err(not_running);
-                }
-                let dir = std::path::PathBuf::from(&rec.artifact_dir);
-                let (final_version, weights) = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), LearnerError> {
-                    let read = |name: &str| std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source });
-                    let weights = read("policy.bpk")?;
-                    let meta: serde_json::Value = serde_json::from_slice(&read("policy.json")?).map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
-                    Ok((meta["version"].as_u64().unwrap_or(0), weights))
-                })
-                .await??;
-                if version != 0 && version != final_version {
-                    return Err(LearnerError::VersionGone { job_id, final_version, version });
-                }
-                Ok((final_version, Arc::new(weights)))
-            }
-            Err(e) => Err(e),
-        }
-    }
-
-    fn assignment(self: &Arc<Self>, worker_id: u64) -> Result<Option<Assignment>, ServiceError> {
-        self.touch_worker(worker_id)?;
-        let Some(j) = self.active() else { return Ok(None) };
-        if j.stop_reason().is_some() || j.is_complete() || j.latest().is_none() {
-            return Ok(None);
-        }
-        let scenario_index = j.next_scenario();
-        let seed = j.cfg.sac.seed.wrapping_mul(1_000_003).wrapping_add(worker_id.wrapping_mul(7919)).wrapping_add(self.assignments.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
-        Ok(Some(Assignment {
-            job_id: j.id,
-            config_toml: j.cfg.to_toml(),
-            scenario_index,
-            seed,
-            policy_version: j.latest_version(),
-            obs_len: j.obs_len as u32,
-            action_dim: j.action_dim as u32,
-            warmup: j.in_warmup(),
-            frozen: j.frozen.clone(),
-        }))
     }
 }

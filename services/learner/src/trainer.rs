@@ -12,7 +12,10 @@
 //! coordinator on that final actor and add `coordinator.json`. `tensorboard/` holds event files
 //! with the curve's scalars and more (losses, alpha, rates, policy lag). With `train.persist_replay`
 //! (the default) `replay/` holds the replay in segments, one per checkpoint, read back on
-//! resume and deleted when the job succeeds.
+//! resume and deleted when the job succeeds. With `[validation]`, `validation.csv` holds the
+//! held-out evaluation's points and `best_policy.bpk`/`.json` the best actor so far, which
+//! becomes `policy.bpk` (`policy.json` then says `"selected_by": "validation"` and at which
+//! update).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -25,12 +28,13 @@ use sf_eval::tensorboard::EventWriter;
 use sf_sac::ego::CurvePoint;
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::replay_store::{ReplayStore, Segment};
-use sf_sac::{checkpoint, setup, Batch, Sac};
+use sf_sac::{checkpoint, setup, Batch, Losses, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
 
 use crate::error::LearnerError;
 use crate::job::{ActiveJob, Counters, StopReason};
+use crate::validation::{BestPolicy, ValidationPoint, Validator};
 use sf_svc::sync::lock;
 
 /// How the trainer ended.
@@ -49,6 +53,9 @@ pub struct JobState {
     pub counters: Counters,
     pub policy_version: u64,
     pub curve: Vec<CurvePoint>,
+    /// `[validation]`: every point so far.
+    #[serde(default)]
+    pub validation: Vec<ValidationPoint>,
 }
 
 pub fn state_path(dir: &Path) -> PathBuf {
@@ -65,7 +72,7 @@ pub fn load_state(dir: &Path) -> Result<Option<JobState>, LearnerError> {
     serde_json::from_str(&text).map(Some).map_err(|source| LearnerError::StateFile { path: p, source })
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, bytes).map_err(|source| LearnerError::Io { action: "writing", path: tmp.clone(), source })?;
     std::fs::rename(&tmp, path).map_err(|source| LearnerError::Io { action: "renaming", path: path.to_path_buf(), source })
@@ -80,6 +87,9 @@ pub struct TrainerInput {
     pub resume: Option<JobState>,
     /// `train.init_job`'s checkpoint: the SAC state a fresh job starts from.
     pub init_dir: Option<PathBuf>,
+    /// With `[validation]`: the final weights of the job's frozen policies (`job.frozen`, in
+    /// order), which validation episodes run with. Empty otherwise.
+    pub frozen_weights: Vec<Arc<Vec<u8>>>,
 }
 
 /// Runs the job to an [`Outcome`]. Blocking; call on a dedicated thread.
@@ -91,7 +101,7 @@ pub fn run(input: TrainerInput) -> Outcome {
 }
 
 fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
-    let TrainerInput { job, maps, segs, dir, resume, init_dir } = input;
+    let TrainerInput { job, maps, segs, dir, resume, init_dir, frozen_weights } = input;
     let cfg = &job.cfg;
     let resolved = setup::resolve(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
@@ -125,7 +135,10 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     }
     // TensorBoard scalars beside curve.csv (a new event file per start; TensorBoard reads all).
     let mut tb = EventWriter::create(&dir.join("tensorboard")).map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file")).ok();
-    let mut last_rates: Option<(f64, u64, u64)> = None;
+    let mut validator = match &cfg.validation {
+        Some(v) => Some((Validator::new(v.clone(), cfg, &maps, &job.frozen, &frozen_weights)?, BestPolicy::load(&dir)?)),
+        None => None,
+    };
     // Version numbers are never issued twice, even across a crash: the newest is written
     // before workers can see it, and a restart continues above it (not above the checkpoint's).
     let version_file = dir.join("published_version");
@@ -143,13 +156,9 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
 
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.sac.seed ^ 0x7261_6e64 ^ sac.updates);
     let mut batch = Batch::default();
-    let every = cfg.curve_every_steps();
-    let mut next_point = (st.counters.env_steps / every + 1) * every;
+    let mut curve = CurveRecorder::new(cfg.curve_every_steps(), st.counters.env_steps);
     let mut last_ckpt = Instant::now();
     let mut last_loss = Default::default();
-    // Critic losses and Q means of the updates since the previous curve point.
-    let mut recent_losses: Vec<f32> = Vec::new();
-    let mut recent_q = 0.0f64;
     let outcome = loop {
         if let Some(why) = job.stop_reason() {
             break match why {
@@ -168,11 +177,13 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
                 };
                 if sampled.is_ok() {
                     last_loss = sac.update(&batch);
-                    recent_losses.push(last_loss.critic);
-                    recent_q += last_loss.q_mean as f64;
+                    curve.after_update(&last_loss);
                     job.record_update(sac.updates, last_loss);
                     if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
                         publish(&sac, &mut version)?;
+                    }
+                    if let Some((v, best)) = validator.as_mut().filter(|(v, _)| sac.updates.is_multiple_of(v.section.every_updates)) {
+                        validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
                     }
                 }
             }
@@ -180,75 +191,17 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
             Err(RateLimitError::Closed) => continue,
             Err(e) => return Err(e.into()),
         }
-        let p = job.progress();
-        if p.env_steps >= next_point {
-            let n = recent_losses.len().max(1);
-            let (mean, q) = (recent_losses.iter().map(|&l| l as f64).sum::<f64>() / n as f64, recent_q / n as f64);
-            recent_losses.sort_by(f32::total_cmp);
-            let median = recent_losses.get(recent_losses.len() / 2).copied().unwrap_or(0.0);
-            let ends = job.ends();
-            recent_losses.clear();
-            recent_q = 0.0;
-            while p.env_steps >= next_point {
-                st.curve.push(CurvePoint {
-                    env_steps: next_point.min(p.env_steps),
-                    updates: p.updates,
-                    episodes: p.episodes,
-                    success: p.success,
-                    safety: p.safety,
-                    speed: p.speed,
-                    critic_loss: last_loss.critic,
-                    actor_loss: last_loss.actor,
-                    alpha: last_loss.alpha,
-                    entropy: last_loss.entropy,
-                    wall_s: p.wall_s,
-                    ends,
-                    critic_loss_mean: mean as f32,
-                    critic_loss_median: median,
-                    q_mean: q as f32,
-                });
-                next_point += every;
-            }
-            if let Some(w) = tb.as_mut() {
-                let (updates_per_s, transitions_per_s) = match last_rates {
-                    Some((t, u, e)) if p.wall_s > t => ((p.updates - u) as f64 / (p.wall_s - t), (p.env_steps - e) as f64 / (p.wall_s - t)),
-                    _ => (f64::NAN, f64::NAN),
-                };
-                last_rates = Some((p.wall_s, p.updates, p.env_steps));
-                let lag = job.take_mean_lag().unwrap_or(f64::NAN);
-                let scalars = [
-                    ("rollout/success", p.success as f64),
-                    ("rollout/safety", p.safety as f64),
-                    ("rollout/speed", p.speed as f64),
-                    ("ends/collision", ends.collision as f64),
-                    ("ends/off_road", ends.off_road as f64),
-                    ("ends/off_route", ends.off_route as f64),
-                    ("ends/wrong_lane", ends.wrong_lane as f64),
-                    ("ends/timeout", ends.timeout as f64),
-                    ("loss/critic", last_loss.critic as f64),
-                    ("loss/critic_mean", mean),
-                    ("loss/actor", last_loss.actor as f64),
-                    ("sac/alpha", last_loss.alpha as f64),
-                    ("sac/entropy", last_loss.entropy as f64),
-                    ("sac/q_mean", q),
-                    ("rate/updates_per_s", updates_per_s),
-                    ("rate/transitions_per_s", transitions_per_s),
-                    ("policy/lag_versions", lag),
-                    ("policy/version", version as f64),
-                    ("policy/dropped_stale", p.dropped_stale as f64),
-                ];
-                if let Err(e) = w.scalars(p.env_steps, &scalars) {
-                    tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events; no more for this run");
-                    tb = None;
-                }
-            }
-        }
+        curve.record(&job, &last_loss, version, &mut st, &mut tb);
         if last_ckpt.elapsed() >= Duration::from_secs(cfg.train.checkpoint_every_s) {
             save(&job, &sac, &dir, &mut st, version, &mut persist)?;
             last_ckpt = Instant::now();
         }
     };
     if outcome == Outcome::Succeeded {
+        // The last actor is a candidate too.
+        if let Some((v, best)) = validator.as_mut().filter(|_| st.validation.last().is_none_or(|p| p.updates < sac.updates)) {
+            validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
+        }
         publish(&sac, &mut version)?;
         // A finished job never resumes: its replay need not be written, and goes.
         if persist.take().is_some() {
@@ -257,15 +210,142 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     }
     save(&job, &sac, &dir, &mut st, version, &mut persist)?;
     if outcome == Outcome::Succeeded {
-        // The final policy is the version just published: write those bytes.
-        let last = job.latest().expect("a version was published above");
-        write_atomic(&dir.join("policy.bpk"), &last.weights)?;
-        write_atomic(&dir.join("policy.json"), serde_json::json!({"version": last.version, "updates": sac.updates}).to_string().as_bytes())?;
+        let weights = write_final_policy(&job, &sac, validator.as_ref().map(|(_, best)| best), &dir)?;
         if let Some(c) = cfg.coordinator() {
-            fit_coordinator(&job, &maps, &segs, &resolved, &c, &last.weights, &dir)?;
+            fit_coordinator(&job, &maps, &segs, &resolved, &c, &weights, &dir)?;
         }
     }
     Ok(outcome)
+}
+
+/// The learning curve: a point every `every` learner transitions (`curve.csv`, `state.json`)
+/// with the rollout statistics and the losses, and the same plus rates and policy lag as
+/// TensorBoard scalars.
+struct CurveRecorder {
+    every: u64,
+    next_point: u64,
+    /// Critic losses and the Q mean's sum of the updates since the previous point.
+    recent_losses: Vec<f32>,
+    recent_q: f64,
+    /// (wall_s, updates, env_steps) at the previous point: the rates between points.
+    last_rates: Option<(f64, u64, u64)>,
+}
+
+impl CurveRecorder {
+    fn new(every: u64, env_steps: u64) -> Self {
+        Self { every, next_point: (env_steps / every + 1) * every, recent_losses: Vec::new(), recent_q: 0.0, last_rates: None }
+    }
+
+    fn after_update(&mut self, loss: &Losses) {
+        self.recent_losses.push(loss.critic);
+        self.recent_q += loss.q_mean as f64;
+    }
+
+    /// Adds the points the job's progress has passed (none most of the time).
+    fn record(&mut self, job: &ActiveJob, last_loss: &Losses, version: u64, st: &mut JobState, tb: &mut Option<EventWriter>) {
+        let p = job.progress();
+        if p.env_steps < self.next_point {
+            return;
+        }
+        let n = self.recent_losses.len().max(1);
+        let (mean, q) = (self.recent_losses.iter().map(|&l| l as f64).sum::<f64>() / n as f64, self.recent_q / n as f64);
+        self.recent_losses.sort_by(f32::total_cmp);
+        let median = self.recent_losses.get(self.recent_losses.len() / 2).copied().unwrap_or(0.0);
+        let ends = job.ends();
+        self.recent_losses.clear();
+        self.recent_q = 0.0;
+        while p.env_steps >= self.next_point {
+            st.curve.push(CurvePoint {
+                env_steps: self.next_point.min(p.env_steps),
+                updates: p.updates,
+                episodes: p.episodes,
+                success: p.success,
+                safety: p.safety,
+                speed: p.speed,
+                critic_loss: last_loss.critic,
+                actor_loss: last_loss.actor,
+                alpha: last_loss.alpha,
+                entropy: last_loss.entropy,
+                wall_s: p.wall_s,
+                ends,
+                critic_loss_mean: mean as f32,
+                critic_loss_median: median,
+                q_mean: q as f32,
+            });
+            self.next_point += self.every;
+        }
+        let Some(w) = tb.as_mut() else { return };
+        let (updates_per_s, transitions_per_s) = match self.last_rates {
+            Some((t, u, e)) if p.wall_s > t => ((p.updates - u) as f64 / (p.wall_s - t), (p.env_steps - e) as f64 / (p.wall_s - t)),
+            _ => (f64::NAN, f64::NAN),
+        };
+        self.last_rates = Some((p.wall_s, p.updates, p.env_steps));
+        let lag = job.take_mean_lag().unwrap_or(f64::NAN);
+        let scalars = [
+            ("rollout/success", p.success as f64),
+            ("rollout/safety", p.safety as f64),
+            ("rollout/speed", p.speed as f64),
+            ("ends/collision", ends.collision as f64),
+            ("ends/off_road", ends.off_road as f64),
+            ("ends/off_route", ends.off_route as f64),
+            ("ends/wrong_lane", ends.wrong_lane as f64),
+            ("ends/timeout", ends.timeout as f64),
+            ("loss/critic", last_loss.critic as f64),
+            ("loss/critic_mean", mean),
+            ("loss/actor", last_loss.actor as f64),
+            ("sac/alpha", last_loss.alpha as f64),
+            ("sac/entropy", last_loss.entropy as f64),
+            ("sac/q_mean", q),
+            ("rate/updates_per_s", updates_per_s),
+            ("rate/transitions_per_s", transitions_per_s),
+            ("policy/lag_versions", lag),
+            ("policy/version", version as f64),
+            ("policy/dropped_stale", p.dropped_stale as f64),
+        ];
+        if let Err(e) = w.scalars(p.env_steps, &scalars) {
+            tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events; no more for this run");
+            *tb = None;
+        }
+    }
+}
+
+/// Writes the job's final policy (`policy.bpk`, `policy.json`) and returns its weights: the
+/// best validated actor with `[validation]`, else the averaged actor with
+/// `sac.actor_average_tau`, else the version just published. `policy.json`'s `version` names
+/// the job's final policy either way.
+fn write_final_policy(job: &ActiveJob, sac: &Sac, best: Option<&BestPolicy>, dir: &Path) -> Result<Vec<u8>, LearnerError> {
+    let last = job.latest().ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: 0 })?;
+    let (weights, meta) = match best.map(BestPolicy::take).transpose()?.flatten() {
+        Some((bytes, p)) => {
+            tracing::info!(job_id = job.id, updates = p.updates, success = p.success, last_updates = sac.updates, "final policy: the best validated actor");
+            (bytes, serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p}))
+        }
+        None if sac.actor_avg.is_some() => {
+            let bytes = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the averaged actor", source })?;
+            (bytes, serde_json::json!({"version": last.version, "updates": sac.updates, "selected_by": "average"}))
+        }
+        None => (last.weights.to_vec(), serde_json::json!({"version": last.version, "updates": sac.updates})),
+    };
+    write_atomic(&dir.join("policy.bpk"), &weights)?;
+    write_atomic(&dir.join("policy.json"), meta.to_string().as_bytes())?;
+    Ok(weights)
+}
+
+/// Scores the current actor on the validation cases, keeps it if it is the best so far and
+/// records the point (curve, TensorBoard, log).
+fn validate(job: &ActiveJob, sac: &Sac, v: &mut Validator, best: &mut BestPolicy, st: &mut JobState, tb: Option<&mut EventWriter>) -> Result<(), LearnerError> {
+    let weights = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
+    let p = v.score(&weights, sac.updates, job.progress().env_steps)?;
+    let kept = best.offer(&p, &weights)?;
+    tracing::info!(job_id = job.id, updates = p.updates, success = p.success, safety = p.safety, collision = p.collision, took_s = p.took_s, best = kept, "validation");
+    if let Some(w) = tb {
+        let scalars = [("validation/success", p.success as f64), ("validation/safety", p.safety as f64), ("validation/collision", p.collision as f64), ("validation/speed", p.speed as f64)];
+        if let Err(e) = w.scalars(p.env_steps, &scalars) {
+            tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events");
+        }
+    }
+    st.validation.push(p);
+    Ok(())
 }
 
 /// CoPO Stage 2: fits the coordinator's Gaussian of every scenario of the job on its frozen
@@ -301,13 +381,24 @@ fn fit_coordinator(
         let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
             tracing::info!(job_id = job.id, scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
         })
-        .map_err(|reason| LearnerError::FitCoordinator { scenario: scenario.clone(), reason })?;
+        .map_err(|e| LearnerError::FitCoordinator { scenario: scenario.clone(), reason: e.to_string() })?;
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
     }
     let file = CoordinatorFile { scenarios: fits };
     write_atomic(&dir.join(CoordinatorFile::FILE), serde_json::to_string_pretty(&file)?.as_bytes())?;
     tracing::info!(job_id = job.id, s = t.elapsed().as_secs_f32(), "CoPO Stage 2: coordinator fitted");
     Ok(())
+}
+
+/// A CSV file's text: the header, then one row per line.
+fn csv(header: &str, rows: impl Iterator<Item = String>) -> String {
+    let mut text = String::from(header);
+    text.push('\n');
+    for r in rows {
+        text.push_str(&r);
+        text.push('\n');
+    }
+    text
 }
 
 /// Checkpoint + state + curve files.
@@ -331,13 +422,10 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64,
         *next = seg.first + seg.len() as u64;
     }
     write_atomic(&state_path(dir), serde_json::to_string(st)?.as_bytes())?;
-    let mut csv = String::from(CurvePoint::CSV_HEADER);
-    csv.push('\n');
-    for p in &st.curve {
-        csv.push_str(&p.csv_row());
-        csv.push('\n');
+    write_atomic(&dir.join("curve.csv"), csv(CurvePoint::CSV_HEADER, st.curve.iter().map(CurvePoint::csv_row)).as_bytes())?;
+    if !st.validation.is_empty() {
+        write_atomic(&dir.join("validation.csv"), csv(ValidationPoint::CSV_HEADER, st.validation.iter().map(ValidationPoint::csv_row)).as_bytes())?;
     }
-    write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
     if st.curve.len() >= 2 {
         let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.success as f64)).collect();
         let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.safety as f64)).collect();

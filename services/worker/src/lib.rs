@@ -2,37 +2,45 @@
 //!
 //! Owns: the worker's session loop ([`run`]): connect, register, take an assignment, fetch the
 //! policy, stream transitions, follow new policy versions, and start over with bounded backoff
-//! when the learner goes away or the job ends; an evaluation job's cells ([`evalcell`]), one
-//! per assignment. Simulation and inference run on a dedicated rollout thread ([`rollout`]) or
-//! a blocking task (evaluation); the async side only moves bytes. Every unary call has a
-//! deadline. Must not: keep state across sessions (everything comes from the learner).
+//! when the learner goes away or the job ends. `session` only composes the parts, one job each
+//! (Acme's actor side): `membership` (`register`, `Heartbeats`), `assignment`
+//! (`next_assignment`, `load_job`), `policy` (`FrozenPolicies`, `PolicyClient`: the variable
+//! client), [`rollout`] (the environment loop on its own thread and its `TransitionWriter`, the
+//! adder) and `stream` (`PushTransitions` and its acknowledgements); an evaluation job's cells
+//! ([`evalcell`]), one per assignment. Simulation and inference run on a dedicated rollout
+//! thread or a blocking task (evaluation); the async side only moves bytes. Every unary call
+//! has a deadline. Must not: keep state across sessions (everything comes from the learner).
 
+mod assignment;
 pub mod cmd;
 pub mod evalcell;
+mod membership;
+mod policy;
 pub mod rollout;
+mod stream;
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicU64;
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::{anyhow, Context};
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
-use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_svc::auth::{AttachToken, Token};
 use sf_svc::backoff::Backoff;
 use sf_svc::metrics::CommonMetrics;
-use tokio::sync::{mpsc, watch};
-use tokio_stream::wrappers::ReceiverStream;
+use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
-use tonic::{Code, Request};
+use tonic::Request;
 
-use crate::rollout::{Control, Credits, RolloutSpec};
-use sf_svc::sync::lock;
+use crate::assignment::{load_job, next_assignment};
+use crate::membership::{register, Heartbeats, Registration};
+use crate::policy::{FrozenPolicies, PolicyClient};
+use crate::rollout::{Rollout, RolloutSpec};
+use crate::stream::stream;
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -118,7 +126,7 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
     let mut backoff = Backoff::new(Duration::from_millis(200), cfg.max_backoff);
     // Registered id and heartbeat interval, kept from one job to the next (a new registration
     // per job would leave the learner a stale worker to time out); dropped after an error.
-    let mut registration: Option<(u64, Duration)> = None;
+    let mut registration: Option<Registration> = None;
     loop {
         if *stop.borrow() {
             return Ok(());
@@ -154,163 +162,21 @@ fn status_err(what: &str, s: tonic::Status, metrics: &WorkerMetrics) -> anyhow::
     anyhow!("{what}: {} ({})", s.message(), sf_svc::error::code_label(s.code()))
 }
 
-async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut Option<(u64, Duration)>) -> anyhow::Result<SessionEnd> {
+/// One session: who this worker is, what to work on, the policies to act with, then the
+/// transition stream until the job or the connection ends.
+async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut Option<Registration>) -> anyhow::Result<SessionEnd> {
     let mut client = connect(cfg).await?;
-    let t = cfg.rpc_timeout;
-    let (worker_id, hb_every) = match *registration {
+    let me = match *registration {
         Some(r) => r,
-        None => {
-            let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone() }, t)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
-            metrics.common.rpc("Register", Code::Ok);
-            tracing::info!(worker_id = reg.worker_id, learner = %cfg.learner_url, "registered");
-            let r = (reg.worker_id, Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64));
-            *registration = Some(r);
-            r
-        }
+        None => *registration.insert(register(&mut client, cfg, metrics).await?),
     };
-    // Heartbeats on the side; a NOT_FOUND or repeated failure ends the session.
-    let (hb_tx, mut hb_rx) = watch::channel(false);
-    // Their own connection: on the shared one, a transition stream the learner is not reading
-    // (its rate limiter holds inserts) fills HTTP/2's connection window and starves them.
-    let mut hb_client = connect(cfg).await?;
-    let hb_metrics = metrics.clone();
-    let hb = tokio::spawn(async move {
-        let mut fails = 0;
-        loop {
-            tokio::time::sleep(hb_every).await;
-            match hb_client.heartbeat(req(pb::HeartbeatRequest { worker_id }, t)).await {
-                Ok(_) => {
-                    hb_metrics.common.rpc("Heartbeat", Code::Ok);
-                    fails = 0
-                }
-                Err(s) => {
-                    hb_metrics.common.rpc("Heartbeat", s.code());
-                    fails += 1;
-                    if s.code() == Code::NotFound || fails >= 3 {
-                        let _ = hb_tx.send(true);
-                        return;
-                    }
-                }
-            }
-        }
-    });
-    let _abort_hb = AbortOnDrop(hb);
-    // Assignment: a training job's, or evaluation cells one after another until one comes.
-    let mut cells = evalcell::Cells::new(cfg);
-    let asg = loop {
-        let r = client.get_assignment(req(pb::GetAssignmentRequest { worker_id }, t)).await.map_err(|s| status_err("GetAssignment", s, metrics))?.into_inner();
-        metrics.common.rpc("GetAssignment", Code::Ok);
-        if let (true, Some(a)) = (r.has_assignment, r.assignment) {
-            break sf_proto::assignment_from_wire(&a).context("assignment from the learner")?;
-        }
-        if let (true, Some(w)) = (r.has_assignment, r.eval) {
-            let work = sf_proto::eval_work_from_wire(&w).context("evaluation cell from the learner")?;
-            tokio::select! {
-                r = cells.run(&mut client, worker_id, work, t, metrics) => r?,
-                _ = hb_rx.changed() => anyhow::bail!("heartbeats failed while running an evaluation cell"),
-            }
-            continue;
-        }
-        tokio::select! {
-            _ = tokio::time::sleep(Duration::from_millis(r.retry_after_ms.clamp(100, 10_000) as u64)) => {}
-            _ = hb_rx.changed() => anyhow::bail!("heartbeats failed while waiting for an assignment"),
-        }
-    };
-    let job = sf_job::JobConfig::from_toml(&asg.config_toml).context("job config in the assignment")?;
-    tracing::info!(worker_id, job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
-    let maps = job
-        .env
-        .scenarios
-        .iter()
-        .map(|s| sf_sim::Map::load(&cfg.scenarios_dir.join(format!("{s}.json"))).map(Arc::new).with_context(|| format!("scenario `{s}`")))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let policy_client = client.clone();
-    let fetch = |version: u64| {
-        let mut c = policy_client.clone();
-        let job_id = asg.job_id;
-        async move {
-            let p = c.get_policy(req(pb::GetPolicyRequest { job_id, version }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
-            metrics.common.rpc("GetPolicy", Code::Ok);
-            metrics.policy_fetches.inc();
-            anyhow::Ok((p.version, p.weights))
-        }
-    };
-    // Frozen policies (background flow, ego, adversary): their networks and final weights,
-    // fetched once per assignment.
-    let mut frozen = Vec::new();
-    for f in &asg.frozen {
-        let fj = sf_job::JobConfig::from_toml(&f.config_toml).with_context(|| format!("config of frozen job {}", f.job_id))?;
-        let mut c = client.clone();
-        let p = c.get_policy(req(pb::GetPolicyRequest { job_id: f.job_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
-        metrics.common.rpc("GetPolicy", Code::Ok);
-        tracing::info!(worker_id, frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
-        frozen.push((f.role, fj, p.weights));
-    }
-    let control = Arc::new(Mutex::new(Control { warmup: asg.warmup, policy: None, stop: false }));
-    if !asg.warmup {
-        let (v, w) = fetch(0).await?;
-        lock(&control).policy = Some((v, w));
-    }
-    let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-    // CoPO Stage 2 in the background: each scenario's coordinator Gaussian, if it has one.
-    let bg = asg.frozen.iter().find(|f| f.role == sf_job::FrozenRole::Background);
-    let svo_gaussians: Vec<_> = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
-    let redrawn = svo_gaussians.iter().flatten().count();
-    if redrawn > 0 {
-        tracing::info!(worker_id, "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
-    }
-    let spec = RolloutSpec { job, frozen, svo_gaussians, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads: cfg.threads };
-    let credits = Arc::new(Credits::new(2));
-    let rollout = rollout::spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
-    let _stop_rollout = StopOnDrop(Arc::clone(&control));
-    let mut acks = client.push_transitions(ReceiverStream::new(batch_rx)).await.map_err(|s| status_err("PushTransitions", s, metrics))?.into_inner();
-    let mut held = asg.policy_version;
-    loop {
-        let ack = tokio::select! {
-            a = acks.message() => a,
-            _ = hb_rx.changed() => anyhow::bail!("heartbeats failed"),
-        };
-        let ack = match ack {
-            Ok(Some(a)) => a,
-            Ok(None) => {
-                if rollout.is_finished() {
-                    anyhow::bail!("the rollout thread stopped");
-                }
-                anyhow::bail!("the learner closed the transition stream")
-            }
-            Err(s) if s.code() == Code::FailedPrecondition => {
-                metrics.common.rpc("PushTransitions", s.code());
-                tracing::info!(job_id = asg.job_id, reason = s.message(), "job ended");
-                return Ok(SessionEnd::JobEnded);
-            }
-            Err(s) => return Err(status_err("PushTransitions", s, metrics)),
-        };
-        metrics.common.rpc("PushTransitions", Code::Ok);
-        credits.grant();
-        let warm = ack.warmup;
-        let need = !warm && (ack.latest_policy_version > held || lock(&control).policy.is_none());
-        if need {
-            let (v, w) = fetch(0).await?;
-            held = v;
-            let mut c = lock(&control);
-            c.policy = Some((v, w));
-            c.warmup = false;
-        } else if !warm {
-            lock(&control).warmup = false;
-        }
-    }
-}
-
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
-impl Drop for AbortOnDrop {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
-}
-
-struct StopOnDrop(Arc<Mutex<Control>>);
-impl Drop for StopOnDrop {
-    fn drop(&mut self) {
-        lock(&self.0).stop = true;
-    }
+    let mut heartbeats = Heartbeats::spawn(cfg, me, metrics).await?;
+    let asg = next_assignment(&mut client, cfg, me.worker_id, &mut heartbeats, metrics).await?;
+    let (job, maps) = load_job(cfg, me.worker_id, &asg)?;
+    let frozen = FrozenPolicies::fetch(&client, me.worker_id, &asg.frozen, cfg.rpc_timeout, metrics).await?;
+    let mut policy = PolicyClient::new(&client, asg.job_id, asg.policy_version, cfg.rpc_timeout, metrics);
+    let first = if asg.warmup { None } else { Some(policy.latest().await?) };
+    let spec = RolloutSpec::for_assignment(&asg, job, frozen.into_vec(), maps, me.worker_id, cfg.threads);
+    let (rollout, batches) = Rollout::start(spec, asg.warmup, first, metrics)?;
+    stream(&mut client, batches, &rollout, &mut policy, &mut heartbeats, metrics).await
 }

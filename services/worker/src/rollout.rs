@@ -2,10 +2,17 @@
 //! with one batched CPU inference per step, transitions packed into batches stamped with the
 //! acting policy version.
 //!
-//! Owns: [`spawn`] and the loop it runs. The session hands it new policy weights and the
-//! warm-up flag through [`Control`]; it hands back wire batches through a bounded channel, so a
-//! back-pressured stream stops the simulators instead of growing memory. Must not: do network
-//! IO itself.
+//! Owns: [`Rollout`], the session's handle on the thread (it hands new policy weights and the
+//! warm-up flag through [`Control`], a [`Credits`] credit per acknowledgement, and stops the
+//! thread on drop); [`spawn`] and the environment loop it runs (who acts in which role, the
+//! simulator steps). What leaves the thread is `writer`'s: its `TransitionWriter` batches,
+//! stamps and sends through a bounded channel, so a back-pressured stream stops the simulators
+//! instead of growing memory. Must not: do network IO itself.
+
+mod writer;
+
+pub use writer::Credits;
+use writer::TransitionWriter;
 
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -14,14 +21,15 @@ use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::{JobKind, WarmupPolicy};
-use sf_job::{Ends, EpisodeResult, FrozenRole, JobConfig, TransitionBatch};
+use sf_job::{Assignment, FrozenRole, JobConfig, TransitionBatch};
+use sf_nn::device::Device;
 use sf_proto::pb;
 use sf_sac::drive::{self, Actor, Drivers};
 use sf_sac::inference::PolicyRunner;
 use sf_sac::setup;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
-use sf_sim::Map;
+use sf_sim::{Map, Mode, ObsSpec, SimConfig};
 use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
@@ -35,40 +43,6 @@ pub struct Control {
     /// Latest weights `(version, bytes)`; the thread rebuilds its actor when the version changes.
     pub policy: Option<(u64, Vec<u8>)>,
     pub stop: bool,
-}
-
-/// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
-/// flight, and so its policy lag, when the learner's rate limiter holds workers back.
-pub struct Credits {
-    n: Mutex<u32>,
-    changed: std::sync::Condvar,
-}
-
-impl Credits {
-    pub fn new(n: u32) -> Self {
-        Self { n: Mutex::new(n), changed: std::sync::Condvar::new() }
-    }
-
-    /// One acknowledgement arrived.
-    pub fn grant(&self) {
-        *lock(&self.n) += 1;
-        self.changed.notify_all();
-    }
-
-    /// Waits for a credit; `false` if `stop` turned true first.
-    fn take(&self, control: &Mutex<Control>) -> bool {
-        let mut n = lock(&self.n);
-        loop {
-            if *n > 0 {
-                *n -= 1;
-                return true;
-            }
-            if lock(control).stop {
-                return false;
-            }
-            n = self.changed.wait_timeout(n, std::time::Duration::from_millis(100)).unwrap_or_else(|p| p.into_inner()).0;
-        }
-    }
 }
 
 pub struct RolloutSpec {
@@ -87,6 +61,71 @@ pub struct RolloutSpec {
     pub threads: usize,
 }
 
+impl RolloutSpec {
+    /// What an assignment's rollout runs: its job, frozen policies and maps, and (CoPO Stage 2
+    /// in the background) each scenario's coordinator Gaussian, if it has one.
+    pub fn for_assignment(asg: &Assignment, job: JobConfig, frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>, maps: Vec<Arc<Map>>, worker_id: u64, threads: usize) -> Self {
+        let bg = asg.frozen.iter().find(|f| f.role == FrozenRole::Background);
+        let svo_gaussians: Vec<_> = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
+        let redrawn = svo_gaussians.iter().flatten().count();
+        if redrawn > 0 {
+            tracing::info!(worker_id, "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
+        }
+        Self { job, frozen, svo_gaussians, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads }
+    }
+}
+
+/// The session's handle on a running rollout thread. Dropping it stops the thread.
+pub struct Rollout {
+    control: Arc<Mutex<Control>>,
+    credits: Arc<Credits>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+impl Rollout {
+    /// Starts the thread acting with `policy` (`None`: warm-up actions until weights come) and
+    /// two credits; returns the batches it sends.
+    pub fn start(spec: RolloutSpec, warmup: bool, policy: Option<(u64, Vec<u8>)>, metrics: &WorkerMetrics) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
+        let control = Arc::new(Mutex::new(Control { warmup, policy, stop: false }));
+        let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
+        let credits = Arc::new(Credits::new(2));
+        let thread = spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
+        Ok((Self { control, credits, thread }, batch_rx))
+    }
+
+    /// One acknowledgement arrived: the thread may send one more batch.
+    pub fn grant(&self) {
+        self.credits.grant();
+    }
+
+    pub fn is_finished(&self) -> bool {
+        self.thread.is_finished()
+    }
+
+    /// Whether the thread has been handed weights yet.
+    pub fn has_policy(&self) -> bool {
+        lock(&self.control).policy.is_some()
+    }
+
+    /// New weights, acting at once (the warm-up is over).
+    pub fn act_with(&self, version: u64, weights: Vec<u8>) {
+        let mut c = lock(&self.control);
+        c.policy = Some((version, weights));
+        c.warmup = false;
+    }
+
+    /// The warm-up is over: the weights held act.
+    pub fn end_warmup(&self) {
+        lock(&self.control).warmup = false;
+    }
+}
+
+impl Drop for Rollout {
+    fn drop(&mut self) {
+        lock(&self.control).stop = true;
+    }
+}
+
 /// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
 pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
     let bg_kind = spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
@@ -98,7 +137,7 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credi
         .name(format!("rollout-{}", spec.worker_id))
         .spawn(move || {
             let stop = Arc::clone(&control);
-            if let Err(e) = rollout(spec, resolved, control, &credits, tx, metrics) {
+            if let Err(e) = rollout(spec, resolved, control, credits, tx, metrics) {
                 // The session closes the stream when it ends; only other failures are errors.
                 if lock(&stop).stop || e.to_string() == STREAM_CLOSED {
                     tracing::debug!(error = %format!("{e:#}"), "rollout thread stopped");
@@ -110,46 +149,21 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credi
         .context("spawning the rollout thread")
 }
 
-fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<Control>>, credits: &Credits, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
+/// The environment loop: act, step, hand the job's transitions to the writer.
+fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
     let job = &spec.job;
     let setup::ResolvedJob { sim, net, obs: obs_spec, mode, .. } = resolved;
     let sim = Arc::new(sim);
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
     let segs: Vec<MapSegments> = spec.maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let seg_refs: Vec<&MapSegments> = segs.iter().collect();
-    // Every scenario of the job, environments split evenly; map id = scenario index.
-    let per_map = job.worker.envs.div_ceil(spec.maps.len()).max(1);
-    let mut venvs: Vec<VecEnv> = spec
-        .maps
-        .iter()
-        .enumerate()
-        .map(|(k, m)| {
-            let seed = spec.seed.wrapping_add(k as u64 * 0x9e37_79b9);
-            VecEnv::new(Arc::clone(m), Arc::clone(&sim), VecEnvConfig { n_envs: per_map, mode, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
-        })
-        .collect();
-    if let Some(share) = job.env.conflict_share {
-        venvs = venvs.into_iter().map(|v| v.with_conflicts(share)).collect();
-    }
-    for (v, g) in venvs.iter_mut().zip(&spec.svo_gaussians) {
-        v.set_svo_gaussian(*g);
-    }
+    let mut venvs = envs(&spec, &sim, mode);
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
     let len = obs_spec.len;
-    let (mut frozen_bg, mut frozen_ego, mut frozen_adv) = (None, None, None);
-    for (role, cfg, bytes) in &spec.frozen {
-        let fz = setup::resolve(cfg, None);
-        anyhow::ensure!(fz.obs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fz.obs.len);
-        let runner = PolicyRunner::from_bytes(&fz.net, &obs_spec, sim.dt_s, &seg_refs, bytes, 0, &device).with_context(|| format!("loading the frozen {role:?} policy"))?;
-        *match role {
-            FrozenRole::Background => &mut frozen_bg,
-            FrozenRole::Ego => &mut frozen_ego,
-            FrozenRole::Adversary => &mut frozen_adv,
-        } = Some(runner);
-    }
+    let frozen = FrozenRunners::load(&spec.frozen, &obs_spec, sim.dt_s, &seg_refs, &device)?;
     let kind = job.kind;
     if kind == JobKind::Failmaker || kind == JobKind::SocialcommAdv {
-        anyhow::ensure!(frozen_ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
+        anyhow::ensure!(frozen.ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
     }
     let act_dim = job.action_dim();
     // Who plays the job's own role until the warm-up ends.
@@ -161,8 +175,7 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
     // where it drives them (not FailMaker's background).
     let mut brakes = (job.sac.warmup_brake_prob > 0.0 && kind.drives() && kind != JobKind::Failmaker).then(|| drive::BrakeSegments::new(job.sac.warmup_brake_prob, &venvs));
     let mut runner: Option<PolicyRunner> = None;
-    let mut batch = TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim);
-    let mut batch_version = None;
+    let mut writer = TransitionWriter::new(TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim), job.worker.batch_transitions, Arc::clone(&control), credits, tx, metrics.clone());
     loop {
         let (stop, warmup, new_policy) = {
             let c = lock(&control);
@@ -180,17 +193,12 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
             (Some(r), false) => Some(r),
             _ => None,
         };
-        let version = acting.map_or(0, |r| r.version);
-        if batch_version.is_some_and(|v| v != version) && batch.count > 0 {
-            if !credits.take(&control) {
-                return Ok(());
-            }
-            send(&mut batch, batch_version.unwrap_or(0), &tx, &metrics)?;
+        if writer.stamp(acting.map_or(0, |r| r.version))?.is_break() {
+            return Ok(());
         }
-        batch_version = Some(version);
         // The job's own policy plays its role; frozen policies the others.
         let own = acting.map_or(warm_actor, Actor::sampled);
-        let (f_bg, f_ego, f_adv) = (frozen_bg.as_ref().map(Actor::sampled), frozen_ego.as_ref().map(Actor::sampled), frozen_adv.as_ref().map(Actor::sampled));
+        let (f_bg, f_ego, f_adv) = (frozen.background.as_ref().map(Actor::sampled), frozen.ego.as_ref().map(Actor::sampled), frozen.adversary.as_ref().map(Actor::sampled));
         let drivers = match kind {
             JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: Some(own), adversary: None },
             JobKind::SocialcommAdv => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: f_bg, adversary: Some(own) },
@@ -220,45 +228,56 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
             JobKind::SocialcommAdv => (&d.alive_rows, &d.adversary_actions),
             _ => (&d.alive_rows, &d.alive_actions),
         };
-        for (k, v) in venvs.iter_mut().enumerate() {
-            batch.sim_steps += v.n_envs() as u64;
-            metrics.env_steps.inc_by(v.n_envs() as u64);
-            for (j, &r) in trained_rows[k].iter().enumerate() {
-                let st = v.row_steps()[r];
-                if !st.stepped {
-                    continue;
-                }
-                let act = &trained_actions[k][j * act_dim..(j + 1) * act_dim];
-                batch.push(&before[k][r * len..(r + 1) * len], act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
-            }
-            for m in v.take_finished() {
-                metrics.episodes.inc();
-                batch.episodes.push(EpisodeResult {
-                    scenario_index: k as u32,
-                    success: m.success,
-                    safety: m.safety,
-                    speed: m.speed,
-                    ends: Ends { collision: m.collision, off_road: m.off_road, off_route: m.off_route, wrong_lane: m.wrong_lane, timeout: m.timeout },
-                });
-            }
-        }
-        if batch.count >= job.worker.batch_transitions {
-            if !credits.take(&control) {
-                return Ok(());
-            }
-            send(&mut batch, version, &tx, &metrics)?;
+        writer.add(&mut venvs, &before, trained_rows, trained_actions, job);
+        if writer.send_if_full()?.is_break() {
+            return Ok(());
         }
     }
 }
 
-fn send(batch: &mut TransitionBatch, version: u64, tx: &mpsc::Sender<pb::TransitionBatch>, metrics: &WorkerMetrics) -> anyhow::Result<()> {
-    batch.policy_version = version;
-    let msg = sf_proto::batch_to_wire(batch);
-    metrics.transitions_sent.inc_by(batch.count as u64);
-    metrics.batches_sent.inc();
-    batch.clear();
-    if tx.blocking_send(msg).is_err() {
-        bail!(STREAM_CLOSED);
+/// Every scenario of the job, environments split evenly; map id = scenario index.
+fn envs(spec: &RolloutSpec, sim: &Arc<SimConfig>, mode: Mode) -> Vec<VecEnv> {
+    let job = &spec.job;
+    let per_map = job.worker.envs.div_ceil(spec.maps.len()).max(1);
+    let mut venvs: Vec<VecEnv> = spec
+        .maps
+        .iter()
+        .enumerate()
+        .map(|(k, m)| {
+            let seed = spec.seed.wrapping_add(k as u64 * 0x9e37_79b9);
+            VecEnv::new(Arc::clone(m), Arc::clone(sim), VecEnvConfig { n_envs: per_map, mode, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
+        })
+        .collect();
+    if let Some(share) = job.env.conflict_share {
+        venvs = venvs.into_iter().map(|v| v.with_conflicts(share)).collect();
     }
-    Ok(())
+    for (v, g) in venvs.iter_mut().zip(&spec.svo_gaussians) {
+        v.set_svo_gaussian(*g);
+    }
+    venvs
+}
+
+/// The frozen policies' actors, by role.
+struct FrozenRunners {
+    background: Option<PolicyRunner>,
+    ego: Option<PolicyRunner>,
+    adversary: Option<PolicyRunner>,
+}
+
+impl FrozenRunners {
+    fn load(frozen: &[(FrozenRole, JobConfig, Vec<u8>)], obs_spec: &ObsSpec, dt_s: f32, seg_refs: &[&MapSegments], device: &Device) -> anyhow::Result<Self> {
+        let len = obs_spec.len;
+        let mut runners = Self { background: None, ego: None, adversary: None };
+        for (role, cfg, bytes) in frozen {
+            let fz = setup::resolve(cfg, None);
+            anyhow::ensure!(fz.obs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fz.obs.len);
+            let runner = PolicyRunner::from_bytes(&fz.net, obs_spec, dt_s, seg_refs, bytes, 0, device).with_context(|| format!("loading the frozen {role:?} policy"))?;
+            *match role {
+                FrozenRole::Background => &mut runners.background,
+                FrozenRole::Ego => &mut runners.ego,
+                FrozenRole::Adversary => &mut runners.adversary,
+            } = Some(runner);
+        }
+        Ok(runners)
+    }
 }

@@ -1,0 +1,188 @@
+//! Policy selection by a held-out evaluation during training (a job's `[validation]`).
+//!
+//! Owns: the job's validation cases (generated once from the section's seed, like the
+//! training episodes), scoring a training actor on them with its mean action in the job's own
+//! setting (an ego among IDM or its frozen flow, a flow driving every vehicle), and which
+//! point is best ([`ValidationPoint::better_than`], [`BestPolicy`]). Must not: write files
+//! or touch the SAC state (the trainer does both), nor pick cases the final evaluation uses.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sf_job::config::ValidationSection;
+use sf_job::{Frozen, JobConfig};
+use sf_sac::evaluate::{self, FlowDef, Policy, Runners};
+use sf_sac::setup;
+use sf_sim::{Case, Map};
+
+use crate::error::LearnerError;
+
+/// One validation of the training actor: the means over every scenario's cases.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ValidationPoint {
+    pub updates: u64,
+    pub env_steps: u64,
+    pub episodes: u32,
+    pub success: f32,
+    pub safety: f32,
+    pub collision: f32,
+    pub speed: f32,
+    /// Seconds the validation took.
+    pub took_s: f32,
+}
+
+impl ValidationPoint {
+    pub const CSV_HEADER: &'static str = "updates,env_steps,episodes,success,safety,collision,speed,took_s";
+
+    pub fn csv_row(&self) -> String {
+        format!("{},{},{},{},{},{},{},{:.2}", self.updates, self.env_steps, self.episodes, self.success, self.safety, self.collision, self.speed, self.took_s)
+    }
+
+    /// Higher success, then higher safety; a tie keeps the earlier point.
+    pub fn better_than(&self, other: &Self) -> bool {
+        self.success > other.success || (self.success == other.success && self.safety > other.safety)
+    }
+}
+
+/// The best-scoring actor so far: its weights in `best_policy.bpk` and its point in
+/// `best_policy.json` beside them, written in that order so the point on disk always
+/// describes the bytes on disk (a restart reads both back).
+pub struct BestPolicy {
+    dir: PathBuf,
+    pub point: Option<ValidationPoint>,
+}
+
+impl BestPolicy {
+    const WEIGHTS: &'static str = "best_policy.bpk";
+    const POINT: &'static str = "best_policy.json";
+
+    /// The best so far of a job directory (none for a fresh job).
+    pub fn load(dir: &Path) -> Result<Self, LearnerError> {
+        let p = dir.join(Self::POINT);
+        let point = match std::fs::read_to_string(&p) {
+            Ok(text) if dir.join(Self::WEIGHTS).exists() => Some(serde_json::from_str(&text).map_err(|source| LearnerError::StateFile { path: p, source })?),
+            Ok(_) => None,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(source) => return Err(LearnerError::Io { action: "reading", path: p, source }),
+        };
+        Ok(Self { dir: dir.to_path_buf(), point })
+    }
+
+    /// Keeps `weights` if `point` beats the best so far; whether it did.
+    pub fn offer(&mut self, point: &ValidationPoint, weights: &[u8]) -> Result<bool, LearnerError> {
+        if self.point.as_ref().is_some_and(|b| !point.better_than(b)) {
+            return Ok(false);
+        }
+        crate::trainer::write_atomic(&self.dir.join(Self::WEIGHTS), weights)?;
+        crate::trainer::write_atomic(&self.dir.join(Self::POINT), serde_json::to_string(point)?.as_bytes())?;
+        self.point = Some(point.clone());
+        Ok(true)
+    }
+
+    /// The best actor's weights and point, if any was kept.
+    pub fn take(&self) -> Result<Option<(Vec<u8>, ValidationPoint)>, LearnerError> {
+        let Some(point) = self.point.clone() else { return Ok(None) };
+        let p = self.dir.join(Self::WEIGHTS);
+        let bytes = std::fs::read(&p).map_err(|source| LearnerError::Io { action: "reading", path: p, source })?;
+        Ok(Some((bytes, point)))
+    }
+}
+
+/// A job's validation cases and the policies they run with.
+pub struct Validator {
+    pub section: ValidationSection,
+    cfg: JobConfig,
+    /// An ego job's flow (IDM, or its frozen flow); `None` for a flow job, which drives
+    /// every vehicle itself.
+    flow: Option<FlowDef>,
+    cases: Vec<(Arc<Map>, Vec<Case>)>,
+    runners: Runners,
+}
+
+impl Validator {
+    /// `frozen` and `weights`: the policies the job acts with (an ego job's background flow),
+    /// `weights[i]` belonging to `frozen[i]`.
+    pub fn new(section: ValidationSection, cfg: &JobConfig, maps: &[Arc<Map>], frozen: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<Self, LearnerError> {
+        let flow = if cfg.kind.is_flow() { None } else { Some(evaluate::from_frozen(frozen, weights)?.0) };
+        let sim = Arc::new(setup::resolve(cfg, flow.as_ref().and_then(FlowDef::kind)).sim);
+        let vehicles = (cfg.env.vehicles_min, cfg.env.vehicles_max);
+        let cases = maps
+            .iter()
+            .enumerate()
+            .map(|(k, map)| {
+                let mut rng = ChaCha8Rng::seed_from_u64(section.seed ^ ((k as u64) << 32));
+                let cases = (0..section.episodes).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, vehicles, cfg.env.conflict_share)).collect();
+                (Arc::clone(map), cases)
+            })
+            .collect();
+        let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
+        Ok(Self { section, cfg: cfg.clone(), flow, cases, runners: Runners::new(device) })
+    }
+
+    /// Scores the actor `weights` (mean action) on every scenario's cases.
+    pub fn score(&mut self, weights: &[u8], updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
+        let t = std::time::Instant::now();
+        let policy = Policy { key: format!("validation@{updates}"), cfg: self.cfg.clone(), weights: Arc::new(weights.to_vec()), svo_gaussians: Vec::new() };
+        let mut rows = Vec::new();
+        for (map, cases) in &self.cases {
+            let run = match &self.flow {
+                Some(flow) => evaluate::run_cases(map, cases, 1, self.section.envs, flow, Some(&policy), &mut self.runners),
+                None => evaluate::run_cases(map, cases, 1, self.section.envs, &FlowDef::Learned { background: policy.clone(), adversary: None }, None, &mut self.runners),
+            };
+            self.runners.forget(&policy.key);
+            rows.extend(run?);
+        }
+        let n = rows.len().max(1) as f32;
+        let mean = |f: fn(&sf_job::eval::EvalEpisode) -> f32| rows.iter().map(f).sum::<f32>() / n;
+        Ok(ValidationPoint {
+            updates,
+            env_steps,
+            episodes: rows.len() as u32,
+            success: mean(|r| r.success),
+            safety: mean(|r| r.safety),
+            collision: mean(|r| r.collision),
+            speed: mean(|r| r.speed),
+            took_s: t.elapsed().as_secs_f32(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pt(updates: u64, success: f32, safety: f32) -> ValidationPoint {
+        ValidationPoint { updates, success, safety, ..Default::default() }
+    }
+
+    #[test]
+    fn better_means_success_then_safety_and_ties_keep_the_earlier() {
+        assert!(pt(2, 0.9, 0.1).better_than(&pt(1, 0.8, 1.0)));
+        assert!(pt(2, 0.9, 0.95).better_than(&pt(1, 0.9, 0.9)));
+        assert!(!pt(2, 0.9, 0.9).better_than(&pt(1, 0.9, 0.9)), "a tie keeps the earlier point");
+        assert!(!pt(2, 0.7, 1.0).better_than(&pt(1, 0.8, 0.0)));
+    }
+
+    #[test]
+    fn best_policy_keeps_the_best_weights_with_their_point_across_a_restart() {
+        let dir = std::env::temp_dir().join(format!("sf-best-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let mut b = BestPolicy::load(&dir).expect("fresh");
+        assert!(b.take().expect("none").is_none());
+        assert!(b.offer(&pt(500, 0.6, 0.7), b"first").expect("kept"));
+        assert!(b.offer(&pt(1000, 0.8, 0.8), b"second").expect("kept"));
+        assert!(!b.offer(&pt(1500, 0.7, 1.0), b"third").expect("not kept"));
+        assert!(!b.offer(&pt(2000, 0.8, 0.8), b"tie").expect("a tie is not kept"));
+        let again = BestPolicy::load(&dir).expect("restart");
+        let (bytes, point) = again.take().expect("read").expect("kept");
+        assert_eq!((bytes.as_slice(), point.updates), (&b"second"[..], 1000));
+        std::fs::write(dir.join("best_policy.json"), "{not json").expect("corrupt");
+        let e = BestPolicy::load(&dir).err().expect("a corrupt point is refused");
+        assert!(e.to_string().contains("best_policy.json"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,218 @@
+//! The rollout loop's adder: what leaves the rollout thread, and when.
+//!
+//! Owns: [`TransitionWriter`] (batching of the job's transitions and finished episodes, version
+//! stamping, sending through the bounded channel) and [`Credits`] (batches it may send before
+//! the learner acknowledges one). Invariant: every batch holds transitions of one acting policy
+//! version and is stamped with it (0: warm-up actions); a batch is sent only after a credit is
+//! taken. Must not: do network IO (the session streams what the channel carries), or decide who
+//! acts (the environment loop does).
+
+use std::ops::ControlFlow;
+use std::sync::{Arc, Mutex};
+
+use anyhow::bail;
+use sf_job::{Ends, EpisodeResult, JobConfig, TransitionBatch};
+use sf_proto::pb;
+use sf_sac::setup;
+use sf_sim::vec_env::VecEnv;
+use sf_svc::sync::lock;
+use tokio::sync::mpsc;
+
+use super::{Control, STREAM_CLOSED};
+use crate::WorkerMetrics;
+
+/// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
+/// flight, and so its policy lag, when the learner's rate limiter holds workers back.
+pub struct Credits {
+    n: Mutex<u32>,
+    changed: std::sync::Condvar,
+}
+
+impl Credits {
+    pub fn new(n: u32) -> Self {
+        Self { n: Mutex::new(n), changed: std::sync::Condvar::new() }
+    }
+
+    /// One acknowledgement arrived.
+    pub fn grant(&self) {
+        *lock(&self.n) += 1;
+        self.changed.notify_all();
+    }
+
+    /// Waits for a credit; `false` if `stop` turned true first.
+    fn take(&self, control: &Mutex<Control>) -> bool {
+        let mut n = lock(&self.n);
+        loop {
+            if *n > 0 {
+                *n -= 1;
+                return true;
+            }
+            if lock(control).stop {
+                return false;
+            }
+            n = self.changed.wait_timeout(n, std::time::Duration::from_millis(100)).unwrap_or_else(|p| p.into_inner()).0;
+        }
+    }
+}
+
+/// The rollout loop's adder: packs the job's transitions and finished episodes into batches,
+/// one acting policy version per batch, and sends each when it is full (or when the version
+/// changes), after taking a credit. `Break` from a method: `stop` was set while waiting for a
+/// credit.
+pub struct TransitionWriter {
+    batch: TransitionBatch,
+    /// Version of the policy that acted for the batch's transitions (`None` before the first step).
+    version: Option<u64>,
+    /// Transitions that make a batch full (`worker.batch_transitions`).
+    full_at: usize,
+    control: Arc<Mutex<Control>>,
+    credits: Arc<Credits>,
+    tx: mpsc::Sender<pb::TransitionBatch>,
+    metrics: WorkerMetrics,
+}
+
+impl TransitionWriter {
+    /// Fills `batch` (empty, with the job's shapes) up to `full_at` transitions.
+    pub(super) fn new(batch: TransitionBatch, full_at: usize, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> Self {
+        Self { batch, version: None, full_at, control, credits, tx, metrics }
+    }
+
+    /// The coming step acts with policy `version` (0: warm-up actions): a batch holding another
+    /// version's transitions is sent first.
+    pub(super) fn stamp(&mut self, version: u64) -> anyhow::Result<ControlFlow<()>> {
+        if self.version.is_some_and(|v| v != version) && self.batch.count > 0 && self.send(self.version.unwrap_or(0))?.is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
+        self.version = Some(version);
+        Ok(ControlFlow::Continue(()))
+    }
+
+    /// One step of every simulator: its simulated steps, the `rows`' transitions (`before`: each
+    /// simulator's observations before the step; `actions`: `act_dim` floats per row) and the
+    /// episodes that finished.
+    pub(super) fn add(&mut self, venvs: &mut [VecEnv], before: &[Vec<f32>], rows: &[Vec<usize>], actions: &[Vec<f32>], job: &JobConfig) {
+        let (len, act_dim) = (self.batch.obs_len, self.batch.action_dim);
+        for (k, v) in venvs.iter_mut().enumerate() {
+            self.batch.sim_steps += v.n_envs() as u64;
+            self.metrics.env_steps.inc_by(v.n_envs() as u64);
+            for (j, &r) in rows[k].iter().enumerate() {
+                let st = v.row_steps()[r];
+                if !st.stepped {
+                    continue;
+                }
+                let act = &actions[k][j * act_dim..(j + 1) * act_dim];
+                self.batch.push(&before[k][r * len..(r + 1) * len], act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
+            }
+            for m in v.take_finished() {
+                self.metrics.episodes.inc();
+                self.batch.episodes.push(EpisodeResult {
+                    scenario_index: k as u32,
+                    success: m.success,
+                    safety: m.safety,
+                    speed: m.speed,
+                    ends: Ends { collision: m.collision, off_road: m.off_road, off_route: m.off_route, wrong_lane: m.wrong_lane, timeout: m.timeout },
+                });
+            }
+        }
+    }
+
+    /// Sends the batch if it holds `worker.batch_transitions` transitions.
+    pub(super) fn send_if_full(&mut self) -> anyhow::Result<ControlFlow<()>> {
+        if self.batch.count >= self.full_at {
+            return self.send(self.version.unwrap_or(0));
+        }
+        Ok(ControlFlow::Continue(()))
+    }
+
+    /// Takes a credit, stamps the batch with `version` and sends it.
+    fn send(&mut self, version: u64) -> anyhow::Result<ControlFlow<()>> {
+        if !self.credits.take(&self.control) {
+            return Ok(ControlFlow::Break(()));
+        }
+        self.batch.policy_version = version;
+        let msg = sf_proto::batch_to_wire(&self.batch);
+        self.metrics.transitions_sent.inc_by(self.batch.count as u64);
+        self.metrics.batches_sent.inc();
+        self.batch.clear();
+        if self.tx.blocking_send(msg).is_err() {
+            bail!(STREAM_CLOSED);
+        }
+        Ok(ControlFlow::Continue(()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use prometheus_client::registry::Registry;
+
+    fn writer(credits: u32, full_at: usize) -> (TransitionWriter, mpsc::Receiver<pb::TransitionBatch>, Arc<Mutex<Control>>) {
+        let control = Arc::new(Mutex::new(Control { warmup: false, policy: None, stop: false }));
+        let (tx, rx) = mpsc::channel(8);
+        let metrics = WorkerMetrics::register(&mut Registry::default());
+        let w = TransitionWriter::new(TransitionBatch::new(7, 3, 2, 1), full_at, Arc::clone(&control), Arc::new(Credits::new(credits)), tx, metrics);
+        (w, rx, control)
+    }
+
+    fn push(w: &mut TransitionWriter) {
+        w.batch.push(&[0.0, 1.0], &[0.5], 1.0, &[1.0, 2.0], false, 0);
+    }
+
+    #[test]
+    fn a_batch_holds_one_version_and_is_stamped_with_it() -> anyhow::Result<()> {
+        let (mut w, mut rx, _control) = writer(8, 100);
+        assert!(w.stamp(0)?.is_continue());
+        push(&mut w);
+        push(&mut w);
+        assert!(w.stamp(0)?.is_continue());
+        assert!(rx.try_recv().is_err(), "same version: nothing sent");
+        assert!(w.stamp(5)?.is_continue());
+        let sent = rx.try_recv()?;
+        assert_eq!((sent.policy_version, sent.count, sent.job_id, sent.worker_id), (0, 2, 7, 3));
+        push(&mut w);
+        assert!(w.stamp(6)?.is_continue());
+        assert_eq!(rx.try_recv()?.policy_version, 5);
+        // An empty batch is not sent when the version changes.
+        assert!(w.stamp(7)?.is_continue());
+        assert!(rx.try_recv().is_err());
+        Ok(())
+    }
+
+    #[test]
+    fn a_full_batch_is_sent_counted_and_cleared() -> anyhow::Result<()> {
+        let (mut w, mut rx, _control) = writer(8, 2);
+        assert!(w.stamp(4)?.is_continue());
+        push(&mut w);
+        assert!(w.send_if_full()?.is_continue());
+        assert!(rx.try_recv().is_err());
+        push(&mut w);
+        assert!(w.send_if_full()?.is_continue());
+        let sent = rx.try_recv()?;
+        assert_eq!((sent.policy_version, sent.count), (4, 2));
+        assert_eq!((w.metrics.transitions_sent.get(), w.metrics.batches_sent.get(), w.batch.count), (2, 1, 0));
+        Ok(())
+    }
+
+    #[test]
+    fn without_credits_a_stop_breaks_before_sending() -> anyhow::Result<()> {
+        let (mut w, mut rx, control) = writer(0, 1);
+        lock(&control).stop = true;
+        assert!(w.stamp(0)?.is_continue());
+        push(&mut w);
+        assert!(w.send_if_full()?.is_break());
+        assert!(rx.try_recv().is_err());
+        assert_eq!(w.metrics.batches_sent.get(), 0);
+        Ok(())
+    }
+
+    #[test]
+    fn a_closed_channel_is_the_stream_closing() -> anyhow::Result<()> {
+        let (mut w, rx, _control) = writer(1, 1);
+        drop(rx);
+        assert!(w.stamp(0)?.is_continue());
+        push(&mut w);
+        let e = w.send_if_full().err().map(|e| e.to_string());
+        assert_eq!(e.as_deref(), Some(STREAM_CLOSED));
+        Ok(())
+    }
+}
