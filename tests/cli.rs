@@ -228,8 +228,10 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     let job = |name: &str, extra_top: &str, extra_env: &str, steps: u64| {
         socialflow_e2e::tiny_job(r#""merge""#, name, steps).replacen('\n', &format!("\n{extra_top}"), 1).replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\n{extra_env}"), 1)
     };
-    std::fs::write(graph.join("a-ego.toml"), job("ego-in-flow", "", "background_from = \"flow\"\n", 600)).expect("config");
-    std::fs::write(graph.join("b-flow.toml"), job("flow", "kind = \"macad\"\n", "", 900)).expect("config");
+    // Both validate: the ego among the flow's frozen policy, the flow driving every vehicle.
+    let validation = |every: u32| format!("[validation]\nevery_updates = {every}\nepisodes = 3\nenvs = 3\n");
+    std::fs::write(graph.join("a-ego.toml"), job("ego-in-flow", "", "background_from = \"flow\"\n", 600) + &validation(10)).expect("config");
+    std::fs::write(graph.join("b-flow.toml"), job("flow", "kind = \"macad\"\n", "", 900) + &validation(20)).expect("config");
     let data = dir.join("data").display().to_string();
     let args = ["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data];
     let out = socialflow(&args, T);
@@ -239,6 +241,13 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     assert!(lines.iter().all(|v| v["state"] == "succeeded"), "{lines:?}");
     let id = |n: &str| lines.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("job id");
     assert!(id("flow") < id("ego-in-flow"), "the flow is submitted first although its file sorts last");
+    for v in &lines {
+        let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+        let csv = std::fs::read_to_string(art.join("validation.csv")).expect("validation.csv");
+        assert!(csv.lines().count() >= 3, "{}: {csv}", v["name"]);
+        let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json")).expect("json");
+        assert_eq!(meta["selected_by"], "validation", "{}: {meta}", v["name"]);
+    }
     // Rerun: nothing new is submitted.
     let again = socialflow(&args, T);
     assert!(again.status.success());
