@@ -97,8 +97,8 @@ pub enum LearnerError {
     #[error("job {flow} (the flow of job {job_id}): {source}")]
     BackgroundFlow { flow: u64, job_id: u64, source: Box<LearnerError> },
     /// A flow's `coordinator.json` (CoPO Stage 2) could not be read or does not validate.
-    #[error("{0}")]
-    Coordinator(String),
+    #[error(transparent)]
+    Coordinator(sf_sac::coordinator::CoordinatorError),
     /// A submitted job names job `dep` in `field`, but that job cannot serve it: `reason`
     /// completes "job N ...".
     #[error("job config field `{field}`: job {dep} {reason}")]
@@ -152,8 +152,8 @@ pub enum LearnerError {
     Weights { action: &'static str, source: sf_nn::weights::WeightsError },
     #[error(transparent)]
     Device(#[from] sf_nn::device::DeviceError),
-    #[error("fitting the coordinator of {scenario}: {reason}")]
-    FitCoordinator { scenario: String, reason: String },
+    #[error("fitting the coordinator of {scenario}: {source}")]
+    FitCoordinator { scenario: String, source: sf_sac::coordinator::CoordinatorError },
 }
 
 impl LearnerError {
@@ -231,7 +231,7 @@ pub enum IngestError {
     MapOutOfRange { map_id: u32, job_id: u64, maps: u32 },
     /// A row the networks would index or branch on wrongly (masks, segment ids).
     #[error("batch field `{field}`, transition {index}: {reason}")]
-    BadRow { field: &'static str, index: usize, reason: String },
+    BadRow { field: &'static str, index: usize, reason: sf_sim::obs::ObsRowError },
     #[error("policy version {version} was never published (latest {latest})")]
     UnpublishedVersion { version: u64, latest: u64 },
     #[error("deadline passed waiting for the trainer (rate limiter)")]

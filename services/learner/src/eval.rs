@@ -79,8 +79,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
                 if !weights {
                     return Ok(Arc::new(Vec::new()));
                 }
-                let dir = PathBuf::from(&find(f.job_id)?.artifact_dir);
-                std::fs::read(dir.join("policy.bpk")).map(Arc::new).map_err(|source| LearnerError::FinalPolicy { job_id: f.job_id, source })
+                crate::read_final(Path::new(&find(f.job_id)?.artifact_dir), f.job_id, "policy.bpk").map(Arc::new)
             })
             .collect()
     };

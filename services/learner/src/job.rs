@@ -234,7 +234,7 @@ impl ActiveJob {
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|e| IngestError::BadRow { field, index: i, reason: e.to_string() })?;
+                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
             }
         }
         Ok(())

@@ -301,9 +301,9 @@ impl Inner {
         if cfg.validation.is_some() {
             for f in &frozen {
                 let d = self.job(f.job_id).await.map_err(|source| LearnerError::DependencyLookup { dep: f.job_id, field: "validation", source })?;
-                let (p, job_id) = (PathBuf::from(&d.artifact_dir).join("policy.bpk"), f.job_id);
-                let bytes = tokio::task::spawn_blocking(move || std::fs::read(p)).await.map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
-                frozen_weights.push(Arc::new(bytes.map_err(|source| LearnerError::FinalPolicy { job_id, source })?));
+                let (dir, job_id) = (PathBuf::from(&d.artifact_dir), f.job_id);
+                let bytes = tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk")).await.map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
+                frozen_weights.push(Arc::new(bytes?));
             }
         }
         let r = setup::resolve(&cfg, None);
@@ -550,10 +550,16 @@ pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecor
         return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
     }
     let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(|e| LearnerError::Coordinator(e.to_string()))? {
+    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])
+}
+
+/// A file of finished job `job_id`'s artifact directory `dir` (`policy.bpk`, `policy.json`):
+/// what workers, validation and evaluation grids get of a frozen policy. Blocking.
+pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>, LearnerError> {
+    std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source })
 }
 
 /// Whether job `dep_id` (config `dep`) can serve `job` in `role`: its kind (`DepRole::accepts`),

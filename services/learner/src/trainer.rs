@@ -381,7 +381,7 @@ fn fit_coordinator(
         let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
             tracing::info!(job_id = job.id, scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
         })
-        .map_err(|e| LearnerError::FitCoordinator { scenario: scenario.clone(), reason: e.to_string() })?;
+        .map_err(|source| LearnerError::FitCoordinator { scenario: scenario.clone(), source })?;
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
     }
     let file = CoordinatorFile { scenarios: fits };
