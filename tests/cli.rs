@@ -89,17 +89,24 @@ fn bench_sac_prints_the_contract_fields() {
 }
 
 #[test]
-fn learn_ego_writes_curve_config_and_checkpoint() {
-    let dir = std::env::temp_dir().join(format!("sf-e2e-learn-{}", std::process::id()));
-    let d = dir.to_string_lossy().to_string();
-    let out = socialflow(&["learn-ego", "--scenario", "merge", "--steps", "400", "--warmup", "100", "--envs", "4", "--width", "16", "--batch", "16", "--out", &d], Duration::from_secs(300));
+fn plot_curves_overlays_runs_and_names_a_missing_column() {
+    let dir = socialflow_e2e::scratch("plot");
+    let a = dir.join("a.csv");
+    let b = dir.join("b.csv");
+    std::fs::write(&a, "env_steps,updates,success\n0,0,0.2\n100,10,0.5\n").expect("a");
+    std::fs::write(&b, "env_steps,updates,success\n0,0,0.1\n100,10,0.9\n").expect("b");
+    let png = dir.join("out.png");
+    let (ra, rb, o) = (format!("a={}", a.display()), format!("b={}", b.display()), png.display().to_string());
+    let out = socialflow(&["plot-curves", &ra, &rb, "--out", &o], T);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("summary JSON");
-    assert!(v["updates"].as_u64().unwrap_or(0) > 0, "{v}");
-    let csv = std::fs::read_to_string(dir.join("curve.csv")).expect("curve.csv");
-    assert!(csv.starts_with("env_steps,updates,episodes,success") && csv.lines().count() > 2, "{csv}");
-    assert!(std::fs::read(dir.join("curve.png")).expect("png").starts_with(b"\x89PNG"));
-    assert!(dir.join("checkpoint/state.json").exists() && dir.join("config.json").exists());
+    assert!(std::fs::read(&png).expect("png").starts_with(b"\x89PNG"));
+    let out = socialflow(&["plot-curves", &ra, "--column", "collision", "--out", &o], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("a.csv") && err.contains("no column `collision`"), "{err}");
+    let out = socialflow(&["plot-curves", "just-a-path.csv", "--out", &o], T);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("must be NAME=PATH"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -191,7 +191,7 @@ fn non_loopback_ip() -> Option<std::net::IpAddr> {
 #[test]
 fn a_plaintext_token_from_off_loopback_is_refused_unless_allowed() {
     let Some(ip) = non_loopback_ip() else {
-        eprintln!("no non-loopback address on this machine: the rule is covered by sf_svc's unit tests only");
+        eprintln!("no non-loopback address on this machine: the rule is covered by sf_service's unit tests only");
         return;
     };
     let dir = scratch("plaintext");
@@ -250,7 +250,8 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
         let j = submit(&rt, &mut c, format!("{padding}{}", tiny_job(TWO_MAPS, &format!("big-{k}"), 100)));
         rt.block_on(c.cancel_job(pb::CancelJobRequest { job_id: j.job_id })).expect("cancel");
     }
-    let mut plain = pb::job_service_client::JobServiceClient::with_interceptor(channel(&rt, &l.url), sf_svc::auth::AttachToken::new(Some(sf_svc::auth::Token::new(TOKEN, "test").expect("token"))));
+    let mut plain =
+        pb::job_service_client::JobServiceClient::with_interceptor(channel(&rt, &l.url), sf_service::auth::AttachToken::new(Some(sf_service::auth::Token::new(TOKEN, "test").expect("token"))));
     let listed = rt.block_on(plain.list_jobs(pb::ListJobsRequest {})).expect("ListJobs within a default client's 4 MiB").into_inner().jobs;
     assert_eq!(listed.len(), 11);
     assert!(listed.iter().all(|j| j.config_toml.is_empty()), "ListJobs returns summaries");
@@ -278,7 +279,7 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
         let acts: Vec<f32> = (0..act).map(|_| rng.random_range(-1.0..1.0)).collect();
         random.push(&o, &acts, 0.0, &n, false, 0);
     }
-    random.policy_version = a.policy_version;
+    random.acted_by = sf_proto::acted_by_from_wire(a.policy_version);
     let st = push_one(&rt, &mut e, sf_proto::batch_to_wire(&random));
     assert_eq!(st.code(), Code::InvalidArgument, "random observations of the right shape: {st:?}");
     assert!(st.message().contains("mask") || st.message().contains("seg_id"), "{}", st.message());

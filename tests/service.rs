@@ -79,7 +79,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     let tb = art.join("tensorboard");
     let files: Vec<PathBuf> = std::fs::read_dir(&tb).expect("tensorboard dir").filter_map(|e| e.ok().map(|e| e.path())).collect();
     assert_eq!(files.len(), 1, "{files:?}");
-    let events = sf_eval::tensorboard::read_events(&std::fs::read(&files[0]).expect("event file")).expect("valid TFRecords");
+    let events = sf_report::tensorboard::read_events(&std::fs::read(&files[0]).expect("event file")).expect("valid TFRecords");
     assert!(events.len() >= 10, "{} events", events.len());
     assert!(!art.join("replay").exists(), "a succeeded job keeps no replay segments");
     match std::env::var("SOCIALFLOW_TB_PYTHON") {

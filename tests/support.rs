@@ -226,7 +226,7 @@ pub mod grpc {
     use sf_proto::pb;
     use sf_proto::pb::experience_service_client::ExperienceServiceClient;
     use sf_proto::pb::job_service_client::JobServiceClient;
-    use sf_svc::auth::{AttachToken, Token};
+    use sf_service::auth::{AttachToken, Token};
     use tonic::service::interceptor::InterceptedService;
     use tonic::transport::Channel;
 

@@ -16,7 +16,7 @@ Consistency with the code:
     data_dir is the StatefulSet's volume; terminationGracePeriodSeconds covers shutdown;
   - workers: --admin-addr agrees with ports and probes; --learner names the learner Service,
     its port and the right scheme (https when the learner serves TLS);
-  - probe paths are routes of crates/svc/src/admin.rs;
+  - probe paths are routes of crates/service/src/admin.rs;
   - images are what deploy/build-images.sh builds;
   - PrometheusRule expressions use only metric names the services export;
   - the sample job's keys are JobConfig fields and its device matches the learner's GPU request;
@@ -84,7 +84,7 @@ def enum_variants_kebab(src, name):
 def exported_metrics(repo):
     """Names on /metrics: prometheus-client's text encoder appends `_total` to counters and
     `_bucket`/`_sum`/`_count` to histograms; no registry prefix is used (checked)."""
-    files = [os.path.join("crates/svc/src/metrics.rs")]
+    files = [os.path.join("crates/service/src/metrics.rs")]
     for svc in sorted(os.listdir(os.path.join(repo, "services"))):
         d = os.path.join("services", svc, "src")
         if not os.path.isdir(os.path.join(repo, d)):
@@ -114,7 +114,7 @@ def exported_metrics(repo):
 
 
 def admin_routes(repo):
-    return set(re.findall(r'\.route\("(/[^"]*)"', read(repo, "crates/svc/src/admin.rs")))
+    return set(re.findall(r'\.route\("(/[^"]*)"', read(repo, "crates/service/src/admin.rs")))
 
 
 def built_image(repo):
@@ -485,7 +485,7 @@ def main():
 
     print("facts from the code")
     routes = admin_routes(a.repo)
-    print(f"        admin routes (crates/svc/src/admin.rs): {sorted(routes)}")
+    print(f"        admin routes (crates/service/src/admin.rs): {sorted(routes)}")
     check({"/healthz", "/readyz"} <= routes, "admin.rs serves /healthz and /readyz")
     image = built_image(a.repo)
     check(image is not None, f"deploy/build-images.sh builds {image}")

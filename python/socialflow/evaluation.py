@@ -27,7 +27,7 @@ def zero_residual_policy(dim=1):
 
 
 def _t95(n):
-    """Two-sided 95 % Student-t quantile with n - 1 degrees of freedom (as `sf_eval::Summary`)."""
+    """Two-sided 95 % Student-t quantile with n - 1 degrees of freedom (as `sf_report::Summary`)."""
     if n < 2:
         return float("nan")
     try:

@@ -4,9 +4,9 @@
 //! driven inside Rust: IDM, or a finished flow job's frozen policy with CoPO's coordinator or
 //! SocialCommAdv's adversary; in ego mode Python drives agent 0 of every simulator, in
 //! multi-agent mode every vehicle), [`evaluate`] (a Python policy over stored cases x seeds
-//! through `sf_sac::evaluate::run_stored`, the loop of `socialflow eval`'s cells) and the
+//! through `sf_rollout::evaluate::run_stored`, the loop of `socialflow eval`'s cells) and the
 //! conversions to NumPy. Must not: re-implement the simulator, the flows or inference (it
-//! calls `sf_sim` and `sf_sac`), or hold the GIL while simulators step.
+//! calls `sf_sim` and `sf_rollout`), or hold the GIL while simulators step.
 //!
 //! Errors: bad arguments raise `ValueError` naming the argument; missing files `OSError`.
 //! The Gymnasium / PettingZoo classes are Python (`python/socialflow/`).
@@ -20,8 +20,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_sac::drive::{self, Actor};
-use sf_sac::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
+use sf_rollout::drive::{self, Actor};
+use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
 use sf_sim::obs::{MapSegments, ObsSpec, AGENT_CTX};
 use sf_sim::vec_env::{EpisodeSpec, VecEnv, VecEnvConfig};
 use sf_sim::{CaseFile, DriveAction, Layout, Map, Mode, SvoVisibility, Termination};
@@ -494,11 +494,11 @@ fn evaluate(
     };
     let drivers = setup.drivers(Actor::External { act: &act, action });
     let episodes = Episodes { cases: &stored.cases[..cases], seeds, envs, vehicles, svo_deg };
-    let rows = sf_sac::evaluate::run_stored(&map, &setup.sim, setup.mode, setup.svo_gaussian, &episodes, &drivers).map_err(|e| bad("evaluate", e))?;
+    let rows = sf_rollout::evaluate::run_stored(&map, &setup.sim, setup.mode, setup.svo_gaussian, &episodes, &drivers).map_err(|e| bad("evaluate", e))?;
     if let Some(e) = failed.into_inner() {
         return Err(e);
     }
-    Ok(rows.into_iter().map(|r| (r.case, r.seed, r.success, r.safety, r.speed, r.collision)).collect())
+    Ok(rows.into_iter().map(|r| (r.case, r.seed, r.scores.success, r.scores.safety, r.scores.speed, r.collision)).collect())
 }
 
 /// The built-in scenarios.

@@ -91,7 +91,7 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
         let secs = start.elapsed().as_secs_f64();
         let (env_steps, agent_steps) = venv.counters();
         let finished = venv.take_finished();
-        let success = finished.iter().map(|m| m.success as f64).sum::<f64>() / finished.len().max(1) as f64;
+        let success = finished.iter().map(|m| m.scores.success as f64).sum::<f64>() / finished.len().max(1) as f64;
         (secs, steps, env_steps, agent_steps, finished.len(), success, spec)
     });
     let (secs, _steps, env_steps, agent_steps, episodes, success, spec) = result;

@@ -13,7 +13,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 use sf_nn::NetConfig;
-use sf_sac::inference::PolicyRunner;
+use sf_rollout::inference::PolicyRunner;
 use sf_sac::{Replay, Sac, SacConfig, Transition};
 use sf_sim::obs::MapSegments;
 use sf_sim::policy::route_follower;
@@ -98,7 +98,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     };
     let (sim, net) = match &job {
         Some(j) => {
-            let r = sf_sac::setup::resolve(j, None);
+            let r = sf_rollout::setup::resolve(j, None);
             (r.sim, r.net)
         }
         None => size_config(a.size),
@@ -158,7 +158,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     // each agent's history encoded once for all its observers (query-centric), and the same rows
     // with a copy per observation for comparison.
     let (actor, _) = sac.policy();
-    let device = sf_nn::device::device(sf_sac::setup::device_kind(sac_device(a.device)))?;
+    let device = sf_nn::device::device(sf_sac::device_kind(sac_device(a.device)))?;
     let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], 0, &device);
     let live: Vec<usize> = (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
     anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());

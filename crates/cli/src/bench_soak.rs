@@ -24,16 +24,16 @@ use serde_json::json;
 use sf_job::{JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
-use sf_sac::setup;
+use sf_rollout::setup;
+use sf_service::auth::{AttachToken, Token};
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Mode};
-use sf_svc::auth::{AttachToken, Token};
 use tokio_stream::StreamExt;
 
 use crate::remote;
 use crate::scenarios::Ctx;
 use crate::train::runtime;
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 #[derive(Args, Debug)]
 pub struct SoakArgs {
@@ -49,7 +49,7 @@ pub struct SoakArgs {
     #[arg(long, default_value_t = 64)]
     batch: usize,
     /// The job the learner trains (its budget and replay are overridden below).
-    #[arg(long, default_value = "configs/quickstart.toml")]
+    #[arg(long, default_value = "configs/bench/service.toml")]
     config: PathBuf,
     /// The job's replay ratio: small, so 2 cores keep up with many streams.
     #[arg(long, default_value_t = 0.01)]
@@ -136,7 +136,7 @@ async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: 
                         b.push(&rows[i * len..(i + 1) * len], &a, 0.1, &rows[j * len..(j + 1) * len], k % 97 == 0, 0);
                     }
                 }
-                b.policy_version = latest2.load(Ordering::Relaxed);
+                b.acted_by = sf_proto::acted_by_from_wire(latest2.load(Ordering::Relaxed));
                 if tx.send(sf_proto::batch_to_wire(&b)).await.is_err() {
                     break;
                 }
@@ -209,7 +209,7 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
     let url = format!("http://127.0.0.1:{g}");
     let admin = format!("http://127.0.0.1:{adm}/metrics");
     let out = runtime()?.block_on(async {
-        let ep = sf_svc::tls::endpoint(&url, &Default::default())?;
+        let ep = sf_service::tls::endpoint(&url, &Default::default())?;
         let start_wait = Instant::now();
         let mut c = loop {
             match remote::jobs_client(ep.clone(), &url, Some(token.clone())).await {
@@ -220,7 +220,7 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
         };
         let job = remote::submit(&mut c, cfg.to_toml()).await?;
         let ch = ep.connect().await?;
-        let exp: Exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone()))).max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES);
+        let exp: Exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
         let t0 = Instant::now();
         let until = t0 + Duration::from_secs_f64(a.seconds);
         let spawn = |st: Arc<StreamStats>| tokio::spawn(stream(exp.clone(), job.id, Arc::clone(&pool), a.batch, act, until, st));

@@ -16,7 +16,7 @@ use serde_json::json;
 use sf_job::{JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
-use sf_svc::auth::AttachToken;
+use sf_service::auth::AttachToken;
 use tokio_stream::StreamExt;
 
 use crate::remote;
@@ -29,7 +29,7 @@ pub struct SvcBenchArgs {
     #[arg(long, default_value_t = 10.0)]
     seconds: f64,
     /// Job config for `e2e` (its budget is raised so the job outlives the measurement).
-    #[arg(long, default_value = "configs/quickstart.toml")]
+    #[arg(long, default_value = "configs/bench/service.toml")]
     config: PathBuf,
     /// `e2e`: override the job's replay ratio (a small value measures unthrottled workers).
     #[arg(long)]
@@ -71,7 +71,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         let mut c = emb.client().await?;
         let job = remote::submit(&mut c, INGEST_JOB.to_string()).await?;
         let ch = tonic::transport::Endpoint::from_shared(emb.url.clone())?.connect().await?;
-        let mut exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(emb.token.clone()))).max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES);
+        let mut exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(emb.token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
         let wid = exp.register(pb::RegisterRequest { name: "bench".into() }).await?.into_inner().worker_id;
         let asg = loop {
             let r = exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await?.into_inner();
@@ -86,7 +86,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         for k in 0..a.batch {
             b.push(&row, &[0.1, -0.2], k as f32 * 0.01, &row, k % 50 == 0, 0);
         }
-        b.policy_version = asg.policy_version.max(1);
+        b.acted_by = sf_job::ActedBy::Policy(std::num::NonZeroU64::new(asg.policy_version).unwrap_or(std::num::NonZeroU64::MIN));
         let msg = sf_proto::batch_to_wire(&b);
         let bytes = prost::Message::encoded_len(&msg);
         let accepted = Arc::new(AtomicU64::new(0));

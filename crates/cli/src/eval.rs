@@ -2,12 +2,12 @@
 //! this process.
 //!
 //! Owns: finding the grid's trained jobs by name in a learner's data directory (the config's
-//! `runs`), running the cells not yet stored (`sf_sac::evaluate::run_cell`, the code a worker
+//! `runs`), running the cells not yet stored (`sf_rollout::evaluate::run_cell`, the code a worker
 //! runs for an evaluation job's cells) and appending them to `episodes.csv` in the config's
 //! `out`; `socialflow report`. A rerun skips cells already stored and appends the rest, so
 //! nothing stored is lost. The grid itself (`sf_job::eval::EvalConfig`) is shared with the
 //! learner's evaluation jobs (`socialflow submit` of the same file), which spread the cells over
-//! workers. Must not: compute statistics or draw (`sf_eval::report` does).
+//! workers. Must not: compute statistics or draw (`sf_report::report` does).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -15,10 +15,10 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use sf_eval::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig};
-use sf_sac::evaluate::{self, CellSize, FlowDef, Policy, Runners};
+use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
+use sf_rollout::evaluate::{self, CellSize, FlowDef, Policy, Runners};
 
 use crate::scenarios::Ctx;
 
@@ -119,7 +119,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let meta_path = out.join("meta.json");
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?).with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
-    let stored = sf_eval::episodes::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
+    let stored = sf_report::episodes::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
     let have: BTreeSet<Cell> = stored.iter().map(EpisodeRow::cell).collect();
     let todo: Vec<Cell> = all.into_iter().filter(|c| !have.contains(c)).collect();
     eprintln!("{} cells to run ({} stored), {} episodes each", todo.len(), have.len(), cfg.cases * cfg.seeds);
@@ -132,7 +132,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         let eps = evaluate::run_cell(cell, size, map, cases, flow, ego, &mut runners).map_err(anyhow::Error::msg).with_context(|| format!("cell {}", cell.key()))?;
         let rows: Vec<EpisodeRow> = eps.iter().map(|e| EpisodeRow::new(cell, e)).collect();
         file.append(&rows)?;
-        let s = rows.iter().map(|r| r.ep.success as f64).sum::<f64>() / rows.len().max(1) as f64;
+        let s = rows.iter().map(|r| r.ep.scores.success as f64).sum::<f64>() / rows.len().max(1) as f64;
         eprintln!("[{}/{}] {:<64} success {:5.1}%  ({:.1} s)", k + 1, todo.len(), cell.key(), 100.0 * s, t.elapsed().as_secs_f64());
     }
     eprintln!("wrote {}", path.display());
@@ -159,13 +159,13 @@ pub struct ReportArgs {
 /// Builds the report from stored results; prints the findings as JSON.
 pub fn report(a: ReportArgs) -> Result<()> {
     let mut sets = Vec::with_capacity(a.results.len());
-    let mut meta: Option<(PathBuf, sf_eval::episodes::Meta)> = None;
+    let mut meta: Option<(PathBuf, sf_report::episodes::Meta)> = None;
     for dir in &a.results {
-        let rows = sf_eval::episodes::read_episodes(&dir.join("episodes.csv"))?;
+        let rows = sf_report::episodes::read_episodes(&dir.join("episodes.csv"))?;
         if rows.is_empty() {
             bail!("{} holds no evaluated episodes (run `socialflow eval` first)", dir.join("episodes.csv").display());
         }
-        let m = sf_eval::episodes::read_meta(&dir.join("meta.json"))?;
+        let m = sf_report::episodes::read_meta(&dir.join("meta.json"))?;
         match &meta {
             Some((first, m0)) if *m0 != m => bail!("{} and {} were not evaluated on the same grid (their meta.json differ): replicates must share one", first.display(), dir.display()),
             Some(_) => {}
@@ -182,7 +182,7 @@ pub fn report(a: ReportArgs) -> Result<()> {
             std::fs::copy(e.path(), a.out.join(&name)).with_context(|| format!("copying {name}"))?;
         }
     }
-    let f = sf_eval::report::build_replicates(&sets, &meta, &a.out)?;
+    let f = sf_report::report::build_replicates(&sets, &meta, &a.out)?;
     println!("{}", serde_json::to_string(&f)?);
     eprintln!("wrote {}/report.md and report.html", a.out.display());
     Ok(())

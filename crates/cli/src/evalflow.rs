@@ -12,9 +12,9 @@ use clap::Args;
 use rand::SeedableRng;
 use rayon::prelude::*;
 use serde_json::json;
-use sf_eval::Summary;
-use sf_sac::coordinator::CoordinatorFile;
-use sf_sac::drive::{Actor, Drivers};
+use sf_report::Summary;
+use sf_rollout::coordinator::CoordinatorFile;
+use sf_rollout::drive::{Actor, Drivers};
 use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::{EpisodeSpec, VecEnv};
 use sf_sim::{Env, Mode, SimConfig};
@@ -77,7 +77,7 @@ pub fn flow_mode(flow: Flow) -> Result<Mode> {
 /// coordinator.
 struct LearnedFlow {
     sim: std::sync::Arc<SimConfig>,
-    runner: sf_sac::inference::PolicyRunner,
+    runner: sf_rollout::inference::PolicyRunner,
     coordinator: Option<CoordinatorFile>,
 }
 
@@ -96,11 +96,11 @@ impl LearnedFlow {
     fn load(dir: &std::path::Path, job: &sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
         let p = dir.join("policy.bpk");
         let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
-        let r = sf_sac::setup::resolve(job, None);
+        let r = sf_rollout::setup::resolve(job, None);
         let sim = std::sync::Arc::new(r.sim);
         let segments = sf_sim::obs::MapSegments::build(map, sim.obs.segment_points);
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&r.net, &r.obs, sim.dt_s, &[&segments], &weights, 0, &device).with_context(|| format!("loading {}", p.display()))?;
+        let runner = sf_rollout::inference::PolicyRunner::from_bytes(&r.net, &r.obs, sim.dt_s, &[&segments], &weights, 0, &device).with_context(|| format!("loading {}", p.display()))?;
         let coordinator = CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
         Ok(Self { sim, runner, coordinator })
     }
@@ -139,7 +139,7 @@ pub struct CoordinatorArgs {
 /// fits each scenario's SVO Gaussian by the cross-entropy method, each candidate scored by the
 /// frozen Stage-1 flow's mean individual reward with every agent at that SVO.
 pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
-    use sf_sac::coordinator::{fit_scenario, FitSettings, ScenarioFit};
+    use sf_rollout::coordinator::{fit_scenario, FitSettings, ScenarioFit};
     let job = LearnedFlow::config(&a.policy)?;
     if job.kind != sf_job::config::JobKind::Copo {
         bail!("{} is a `{}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), job.kind.as_str());
@@ -220,7 +220,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
                 let mut v = VecEnv::from_episodes(map.clone(), flow.sim.clone(), Mode::MultiAgent, 16, eps).map_err(anyhow::Error::msg)?;
                 v.set_svo_gaussian(gaussian);
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed as u64);
-                let mut done = sf_sac::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
+                let mut done = sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
                 done.sort_by_key(|(tag, _)| *tag);
                 out.extend(done.into_iter().map(|(_, m)| m));
             }
@@ -228,7 +228,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         }
     };
     let col = |f: fn(&EpisodeMetrics) -> f32| Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>());
-    let (success, safety, speed) = (col(|m| m.success), col(|m| m.safety), col(|m| m.speed));
+    let (success, safety, speed) = (col(|m| m.scores.success), col(|m| m.scores.safety), col(|m| m.scores.speed));
     let failures = json!({
         "collision": col(|m| m.collision).mean,
         "off_road": col(|m| m.off_road).mean,
@@ -262,9 +262,9 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
 }
 
 /// `eval-flow --ego idm`: the IDM driver in the ego's seat among the flow, over the stored
-/// cases x seeds, through the same loop as an evaluation cell (`sf_sac::evaluate::run_stored`).
+/// cases x seeds, through the same loop as an evaluation cell (`sf_rollout::evaluate::run_stored`).
 fn run_ego_seat(ctx: &Ctx, a: &EvalFlowArgs) -> Result<()> {
-    use sf_sac::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
+    use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
     let flow = match (&a.policy, a.flow) {
         (Some(dir), _) => FlowDef::load(dir).map_err(anyhow::Error::msg)?,
         (None, Some(Flow::Idm)) => FlowDef::Idm,
@@ -281,13 +281,14 @@ fn run_ego_seat(ctx: &Ctx, a: &EvalFlowArgs) -> Result<()> {
     let gaussian = if a.stage1 { None } else { setup.svo_gaussian };
     let drivers = setup.drivers(Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual });
     let episodes = Episodes { cases: &cases.cases[..a.cases as usize], seeds: a.seeds, envs: a.envs, vehicles: a.vehicles, svo_deg: None };
-    let rows = sf_sac::evaluate::run_stored(&map, &setup.sim, setup.mode, gaussian, &episodes, &drivers).map_err(anyhow::Error::msg)?;
+    let rows = sf_rollout::evaluate::run_stored(&map, &setup.sim, setup.mode, gaussian, &episodes, &drivers).map_err(anyhow::Error::msg)?;
     let col = |f: fn(&sf_job::eval::EvalEpisode) -> f32| Summary::of(&rows.iter().map(|r| f(r) as f64).collect::<Vec<_>>());
-    let (success, safety, speed, collision) = (col(|r| r.success), col(|r| r.safety), col(|r| r.speed), col(|r| r.collision));
+    let (success, safety, speed, collision) = (col(|r| r.scores.success), col(|r| r.scores.safety), col(|r| r.scores.speed), col(|r| r.collision));
     let flow_name = flow.kind().map_or("idm", |k| k.as_str());
     if a.json {
         let s = |x: Summary| json!({"mean": x.mean, "ci95": x.ci95});
-        let episodes: Vec<_> = rows.iter().map(|r| json!({"case": r.case, "seed": r.seed, "success": r.success, "safety": r.safety, "speed": r.speed, "collision": r.collision})).collect();
+        let episodes: Vec<_> =
+            rows.iter().map(|r| json!({"case": r.case, "seed": r.seed, "success": r.scores.success, "safety": r.scores.safety, "speed": r.scores.speed, "collision": r.collision})).collect();
         let out = json!({
             "flow": flow_name,
             "policy": a.policy,

@@ -6,7 +6,7 @@
 //!
 //! Owns: the rung file format ([`Rung`]), the paired ego-vs-IDM evaluation and the gate.
 //! Must not: change how jobs train (it submits ordinary job configs) or how episodes run
-//! (`sf_sac::drive`).
+//! (`sf_rollout::drive`).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -18,11 +18,11 @@ use clap::Args;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use sf_eval::plot::{line_chart, Series};
 use sf_job::{JobConfig, JobState};
-use sf_sac::drive::{self, Actor, Drivers};
-use sf_sac::evaluate::{Policy, Runners};
-use sf_sac::setup;
+use sf_report::plot::{line_chart, Series};
+use sf_rollout::drive::{self, Actor, Drivers};
+use sf_rollout::evaluate::{Policy, Runners};
+use sf_rollout::setup;
 use sf_sim::env::{Controller, Mode};
 use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::{EpisodeSpec, VecEnv};
@@ -205,7 +205,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("docs/ladder").join(&rung.name));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let seeds = a.seeds.clone().unwrap_or_else(|| rung.seeds.clone());
-    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_sac::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_rollout::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
     if let Some(g) = &rung.eval.generate {
         let sim = Arc::new(SimConfig::default());
         for (map, cases) in &mut maps {
@@ -387,11 +387,11 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
                 case: cases.cases[c].id,
                 seed,
                 vehicles: vehicles(c).unwrap_or(cases.cases[c].vehicles.len()).min(cases.cases[c].vehicles.len()),
-                success: m.success,
+                success: m.scores.success,
                 collision: m.collision,
                 other_failure: m.off_road + m.off_route + m.wrong_lane,
                 timeout: m.timeout,
-                speed: m.speed,
+                speed: m.scores.speed,
             });
         }
     }
@@ -413,7 +413,7 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
     // Rows are paired: the same (scenario, case, seed) in the same order.
     let a: Vec<f64> = pol.iter().map(|r| r.success as f64).collect();
     let b: Vec<f64> = idm.iter().map(|r| r.success as f64).collect();
-    let p_value = match sf_eval::paired_t_test(&a, &b) {
+    let p_value = match sf_report::paired_t_test(&a, &b) {
         Ok(t) => t.p_value,
         // Identical outcomes everywhere: no difference to test.
         Err(_) => 1.0,
@@ -512,7 +512,7 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
             s.other_failures,
             s.speed,
             s.idm_speed,
-            sf_eval::report::fmt_p(s.p_value),
+            sf_report::report::fmt_p(s.p_value),
             if s.passed { "pass".to_string() } else { s.failed_checks.join("; ") }
         );
     }

@@ -17,9 +17,9 @@ mod bench_svc;
 mod eval;
 mod evalflow;
 mod ladder;
-mod learn;
 mod onnx;
 mod pipeline;
+mod plot;
 mod probe;
 mod remote;
 mod render;
@@ -76,10 +76,8 @@ enum Cmd {
     EvalFlow(evalflow::EvalFlowArgs),
     /// CoPO Stage 2: fits a scenario's SVO Gaussian on a frozen CoPO Stage-1 flow (CEM).
     CopoCoordinator(evalflow::CoordinatorArgs),
-    /// Trains an ego policy with SAC among IDM traffic (single process) and writes its curve.
-    LearnEgo(learn::LearnArgs),
     /// Overlays learning curves (CSV) of several runs in one PNG.
-    PlotCurves(learn::PlotArgs),
+    PlotCurves(plot::PlotArgs),
     /// Renders a frame (PNG) or an episode (GIF).
     Render(render::RenderArgs),
     /// Writes the four scenario files from their builders.
@@ -132,7 +130,7 @@ pub fn main() -> ExitCode {
         Cmd::Worker(a) => a.log_json,
         _ => false,
     };
-    sf_svc::logging::init(json);
+    sf_service::logging::init(json);
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -159,8 +157,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::CopoCoordinator(a) => evalflow::coordinator(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),
-        Cmd::LearnEgo(a) => learn::run(&ctx, a),
-        Cmd::PlotCurves(a) => learn::plot_curves(a),
+        Cmd::PlotCurves(a) => plot::plot_curves(a),
         Cmd::GenScenarios { out } => scenarios::gen_scenarios(&out),
         Cmd::GenCases { out, n, seed } => scenarios::gen_cases(&ctx, &out, n, seed),
     }

@@ -217,7 +217,7 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                     };
                     tokio::select! {
                         r = all => r.map(Some),
-                        _ = sf_svc::signal::terminate() => Ok(None),
+                        _ = sf_service::signal::terminate() => Ok(None),
                     }
                 }
                 .await;

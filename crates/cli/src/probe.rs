@@ -1,4 +1,4 @@
-//! `socialflow probe <job.toml>`: the critic probe (`sf_sac::probe`) on a job config: can its
+//! `socialflow probe <job.toml>`: the critic probe (`sf_rollout::probe`) on a job config: can its
 //! critic tell, from demonstrator data alone, which states lead to a failure?
 
 use std::path::PathBuf;
@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::Args;
 use sf_job::JobConfig;
-use sf_sac::{probe, setup, Sac};
+use sf_rollout::{probe, setup};
+use sf_sac::Sac;
 
 use crate::scenarios::Ctx;
 

@@ -11,13 +11,13 @@ use serde_json::json;
 use sf_job::{JobRecord, JobState, Progress};
 use sf_proto::pb;
 use sf_proto::pb::job_service_client::JobServiceClient;
-use sf_svc::auth::{AttachToken, Token};
+use sf_service::auth::{AttachToken, Token};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
 pub type JobsClient = JobServiceClient<InterceptedService<Channel, AttachToken>>;
 
-pub use sf_svc::conn::LearnerConn as Conn;
+pub use sf_service::conn::LearnerConn as Conn;
 
 #[derive(Subcommand, Debug)]
 pub enum RemoteCmd {
@@ -60,7 +60,7 @@ pub async fn connect(conn: &Conn) -> Result<JobsClient> {
 
 pub async fn jobs_client(endpoint: tonic::transport::Endpoint, url: &str, token: Option<Token>) -> Result<JobsClient> {
     let ch = endpoint.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
-    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
+    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES))
 }
 
 fn deadline<T>(msg: T) -> tonic::Request<T> {
@@ -70,7 +70,7 @@ fn deadline<T>(msg: T) -> tonic::Request<T> {
 }
 
 fn status_err(s: tonic::Status) -> anyhow::Error {
-    anyhow!("{} ({})", s.message(), sf_svc::error::code_label(s.code()))
+    anyhow!("{} ({})", s.message(), sf_service::error::code_label(s.code()))
 }
 
 pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord> {
@@ -113,9 +113,9 @@ pub fn show(pb: &ProgressBar, state: JobState, p: &Progress) {
         p.updates,
         p.policy_version,
         p.env_steps_per_s,
-        p.success,
-        p.safety,
-        p.speed,
+        p.scores.success,
+        p.scores.safety,
+        p.scores.speed,
         p.episodes.min(100)
     ));
 }
@@ -167,7 +167,17 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                         println!("{}", job_json(j));
                     } else {
                         let p = &j.progress;
-                        println!("{:>5}  {:<20} {:<10} {:>9}/{:<9} updates {:>7}  success {:.2}  {}", j.id, j.name, j.state.as_str(), p.env_steps, p.target_env_steps, p.updates, p.success, j.message);
+                        println!(
+                            "{:>5}  {:<20} {:<10} {:>9}/{:<9} updates {:>7}  success {:.2}  {}",
+                            j.id,
+                            j.name,
+                            j.state.as_str(),
+                            p.env_steps,
+                            p.target_env_steps,
+                            p.updates,
+                            p.scores.success,
+                            j.message
+                        );
                     }
                 }
                 Ok(())

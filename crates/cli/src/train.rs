@@ -14,7 +14,7 @@ use rand::Rng;
 use serde_json::json;
 use sf_job::{JobConfig, JobState};
 use sf_learner::{LearnerConfig, RunningLearner};
-use sf_svc::auth::Token;
+use sf_service::auth::Token;
 use sf_worker::{WorkerConfig, WorkerMetrics};
 use tokio::sync::watch;
 
@@ -82,7 +82,7 @@ impl Embedded {
     }
 
     pub async fn client(&self) -> Result<remote::JobsClient> {
-        remote::jobs_client(sf_svc::tls::endpoint(&self.url, &Default::default())?, &self.url, Some(self.token.clone())).await
+        remote::jobs_client(sf_service::tls::endpoint(&self.url, &Default::default())?, &self.url, Some(self.token.clone())).await
     }
 
     /// Stops the workers, then the learner (checkpointing a running job).
@@ -106,7 +106,7 @@ pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
         bail!("--workers must be at least 1");
     }
     // The device before any port: a cuda job on a machine without a GPU stops here.
-    sf_nn::device::device(sf_sac::setup::device_kind(cfg.sac.device)).with_context(|| format!("{}: field `sac.device`", a.config.display()))?;
+    sf_nn::device::device(sf_sac::device_kind(cfg.sac.device)).with_context(|| format!("{}: field `sac.device`", a.config.display()))?;
     runtime()?.block_on(async move {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
@@ -127,7 +127,7 @@ pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
         };
         let watched = tokio::select! {
             r = remote::watch(&mut c, job.id, a.quiet) => Some(r),
-            _ = sf_svc::signal::terminate() => None,
+            _ = sf_service::signal::terminate() => None,
         };
         emb.stop().await?;
         let Some(r) = watched else {

@@ -3,16 +3,54 @@
 //! Owns: [`TransitionBatch`] and [`TransitionBatch::validate`] (every array holds `count` rows
 //! of the declared widths, observations, actions and rewards are finite, terminal flags are 0
 //! or 1). Observations travel and are stored as IEEE half floats, so the learner copies them
-//! into replay without converting.
+//! into replay without converting. [`ActedBy`] and [`PolicyRequest`] say which weights acted
+//! or are asked for, so that warm-up data and "the latest policy" are never the same number.
+
+use std::fmt;
+use std::num::NonZeroU64;
 
 use half::f16;
+
+/// Which actor chose a batch's actions: the warm-up's (uniformly random or the IDM
+/// demonstrator), or a published policy version (versions start at 1).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ActedBy {
+    #[default]
+    Warmup,
+    Policy(NonZeroU64),
+}
+
+impl ActedBy {
+    /// The version's number, `None` for warm-up actions.
+    pub fn version(self) -> Option<u64> {
+        match self {
+            Self::Warmup => None,
+            Self::Policy(v) => Some(v.get()),
+        }
+    }
+}
+
+/// Which weights a policy request asks for: the newest the job holds, or one version.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PolicyRequest {
+    #[default]
+    Latest,
+    Version(NonZeroU64),
+}
+
+impl fmt::Display for PolicyRequest {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Latest => f.write_str("latest"),
+            Self::Version(v) => write!(f, "{v}"),
+        }
+    }
+}
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct EpisodeResult {
     pub scenario_index: u32,
-    pub success: f32,
-    pub safety: f32,
-    pub speed: f32,
+    pub scores: sf_sim::Scores,
     /// How the scored agents' episodes ended, as fractions of them (`EpisodeMetrics`).
     pub ends: Ends,
 }
@@ -45,8 +83,8 @@ impl Ends {
 pub struct TransitionBatch {
     pub job_id: u64,
     pub worker_id: u64,
-    /// Version of the policy that acted; 0 for warm-up random actions.
-    pub policy_version: u64,
+    /// The policy version (or the warm-up) that chose these actions.
+    pub acted_by: ActedBy,
     pub count: usize,
     pub obs_len: usize,
     pub action_dim: usize,
@@ -138,9 +176,9 @@ impl TransitionBatch {
         for (i, e) in self.episodes.iter().enumerate() {
             let [c, r, o, w, t] = e.ends.values();
             for (field, v) in [
-                ("episodes.success", e.success),
-                ("episodes.safety", e.safety),
-                ("episodes.speed", e.speed),
+                ("episodes.success", e.scores.success),
+                ("episodes.safety", e.scores.safety),
+                ("episodes.speed", e.scores.speed),
                 ("episodes.collision", c),
                 ("episodes.off_road", r),
                 ("episodes.off_route", o),

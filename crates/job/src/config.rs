@@ -282,6 +282,13 @@ pub struct SacConfig {
     pub gamma: f32,
     pub tau: f32,
     pub lr_actor: f64,
+    /// The actor's learning rate falls linearly from `lr_actor` to this over
+    /// `lr_actor_decay_updates` updates of the actor's SAC phase (counted after the cloning and
+    /// critic pre-training updates), then stays there (absent: constant `lr_actor`). Slows the
+    /// policy's drift once it has learned what it can.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lr_actor_final: Option<f64>,
+    pub lr_actor_decay_updates: u64,
     pub lr_critic: f64,
     pub lr_alpha: f64,
     pub batch_size: usize,
@@ -349,6 +356,16 @@ impl SacConfig {
     pub fn bc_log_std(&self) -> f32 {
         self.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5)
     }
+
+    /// The actor's learning rate at update `updates` (0-based, counted from the job's first
+    /// update): `lr_actor` until the actor's SAC phase starts, then the linear decay towards
+    /// `lr_actor_final` if one is set.
+    pub fn actor_lr(&self, updates: u64) -> f64 {
+        let Some(last) = self.lr_actor_final else { return self.lr_actor };
+        let since = updates.saturating_sub(self.bc_updates + self.critic_pretrain_updates);
+        let frac = (since as f64 / self.lr_actor_decay_updates.max(1) as f64).min(1.0);
+        self.lr_actor + (last - self.lr_actor) * frac
+    }
 }
 
 /// `sac.critic_loss`.
@@ -390,6 +407,8 @@ impl Default for SacConfig {
             gamma: 0.9,
             tau: 0.005,
             lr_actor: 1e-4,
+            lr_actor_final: None,
+            lr_actor_decay_updates: 0,
             lr_critic: 5e-4,
             lr_alpha: 1e-4,
             batch_size: 128,
@@ -501,16 +520,36 @@ pub enum DepRole {
     Init,
 }
 
+/// Why a dependency's kind cannot serve in a role; the message completes "job N ...".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum DepKindError {
+    #[error("is a {} job; the adversary talks to a SocialComm flow", .dep.as_str())]
+    NotSocialcomm { dep: JobKind },
+    #[error("is an ego job, not a traffic flow")]
+    NotAFlow,
+    #[error("is a {} job, not an ego policy", .dep.as_str())]
+    NotAnEgo { dep: JobKind },
+    #[error("is a {} job; a job starts only from one of its own kind", .dep.as_str())]
+    OtherKind { dep: JobKind },
+}
+
+/// A pipeline job's dependency name that no job carries.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{field}: no job named `{name}`")]
+pub struct UnknownJobName {
+    pub field: &'static str,
+    pub name: String,
+}
+
 impl DepRole {
     /// Whether a `dep`-kind job can serve a `job`-kind job in this role, by kind alone (the
-    /// learner also compares networks and observation layouts). The error completes
-    /// "job N ...".
-    pub fn accepts(self, job: JobKind, dep: JobKind) -> Result<(), String> {
+    /// learner also compares networks and observation layouts).
+    pub fn accepts(self, job: JobKind, dep: JobKind) -> Result<(), DepKindError> {
         match self {
-            Self::Background if job == JobKind::SocialcommAdv && dep != JobKind::Socialcomm => Err(format!("is a {} job; the adversary talks to a SocialComm flow", dep.as_str())),
-            Self::Background if !dep.is_flow() => Err("is an ego job, not a traffic flow".into()),
-            Self::Ego if dep != JobKind::Ego => Err(format!("is a {} job, not an ego policy", dep.as_str())),
-            Self::Init if dep != job => Err(format!("is a {} job; a job starts only from one of its own kind", dep.as_str())),
+            Self::Background if job == JobKind::SocialcommAdv && dep != JobKind::Socialcomm => Err(DepKindError::NotSocialcomm { dep }),
+            Self::Background if !dep.is_flow() => Err(DepKindError::NotAFlow),
+            Self::Ego if dep != JobKind::Ego => Err(DepKindError::NotAnEgo { dep }),
+            Self::Init if dep != job => Err(DepKindError::OtherKind { dep }),
             _ => Ok(()),
         }
     }
@@ -549,10 +588,10 @@ impl JobConfig {
     }
 
     /// Replaces the name references by ids (`id_of` answers for a name).
-    pub fn resolve_names(&mut self, mut id_of: impl FnMut(&str) -> Option<u64>) -> Result<(), String> {
-        let mut one = |name: &mut Option<String>, id: &mut Option<u64>, field: &str| -> Result<(), String> {
+    pub fn resolve_names(&mut self, mut id_of: impl FnMut(&str) -> Option<u64>) -> Result<(), UnknownJobName> {
+        let mut one = |name: &mut Option<String>, id: &mut Option<u64>, field: &'static str| -> Result<(), UnknownJobName> {
             if let Some(n) = name.take() {
-                *id = Some(id_of(&n).ok_or_else(|| format!("{field}: no job named `{n}`"))?);
+                *id = Some(id_of(&n).ok_or(UnknownJobName { field, name: n })?);
             }
             Ok(())
         };
@@ -646,6 +685,15 @@ impl JobConfig {
             if !(v.is_finite() && v > 0.0 && v < 1.0) {
                 return bad(f, format!("{v} must be in (0, 1)"));
             }
+        }
+        match (s.lr_actor_final, s.lr_actor_decay_updates) {
+            (None, 0) => {}
+            (None, _) => return bad("sac.lr_actor_decay_updates", "decays towards sac.lr_actor_final: set it too"),
+            (Some(_), 0) => return bad("sac.lr_actor_final", "is reached over sac.lr_actor_decay_updates: set it to a positive number of updates"),
+            (Some(f), _) if !(f.is_finite() && f > 0.0 && f <= s.lr_actor) => {
+                return bad("sac.lr_actor_final", format!("{f} must be in (0, sac.lr_actor = {}]", s.lr_actor));
+            }
+            (Some(_), _) => {}
         }
         if s.batch_size == 0 || s.batch_size > 65_536 {
             return bad("sac.batch_size", format!("{} must be in 1..=65536", s.batch_size));
@@ -880,12 +928,36 @@ mod tests {
         assert!(e.to_string().contains("env.action"), "{e}");
     }
 
+    /// `sac.lr_actor_final`: constant before the actor's SAC phase, linear over the decay,
+    /// flat after it; both fields or neither, the final rate within (0, lr_actor].
+    #[test]
+    fn the_actor_learning_rate_decays_after_cloning_and_pretraining() {
+        let sac = "[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 10\ncritic_pretrain_updates = 20\nlr_actor = 1e-4\n";
+        let c = JobConfig::from_toml(&format!("{MIN}{sac}lr_actor_final = 2e-5\nlr_actor_decay_updates = 100\n")).expect("valid");
+        let lr = |u| c.sac.actor_lr(u);
+        assert_eq!((lr(0), lr(30)), (1e-4, 1e-4), "constant through cloning and pre-training");
+        assert!((lr(80) - 6e-5).abs() < 1e-12, "half way: {}", lr(80));
+        assert!((lr(130) - 2e-5).abs() < 1e-12 && (lr(10_000) - 2e-5).abs() < 1e-12, "flat at the end");
+        assert_eq!(JobConfig::from_toml(&c.to_toml()).expect("round trip"), c);
+        let plain = JobConfig::from_toml(&format!("{MIN}{sac}")).expect("no decay");
+        assert_eq!(plain.sac.actor_lr(5_000), 1e-4);
+        for (extra, field) in [
+            ("lr_actor_decay_updates = 100\n", "sac.lr_actor_decay_updates"),
+            ("lr_actor_final = 2e-5\n", "sac.lr_actor_final"),
+            ("lr_actor_final = 2e-4\nlr_actor_decay_updates = 100\n", "sac.lr_actor_final"),
+            ("lr_actor_final = 0.0\nlr_actor_decay_updates = 100\n", "sac.lr_actor_final"),
+        ] {
+            let e = JobConfig::from_toml(&format!("{MIN}{sac}{extra}")).expect_err(field);
+            assert!(e.to_string().contains(field), "{extra}: {e}");
+        }
+    }
+
     #[test]
     fn dependencies_serve_only_in_roles_their_kind_fits() {
         use JobKind::*;
         assert!(DepRole::Background.accepts(Ego, Failmaker).is_ok());
-        assert!(DepRole::Background.accepts(Ego, Ego).expect_err("ego").contains("not a traffic flow"));
-        assert!(DepRole::Background.accepts(SocialcommAdv, Copo).expect_err("not socialcomm").contains("SocialComm"));
+        assert!(DepRole::Background.accepts(Ego, Ego).expect_err("ego").to_string().contains("not a traffic flow"));
+        assert!(DepRole::Background.accepts(SocialcommAdv, Copo).expect_err("not socialcomm").to_string().contains("SocialComm"));
         assert!(DepRole::Background.accepts(SocialcommAdv, Socialcomm).is_ok());
         assert!(DepRole::Ego.accepts(Failmaker, Macad).is_err());
         assert!(DepRole::Ego.accepts(Failmaker, Ego).is_ok());

@@ -6,8 +6,8 @@
 //! its experiments into [`Cell`]s ([`EvalConfig::cells`]), the work a worker is handed for one
 //! cell ([`EvalWork`]) and the metrics of one evaluated episode ([`EvalEpisode`]). Both
 //! `socialflow eval` (embedded) and the learner's evaluation jobs (cells shared by workers)
-//! expand the same config into the same cells. Must not: run simulations (`sf_sac::evaluate`
-//! does) or know the results file (`sf_eval::report` does).
+//! expand the same config into the same cells. Must not: run simulations (`sf_rollout::evaluate`
+//! does) or know the results file (`sf_report::report` does).
 
 use std::collections::BTreeSet;
 use std::path::PathBuf;
@@ -167,24 +167,32 @@ impl Cell {
     }
 }
 
+/// An evaluated episode's metric outside [0, 1].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("episode (case {case}, seed {seed}): {metric} {value} is not in [0, 1]")]
+pub struct MetricRangeError {
+    pub case: u32,
+    pub seed: u32,
+    pub metric: &'static str,
+    pub value: f32,
+}
+
 /// The metrics of one evaluated episode of a cell.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EvalEpisode {
     /// The stored case's id.
     pub case: u32,
     pub seed: u32,
-    pub success: f32,
-    pub safety: f32,
-    pub speed: f32,
+    pub scores: sf_sim::Scores,
     pub collision: f32,
 }
 
 impl EvalEpisode {
     /// Every metric is a fraction in [0, 1].
-    pub fn validate(&self) -> Result<(), String> {
-        for (what, v) in [("success", self.success), ("safety", self.safety), ("speed", self.speed), ("collision", self.collision)] {
-            if !(0.0..=1.0).contains(&v) {
-                return Err(format!("episode (case {}, seed {}): {what} {v} is not in [0, 1]", self.case, self.seed));
+    pub fn validate(&self) -> Result<(), MetricRangeError> {
+        for (metric, value) in [("success", self.scores.success), ("safety", self.scores.safety), ("speed", self.scores.speed), ("collision", self.collision)] {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(MetricRangeError { case: self.case, seed: self.seed, metric, value });
             }
         }
         Ok(())

@@ -7,13 +7,13 @@
 //! [`JobSpec`], the one parse of a submitted or stored text into either. Must not: depend on
 //! burn, tokio or the wire format (`sf_proto` converts to and from these types).
 
-pub use sf_sim::SvoGaussian;
+pub use sf_sim::{Scores, SvoGaussian};
 pub mod batch;
 pub mod config;
 pub mod eval;
 pub mod spec;
 
-pub use batch::{BatchError, Ends, EpisodeResult, TransitionBatch};
+pub use batch::{ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, TransitionBatch};
 pub use config::{ConfigError, DepRole, JobConfig};
 pub use spec::{JobSpec, SpecError};
 
@@ -56,9 +56,9 @@ pub struct Progress {
     pub updates: u64,
     pub policy_version: u64,
     pub episodes: u64,
-    pub success: f32,
-    pub safety: f32,
-    pub speed: f32,
+    /// Rolling means over the last finished training episodes.
+    #[serde(flatten)]
+    pub scores: sf_sim::Scores,
     pub critic_loss: f32,
     pub actor_loss: f32,
     pub alpha: f32,

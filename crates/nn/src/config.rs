@@ -43,7 +43,7 @@ pub struct NetConfig {
     /// Action dimension (`action.dim()` for driving, 1 for the adversary).
     pub action_dim: usize,
     /// How a driving policy's action moves its vehicle (`env.action`); whoever runs the policy
-    /// applies it (`sf_sac::drive`).
+    /// applies it (`sf_rollout::drive`).
     pub action: DriveAction,
     /// The released code's mean head: tanh on the mean *and* on the sample, so the
     /// deterministic action stays within +-tanh(1) = +-0.762. Off (default): the mean is

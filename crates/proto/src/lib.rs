@@ -10,7 +10,7 @@
 
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};
-use sf_job::{Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Progress, TransitionBatch};
+use sf_job::{ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, PolicyRequest, Progress, Scores, TransitionBatch};
 
 #[allow(clippy::all, missing_docs)]
 pub mod pb {
@@ -62,9 +62,9 @@ pub fn progress_to_wire(job_id: u64, state: JobState, p: &Progress) -> pb::JobPr
         updates: p.updates,
         policy_version: p.policy_version,
         episodes: p.episodes,
-        success: p.success,
-        safety: p.safety,
-        speed: p.speed,
+        success: p.scores.success,
+        safety: p.scores.safety,
+        speed: p.scores.speed,
         critic_loss: p.critic_loss,
         actor_loss: p.actor_loss,
         alpha: p.alpha,
@@ -83,9 +83,7 @@ pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), W
             updates: p.updates,
             policy_version: p.policy_version,
             episodes: p.episodes,
-            success: p.success,
-            safety: p.safety,
-            speed: p.speed,
+            scores: Scores { success: p.success, safety: p.safety, speed: p.speed },
             critic_loss: p.critic_loss,
             actor_loss: p.actor_loss,
             alpha: p.alpha,
@@ -217,13 +215,13 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
 }
 
 pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
-    pb::EvalEpisode { case_id: e.case, seed: e.seed, success: e.success, safety: e.safety, speed: e.speed, collision: e.collision }
+    pb::EvalEpisode { case_id: e.case, seed: e.seed, success: e.scores.success, safety: e.scores.safety, speed: e.scores.speed, collision: e.collision }
 }
 
 /// Decodes and validates one episode's metrics.
 pub fn eval_episode_from_wire(e: &pb::EvalEpisode) -> Result<EvalEpisode, WireError> {
-    let ep = EvalEpisode { case: e.case_id, seed: e.seed, success: e.success, safety: e.safety, speed: e.speed, collision: e.collision };
-    ep.validate().map_err(|reason| WireError { field: "episodes", reason })?;
+    let ep = EvalEpisode { case: e.case_id, seed: e.seed, scores: Scores { success: e.success, safety: e.safety, speed: e.speed }, collision: e.collision };
+    ep.validate().map_err(|e| WireError { field: "episodes", reason: e.to_string() })?;
     Ok(ep)
 }
 
@@ -268,7 +266,7 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
     pb::TransitionBatch {
         job_id: b.job_id,
         worker_id: b.worker_id,
-        policy_version: b.policy_version,
+        policy_version: acted_by_to_wire(b.acted_by),
         count: b.count as u32,
         obs_len: b.obs_len as u32,
         action_dim: b.action_dim as u32,
@@ -283,9 +281,9 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
             .iter()
             .map(|e| pb::EpisodeResult {
                 scenario_index: e.scenario_index,
-                success: e.success,
-                safety: e.safety,
-                speed: e.speed,
+                success: e.scores.success,
+                safety: e.scores.safety,
+                speed: e.scores.speed,
                 collision: e.ends.collision,
                 off_road: e.ends.off_road,
                 off_route: e.ends.off_route,
@@ -295,6 +293,29 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
             .collect(),
         sim_steps: b.sim_steps,
     }
+}
+
+/// The wire spells warm-up actions as policy version 0.
+pub fn acted_by_from_wire(version: u64) -> ActedBy {
+    std::num::NonZeroU64::new(version).map_or(ActedBy::Warmup, ActedBy::Policy)
+}
+
+pub fn acted_by_to_wire(a: ActedBy) -> u64 {
+    a.version().unwrap_or(0)
+}
+
+/// The wire spells "the latest policy" as version 0.
+pub fn policy_request_from_wire(version: u64) -> PolicyRequest {
+    std::num::NonZeroU64::new(version).map_or(PolicyRequest::Latest, PolicyRequest::Version)
+}
+
+/// A `GetPolicy` request for `job_id`.
+pub fn get_policy_to_wire(job_id: u64, which: PolicyRequest) -> pb::GetPolicyRequest {
+    let version = match which {
+        PolicyRequest::Latest => 0,
+        PolicyRequest::Version(v) => v.get(),
+    };
+    pb::GetPolicyRequest { job_id, version }
 }
 
 /// Decodes and validates a batch (shapes, finiteness, flags).
@@ -317,7 +338,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
     let b = TransitionBatch {
         job_id: m.job_id,
         worker_id: m.worker_id,
-        policy_version: m.policy_version,
+        acted_by: acted_by_from_wire(m.policy_version),
         count: n,
         obs_len: m.obs_len as usize,
         action_dim: m.action_dim as usize,
@@ -332,9 +353,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
             .iter()
             .map(|e| EpisodeResult {
                 scenario_index: e.scenario_index,
-                success: e.success,
-                safety: e.safety,
-                speed: e.speed,
+                scores: Scores { success: e.success, safety: e.safety, speed: e.speed },
                 ends: Ends { collision: e.collision, off_road: e.off_road, off_route: e.off_route, wrong_lane: e.wrong_lane, timeout: e.timeout },
             })
             .collect(),
@@ -352,7 +371,7 @@ mod tests {
     fn a_batch_round_trips_and_bad_ones_are_named() {
         let mut b = TransitionBatch::new(3, 4, 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
-        b.episodes.push(EpisodeResult { scenario_index: 1, success: 1.0, safety: 1.0, speed: 0.5, ends: Ends { collision: 0.25, timeout: 0.5, ..Ends::default() } });
+        b.episodes.push(EpisodeResult { scenario_index: 1, scores: Scores { success: 1.0, safety: 1.0, speed: 0.5 }, ends: Ends { collision: 0.25, timeout: 0.5, ..Ends::default() } });
         let back = batch_from_wire(batch_to_wire(&b)).expect("round trip");
         assert_eq!(back, b);
 
@@ -373,6 +392,27 @@ mod tests {
 
     /// Regression (found by `tests/fuzz.rs`): shape fields whose byte count overflows 64 bits
     /// are refused, not a multiplication overflow panic.
+    /// The wire's version 0 means warm-up data in a batch and "the latest" in a policy
+    /// request; the domain keeps the two apart.
+    #[test]
+    fn version_zero_decodes_to_warm_up_or_latest_by_message() {
+        use std::num::NonZeroU64;
+        let five = NonZeroU64::new(5).expect("non-zero");
+        assert_eq!((acted_by_from_wire(0), acted_by_from_wire(5)), (ActedBy::Warmup, ActedBy::Policy(five)));
+        assert_eq!((acted_by_to_wire(ActedBy::Warmup), acted_by_to_wire(ActedBy::Policy(five))), (0, 5));
+        assert_eq!((policy_request_from_wire(0), policy_request_from_wire(5)), (PolicyRequest::Latest, PolicyRequest::Version(five)));
+        for which in [PolicyRequest::Latest, PolicyRequest::Version(five)] {
+            let m = get_policy_to_wire(9, which);
+            assert_eq!((m.job_id, policy_request_from_wire(m.version)), (9, which));
+        }
+        let mut b = TransitionBatch::new(1, 2, 1, 1);
+        b.push(&[0.0], &[0.0], 0.0, &[0.0], false, 0);
+        for acted_by in [ActedBy::Warmup, ActedBy::Policy(five)] {
+            b.acted_by = acted_by;
+            assert_eq!(batch_from_wire(batch_to_wire(&b)).expect("valid").acted_by, acted_by);
+        }
+    }
+
     #[test]
     fn huge_shapes_are_refused_without_overflow() {
         let mut b = TransitionBatch::new(3, 4, 2, 2);
@@ -427,7 +467,7 @@ mod tests {
         let mut m = eval_work_to_wire(&w);
         m.seeds = 0;
         assert!(eval_work_from_wire(&m).is_err());
-        let e = EvalEpisode { case: 4, seed: 1, success: 1.0, safety: 0.5, speed: 0.7, collision: 0.0 };
+        let e = EvalEpisode { case: 4, seed: 1, scores: Scores { success: 1.0, safety: 0.5, speed: 0.7 }, collision: 0.0 };
         assert_eq!(eval_episode_from_wire(&eval_episode_to_wire(&e)), Ok(e));
         let mut m = eval_episode_to_wire(&e);
         m.speed = f32::NAN;

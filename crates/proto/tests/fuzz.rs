@@ -79,9 +79,7 @@ fn fraction() -> impl Strategy<Value = f32> {
 fn episode_result() -> impl Strategy<Value = EpisodeResult> {
     (any::<u32>(), fraction(), fraction(), fraction(), [fraction(), fraction(), fraction(), fraction(), fraction()]).prop_map(|(scenario_index, success, safety, speed, ends)| EpisodeResult {
         scenario_index,
-        success,
-        safety,
-        speed,
+        scores: sf_job::Scores { success, safety, speed },
         ends: Ends::from_values(ends),
     })
 }
@@ -109,7 +107,7 @@ fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
                     b.push(&obs[o.clone()], &actions[a], rewards[i], &next_obs[o], terminals[i], map_ids[i]);
                 }
                 b.episodes = episodes;
-                b.policy_version = policy_version;
+                b.acted_by = sf_proto::acted_by_from_wire(policy_version);
                 b.sim_steps = sim_steps;
                 b
             })
@@ -159,9 +157,7 @@ fn valid_eval_results() -> impl Strategy<Value = pb::EvalResults> {
     let episode = (any::<u32>(), any::<u32>(), fraction(), fraction(), fraction(), fraction()).prop_map(|(case, seed, success, safety, speed, collision)| EvalEpisode {
         case,
         seed,
-        success,
-        safety,
-        speed,
+        scores: sf_job::Scores { success, safety, speed },
         collision,
     });
     (1u64.., any::<u64>(), any::<u64>(), prop::collection::vec(episode, 0..6)).prop_map(|(job_id, worker_id, cell_id, episodes)| pb::EvalResults {
@@ -428,6 +424,6 @@ proptest! {
         let mut m = sf_proto::batch_to_wire(&b);
         (m.job_id, m.worker_id, m.policy_version, m.sim_steps) = (job_id, worker_id, u64::MAX, u64::MAX);
         let back = sf_proto::batch_from_wire(m).expect("extreme counters are valid");
-        prop_assert_eq!((back.job_id, back.worker_id, back.policy_version, back.sim_steps), (job_id, worker_id, u64::MAX, u64::MAX));
+        prop_assert_eq!((back.job_id, back.worker_id, back.acted_by.version(), back.sim_steps), (job_id, worker_id, Some(u64::MAX), u64::MAX));
     }
 }

@@ -45,7 +45,9 @@ pub struct Losses {
 #[derive(Debug, thiserror::Error)]
 pub enum SacError {
     #[error("sac config: {0}")]
-    Config(String),
+    Net(#[from] sf_nn::config::NetConfigError),
+    #[error("sac config: gamma, tau in (0, 1], batch_size and initial_alpha positive; got {0:?}")]
+    Settings(Box<SacConfig>),
     #[error(transparent)]
     Device(#[from] device::DeviceError),
 }
@@ -77,11 +79,11 @@ pub struct Sac {
 impl Sac {
     /// `maps` are the maps whose segments query-centric observations index (by map id).
     pub fn new(cfg: SacConfig, net: NetConfig, spec: ObsSpec, frame_dt_s: f32, maps: &[&MapSegments]) -> Result<Self, SacError> {
-        net.validate().map_err(|e| SacError::Config(e.to_string()))?;
+        net.validate()?;
         if !(cfg.gamma > 0.0 && cfg.gamma <= 1.0 && cfg.tau > 0.0 && cfg.tau <= 1.0 && cfg.batch_size > 0 && cfg.initial_alpha > 0.0) {
-            return Err(SacError::Config(format!("gamma, tau in (0, 1], batch_size and initial_alpha positive; got {cfg:?}")));
+            return Err(SacError::Settings(Box::new(cfg)));
         }
-        let plain = device::device(crate::setup::device_kind(cfg.device))?;
+        let plain = device::device(device_kind(cfg.device))?;
         let ad = plain.clone().autodiff();
         let mut actor = Actor::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(1), &ad);
         let critic = Critic::new(&net, cfg.seed.wrapping_mul(3).wrapping_add(2), &ad);
@@ -243,7 +245,7 @@ impl Sac {
             };
             actor_loss = loss_a.clone().into_scalar::<f32>();
             let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
-            self.actor = self.opt_actor.step(self.cfg.lr_actor, self.actor.clone(), grads);
+            self.actor = self.opt_actor.step(self.cfg.actor_lr(self.updates), self.actor.clone(), grads);
 
             // 4. Temperature: push the policy's entropy towards the target (not while cloning).
             let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
@@ -307,6 +309,16 @@ impl Sac {
     /// Builds an inference batch on the plain device.
     pub fn obs_batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
         self.batch_on(rows, map_ids, &self.plain)
+    }
+}
+
+/// The backend a job's `sac.device` names.
+pub fn device_kind(d: sf_job::config::Device) -> device::DeviceKind {
+    use sf_job::config::Device as Job;
+    match d {
+        Job::Cpu => device::DeviceKind::Cpu,
+        Job::Ndarray => device::DeviceKind::Ndarray,
+        Job::Cuda => device::DeviceKind::Cuda,
     }
 }
 

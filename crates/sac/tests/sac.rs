@@ -208,46 +208,6 @@ fn checkpoint_restore_continues_exactly() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// A rollout step's observations (query-centric) share each agent's own-frame history among
-/// all observers: the worker encodes every agent once per step, and the actions are those of
-/// encoding each observation's copies.
-#[test]
-fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
-    let sim = Arc::new(SimConfig::default());
-    let m = map();
-    let mut v = VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (10, 12), seed: 5 });
-    let spec = v.spec.clone();
-    assert_eq!(spec.layout, sf_sim::Layout::QueryCentric);
-    let mut acts = vec![Action::default(); v.alive().len()];
-    for _ in 0..12 {
-        for (i, a) in acts.iter_mut().enumerate() {
-            *a = route_follower(&spec, &v.observations()[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.5);
-        }
-        v.step(&acts);
-    }
-    let (mut rows, mut ids) = (Vec::new(), Vec::new());
-    for r in (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0) {
-        rows.extend_from_slice(&v.observations()[r * spec.len..(r + 1) * spec.len]);
-        ids.push(0u32);
-    }
-    let b = ids.len();
-    assert!(b >= 16, "two environments of 10-12 live vehicles ({b})");
-    let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu");
-    let actor = sf_nn::Actor::new(&tiny_net(), 7, &device);
-    let runner = sf_sac::inference::PolicyRunner::new(actor, &tiny_net(), &spec, sim.dt_s, &[&segs], 1, &device);
-    let (shared, copies) = (runner.batch(&rows, &ids), runner.batch_unshared(&rows, &ids));
-    assert!(matches!(shared.histories, sf_nn::AgentInput::Shared { .. }));
-    let n = spec.neighbours;
-    assert_eq!(copies.histories.encoded_histories(), b * (n + 1));
-    // Each live agent once, plus at most one empty neighbour slot.
-    assert!(shared.histories.encoded_histories() <= b + 1, "{} distinct histories for {b} agents", shared.histories.encoded_histories());
-    let (a, c) = (runner.mean_of(&shared), runner.mean_of(&copies));
-    let diff = a.iter().zip(&c).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-    assert!(diff < 1e-5, "shared and per-observation encodings act differently: {diff}");
-    assert!(a.iter().any(|x| x.abs() > 1e-3), "the actions are not all zero");
-}
-
 /// The IDM warm-up's cloning phase: for the first `bc_updates` updates the actor's mean action
 /// is fitted to the stored actions (here a route follower's, a function of the observation) and
 /// alpha stays put; the first update after them tunes alpha again.
@@ -294,35 +254,6 @@ fn every_critic_head_and_the_actor_keep_learning_across_updates() {
         assert_ne!(enc, flat(&sac.critic.enc), "update {k}: critic encoder unchanged");
         assert_ne!(actor, flat(&sac.actor), "update {k}: actor unchanged");
     }
-}
-
-/// `drive` with IDM residuals: the role records its raw action (the residual, here zero) while
-/// the vehicles drive the IDM demonstrator's action, so a zero residual replays the
-/// demonstrator exactly.
-#[test]
-fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
-    use sf_sac::drive::{apply, decide, Actor, Drivers};
-    use sf_sim::DriveAction;
-    let sim = Arc::new(SimConfig::default());
-    let m = map();
-    let run = |action: DriveAction| {
-        let mut v = vec![VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 11 })];
-        let d = Drivers { alive: Actor::Demo { noise: 0.0, action }, background: None, adversary: None };
-        let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let mut recorded = Vec::new();
-        for _ in 0..30 {
-            let dec = decide(&mut v, &d, &mut rng);
-            assert_eq!(dec.alive_action, action);
-            recorded.extend_from_slice(&dec.alive_actions[0]);
-            apply(&mut v, &dec);
-        }
-        (v[0].observations().to_vec(), recorded)
-    };
-    let (direct_obs, direct_actions) = run(DriveAction::Direct);
-    let (residual_obs, residual_actions) = run(DriveAction::IdmResidual);
-    assert_eq!(direct_obs, residual_obs, "same trajectories");
-    assert!(residual_actions.iter().all(|&a| a == 0.0), "a residual role records its residual");
-    assert!(direct_actions.iter().any(|&a| a != 0.0), "the demonstrator's own actions are recorded as they are");
 }
 
 /// The mean head is squashed once: a pre-squash mean of 3 gives a deterministic action of
@@ -468,77 +399,4 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
     assert!(flat.abs() < 0.5 * before.abs(), "flat critic: the term pulls to zero ({before} -> {flat})");
     let (before, rising) = run(1.0);
     assert!(rising > before, "a critic preferring larger actions filters the term out ({before} -> {rising})");
-}
-
-/// Braking segments in a residual warm-up: each row holds one value in [-1, -0.2] for 4 to 12
-/// steps (the recorded action is the applied one), then may start another.
-#[test]
-fn braking_segments_hold_a_braking_residual_for_4_to_12_steps() {
-    use sf_sac::drive::{apply, decide, Actor, BrakeSegments, Drivers};
-    use sf_sim::env::Controller;
-    use sf_sim::DriveAction;
-    let sim = Arc::new(SimConfig::default());
-    let mut v = vec![VecEnv::new(map(), sim, VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 2 })];
-    let d = Drivers { alive: Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual }, background: None, adversary: None };
-    let mut brakes = BrakeSegments::new(1.0, &v);
-    let mut rng = ChaCha8Rng::seed_from_u64(4);
-    // Per row: the run of equal values so far.
-    let mut runs: std::collections::BTreeMap<usize, (f32, u32)> = Default::default();
-    let mut finished_runs = Vec::new();
-    for _ in 0..60 {
-        let mut dec = decide(&mut v, &d, &mut rng);
-        brakes.overlay(&mut dec, &mut rng);
-        for (j, &r) in dec.alive_rows[0].iter().enumerate() {
-            let a = dec.alive_actions[0][j];
-            assert!((-1.0..=-0.2).contains(&a), "row {r}: {a}");
-            let e = runs.entry(r).or_insert((a, 0));
-            if e.0 == a {
-                e.1 += 1;
-            } else {
-                finished_runs.push(e.1);
-                *e = (a, 1);
-            }
-        }
-        apply(&mut v, &dec);
-        brakes.after_step(&v);
-        for (r, st) in v[0].row_steps().iter().enumerate() {
-            if st.ended.is_some() {
-                runs.remove(&r);
-            }
-        }
-    }
-    assert!(!finished_runs.is_empty(), "segments ended and new ones started");
-    assert!(finished_runs.iter().all(|&n| (4..=12).contains(&n)), "{finished_runs:?}");
-}
-
-/// An ego whose actions come from outside (`Actor::External`, what the Python package hands
-/// in) runs through `evaluate::run_stored` exactly like the built-in IDM demonstrator when it
-/// returns the same actions (zero acceleration residuals), sees one observation row per live
-/// ego, and a different policy (always brake) gives different episodes.
-#[test]
-fn an_external_ego_evaluates_like_the_same_builtin_driver() {
-    use sf_sac::drive::Actor;
-    use sf_sac::evaluate::{run_stored, Episodes, FlowDef, FlowSetup, Runners};
-    use sf_sim::DriveAction;
-    let m = map();
-    let cases = sf_sim::case::generate(&m, 12, 7, (3, 6));
-    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu"));
-    let setup = FlowSetup::new(&FlowDef::Idm, &m, None, &mut runners).expect("idm flow");
-    let episodes = Episodes { cases: &cases.cases, seeds: 2, envs: 5, vehicles: None, svo_deg: None };
-    let demo = setup.drivers(Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual });
-    let want = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &demo).expect("demo");
-    let len = setup.sim.obs.layout;
-    let seen = std::cell::Cell::new(0usize);
-    let zero = |obs: &[f32], n: usize| {
-        assert_eq!(obs.len() % n.max(1), 0, "{n} whole rows");
-        seen.set(seen.get() + n);
-        vec![0.0; n]
-    };
-    let got = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &zero, action: DriveAction::IdmAccelResidual })).expect("external");
-    assert_eq!(got, want);
-    assert!(seen.get() > 24, "the external actor saw {} rows ({len:?})", seen.get());
-    let brake = |_: &[f32], n: usize| vec![-1.0; n];
-    let braked = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &brake, action: DriveAction::IdmAccelResidual })).expect("brake");
-    assert_ne!(braked, want);
-    assert!(braked.iter().map(|e| e.success).sum::<f32>() < want.iter().map(|e| e.success).sum::<f32>());
 }

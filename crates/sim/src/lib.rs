@@ -29,5 +29,6 @@ pub use case::{Case, CaseFile, SvoGaussian};
 pub use config::{Layout, ObsConfig, SimConfig, SvoVisibility};
 pub use env::{Controller, Env, Mode, Role, Termination};
 pub use map::Map;
+pub use metrics::Scores;
 pub use obs::{ObsSpec, Observer};
 pub use vehicle::{Action, DriveAction};

@@ -1,6 +1,7 @@
 //! Episode metrics: Success, Safety, Speed and the failure breakdown.
 //!
-//! Owns: [`EpisodeMetrics`] (one episode, averaged over the agents it scores). Must not:
+//! Owns: [`Scores`] (the paper's three metrics, embedded wherever they travel together) and
+//! [`EpisodeMetrics`] (one episode, averaged over the agents it scores). Must not:
 //! compute confidence intervals or tests (that is the eval crate). Flow evaluation scores every agent; ego evaluation only
 //! the learner (agent 0).
 
@@ -8,13 +9,23 @@ use serde::{Deserialize, Serialize};
 
 use crate::env::{AgentOutcome, Role, Termination};
 
+/// The paper's three metrics: Success (reached the destination), Safety (no failure
+/// termination) and Speed (mean speed over the speed limit), each a fraction in [0, 1] or a mean
+/// of such fractions. Serialised flat, so records that embed it keep their field names.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Scores {
+    pub success: f32,
+    pub safety: f32,
+    pub speed: f32,
+}
+
 /// One episode's scores, each a mean over the scored agents, in [0, 1].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeMetrics {
     pub agents: u32,
-    pub success: f32,
-    pub safety: f32,
-    pub speed: f32,
+    #[serde(flatten)]
+    pub scores: Scores,
     pub collision: f32,
     pub off_road: f32,
     pub off_route: f32,
@@ -32,9 +43,9 @@ impl EpisodeMetrics {
                 continue;
             }
             m.agents += 1;
-            m.success += o.success as u32 as f32;
-            m.safety += !o.termination.is_some_and(Termination::is_failure) as u32 as f32;
-            m.speed += o.speed_ratio;
+            m.scores.success += o.success as u32 as f32;
+            m.scores.safety += !o.termination.is_some_and(Termination::is_failure) as u32 as f32;
+            m.scores.speed += o.speed_ratio;
             match o.termination {
                 Some(Termination::Collision) => m.collision += 1.0,
                 Some(Termination::OffRoad) => m.off_road += 1.0,
@@ -47,7 +58,7 @@ impl EpisodeMetrics {
         }
         if m.agents > 0 {
             let n = m.agents as f32;
-            for v in [&mut m.success, &mut m.safety, &mut m.speed, &mut m.collision, &mut m.off_road, &mut m.off_route, &mut m.wrong_lane, &mut m.timeout, &mut m.destination] {
+            for v in [&mut m.scores.success, &mut m.scores.safety, &mut m.scores.speed, &mut m.collision, &mut m.off_road, &mut m.off_route, &mut m.wrong_lane, &mut m.timeout, &mut m.destination] {
                 *v /= n;
             }
         }
@@ -68,9 +79,9 @@ mod tests {
         let outs = [o(Role::Learner, true, Termination::Destination, 0.8), o(Role::Background, false, Termination::Collision, 0.2)];
         let m = EpisodeMetrics::from_outcomes(outs, false);
         assert_eq!(m.agents, 2);
-        assert!((m.success - 0.5).abs() < 1e-6 && (m.safety - 0.5).abs() < 1e-6 && (m.collision - 0.5).abs() < 1e-6);
-        assert!((m.speed - 0.5).abs() < 1e-6);
+        assert!((m.scores.success - 0.5).abs() < 1e-6 && (m.scores.safety - 0.5).abs() < 1e-6 && (m.collision - 0.5).abs() < 1e-6);
+        assert!((m.scores.speed - 0.5).abs() < 1e-6);
         let e = EpisodeMetrics::from_outcomes(outs, true);
-        assert_eq!((e.agents, e.success, e.safety), (1, 1.0, 1.0));
+        assert_eq!((e.agents, e.scores.success, e.scores.safety), (1, 1.0, 1.0));
     }
 }

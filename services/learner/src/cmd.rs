@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use sf_svc::auth::Token;
+use sf_service::auth::Token;
 
 use crate::LearnerConfig;
 
@@ -82,17 +82,17 @@ impl LearnerArgs {
         }
         cfg.allow_plaintext_token |= self.allow_plaintext_token;
         cfg.validate()?;
-        let token = Token::load(sf_svc::auth::TOKEN_ENV, self.token_file.as_deref())?;
+        let token = Token::load(sf_service::auth::TOKEN_ENV, self.token_file.as_deref())?;
         Ok((cfg, token))
     }
 }
 
 /// The binary's whole life: resolve, start, wait for a signal, checkpoint and stop.
 pub async fn run(args: LearnerArgs) -> anyhow::Result<()> {
-    sf_svc::logging::init(args.log_json);
+    sf_service::logging::init(args.log_json);
     let (cfg, token) = args.resolve()?;
     let l = crate::start(cfg, token).await?;
-    sf_svc::signal::terminate().await;
+    sf_service::signal::terminate().await;
     tracing::info!("termination requested");
     l.shutdown().await
 }

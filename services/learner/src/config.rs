@@ -44,7 +44,7 @@ impl Default for LearnerConfig {
             data_dir: PathBuf::from("runs/learner"),
             scenarios_dir: PathBuf::from("configs/scenarios"),
             cases_dir: PathBuf::from("configs/cases"),
-            max_message_bytes: sf_svc::MAX_MESSAGE_BYTES,
+            max_message_bytes: sf_service::MAX_MESSAGE_BYTES,
             worker_timeout_s: 30,
             shutdown_grace_s: 120,
             tls_cert_file: None,

@@ -1,4 +1,4 @@
-//! The learner's domain errors and their one mapping to `sf_svc::ServiceError`.
+//! The learner's domain errors and their one mapping to `sf_service::ServiceError`.
 //!
 //! Owns: [`LearnerError`] — why a submitted job or grid is refused, why a job cannot start
 //! (pinning a grid's names, loading its policies, a job's dependencies, files, blocking tasks),
@@ -7,12 +7,13 @@
 //! a status kind. Messages are lowercase without
 //! a trailing period and name the field, job or file; they are what clients see in a status and
 //! what a failed job records as its message, so their text is part of the interface.
-//! Must not: build `tonic::Status` or pick gRPC codes (`sf_svc::ServiceError` is the one table
+//! Must not: build `tonic::Status` or pick gRPC codes (`sf_service::ServiceError` is the one table
 //! from status kinds to codes), nor log.
 
 use std::path::PathBuf;
 
-use sf_svc::ServiceError;
+use sf_job::PolicyRequest;
+use sf_service::ServiceError;
 
 /// Why the learner refused or failed something. `Display` is the message a client or a failed
 /// job's record shows.
@@ -42,13 +43,13 @@ pub enum LearnerError {
     FinalPolicy { job_id: u64, source: std::io::Error },
     /// Scenarios, cases, policies and cells that do not fit together, or the GIFs.
     #[error(transparent)]
-    Eval(#[from] sf_sac::evaluate::EvalError),
+    Eval(#[from] sf_rollout::evaluate::EvalError),
     /// An evaluation grid that does not parse or validate.
     #[error(transparent)]
     EvalConfig(#[from] sf_job::eval::EvalConfigError),
     /// An evaluation's `episodes.csv`.
     #[error(transparent)]
-    Episodes(#[from] sf_eval::episodes::FileError),
+    Episodes(#[from] sf_report::episodes::FileError),
 
     // --- Requests: the learner's state, jobs, workers and policies.
     #[error("the learner is shutting down")]
@@ -59,7 +60,7 @@ pub enum LearnerError {
     NotRunning { job_id: u64, state: &'static str },
     /// A policy version the running job does not hold (never published, or evicted).
     #[error("job {job_id} holds no policy version {version}")]
-    NoPolicyVersion { job_id: u64, version: u64 },
+    NoPolicyVersion { job_id: u64, version: PolicyRequest },
     /// A finished job keeps only its final version.
     #[error("job {job_id} finished at policy version {final_version}; version {version} is gone")]
     VersionGone { job_id: u64, final_version: u64, version: u64 },
@@ -98,7 +99,7 @@ pub enum LearnerError {
     BackgroundFlow { flow: u64, job_id: u64, source: Box<LearnerError> },
     /// A flow's `coordinator.json` (CoPO Stage 2) could not be read or does not validate.
     #[error(transparent)]
-    Coordinator(sf_sac::coordinator::CoordinatorError),
+    Coordinator(sf_rollout::coordinator::CoordinatorError),
     /// A submitted job names job `dep` in `field`, but that job cannot serve it: `reason`
     /// completes "job N ...".
     #[error("job config field `{field}`: job {dep} {reason}")]
@@ -153,7 +154,7 @@ pub enum LearnerError {
     #[error(transparent)]
     Device(#[from] sf_nn::device::DeviceError),
     #[error("fitting the coordinator of {scenario}: {source}")]
-    FitCoordinator { scenario: String, source: sf_sac::coordinator::CoordinatorError },
+    FitCoordinator { scenario: String, source: sf_rollout::coordinator::CoordinatorError },
 }
 
 impl LearnerError {

@@ -15,18 +15,18 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use sf_eval::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
 use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
-use sf_sac::evaluate::Resolved;
-use sf_svc::ServiceError;
+use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
+use sf_rollout::evaluate::Resolved;
+use sf_service::ServiceError;
 use tokio::sync::Notify;
 
 use crate::error::LearnerError;
 use crate::job::StopReason;
 use crate::metrics::LearnerMetrics;
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 /// Pins every flow and ego of `cfg` to a job id: the newest succeeded job of its name, or the
 /// id it already names (which must have succeeded). Errors name the field.
@@ -87,7 +87,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     let mut flows = BTreeMap::new();
     for f in &cfg.flows {
         let fz = if f.is_idm() { Vec::new() } else { crate::flow_frozen(pinned(f)?, |id| find(id).cloned())? };
-        let (flow, _) = sf_sac::evaluate::from_frozen(&fz, &load(&fz)?)?;
+        let (flow, _) = sf_rollout::evaluate::from_frozen(&fz, &load(&fz)?)?;
         if flow.kind() == Some(JobKind::Ego) {
             return Err(LearnerError::BadEvalConfig { field: "flows.job", name: f.name.clone(), reason: format!("job {} is an ego job, not a flow", fz[0].job_id) });
         }
@@ -98,7 +98,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     for e in &cfg.egos {
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
-        let (_, ego) = sf_sac::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
+        let (_, ego) = sf_rollout::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
         let p = ego.ok_or_else(|| LearnerError::NoEgoPolicy { name: e.name.clone() })?;
         if p.cfg.kind != JobKind::Ego {
             return Err(LearnerError::BadEvalConfig { field: "egos.job", name: e.name.clone(), reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()) });
@@ -175,14 +175,14 @@ impl EvalJob {
         // The grid as it runs (names pinned to job ids), beside its results.
         write("config.toml", rec.config_toml.as_bytes())?;
         let path = dir.join("episodes.csv");
-        let rows = sf_eval::episodes::read_episodes(&path)?;
+        let rows = sf_report::episodes::read_episodes(&path)?;
         let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
         let stored: Vec<bool> = cells.iter().map(|c| have.contains(c)).collect();
         let mut sums = [0.0; 3];
         for r in &rows {
-            sums[0] += r.ep.success as f64;
-            sums[1] += r.ep.safety as f64;
-            sums[2] += r.ep.speed as f64;
+            sums[0] += r.ep.scores.success as f64;
+            sums[1] += r.ep.scores.safety as f64;
+            sums[2] += r.ep.scores.speed as f64;
         }
         let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
         let writer = EpisodesWriter::open(&path)?;
@@ -219,9 +219,7 @@ impl EvalJob {
             env_steps: s.episodes,
             target_env_steps: self.cells.len() as u64 * self.episodes_per_cell(),
             episodes: s.episodes,
-            success: (s.sums[0] / n) as f32,
-            safety: (s.sums[1] / n) as f32,
-            speed: (s.sums[2] / n) as f32,
+            scores: sf_job::Scores { success: (s.sums[0] / n) as f32, safety: (s.sums[1] / n) as f32, speed: (s.sums[2] / n) as f32 },
             wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
             ..Progress::default()
         }
@@ -305,9 +303,9 @@ impl EvalJob {
         s.leased.remove(&c);
         s.episodes += rows.len() as u64;
         for r in &rows {
-            s.sums[0] += r.ep.success as f64;
-            s.sums[1] += r.ep.safety as f64;
-            s.sums[2] += r.ep.speed as f64;
+            s.sums[0] += r.ep.scores.success as f64;
+            s.sums[1] += r.ep.scores.safety as f64;
+            s.sums[2] += r.ep.scores.speed as f64;
         }
         // A cell that went back to the queue (its worker looked dead) and is now stored.
         s.queued.retain(|&q| q != c);
@@ -328,7 +326,7 @@ impl EvalJob {
 pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
     let mut maps = BTreeMap::new();
     for s in cfg.all_scenarios() {
-        let (map, cases) = sf_sac::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
+        let (map, cases) = sf_rollout::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
         if (cfg.cases as usize) > cases.cases.len() {
             return Err(LearnerError::TooFewCases { cases: cfg.cases, stored: cases.cases.len(), scenario: s });
         }
@@ -424,7 +422,7 @@ impl crate::Inner {
         let r = blocking_task(move || {
             let maps = load_maps(&j.cfg, &scen, &cases)?;
             let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-            let mut runners = sf_sac::evaluate::Runners::new(device);
+            let mut runners = sf_rollout::evaluate::Runners::new(device);
             Ok(j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)?)
         })
         .await;

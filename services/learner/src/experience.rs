@@ -8,9 +8,9 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use sf_job::{Assignment, JobState};
+use sf_job::{Assignment, JobState, PolicyRequest};
 use sf_proto::pb;
-use sf_svc::ServiceError;
+use sf_service::ServiceError;
 
 use crate::{Inner, LearnerError};
 
@@ -50,13 +50,16 @@ impl Inner {
         Err(LearnerError::NotRunning { job_id: id, state: rec.state.as_str() })
     }
 
-    /// Policy weights by version (0 = latest) of the running job, or the final policy of a
+    /// Policy weights (the latest or one version) of the running job, or the final policy of a
     /// succeeded one.
-    pub(crate) async fn policy(self: &Arc<Self>, job_id: u64, version: u64) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
+    pub(crate) async fn policy(self: &Arc<Self>, job_id: u64, which: PolicyRequest) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
         match self.running(job_id).await {
             Ok(j) => {
-                let p = if version == 0 { j.latest() } else { j.version(version) };
-                p.map(|p| (p.version, p.weights)).ok_or(LearnerError::NoPolicyVersion { job_id, version })
+                let p = match which {
+                    PolicyRequest::Latest => j.latest(),
+                    PolicyRequest::Version(v) => j.version(v.get()),
+                };
+                p.map(|p| (p.version, p.weights)).ok_or(LearnerError::NoPolicyVersion { job_id, version: which })
             }
             Err(not_running @ LearnerError::NotRunning { .. }) => {
                 let rec = self.job(job_id).await?;
@@ -70,10 +73,10 @@ impl Inner {
                     Ok((meta["version"].as_u64().unwrap_or(0), weights))
                 })
                 .await??;
-                if version != 0 && version != final_version {
-                    return Err(LearnerError::VersionGone { job_id, final_version, version });
+                match which {
+                    PolicyRequest::Version(v) if v.get() != final_version => Err(LearnerError::VersionGone { job_id, final_version, version: v.get() }),
+                    _ => Ok((final_version, Arc::new(weights))),
                 }
-                Ok((final_version, Arc::new(weights)))
             }
             Err(e) => Err(e),
         }

@@ -11,14 +11,14 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
-use sf_job::{Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
+use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::{Losses, RateLimiter, Replay};
 use tokio::sync::watch;
 
 use crate::error::IngestError;
 use crate::metrics::LearnerMetrics;
-use sf_svc::sync::{lock, read, write};
+use sf_service::sync::{lock, read, write};
 
 /// Why the trainer should stop.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -199,12 +199,12 @@ impl ActiveJob {
     pub fn ingest(&self, b: &TransitionBatch, deadline: Instant) -> Result<Ack, IngestError> {
         self.check(b)?;
         let latest = self.latest_version();
-        if b.policy_version > latest {
-            return Err(IngestError::UnpublishedVersion { version: b.policy_version, latest });
+        if let Some(version) = b.acted_by.version().filter(|&v| v > latest) {
+            return Err(IngestError::UnpublishedVersion { version, latest });
         }
         let warm = self.in_warmup();
         let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
-        if self.is_stale(b.policy_version, latest, warm) {
+        if self.is_stale(b.acted_by, latest, warm) {
             lock(&self.stats).c.dropped_stale += b.count as u64;
             self.metrics.transitions_dropped.get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() }).inc_by(b.count as u64);
             return Ok(ack(0, b.count));
@@ -240,12 +240,10 @@ impl ActiveJob {
         Ok(())
     }
 
-    /// Whether a batch acted with `version` is dropped: warm-up data (version 0) once the
-    /// warm-up is over, a policy's data more than `max_policy_lag` versions old. Records the lag.
-    fn is_stale(&self, version: u64, latest: u64, warm: bool) -> bool {
-        if version == 0 {
-            return !warm;
-        }
+    /// Whether a batch acted by `acted_by` is dropped: warm-up data once the warm-up is over, a
+    /// policy's data more than `max_policy_lag` versions old. Records the lag.
+    fn is_stale(&self, acted_by: ActedBy, latest: u64, warm: bool) -> bool {
+        let Some(version) = acted_by.version() else { return !warm };
         let lag = latest.saturating_sub(version);
         self.metrics.policy_lag.observe(lag as f64);
         let mut s = lock(&self.stats);
@@ -397,9 +395,7 @@ impl ActiveJob {
             updates: s.updates,
             policy_version: self.latest_version(),
             episodes: s.c.episodes,
-            success,
-            safety,
-            speed,
+            scores: sf_job::Scores { success, safety, speed },
             critic_loss: s.losses.critic,
             actor_loss: s.losses.actor,
             alpha: s.losses.alpha,
@@ -415,5 +411,5 @@ fn means(w: &VecDeque<EpisodeResult>) -> (f32, f32, f32) {
         return (0.0, 0.0, 0.0);
     }
     let n = w.len() as f32;
-    (w.iter().map(|e| e.success).sum::<f32>() / n, w.iter().map(|e| e.safety).sum::<f32>() / n, w.iter().map(|e| e.speed).sum::<f32>() / n)
+    (w.iter().map(|e| e.scores.success).sum::<f32>() / n, w.iter().map(|e| e.scores.safety).sum::<f32>() / n, w.iter().map(|e| e.scores.speed).sum::<f32>() / n)
 }

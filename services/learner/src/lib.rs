@@ -42,10 +42,11 @@ use sf_job::config::JobKind;
 use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobSpec, JobState};
 use sf_proto::pb::experience_service_server::ExperienceServiceServer;
 use sf_proto::pb::job_service_server::JobServiceServer;
-use sf_sac::{setup, RateLimiter};
+use sf_rollout::setup;
+use sf_sac::RateLimiter;
+use sf_service::auth::{RequireToken, Token, Transport};
+use sf_service::ServiceError;
 use sf_sim::Map;
-use sf_svc::auth::{RequireToken, Token, Transport};
-use sf_svc::ServiceError;
 use tokio::sync::{oneshot, Notify};
 use tonic::service::interceptor::InterceptedService;
 
@@ -57,7 +58,7 @@ use crate::slot::{Running, Slot};
 use crate::store::Store;
 use crate::trainer::Outcome;
 use crate::workers::Workers;
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 /// State shared by the handlers, the scheduler and the trainer's completion task.
 pub struct Inner {
@@ -136,7 +137,7 @@ impl Inner {
             JobSpec::Train(cfg) => cfg,
         };
         self.load_maps(&cfg.env.scenarios).await?;
-        sf_nn::device::device(setup::device_kind(cfg.sac.device)).map_err(LearnerError::DeviceField)?;
+        sf_nn::device::device(sf_sac::device_kind(cfg.sac.device)).map_err(LearnerError::DeviceField)?;
         if let Some((_, name)) = cfg.deps_by_name().first() {
             return Err(LearnerError::UnresolvedName { name: name.to_string() }.into());
         }
@@ -432,7 +433,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let grpc_addr = grpc.local_addr()?;
     let ready = Arc::new(AtomicBool::new(false));
     let m2 = metrics.clone();
-    let admin_addr = sf_svc::admin::serve(cfg.admin_addr, Arc::new(registry), Arc::clone(&ready), Arc::new(move || m2.common.refresh())).await?;
+    let admin_addr = sf_service::admin::serve(cfg.admin_addr, Arc::new(registry), Arc::clone(&ready), Arc::new(move || m2.common.refresh())).await?;
     let first_worker = (sf_job::now_unix_ms() % 1_000_000_000) * 1000;
     let inner = Arc::new(Inner {
         cfg: cfg.clone(),
@@ -470,7 +471,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
     let mut builder = tonic::transport::Server::builder();
     if let (Some(c), Some(k)) = (&cfg.tls_cert_file, &cfg.tls_key_file) {
-        builder = builder.tls_config(sf_svc::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?).context("TLS server configuration")?;
+        builder = builder.tls_config(sf_service::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?).context("TLS server configuration")?;
     }
     let server = tokio::spawn(
         builder
@@ -550,7 +551,7 @@ pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecor
         return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
     }
     let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_sac::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
+    if let Some(c) = sf_rollout::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])
@@ -567,7 +568,7 @@ pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>,
 /// field and the job.
 fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobConfig) -> Result<(), LearnerError> {
     let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
-    role.accepts(job.kind, dep.kind).map_err(refuse)?;
+    role.accepts(job.kind, dep.kind).map_err(|e| refuse(e.to_string()))?;
     let (mine, theirs) = (setup::resolve(job, None), setup::resolve(dep, None));
     if role == DepRole::Init && theirs.net != mine.net {
         return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", theirs.net)));

@@ -1,7 +1,7 @@
 //! The learner's gRPC handlers: `JobService` and `ExperienceService`.
 //!
 //! Owns: request decoding (through `sf_proto`), the calls into [`crate::Inner`] and the mapping
-//! of results to responses; errors become statuses only through `sf_svc::ServiceError`. What
+//! of results to responses; errors become statuses only through `sf_service::ServiceError`. What
 //! the calls do lives beside `Inner`: jobs in `lib.rs`, a training job's worker calls in
 //! `experience.rs`, an evaluation's in `eval.rs`.
 //! Must not: block the runtime (store IO and ingest go through `spawn_blocking`) or run
@@ -14,7 +14,7 @@ use std::time::Duration;
 use sf_proto::pb::experience_service_server::ExperienceService;
 use sf_proto::pb::job_service_server::JobService;
 use sf_proto::{pb, WireError};
-use sf_svc::ServiceError;
+use sf_service::ServiceError;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -188,7 +188,7 @@ impl ExperienceService for Experience {
 
     async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
         let r = req.into_inner();
-        let out = self.0.policy(r.job_id, r.version).await.map_err(ServiceError::from);
+        let out = self.0.policy(r.job_id, sf_proto::policy_request_from_wire(r.version)).await.map_err(ServiceError::from);
         done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
     }
 }

@@ -6,7 +6,7 @@
 
 use std::sync::{Arc, RwLock};
 
-use sf_svc::sync::{read, write};
+use sf_service::sync::{read, write};
 
 use crate::eval::EvalJob;
 use crate::job::ActiveJob;

@@ -23,19 +23,21 @@ use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_eval::plot::{line_chart, Series};
-use sf_eval::tensorboard::EventWriter;
-use sf_sac::ego::CurvePoint;
+use sf_job::PolicyRequest;
+use sf_report::plot::{line_chart, Series};
+use sf_report::tensorboard::EventWriter;
+use sf_rollout::setup;
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::replay_store::{ReplayStore, Segment};
-use sf_sac::{checkpoint, setup, Batch, Losses, Sac};
+use sf_sac::CurvePoint;
+use sf_sac::{checkpoint, Batch, Losses, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
 
 use crate::error::LearnerError;
 use crate::job::{ActiveJob, Counters, StopReason};
 use crate::validation::{BestPolicy, ValidationPoint, Validator};
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 /// How the trainer ended.
 #[derive(Clone, Debug, PartialEq)]
@@ -259,9 +261,7 @@ impl CurveRecorder {
                 env_steps: self.next_point.min(p.env_steps),
                 updates: p.updates,
                 episodes: p.episodes,
-                success: p.success,
-                safety: p.safety,
-                speed: p.speed,
+                scores: p.scores,
                 critic_loss: last_loss.critic,
                 actor_loss: last_loss.actor,
                 alpha: last_loss.alpha,
@@ -282,9 +282,9 @@ impl CurveRecorder {
         self.last_rates = Some((p.wall_s, p.updates, p.env_steps));
         let lag = job.take_mean_lag().unwrap_or(f64::NAN);
         let scalars = [
-            ("rollout/success", p.success as f64),
-            ("rollout/safety", p.safety as f64),
-            ("rollout/speed", p.speed as f64),
+            ("rollout/success", p.scores.success as f64),
+            ("rollout/safety", p.scores.safety as f64),
+            ("rollout/speed", p.scores.speed as f64),
             ("ends/collision", ends.collision as f64),
             ("ends/off_road", ends.off_road as f64),
             ("ends/off_route", ends.off_route as f64),
@@ -314,10 +314,10 @@ impl CurveRecorder {
 /// `sac.actor_average_tau`, else the version just published. `policy.json`'s `version` names
 /// the job's final policy either way.
 fn write_final_policy(job: &ActiveJob, sac: &Sac, best: Option<&BestPolicy>, dir: &Path) -> Result<Vec<u8>, LearnerError> {
-    let last = job.latest().ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: 0 })?;
+    let last = job.latest().ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: PolicyRequest::Latest })?;
     let (weights, meta) = match best.map(BestPolicy::take).transpose()?.flatten() {
         Some((bytes, p)) => {
-            tracing::info!(job_id = job.id, updates = p.updates, success = p.success, last_updates = sac.updates, "final policy: the best validated actor");
+            tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, last_updates = sac.updates, "final policy: the best validated actor");
             (bytes, serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p}))
         }
         None if sac.actor_avg.is_some() => {
@@ -337,9 +337,10 @@ fn validate(job: &ActiveJob, sac: &Sac, v: &mut Validator, best: &mut BestPolicy
     let weights = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
     let p = v.score(&weights, sac.updates, job.progress().env_steps)?;
     let kept = best.offer(&p, &weights)?;
-    tracing::info!(job_id = job.id, updates = p.updates, success = p.success, safety = p.safety, collision = p.collision, took_s = p.took_s, best = kept, "validation");
+    tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, safety = p.scores.safety, collision = p.collision, took_s = p.took_s, best = kept, "validation");
     if let Some(w) = tb {
-        let scalars = [("validation/success", p.success as f64), ("validation/safety", p.safety as f64), ("validation/collision", p.collision as f64), ("validation/speed", p.speed as f64)];
+        let scalars =
+            [("validation/success", p.scores.success as f64), ("validation/safety", p.scores.safety as f64), ("validation/collision", p.collision as f64), ("validation/speed", p.scores.speed as f64)];
         if let Err(e) = w.scalars(p.env_steps, &scalars) {
             tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events");
         }
@@ -359,7 +360,7 @@ fn fit_coordinator(
     weights: &[u8],
     dir: &Path,
 ) -> Result<(), LearnerError> {
-    use sf_sac::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
+    use sf_rollout::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
     let cfg = &job.cfg;
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
     let sim = Arc::new(resolved.sim.clone());
@@ -367,7 +368,7 @@ fn fit_coordinator(
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
-        let runner = sf_sac::inference::PolicyRunner::from_bytes(&resolved.net, &resolved.obs, sim.dt_s, &[&**seg], weights, 0, &device)
+        let runner = sf_rollout::inference::PolicyRunner::from_bytes(&resolved.net, &resolved.obs, sim.dt_s, &[&**seg], weights, 0, &device)
             .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
         let settings = FitSettings {
             iterations: c.iterations,
@@ -427,8 +428,8 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64,
         write_atomic(&dir.join("validation.csv"), csv(ValidationPoint::CSV_HEADER, st.validation.iter().map(ValidationPoint::csv_row)).as_bytes())?;
     }
     if st.curve.len() >= 2 {
-        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.success as f64)).collect();
-        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.safety as f64)).collect();
+        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.scores.success as f64)).collect();
+        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.scores.safety as f64)).collect();
         let series = [Series { name: "success", points: pts }, Series { name: "safety", points: safety }];
         let title = format!("job {} ({})", job.id, job.cfg.name);
         if let Err(e) = line_chart(&dir.join("curve.png"), &title, "learner transitions", "rolling fraction of episodes", &series, Some((0.0, 1.0)), (800, 500)) {

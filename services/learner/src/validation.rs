@@ -14,8 +14,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use sf_job::config::ValidationSection;
 use sf_job::{Frozen, JobConfig};
-use sf_sac::evaluate::{self, FlowDef, Policy, Runners};
-use sf_sac::setup;
+use sf_rollout::evaluate::{self, FlowDef, Policy, Runners};
+use sf_rollout::setup;
 use sf_sim::{Case, Map};
 
 use crate::error::LearnerError;
@@ -26,10 +26,9 @@ pub struct ValidationPoint {
     pub updates: u64,
     pub env_steps: u64,
     pub episodes: u32,
-    pub success: f32,
-    pub safety: f32,
+    #[serde(flatten)]
+    pub scores: sf_sim::Scores,
     pub collision: f32,
-    pub speed: f32,
     /// Seconds the validation took.
     pub took_s: f32,
 }
@@ -38,12 +37,12 @@ impl ValidationPoint {
     pub const CSV_HEADER: &'static str = "updates,env_steps,episodes,success,safety,collision,speed,took_s";
 
     pub fn csv_row(&self) -> String {
-        format!("{},{},{},{},{},{},{},{:.2}", self.updates, self.env_steps, self.episodes, self.success, self.safety, self.collision, self.speed, self.took_s)
+        format!("{},{},{},{},{},{},{},{:.2}", self.updates, self.env_steps, self.episodes, self.scores.success, self.scores.safety, self.collision, self.scores.speed, self.took_s)
     }
 
     /// Higher success, then higher safety; a tie keeps the earlier point.
     pub fn better_than(&self, other: &Self) -> bool {
-        self.success > other.success || (self.success == other.success && self.safety > other.safety)
+        self.scores.success > other.scores.success || (self.scores.success == other.scores.success && self.scores.safety > other.scores.safety)
     }
 }
 
@@ -141,10 +140,8 @@ impl Validator {
             updates,
             env_steps,
             episodes: rows.len() as u32,
-            success: mean(|r| r.success),
-            safety: mean(|r| r.safety),
+            scores: sf_job::Scores { success: mean(|r| r.scores.success), safety: mean(|r| r.scores.safety), speed: mean(|r| r.scores.speed) },
             collision: mean(|r| r.collision),
-            speed: mean(|r| r.speed),
             took_s: t.elapsed().as_secs_f32(),
         })
     }
@@ -155,7 +152,7 @@ mod tests {
     use super::*;
 
     fn pt(updates: u64, success: f32, safety: f32) -> ValidationPoint {
-        ValidationPoint { updates, success, safety, ..Default::default() }
+        ValidationPoint { updates, scores: sf_job::Scores { success, safety, speed: 0.0 }, ..Default::default() }
     }
 
     #[test]

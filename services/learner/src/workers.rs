@@ -13,7 +13,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use prometheus_client::metrics::gauge::Gauge;
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 use crate::error::LearnerError;
 

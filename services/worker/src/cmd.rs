@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use clap::Parser;
 use prometheus_client::registry::Registry;
-use sf_svc::conn::LearnerConn;
+use sf_service::conn::LearnerConn;
 use tokio::sync::watch;
 
 use crate::{WorkerConfig, WorkerMetrics};
@@ -64,18 +64,18 @@ impl WorkerArgs {
 }
 
 pub async fn run(args: WorkerArgs) -> anyhow::Result<()> {
-    sf_svc::logging::init(args.log_json);
+    sf_service::logging::init(args.log_json);
     let cfg = args.resolve()?;
     let mut reg = Registry::default();
     let metrics = WorkerMetrics::register(&mut reg);
     if let Some(addr) = args.admin_addr {
         let m = metrics.clone();
-        let bound = sf_svc::admin::serve(addr, Arc::new(reg), Arc::new(AtomicBool::new(true)), Arc::new(move || m.common.refresh())).await?;
+        let bound = sf_service::admin::serve(addr, Arc::new(reg), Arc::new(AtomicBool::new(true)), Arc::new(move || m.common.refresh())).await?;
         tracing::info!(admin = %bound, "admin server");
     }
     let (stop_tx, stop_rx) = watch::channel(false);
     tokio::spawn(async move {
-        sf_svc::signal::terminate().await;
+        sf_service::signal::terminate().await;
         let _ = stop_tx.send(true);
     });
     crate::run(cfg, metrics, stop_rx).await

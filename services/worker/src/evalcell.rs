@@ -1,5 +1,5 @@
 //! An evaluation job's cells on a worker: fetch the cell's policies, run its episodes
-//! (`sf_sac::evaluate::run_cell`, the code `socialflow eval` runs), push the results.
+//! (`sf_rollout::evaluate::run_cell`, the code `socialflow eval` runs), push the results.
 //!
 //! Owns: [`Cells`], what one session keeps between cells — final policies by job (they never
 //! change), the policies built per scenario, the maps and stored cases — and [`Cells::run`].
@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use sf_job::eval::EvalWork;
+use sf_job::PolicyRequest;
 use sf_proto::pb;
-use sf_sac::evaluate::{self, CellSize, Runners};
+use sf_rollout::evaluate::{self, CellSize, Runners};
 use tonic::Code;
 
 use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
@@ -42,7 +43,7 @@ impl Cells {
         let mut weights = Vec::with_capacity(w.policies.len());
         for p in &w.policies {
             if let std::collections::hash_map::Entry::Vacant(slot) = self.weights.entry(p.job_id) {
-                let got = client.get_policy(req(pb::GetPolicyRequest { job_id: p.job_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
+                let got = client.get_policy(req(sf_proto::get_policy_to_wire(p.job_id, PolicyRequest::Latest), t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
                 metrics.common.rpc("GetPolicy", Code::Ok);
                 metrics.policy_fetches.inc();
                 slot.insert(Arc::new(got.weights));

@@ -28,9 +28,9 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
-use sf_svc::auth::{AttachToken, Token};
-use sf_svc::backoff::Backoff;
-use sf_svc::metrics::CommonMetrics;
+use sf_service::auth::{AttachToken, Token};
+use sf_service::backoff::Backoff;
+use sf_service::metrics::CommonMetrics;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
@@ -57,7 +57,7 @@ pub struct WorkerConfig {
     /// Rayon threads for stepping simulators (0 = rayon's default).
     pub threads: usize,
     /// Trust root for an `https://` learner and the worker's client certificate (mutual TLS).
-    pub tls: sf_svc::tls::ClientTls,
+    pub tls: sf_service::tls::ClientTls,
 }
 
 #[derive(Clone)]
@@ -153,13 +153,15 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
 }
 
 async fn connect(cfg: &WorkerConfig) -> anyhow::Result<Client> {
-    let ch = sf_svc::tls::endpoint(&cfg.learner_url, &cfg.tls)?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
-    Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone())).max_decoding_message_size(sf_svc::MAX_MESSAGE_BYTES).max_encoding_message_size(sf_svc::MAX_MESSAGE_BYTES))
+    let ch = sf_service::tls::endpoint(&cfg.learner_url, &cfg.tls)?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
+    Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone()))
+        .max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES))
 }
 
 fn status_err(what: &str, s: tonic::Status, metrics: &WorkerMetrics) -> anyhow::Error {
     metrics.common.rpc(what, s.code());
-    anyhow!("{what}: {} ({})", s.message(), sf_svc::error::code_label(s.code()))
+    anyhow!("{what}: {} ({})", s.message(), sf_service::error::code_label(s.code()))
 }
 
 /// One session: who this worker is, what to work on, the policies to act with, then the

@@ -9,7 +9,7 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use sf_job::{Frozen, FrozenRole, JobConfig};
+use sf_job::{Frozen, FrozenRole, JobConfig, PolicyRequest};
 use sf_proto::pb;
 use tonic::Code;
 
@@ -27,7 +27,7 @@ impl FrozenPolicies {
         for f in frozen {
             let fj = JobConfig::from_toml(&f.config_toml).with_context(|| format!("config of frozen job {}", f.job_id))?;
             let mut c = client.clone();
-            let p = c.get_policy(req(pb::GetPolicyRequest { job_id: f.job_id, version: 0 }, t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
+            let p = c.get_policy(req(sf_proto::get_policy_to_wire(f.job_id, PolicyRequest::Latest), t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
             metrics.common.rpc("GetPolicy", Code::Ok);
             tracing::info!(worker_id, frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
             policies.push((f.role, fj, p.weights));
@@ -62,7 +62,7 @@ impl<'a> PolicyClient<'a> {
     /// The latest weights `(version, bytes)`. Does not change the held version.
     pub async fn latest(&self) -> anyhow::Result<(u64, Vec<u8>)> {
         let mut c = self.client.clone();
-        let p = c.get_policy(req(pb::GetPolicyRequest { job_id: self.job_id, version: 0 }, self.rpc_timeout)).await.map_err(|s| status_err("GetPolicy", s, self.metrics))?.into_inner();
+        let p = c.get_policy(req(sf_proto::get_policy_to_wire(self.job_id, PolicyRequest::Latest), self.rpc_timeout)).await.map_err(|s| status_err("GetPolicy", s, self.metrics))?.into_inner();
         self.metrics.common.rpc("GetPolicy", Code::Ok);
         self.metrics.policy_fetches.inc();
         Ok((p.version, p.weights))

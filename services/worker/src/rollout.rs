@@ -21,19 +21,19 @@ use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::{JobKind, WarmupPolicy};
-use sf_job::{Assignment, FrozenRole, JobConfig, TransitionBatch};
+use sf_job::{ActedBy, Assignment, FrozenRole, JobConfig, TransitionBatch};
 use sf_nn::device::Device;
 use sf_proto::pb;
-use sf_sac::drive::{self, Actor, Drivers};
-use sf_sac::inference::PolicyRunner;
-use sf_sac::setup;
+use sf_rollout::drive::{self, Actor};
+use sf_rollout::inference::PolicyRunner;
+use sf_rollout::setup;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Map, Mode, ObsSpec, SimConfig};
 use tokio::sync::mpsc;
 
 use crate::WorkerMetrics;
-use sf_svc::sync::lock;
+use sf_service::sync::lock;
 
 const STREAM_CLOSED: &str = "the transition stream closed";
 
@@ -166,6 +166,7 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         anyhow::ensure!(frozen.ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
     }
     let act_dim = job.action_dim();
+    let seat = drive::Seat::for_job(kind);
     // Who plays the job's own role until the warm-up ends.
     let warm_actor = match job.sac.warmup_policy {
         WarmupPolicy::Idm if kind.drives() => Actor::Demo { noise: job.sac.warmup_noise, action: net.action },
@@ -193,17 +194,14 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
             (Some(r), false) => Some(r),
             _ => None,
         };
-        if writer.stamp(acting.map_or(0, |r| r.version))?.is_break() {
+        let acted_by = acting.and_then(|r| std::num::NonZeroU64::new(r.version)).map_or(ActedBy::Warmup, ActedBy::Policy);
+        if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
         // The job's own policy plays its role; frozen policies the others.
         let own = acting.map_or(warm_actor, Actor::sampled);
         let (f_bg, f_ego, f_adv) = (frozen.background.as_ref().map(Actor::sampled), frozen.ego.as_ref().map(Actor::sampled), frozen.adversary.as_ref().map(Actor::sampled));
-        let drivers = match kind {
-            JobKind::Failmaker => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: Some(own), adversary: None },
-            JobKind::SocialcommAdv => Drivers { alive: f_ego.unwrap_or(Actor::Random { dim: 2 }), background: f_bg, adversary: Some(own) },
-            _ => Drivers { alive: own, background: f_bg, adversary: f_adv },
-        };
+        let drivers = seat.drivers(own, f_bg, f_ego, f_adv);
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
         let t = Instant::now();
         let mut d = drive::decide(&mut venvs, &drivers, &mut rng);
@@ -222,12 +220,7 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         if let Some(b) = brakes.as_mut() {
             b.after_step(&venvs);
         }
-        // The rows the job learns from and the actions its policy took there.
-        let (trained_rows, trained_actions) = match kind {
-            JobKind::Failmaker => (&d.background_rows, &d.background_actions),
-            JobKind::SocialcommAdv => (&d.alive_rows, &d.adversary_actions),
-            _ => (&d.alive_rows, &d.alive_actions),
-        };
+        let (trained_rows, trained_actions) = seat.trained(&d);
         writer.add(&mut venvs, &before, trained_rows, trained_actions, job);
         if writer.send_if_full()?.is_break() {
             return Ok(());

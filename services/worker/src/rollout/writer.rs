@@ -3,7 +3,7 @@
 //! Owns: [`TransitionWriter`] (batching of the job's transitions and finished episodes, version
 //! stamping, sending through the bounded channel) and [`Credits`] (batches it may send before
 //! the learner acknowledges one). Invariant: every batch holds transitions of one acting policy
-//! version and is stamped with it (0: warm-up actions); a batch is sent only after a credit is
+//! version (or the warm-up) and is stamped with it; a batch is sent only after a credit is
 //! taken. Must not: do network IO (the session streams what the channel carries), or decide who
 //! acts (the environment loop does).
 
@@ -11,11 +11,11 @@ use std::ops::ControlFlow;
 use std::sync::{Arc, Mutex};
 
 use anyhow::bail;
-use sf_job::{Ends, EpisodeResult, JobConfig, TransitionBatch};
+use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, TransitionBatch};
 use sf_proto::pb;
-use sf_sac::setup;
+use sf_rollout::setup;
+use sf_service::sync::lock;
 use sf_sim::vec_env::VecEnv;
-use sf_svc::sync::lock;
 use tokio::sync::mpsc;
 
 use super::{Control, STREAM_CLOSED};
@@ -62,7 +62,7 @@ impl Credits {
 pub struct TransitionWriter {
     batch: TransitionBatch,
     /// Version of the policy that acted for the batch's transitions (`None` before the first step).
-    version: Option<u64>,
+    acted_by: Option<ActedBy>,
     /// Transitions that make a batch full (`worker.batch_transitions`).
     full_at: usize,
     control: Arc<Mutex<Control>>,
@@ -74,16 +74,18 @@ pub struct TransitionWriter {
 impl TransitionWriter {
     /// Fills `batch` (empty, with the job's shapes) up to `full_at` transitions.
     pub(super) fn new(batch: TransitionBatch, full_at: usize, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> Self {
-        Self { batch, version: None, full_at, control, credits, tx, metrics }
+        Self { batch, acted_by: None, full_at, control, credits, tx, metrics }
     }
 
-    /// The coming step acts with policy `version` (0: warm-up actions): a batch holding another
-    /// version's transitions is sent first.
-    pub(super) fn stamp(&mut self, version: u64) -> anyhow::Result<ControlFlow<()>> {
-        if self.version.is_some_and(|v| v != version) && self.batch.count > 0 && self.send(self.version.unwrap_or(0))?.is_break() {
-            return Ok(ControlFlow::Break(()));
+    /// The coming step is acted by `acted_by`: a batch holding another actor's transitions is
+    /// sent first.
+    pub(super) fn stamp(&mut self, acted_by: ActedBy) -> anyhow::Result<ControlFlow<()>> {
+        if let Some(held) = self.acted_by.filter(|&a| a != acted_by && self.batch.count > 0) {
+            if self.send(held)?.is_break() {
+                return Ok(ControlFlow::Break(()));
+            }
         }
-        self.version = Some(version);
+        self.acted_by = Some(acted_by);
         Ok(ControlFlow::Continue(()))
     }
 
@@ -107,9 +109,7 @@ impl TransitionWriter {
                 self.metrics.episodes.inc();
                 self.batch.episodes.push(EpisodeResult {
                     scenario_index: k as u32,
-                    success: m.success,
-                    safety: m.safety,
-                    speed: m.speed,
+                    scores: m.scores,
                     ends: Ends { collision: m.collision, off_road: m.off_road, off_route: m.off_route, wrong_lane: m.wrong_lane, timeout: m.timeout },
                 });
             }
@@ -119,17 +119,17 @@ impl TransitionWriter {
     /// Sends the batch if it holds `worker.batch_transitions` transitions.
     pub(super) fn send_if_full(&mut self) -> anyhow::Result<ControlFlow<()>> {
         if self.batch.count >= self.full_at {
-            return self.send(self.version.unwrap_or(0));
+            return self.send(self.acted_by.unwrap_or_default());
         }
         Ok(ControlFlow::Continue(()))
     }
 
-    /// Takes a credit, stamps the batch with `version` and sends it.
-    fn send(&mut self, version: u64) -> anyhow::Result<ControlFlow<()>> {
+    /// Takes a credit, stamps the batch with `acted_by` and sends it.
+    fn send(&mut self, acted_by: ActedBy) -> anyhow::Result<ControlFlow<()>> {
         if !self.credits.take(&self.control) {
             return Ok(ControlFlow::Break(()));
         }
-        self.batch.policy_version = version;
+        self.batch.acted_by = acted_by;
         let msg = sf_proto::batch_to_wire(&self.batch);
         self.metrics.transitions_sent.inc_by(self.batch.count as u64);
         self.metrics.batches_sent.inc();
@@ -154,6 +154,10 @@ mod tests {
         (w, rx, control)
     }
 
+    fn v(version: u64) -> ActedBy {
+        ActedBy::Policy(std::num::NonZeroU64::new(version).expect("versions start at 1"))
+    }
+
     fn push(w: &mut TransitionWriter) {
         w.batch.push(&[0.0, 1.0], &[0.5], 1.0, &[1.0, 2.0], false, 0);
     }
@@ -161,19 +165,19 @@ mod tests {
     #[test]
     fn a_batch_holds_one_version_and_is_stamped_with_it() -> anyhow::Result<()> {
         let (mut w, mut rx, _control) = writer(8, 100);
-        assert!(w.stamp(0)?.is_continue());
+        assert!(w.stamp(ActedBy::Warmup)?.is_continue());
         push(&mut w);
         push(&mut w);
-        assert!(w.stamp(0)?.is_continue());
+        assert!(w.stamp(ActedBy::Warmup)?.is_continue());
         assert!(rx.try_recv().is_err(), "same version: nothing sent");
-        assert!(w.stamp(5)?.is_continue());
+        assert!(w.stamp(v(5))?.is_continue());
         let sent = rx.try_recv()?;
         assert_eq!((sent.policy_version, sent.count, sent.job_id, sent.worker_id), (0, 2, 7, 3));
         push(&mut w);
-        assert!(w.stamp(6)?.is_continue());
+        assert!(w.stamp(v(6))?.is_continue());
         assert_eq!(rx.try_recv()?.policy_version, 5);
         // An empty batch is not sent when the version changes.
-        assert!(w.stamp(7)?.is_continue());
+        assert!(w.stamp(v(7))?.is_continue());
         assert!(rx.try_recv().is_err());
         Ok(())
     }
@@ -181,7 +185,7 @@ mod tests {
     #[test]
     fn a_full_batch_is_sent_counted_and_cleared() -> anyhow::Result<()> {
         let (mut w, mut rx, _control) = writer(8, 2);
-        assert!(w.stamp(4)?.is_continue());
+        assert!(w.stamp(v(4))?.is_continue());
         push(&mut w);
         assert!(w.send_if_full()?.is_continue());
         assert!(rx.try_recv().is_err());
@@ -197,7 +201,7 @@ mod tests {
     fn without_credits_a_stop_breaks_before_sending() -> anyhow::Result<()> {
         let (mut w, mut rx, control) = writer(0, 1);
         lock(&control).stop = true;
-        assert!(w.stamp(0)?.is_continue());
+        assert!(w.stamp(ActedBy::Warmup)?.is_continue());
         push(&mut w);
         assert!(w.send_if_full()?.is_break());
         assert!(rx.try_recv().is_err());
@@ -209,7 +213,7 @@ mod tests {
     fn a_closed_channel_is_the_stream_closing() -> anyhow::Result<()> {
         let (mut w, rx, _control) = writer(1, 1);
         drop(rx);
-        assert!(w.stamp(0)?.is_continue());
+        assert!(w.stamp(ActedBy::Warmup)?.is_continue());
         push(&mut w);
         let e = w.send_if_full().err().map(|e| e.to_string());
         assert_eq!(e.as_deref(), Some(STREAM_CLOSED));

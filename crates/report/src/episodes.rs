@@ -1,0 +1,211 @@
+//! The evaluation's result files: one row per evaluated episode (`episodes.csv`) and the
+//! grid's metadata (`meta.json`).
+//!
+//! Owns: [`EpisodeRow`] and its CSV line format, the validating reader [`read_episodes`] (a bad
+//! line is named by its number and field), [`EpisodesWriter`] (whole cells appended and synced,
+//! so a cell is stored whole or not at all), [`Meta`] and [`read_meta`]. Must not: compute
+//! statistics or draw anything (the report does).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use sf_job::eval::{Cell, EvalConfig, EvalEpisode};
+
+pub const EPISODES_HEADER: &str = "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision";
+
+/// One evaluated episode: the cell it belongs to and what the episode measured. `cell.ego` is
+/// empty when the flow was evaluated on its own.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeRow {
+    pub cell: Cell,
+    pub ep: EvalEpisode,
+    /// Which replicate of the graph (trained from scratch with its own seed) the episode
+    /// belongs to when several result sets are reported together; 0 in a single set. Not a
+    /// column of `episodes.csv`: a results directory holds one replicate.
+    pub replicate: u32,
+}
+
+impl EpisodeRow {
+    /// An evaluated episode of `cell`.
+    pub fn new(cell: &Cell, e: &EvalEpisode) -> Self {
+        Self { cell: cell.clone(), ep: *e, replicate: 0 }
+    }
+
+    /// The cell the episode belongs to.
+    pub fn cell(&self) -> Cell {
+        self.cell.clone()
+    }
+
+    pub fn to_csv(&self) -> String {
+        let (c, e) = (&self.cell, &self.ep);
+        let o = |v: Option<String>| v.unwrap_or_default();
+        format!(
+            "{},{},{},{},{},{},{},{},{},{},{},{}",
+            c.experiment,
+            c.ego,
+            c.flow,
+            c.scenario,
+            o(c.svo_deg.map(|v| v.to_string())),
+            o(c.vehicles.map(|v| v.to_string())),
+            e.case,
+            e.seed,
+            e.scores.success,
+            e.scores.safety,
+            e.scores.speed,
+            e.collision
+        )
+    }
+
+    fn parse(line: &str) -> Result<Self, RowError> {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 12 {
+            return Err(RowError::Fields(f.len()));
+        }
+        let int = |i: usize, what: &'static str| RowError::NotAnInteger { what, text: f[i].to_string() };
+        let num = |i: usize, what: &'static str| {
+            let v = f[i].parse::<f32>().map_err(|_| RowError::NotANumber { what, text: f[i].to_string() })?;
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(RowError::NotFinite { what })
+            }
+        };
+        let opt = |i: usize, what: &'static str| if f[i].is_empty() { Ok(None) } else { f[i].parse::<u64>().map(Some).map_err(|_| int(i, what)) };
+        let cell = Cell {
+            experiment: f[0].into(),
+            ego: f[1].into(),
+            flow: f[2].into(),
+            scenario: f[3].into(),
+            svo_deg: opt(4, "svo_deg")?.map(|v| v as u32),
+            vehicles: opt(5, "vehicles")?.map(|v| v as usize),
+        };
+        let ep = EvalEpisode {
+            case: f[6].parse().map_err(|_| int(6, "case"))?,
+            seed: f[7].parse().map_err(|_| int(7, "seed"))?,
+            scores: sf_job::Scores { success: num(8, "success")?, safety: num(9, "safety")?, speed: num(10, "speed")? },
+            collision: num(11, "collision")?,
+        };
+        Ok(Self { cell, ep, replicate: 0 })
+    }
+}
+
+/// Why a line of `episodes.csv` does not parse.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RowError {
+    #[error("{0} fields, expected 12")]
+    Fields(usize),
+    #[error("{what} `{text}` is not a number")]
+    NotANumber { what: &'static str, text: String },
+    #[error("{what} is not finite")]
+    NotFinite { what: &'static str },
+    #[error("{what} `{text}` is not an integer")]
+    NotAnInteger { what: &'static str, text: String },
+}
+
+/// A results file that cannot be read or written, naming the file and what is wrong with it.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {reason}")]
+pub struct FileError {
+    pub path: String,
+    pub reason: String,
+}
+
+pub(crate) fn file_err(path: &Path, reason: impl std::fmt::Display) -> FileError {
+    FileError { path: path.display().to_string(), reason: reason.to_string() }
+}
+
+/// Reads `episodes.csv`; a missing file is an empty result set.
+pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    let mut lines = text.lines();
+    match lines.next() {
+        Some(h) if h == EPISODES_HEADER => {}
+        Some(h) => return Err(file_err(path, format!("header `{h}` is not `{EPISODES_HEADER}`"))),
+        None => return Ok(Vec::new()),
+    }
+    lines.enumerate().filter(|(_, l)| !l.is_empty()).map(|(i, l)| EpisodeRow::parse(l).map_err(|e| file_err(path, format!("line {}: {e}", i + 2)))).collect()
+}
+
+/// What the report needs to know besides the episodes.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Meta {
+    /// Ego name -> the flow (by name) it was trained in; its cell in that column is grey.
+    pub trained_in: BTreeMap<String, String>,
+    /// The ego the paper proposes (RARL/SocialCommAdv), compared by paired t-tests.
+    pub ours: Option<String>,
+    /// Flow and ego names in display order.
+    pub flows: Vec<String>,
+    pub egos: Vec<String>,
+    pub cases: u32,
+    pub seeds: u32,
+}
+
+impl Meta {
+    /// What a report of `cfg`'s grid needs to know.
+    pub fn of(cfg: &EvalConfig) -> Self {
+        Self {
+            trained_in: cfg.egos.iter().filter_map(|e| e.trained_in.clone().map(|t| (e.name.clone(), t))).collect(),
+            ours: cfg.ours.clone(),
+            flows: cfg.flows.iter().map(|f| f.name.clone()).collect(),
+            egos: cfg.egos.iter().map(|f| f.name.clone()).collect(),
+            cases: cfg.cases,
+            seeds: cfg.seeds,
+        }
+    }
+}
+
+/// Appends whole cells to an `episodes.csv` (the header first if the file is new or empty):
+/// one write per cell, so a cell is stored whole or not at all.
+pub struct EpisodesWriter {
+    file: std::fs::File,
+    path: PathBuf,
+}
+
+impl EpisodesWriter {
+    pub fn open(path: &Path) -> Result<Self, FileError> {
+        let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(|e| file_err(path, e))?;
+        let empty = file.metadata().map_err(|e| file_err(path, e))?.len() == 0;
+        if empty {
+            use std::io::Write;
+            writeln!(file, "{EPISODES_HEADER}").map_err(|e| file_err(path, e))?;
+        }
+        Ok(Self { file, path: path.to_path_buf() })
+    }
+
+    pub fn append(&mut self, rows: &[EpisodeRow]) -> Result<(), FileError> {
+        use std::io::Write;
+        let text: String = rows.iter().map(|r| r.to_csv() + "\n").collect();
+        self.file.write_all(text.as_bytes()).and_then(|()| self.file.sync_data()).map_err(|e| file_err(&self.path, e))
+    }
+}
+
+pub fn read_meta(path: &Path) -> Result<Meta, FileError> {
+    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    serde_json::from_str(&text).map_err(|e| file_err(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_round_trip_and_bad_lines_name_the_line() {
+        let r = EpisodeRow::new(
+            &Cell { experiment: "svo_sweep".into(), ego: String::new(), flow: "CoPO".into(), scenario: "merge".into(), svo_deg: Some(30), vehicles: Some(8) },
+            &EvalEpisode { case: 3, seed: 1, scores: sf_job::Scores { success: 0.25, safety: 0.25, speed: 0.5 }, collision: 0.0 },
+        );
+        assert_eq!(EpisodeRow::parse(&r.to_csv()), Ok(r.clone()));
+        let dir = std::env::temp_dir().join(format!("sf-report-rows-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let p = dir.join("episodes.csv");
+        std::fs::write(&p, format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0\n", r.to_csv())).expect("write");
+        let e = read_episodes(&p).expect_err("NaN").to_string();
+        assert!(e.contains("line 3") && e.contains("success"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

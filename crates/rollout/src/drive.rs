@@ -1,0 +1,316 @@
+//! Who acts in a decision step of batched simulators: the ego rows, the externally driven
+//! background rows and the SocialCommAdv adversary, each with one batched inference over every
+//! scenario's environments.
+//!
+//! Owns: [`Drivers`] (the actor of each role: uniform, the IDM demonstrator, or a policy),
+//! [`decide`] (the adversary's message first, communicated before anyone drives, then the
+//! driving actions as the roles chose them), [`apply`] (steps the environments with them, adding
+//! the IDM driver's action for roles whose actions are residuals) and [`run_episodes`] (stored
+//! episodes to their end). Shared by rollout workers and evaluation, so both run a flow the same
+//! way. Must not: record transitions or choose which role is being trained.
+
+use rand::Rng;
+use rand_distr::StandardNormal;
+use sf_job::config::JobKind;
+use sf_sim::metrics::EpisodeMetrics;
+use sf_sim::vec_env::VecEnv;
+use sf_sim::{Action, DriveAction};
+
+use crate::inference::PolicyRunner;
+use crate::setup::adversary_svo_deg;
+
+/// How one role acts.
+#[derive(Clone, Copy)]
+pub enum Actor<'a> {
+    /// Uniform in [-1, 1], `dim` floats (warm-up); driving roles read them as the paper's action.
+    Random { dim: usize },
+    /// The IDM demonstrator ([`VecEnv::demo_action`]) expressed as `action` (for residual
+    /// kinds: zero) with Gaussian noise of this standard deviation per component, clipped to
+    /// [-1, 1] (the IDM warm-up; a noise of 0 draws no random numbers). Driving roles only.
+    Demo { noise: f32, action: DriveAction },
+    /// A policy: sampled, or its mean action when `deterministic` (evaluation).
+    Policy { runner: &'a PolicyRunner, deterministic: bool },
+    /// Actions chosen outside (a Python policy, or actions handed in by an environment's
+    /// caller): `act(rows, n)` gets the `n` observation rows of the role, flattened, and returns
+    /// `n * action.dim()` floats. It must not fail: a caller that can fail records its error
+    /// and returns zeros.
+    External { act: &'a dyn Fn(&[f32], usize) -> Vec<f32>, action: DriveAction },
+}
+
+impl<'a> Actor<'a> {
+    pub fn sampled(runner: &'a PolicyRunner) -> Self {
+        Self::Policy { runner, deterministic: false }
+    }
+
+    pub fn mean(runner: &'a PolicyRunner) -> Self {
+        Self::Policy { runner, deterministic: true }
+    }
+
+    /// How its action vector moves a vehicle ([`apply`] turns it into the vehicle's command).
+    pub fn drive_action(&self) -> DriveAction {
+        match self {
+            Actor::Random { .. } => DriveAction::Direct,
+            Actor::Demo { action, .. } => *action,
+            Actor::Policy { runner, .. } => runner.net().action,
+            Actor::External { action, .. } => *action,
+        }
+    }
+
+    /// Floats per action.
+    pub fn dim(&self) -> usize {
+        match self {
+            Actor::Random { dim } => *dim,
+            Actor::Demo { action, .. } => action.dim(),
+            Actor::Policy { runner, .. } => runner.net().action_dim,
+            Actor::External { action, .. } => action.dim(),
+        }
+    }
+}
+
+/// The actor of each role. Rows flagged `alive` (the ego, or every learner of a Stage-1 flow)
+/// are driven by `alive`; rows flagged `background` by `background`; `adversary`, if any,
+/// reads the `alive` rows (the ego's observation) and tells the background its SVO.
+#[derive(Clone, Copy)]
+pub struct Drivers<'a> {
+    pub alive: Actor<'a>,
+    pub background: Option<Actor<'a>>,
+    pub adversary: Option<Actor<'a>>,
+}
+
+/// Where a training job's own policy sits among a step's drivers, by the job's kind: the
+/// `alive` rows for ego and Stage-1 flow jobs, the background for FailMaker (its frozen ego
+/// drives the `alive` row), the SVO message for SocialCommAdv (the adversary reads the frozen
+/// ego's observation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Seat {
+    Alive,
+    Background,
+    Adversary,
+}
+
+impl Seat {
+    pub fn for_job(kind: JobKind) -> Self {
+        match kind {
+            JobKind::Failmaker => Self::Background,
+            JobKind::SocialcommAdv => Self::Adversary,
+            _ => Self::Alive,
+        }
+    }
+
+    /// `own` in this seat and the frozen policies (`background`, `ego`, `adversary`) in the
+    /// others; a RARL job's frozen ego that is missing drives randomly.
+    pub fn drivers<'a>(self, own: Actor<'a>, background: Option<Actor<'a>>, ego: Option<Actor<'a>>, adversary: Option<Actor<'a>>) -> Drivers<'a> {
+        let ego = ego.unwrap_or(Actor::Random { dim: 2 });
+        match self {
+            Self::Alive => Drivers { alive: own, background, adversary },
+            Self::Background => Drivers { alive: ego, background: Some(own), adversary: None },
+            Self::Adversary => Drivers { alive: ego, background, adversary: Some(own) },
+        }
+    }
+
+    /// The rows the job learns from, per environment batch, and the actions its policy took
+    /// there.
+    pub fn trained(self, d: &Decision) -> (&[Vec<usize>], &[Vec<f32>]) {
+        match self {
+            Self::Alive => (&d.alive_rows, &d.alive_actions),
+            Self::Background => (&d.background_rows, &d.background_actions),
+            Self::Adversary => (&d.alive_rows, &d.adversary_actions),
+        }
+    }
+}
+
+/// The actions of one step, per environment batch (one per scenario).
+#[derive(Default)]
+pub struct Decision {
+    /// Row indices of live `alive` rows and of live externally driven background rows.
+    pub alive_rows: Vec<Vec<usize>>,
+    pub background_rows: Vec<Vec<usize>>,
+    /// `alive_action.dim()` / `background_action.dim()` floats per row of `alive_rows` /
+    /// `background_rows`.
+    pub alive_actions: Vec<Vec<f32>>,
+    pub background_actions: Vec<Vec<f32>>,
+    /// One float per row of `alive_rows` when there is an adversary (its raw action).
+    pub adversary_actions: Vec<Vec<f32>>,
+    /// Observations that went through a policy this step.
+    pub inferred_rows: usize,
+    /// How the `alive` / `background` actions move their vehicles.
+    pub alive_action: DriveAction,
+    pub background_action: DriveAction,
+}
+
+fn flagged(flags: &[f32]) -> Vec<usize> {
+    (0..flags.len()).filter(|&r| flags[r] == 1.0).collect()
+}
+
+/// The listed rows' observations, flattened, and each row's map (batch) index.
+fn gather(venvs: &[VecEnv], rows: &[Vec<usize>], n: usize) -> (Vec<f32>, Vec<u32>) {
+    let len = venvs.first().map_or(0, |v| v.spec.len);
+    let mut obs = Vec::with_capacity(n * len);
+    let mut ids = Vec::with_capacity(n);
+    for (k, (v, rs)) in venvs.iter().zip(rows).enumerate() {
+        for &r in rs {
+            obs.extend_from_slice(&v.observations()[r * len..(r + 1) * len]);
+            ids.push(k as u32);
+        }
+    }
+    (obs, ids)
+}
+
+/// `actor.dim()` actions per listed row of every batch, one inference for all of them.
+fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) -> (Vec<Vec<f32>>, usize) {
+    let n: usize = rows.iter().map(Vec::len).sum();
+    let dim = actor.dim();
+    let flat = match actor {
+        Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        Actor::Demo { noise, action } => {
+            // Residual kinds demonstrate with zeros: no IDM action to compute.
+            let mut a: Vec<f32> =
+                if action == DriveAction::Direct { venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect() } else { vec![0.0; n * dim] };
+            // Noise-free demonstrations draw nothing, so the stream other roles sample from (a
+            // learned flow's) is the one an outside actor with the same actions would leave.
+            if noise > 0.0 {
+                for x in &mut a {
+                    let e: f32 = rng.sample(StandardNormal);
+                    *x = (*x + noise * e).clamp(-1.0, 1.0);
+                }
+            }
+            a
+        }
+        Actor::Policy { .. } | Actor::External { .. } if n == 0 => Vec::new(),
+        Actor::Policy { runner, deterministic } => {
+            let (obs, ids) = gather(venvs, rows, n);
+            let a = if deterministic { runner.mean(&obs, &ids) } else { runner.sample(&obs, &ids, rng) };
+            assert_eq!(a.len(), n * dim, "policy action size differs from its role's");
+            a
+        }
+        Actor::External { act, .. } => {
+            let (obs, _) = gather(venvs, rows, n);
+            let a = act(&obs, n);
+            assert_eq!(a.len(), n * dim, "an external actor returned {} floats for {n} rows of {dim}", a.len());
+            a
+        }
+    };
+    let mut out = Vec::with_capacity(rows.len());
+    let mut at = 0;
+    for rs in rows {
+        out.push(flat[at..at + rs.len() * dim].to_vec());
+        at += rs.len() * dim;
+    }
+    (out, if matches!(actor, Actor::Policy { .. } | Actor::External { .. }) { n } else { 0 })
+}
+
+/// Decides the step: the adversary speaks first (its message reaches the background's
+/// observations before they act), then every role drives.
+pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision {
+    let alive_rows: Vec<Vec<usize>> = venvs.iter().map(|v| flagged(v.alive())).collect();
+    let mut out = Decision { alive_rows, ..Decision::default() };
+    if let Some(adv) = d.adversary {
+        assert_eq!(adv.dim(), 1, "the adversary's action is one SVO");
+        let (a, n) = act(venvs, &out.alive_rows, adv, rng);
+        out.inferred_rows += n;
+        for ((v, rs), acts) in venvs.iter_mut().zip(&out.alive_rows).zip(&a) {
+            // The ego is agent 0 of its environment: row k * max_agents.
+            let mut msg = vec![None; v.n_envs()];
+            for (&r, &x) in rs.iter().zip(acts) {
+                msg[r / v.max_agents] = Some(adversary_svo_deg(x));
+            }
+            v.communicate_ego_svo(&msg);
+        }
+        out.adversary_actions = a;
+    }
+    out.background_rows = venvs.iter().map(|v| flagged(v.background())).collect();
+    let (a, n) = act(venvs, &out.alive_rows, d.alive, rng);
+    out.alive_actions = a;
+    out.alive_action = d.alive.drive_action();
+    out.inferred_rows += n;
+    if let Some(bg) = d.background {
+        let (a, n) = act(venvs, &out.background_rows, bg, rng);
+        out.background_actions = a;
+        out.background_action = bg.drive_action();
+        out.inferred_rows += n;
+    } else {
+        out.background_actions = out.background_rows.iter().map(|rs| vec![0.0; rs.len() * 2]).collect();
+    }
+    out
+}
+
+/// Steps every batch with the decided driving actions (rows without one keep the default),
+/// each turned into its vehicle's command by its role's [`DriveAction`]: an `idm-residual`
+/// role's action is added to the IDM driver's action in the state it was decided in.
+pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
+    for (k, v) in venvs.iter_mut().enumerate() {
+        let mut acts = vec![Action::default(); v.alive().len()];
+        for (rows, a, kind) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_action), (&d.background_rows[k], &d.background_actions[k], d.background_action)] {
+            let dim = kind.dim();
+            for (j, &r) in rows.iter().enumerate() {
+                // The IDM driver's action only where the kind adds to it.
+                let demo = kind.needs_demo().then(|| v.demo_action(r));
+                acts[r] = kind.command(&a[j * dim..(j + 1) * dim], demo);
+            }
+        }
+        v.step(&acts);
+    }
+}
+
+/// Braking segments in a demonstrator's warm-up: with probability `start_prob` per step a
+/// driving row starts holding its action's first component (the speed or acceleration
+/// residual) at a value drawn from U(-1, -0.2) for 4 to 12 decision steps, so the data shows
+/// what braking early buys (and costs). State per row, cleared when the row's episode ends.
+pub struct BrakeSegments {
+    start_prob: f32,
+    /// Per batch, per row: steps left and the value held.
+    left: Vec<Vec<(u32, f32)>>,
+}
+
+impl BrakeSegments {
+    pub fn new(start_prob: f32, venvs: &[VecEnv]) -> Self {
+        Self { start_prob, left: venvs.iter().map(|v| vec![(0, 0.0); v.alive().len()]).collect() }
+    }
+
+    /// Overrides the decided `alive` actions of rows in a segment (call between [`decide`]
+    /// and [`apply`]; the recorded action is then the one applied).
+    pub fn overlay(&mut self, d: &mut Decision, rng: &mut impl Rng) {
+        let dim = d.alive_action.dim();
+        for (k, rows) in d.alive_rows.iter().enumerate() {
+            for (j, &r) in rows.iter().enumerate() {
+                let (left, value) = &mut self.left[k][r];
+                if *left == 0 && rng.random::<f32>() < self.start_prob {
+                    *left = rng.random_range(4..=12);
+                    *value = rng.random_range(-1.0..-0.2);
+                }
+                if *left > 0 {
+                    *left -= 1;
+                    d.alive_actions[k][j * dim] = *value;
+                }
+            }
+        }
+    }
+
+    /// Ends the segments of rows whose episode ended in the last step (call after [`apply`]).
+    pub fn after_step(&mut self, venvs: &[VecEnv]) {
+        for (k, v) in venvs.iter().enumerate() {
+            for (r, st) in v.row_steps().iter().enumerate() {
+                if st.ended.is_some() {
+                    self.left[k][r] = (0, 0.0);
+                }
+            }
+        }
+    }
+}
+
+/// Runs the stored episodes of `v` (`VecEnv::from_episodes`) to their end with `d`.
+/// `after_step(v, tags)` sees every step's results (`VecEnv::row_steps`, the environments)
+/// with the tags of the episodes that took it, per environment (`None`: idle). Returns every
+/// episode's `(tag, metrics)` in the order they finished.
+pub fn run_episodes(v: &mut VecEnv, d: &Drivers, rng: &mut impl Rng, mut after_step: impl FnMut(&VecEnv, &[Option<u64>])) -> Vec<(u64, EpisodeMetrics)> {
+    let mut out = Vec::new();
+    let venvs = std::slice::from_mut(v);
+    while !venvs[0].is_finished() {
+        let tags: Vec<Option<u64>> = (0..venvs[0].n_envs()).map(|k| venvs[0].tag(k)).collect();
+        let decision = decide(venvs, d, rng);
+        apply(venvs, &decision);
+        after_step(&venvs[0], &tags);
+        out.extend(venvs[0].take_finished_tagged());
+    }
+    out
+}

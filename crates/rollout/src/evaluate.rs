@@ -1,0 +1,481 @@
+//! Running one cell of an evaluation grid: `cases x seeds` episodes of stored cases with the
+//! cell's ego and flow, in batched simulators.
+//!
+//! Owns: what acts in a cell ([`Policy`], [`FlowDef`]), the checks that an ego and a flow fit
+//! together ([`check_cell`]), the per-scenario policy cache ([`Runners`]), [`run_cell`] and the
+//! side-by-side GIF of one case under several flows ([`render_gif`]). `socialflow eval`
+//! (embedded) and the worker (an evaluation job's cells) both call these, so the same cell
+//! gives the same numbers wherever it runs; a training job's validation runs its generated
+//! cases through the same settings ([`run_cases`]). Must not: find jobs (callers hand over configs and
+//! weights) or write results.
+//!
+//! Actions: ego policies act with their mean action; learned flows and the adversary sample,
+//! one random stream per seed (the seed is the stream's seed), so the same policies, cases,
+//! seeds and `envs` give the same numbers.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use sf_job::config::JobKind;
+use sf_job::eval::{Cell, EvalEpisode};
+use sf_job::{Frozen, FrozenRole, JobConfig, SvoGaussian};
+use sf_sim::case::CaseFile;
+use sf_sim::env::Controller;
+use sf_sim::obs::MapSegments;
+use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::{Map, Mode, SimConfig};
+
+use crate::drive::{self, Actor, Drivers};
+use crate::inference::PolicyRunner;
+use crate::setup;
+
+/// Why an evaluation (or a policy's loading) could not go on. Messages name the file, job,
+/// cell or field.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    /// A file could not be read or created.
+    #[error("{action} {}: {source}", path.display())]
+    Io { action: &'static str, path: std::path::PathBuf, source: std::io::Error },
+    /// A scenario, case file, job config or coordinator file does not parse or validate.
+    #[error("{0}")]
+    Invalid(String),
+    /// What was asked for does not fit together (ego and flow, cells, sizes, names).
+    #[error("{0}")]
+    Misfit(String),
+    /// A policy's weights do not load into its network.
+    #[error("loading the policy of {key}: {source}")]
+    Weights { key: String, source: sf_nn::weights::WeightsError },
+    /// Simulating or drawing failed.
+    #[error("{0}")]
+    Run(String),
+}
+
+fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> EvalError + 'a {
+    move |source| EvalError::Io { action, path: path.to_path_buf(), source }
+}
+
+/// A scenario's map (`<scenarios_dir>/<name>.json`) and its stored evaluation cases
+/// (`<cases_dir>/<name>.v<CASES_VERSION>.json`).
+pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), EvalError> {
+    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|e| EvalError::Invalid(format!("scenario `{name}`: {e}")))?;
+    let path = cases_dir.join(format!("{name}.v{}.json", sf_sim::case::CASES_VERSION));
+    let cases = CaseFile::load(&path, &map).map_err(|e| EvalError::Invalid(format!("cases of `{name}` ({}): {e}", path.display())))?;
+    Ok((Arc::new(map), cases))
+}
+
+/// A finished job's final policy.
+#[derive(Clone)]
+pub struct Policy {
+    /// Identifies the policy in caches and messages (a job id or an artifact directory).
+    pub key: String,
+    pub cfg: JobConfig,
+    pub weights: Arc<Vec<u8>>,
+    /// A CoPO flow past Stage 2: per scenario, the coordinator's SVO Gaussian.
+    pub svo_gaussians: Vec<(String, SvoGaussian)>,
+}
+
+impl Policy {
+    /// A finished job's final policy from its artifact directory (`config.toml`, `policy.bpk`,
+    /// and `coordinator.json` for a CoPO flow past Stage 2). Errors name the file.
+    pub fn load(dir: &Path) -> Result<Self, EvalError> {
+        let path = dir.join("config.toml");
+        let text = std::fs::read_to_string(&path).map_err(io("reading", &path))?;
+        let cfg = JobConfig::from_toml(&text).map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
+        let path = dir.join("policy.bpk");
+        let weights = std::fs::read(&path).map_err(io("reading (is the job finished?)", &path))?;
+        let coordinator = crate::coordinator::CoordinatorFile::load(dir).map_err(|e| EvalError::Invalid(e.to_string()))?;
+        let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
+        Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
+    }
+}
+
+/// What drives a flow: IDM, or a learned background (with its adversary for SocialCommAdv).
+#[derive(Clone)]
+// A handful per grid, built once: boxing the policies would buy nothing.
+#[allow(clippy::large_enum_variant)]
+pub enum FlowDef {
+    Idm,
+    Learned { background: Policy, adversary: Option<Policy> },
+}
+
+impl FlowDef {
+    /// The kind of job the flow is (SocialCommAdv when it has an adversary); `None` for IDM.
+    pub fn kind(&self) -> Option<JobKind> {
+        match self {
+            Self::Idm => None,
+            Self::Learned { adversary: Some(_), .. } => Some(JobKind::SocialcommAdv),
+            Self::Learned { background, .. } => Some(background.cfg.kind),
+        }
+    }
+}
+
+impl FlowDef {
+    /// A flow from a finished flow job's artifact directory. A SocialCommAdv job brings the
+    /// SocialComm flow it was trained against (`env.background_job`), found beside it in the
+    /// same `jobs/` directory (`<id>-<name>/`).
+    pub fn load(dir: &Path) -> Result<Self, EvalError> {
+        let p = Policy::load(dir)?;
+        match p.cfg.kind {
+            JobKind::Ego => Err(EvalError::Misfit(format!("{} is an ego job, not a flow", dir.display()))),
+            JobKind::SocialcommAdv => {
+                let id = p.cfg.env.background_job.ok_or_else(|| EvalError::Invalid(format!("{}: a socialcomm-adv job without its flow (env.background_job)", dir.display())))?;
+                let jobs = dir.parent().ok_or_else(|| EvalError::Misfit(format!("{} has no parent directory", dir.display())))?;
+                let entries = std::fs::read_dir(jobs).map_err(io("reading", jobs))?;
+                let bg = entries
+                    .flatten()
+                    .map(|e| e.path())
+                    .find(|d| d.file_name().and_then(|n| n.to_str()).and_then(|n| n.split_once('-')).is_some_and(|(i, _)| i.parse::<u64>() == Ok(id)))
+                    .ok_or_else(|| EvalError::Misfit(format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display())))?;
+                Ok(Self::Learned { background: Policy::load(&bg)?, adversary: Some(p) })
+            }
+            _ => Ok(Self::Learned { background: p, adversary: None }),
+        }
+    }
+}
+
+/// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
+/// their fetched weights (`weights[i]` belongs to `policies[i]`).
+pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), EvalError> {
+    if policies.len() != weights.len() {
+        return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())));
+    }
+    let (mut ego, mut background, mut adversary) = (None, None, None);
+    for (f, w) in policies.iter().zip(weights) {
+        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| EvalError::Invalid(format!("config of job {}: {e}", f.job_id)))?;
+        let slot = match f.role {
+            FrozenRole::Ego => &mut ego,
+            FrozenRole::Background => &mut background,
+            FrozenRole::Adversary => &mut adversary,
+        };
+        if slot.replace(Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
+            return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)));
+        }
+    }
+    let flow = match background {
+        Some(background) => FlowDef::Learned { background, adversary },
+        None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into())),
+        None => FlowDef::Idm,
+    };
+    Ok((flow, ego))
+}
+
+/// Whether `ego` (or none) can be evaluated in `flow`: an ego is an ego job observing in the
+/// flow's layout; a flow on its own is a Stage-1 flow that drives every vehicle.
+pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(), EvalError> {
+    if let Some(e) = ego {
+        if e.cfg.kind != JobKind::Ego {
+            return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str())));
+        }
+    }
+    match (ego, flow) {
+        (None, FlowDef::Learned { .. }) => {
+            let kind = flow.kind().unwrap_or_default();
+            if !kind.multi_agent() {
+                return Err(EvalError::Misfit(format!("flow `{}` ({}) needs an ego to act against; evaluate it with an ego", cell.flow, kind.as_str())));
+            }
+        }
+        (Some(e), FlowDef::Learned { background, .. }) => {
+            if setup::resolve(&e.cfg, None).obs.layout != setup::resolve(&background.cfg, None).obs.layout {
+                return Err(EvalError::Misfit(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow)));
+            }
+        }
+        (_, FlowDef::Idm) => {}
+    }
+    Ok(())
+}
+
+/// Policies built for one scenario, loaded once and reused by every cell.
+pub struct Runners {
+    device: sf_nn::device::Device,
+    segments: BTreeMap<String, Arc<MapSegments>>,
+    cache: BTreeMap<(String, String), Arc<PolicyRunner>>,
+}
+
+impl Runners {
+    pub fn new(device: sf_nn::device::Device) -> Self {
+        Self { device, segments: BTreeMap::new(), cache: BTreeMap::new() }
+    }
+
+    fn segments(&mut self, map: &Map) -> Arc<MapSegments> {
+        Arc::clone(self.segments.entry(map.name.clone()).or_insert_with(|| Arc::new(MapSegments::build(map, SimConfig::default().obs.segment_points))))
+    }
+
+    /// The runner of `p` on `map` (built once, then cached).
+    pub fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, EvalError> {
+        let key = (p.key.clone(), map.name.clone());
+        if let Some(r) = self.cache.get(&key) {
+            return Ok(Arc::clone(r));
+        }
+        let segs = self.segments(map);
+        let own = setup::resolve(&p.cfg, None);
+        let r = PolicyRunner::from_bytes(&own.net, &own.obs, sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device).map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
+        let r = Arc::new(r);
+        self.cache.insert(key, Arc::clone(&r));
+        Ok(r)
+    }
+
+    /// Drops every cached runner of the policy `key` (one that will not act again, such as a
+    /// training actor once validated).
+    pub fn forget(&mut self, key: &str) {
+        self.cache.retain(|(k, _), _| k != key);
+    }
+}
+
+/// The policies acting in a cell.
+struct Acting {
+    ego: Option<Arc<PolicyRunner>>,
+    background: Option<Arc<PolicyRunner>>,
+    adversary: Option<Arc<PolicyRunner>>,
+    /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
+    /// (not in cells that fix every SVO, the SVO sweep).
+    svo_gaussian: Option<SvoGaussian>,
+}
+
+impl Acting {
+    /// The ego acts with its mean; flows and the adversary sample.
+    fn drivers(&self) -> Drivers<'_> {
+        match (&self.ego, &self.background) {
+            (Some(e), bg) => Drivers { alive: Actor::mean(e), background: bg.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) },
+            (None, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
+            // The all-IDM flow: its vehicles' controllers ignore these actions.
+            (None, None) => Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None },
+        }
+    }
+}
+
+/// Simulator settings, mode and acting policies of a cell.
+fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
+    check_cell(cell, flow, ego)?;
+    // The layout comes from whichever job acts; what the background's observations carry from the flow.
+    let bg_kind = match flow {
+        FlowDef::Idm => None,
+        FlowDef::Learned { background, .. } => Some(background.cfg.kind),
+    };
+    let (sim, mode) = match (ego, flow) {
+        (Some(e), FlowDef::Idm) => (setup::resolve(&e.cfg, None).sim, Mode::Ego { background: Controller::Idm }),
+        (Some(e), FlowDef::Learned { .. }) => (setup::resolve(&e.cfg, bg_kind).sim, Mode::Ego { background: Controller::External }),
+        (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
+        (None, FlowDef::Learned { background, .. }) => (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent),
+    };
+    let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
+    let (background, adversary) = match flow {
+        FlowDef::Idm => (None, None),
+        FlowDef::Learned { background, adversary } => (Some(runners.get(background, map, &sim)?), adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?),
+    };
+    let svo_gaussian = match flow {
+        FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g),
+        _ => None,
+    };
+    Ok((Arc::new(sim), mode, Acting { ego, background, adversary, svo_gaussian }))
+}
+
+/// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
+/// Stage 2's SVOs, follow the tag, so each seed gets its own).
+fn episode_tag(seed: u32, case: usize) -> u64 {
+    (seed as u64) << 32 | case as u64
+}
+
+/// How many episodes a cell runs and how many are stepped together.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CellSize {
+    /// The first N stored cases of the scenario.
+    pub cases: u32,
+    pub seeds: u32,
+    pub envs: usize,
+}
+
+/// Runs one cell on `map` (the cell's scenario) over its stored `cases`; episodes in (seed,
+/// case) order.
+pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+    if map.name != cell.scenario {
+        return Err(EvalError::Misfit(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name)));
+    }
+    let n_cases = size.cases as usize;
+    if n_cases > cases.cases.len() {
+        return Err(EvalError::Misfit(format!("eval config field `cases`: {} exceeds the {} stored cases of {}", n_cases, cases.cases.len(), cell.scenario)));
+    }
+    let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
+    let episodes = Episodes { cases: &cases.cases[..n_cases], seeds: size.seeds, envs: size.envs, vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32) };
+    run_stored(map, &sim, mode, acting.svo_gaussian, &episodes, &acting.drivers())
+}
+
+/// Runs `cases` chosen outside (a training job's generated validation cases, say) once per
+/// seed, as a cell of `ego` (or the flow on its own) in `flow` would: the same settings, mode
+/// and acting policies; episodes in (seed, case) order.
+pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+    let cell = Cell {
+        experiment: String::new(),
+        ego: ego.map(|e| e.key.clone()).unwrap_or_default(),
+        flow: flow.kind().map_or("idm", JobKind::as_str).to_string(),
+        scenario: map.name.clone(),
+        svo_deg: None,
+        vehicles: None,
+    };
+    let (sim, mode, acting) = cell_setup(&cell, map, flow, ego, runners)?;
+    run_stored(map, &sim, mode, acting.svo_gaussian, &Episodes { cases, seeds, envs, vehicles: None, svo_deg: None }, &acting.drivers())
+}
+
+/// Stored episodes to run: every case once per seed.
+pub struct Episodes<'a> {
+    pub cases: &'a [sf_sim::Case],
+    pub seeds: u32,
+    /// Simulators stepped together.
+    pub envs: usize,
+    /// Vehicles per case (the case's own when `None`) and every agent's SVO (the case's own).
+    pub vehicles: Option<usize>,
+    pub svo_deg: Option<f32>,
+}
+
+/// Runs `episodes` with `drivers` (one random stream per seed, seeded by the seed) and returns
+/// one row per episode in (seed, case) order. What a cell runs once its policies are chosen;
+/// also the loop of an ego chosen outside ([`FlowSetup`]).
+pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian: Option<SvoGaussian>, episodes: &Episodes, drivers: &Drivers) -> Result<Vec<EvalEpisode>, EvalError> {
+    if episodes.envs == 0 || episodes.seeds == 0 {
+        return Err(EvalError::Misfit("`envs` and `seeds` must be positive".into()));
+    }
+    let n_cases = episodes.cases.len();
+    let mut rows = Vec::with_capacity(n_cases * episodes.seeds as usize);
+    for seed in 0..episodes.seeds {
+        let eps: Vec<EpisodeSpec> =
+            episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps).map_err(|e| EvalError::Misfit(e.to_string()))?;
+        v.set_svo_gaussian(svo_gaussian);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
+        let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
+        for (tag, m) in drive::run_episodes(&mut v, drivers, &mut rng, |_, _| {}) {
+            done[(tag & 0xffff_ffff) as usize] = Some(m);
+        }
+        for (c, m) in done.into_iter().enumerate() {
+            let m = m.ok_or_else(|| EvalError::Run(format!("case {c} did not finish")))?;
+            rows.push(EvalEpisode { case: episodes.cases[c].id, seed, scores: m.scores, collision: m.collision });
+        }
+    }
+    Ok(rows)
+}
+
+/// A flow ready to drive around an ego chosen outside this crate (the IDM driver, or a Python
+/// policy through [`Actor::External`]): the simulator settings the flow's policies observe
+/// with, the mode, the flow's runners and CoPO's Gaussian for the scenario. The ego observes
+/// in the flow's layout (a learned flow fixes it; the IDM flow takes `layout`).
+pub struct FlowSetup {
+    pub sim: Arc<SimConfig>,
+    pub mode: Mode,
+    background: Option<Arc<PolicyRunner>>,
+    adversary: Option<Arc<PolicyRunner>>,
+    pub svo_gaussian: Option<SvoGaussian>,
+}
+
+impl FlowSetup {
+    /// `layout`: the ego's wish; refused when a learned flow observes in another layout.
+    pub fn new(flow: &FlowDef, map: &Map, layout: Option<sf_sim::Layout>, runners: &mut Runners) -> Result<Self, EvalError> {
+        match flow {
+            FlowDef::Idm => {
+                let mut sim = SimConfig::default();
+                if let Some(l) = layout {
+                    sim.obs.layout = l;
+                }
+                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::Idm }, background: None, adversary: None, svo_gaussian: None })
+            }
+            FlowDef::Learned { background, adversary } => {
+                let sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
+                if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
+                    return Err(EvalError::Misfit(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str())));
+                }
+                let bg = runners.get(background, map, &sim)?;
+                let adv = adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?;
+                let svo_gaussian = background.svo_gaussians.iter().find(|(s, _)| *s == map.name).map(|(_, g)| *g);
+                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::External }, background: Some(bg), adversary: adv, svo_gaussian })
+            }
+        }
+    }
+
+    /// The ego acts with `ego`; the flow and its adversary sample.
+    pub fn drivers<'a>(&'a self, ego: Actor<'a>) -> Drivers<'a> {
+        Drivers { alive: ego, background: self.background.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) }
+    }
+}
+
+/// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
+/// into a GIF at `path`.
+pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), EvalError> {
+    use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
+    let scenario = map.name.clone();
+    let case = cases.cases.get(case as usize).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}")))?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo).map_err(|e| EvalError::Run(e.to_string()))?;
+    let mut films = Vec::new();
+    for (name, flow) in flows {
+        let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
+        let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
+        let mut v =
+            VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(|e| EvalError::Misfit(e.to_string()))?;
+        v.set_svo_gaussian(acting.svo_gaussian);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut frames = vec![renderer.frame(v.env(0))];
+        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| frames.push(renderer.frame(v.env(0))));
+        films.push(frames);
+    }
+    let len = films.iter().map(Vec::len).max().unwrap_or(0);
+    let file = std::fs::File::create(path).map_err(io("creating", path))?;
+    let mut out = Some(std::io::BufWriter::new(file));
+    let mut gif: Option<GifWriter<_>> = None;
+    for k in 0..len {
+        let row: Vec<&sf_sim::render::Pixmap> = films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
+        let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
+        if let Some(o) = out.take() {
+            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10).map_err(|e| EvalError::Run(e.to_string()))?);
+        }
+        if let Some(w) = gif.as_mut() {
+            w.push(&pm).map_err(|e| EvalError::Run(e.to_string()))?;
+        }
+    }
+    Ok(())
+}
+
+/// The flows and egos of an evaluation grid, found by whoever runs it.
+#[derive(Clone, Default)]
+pub struct Resolved {
+    pub flows: BTreeMap<String, FlowDef>,
+    pub egos: BTreeMap<String, Policy>,
+}
+
+impl Resolved {
+    /// The flow and ego (if any) acting in `cell`.
+    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&Policy>), EvalError> {
+        let flow = self.flows.get(&cell.flow).ok_or_else(|| EvalError::Misfit(format!("flow `{}` is not in the grid", cell.flow)))?;
+        let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| EvalError::Misfit(format!("ego `{}` is not in the grid", cell.ego)))?) };
+        Ok((flow, ego))
+    }
+
+    /// Every cell's ego and flow fit together (checked before anything runs).
+    pub fn check(&self, cells: &[Cell]) -> Result<(), EvalError> {
+        for c in cells {
+            let (flow, ego) = self.cell(c)?;
+            check_cell(c, flow, ego).map_err(|e| EvalError::Misfit(format!("cell {}: {e}", c.key())))?;
+        }
+        Ok(())
+    }
+
+    /// The config's GIFs (`gif-<scenario>.gif` in `out`) not already there; the paths written.
+    pub fn render_gifs(&self, g: &sf_job::eval::Gifs, out: &Path, maps: &BTreeMap<String, (Arc<Map>, CaseFile)>, runners: &mut Runners) -> Result<Vec<std::path::PathBuf>, EvalError> {
+        let ego = self.egos.get(&g.ego).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego)))?;
+        let flows = g
+            .flows
+            .iter()
+            .map(|f| self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.flows: `{f}` is not in the grid"))))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut written = Vec::new();
+        for s in &g.scenarios {
+            let path = out.join(format!("gif-{s}.gif"));
+            if path.exists() {
+                continue;
+            }
+            let (map, cases) = maps.get(s).ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
+            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| EvalError::Run(format!("rendering {}: {e}", path.display())))?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+}
