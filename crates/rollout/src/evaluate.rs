@@ -39,7 +39,22 @@ pub enum EvalError {
     /// A file could not be read or created.
     #[error("{action} {}: {source}", path.display())]
     Io { action: &'static str, path: std::path::PathBuf, source: std::io::Error },
-    /// A scenario, case file, job config or coordinator file does not parse or validate.
+    /// A scenario's map does not load.
+    #[error("scenario `{name}`: {source}")]
+    Scenario { name: String, source: sf_sim::map::MapError },
+    /// A scenario's stored cases do not load or do not fit its map.
+    #[error("cases of `{name}` ({}): {source}", path.display())]
+    Cases { name: String, path: std::path::PathBuf, source: sf_sim::case::CaseError },
+    /// A finished job's `config.toml` does not parse or validate.
+    #[error("{}: {source}", path.display())]
+    JobFile { path: std::path::PathBuf, source: sf_job::ConfigError },
+    /// A frozen policy's config text does not parse or validate.
+    #[error("config of job {job_id}: {source}")]
+    FrozenConfig { job_id: u64, source: sf_job::ConfigError },
+    /// A CoPO job's `coordinator.json` does not load.
+    #[error(transparent)]
+    Coordinator(#[from] crate::coordinator::CoordinatorError),
+    /// A job's config is valid but lacks what evaluating it needs.
     #[error("{0}")]
     Invalid(String),
     /// What was asked for does not fit together (ego and flow, cells, sizes, names).
@@ -48,6 +63,15 @@ pub enum EvalError {
     /// A policy's weights do not load into its network.
     #[error("loading the policy of {key}: {source}")]
     Weights { key: String, source: sf_nn::weights::WeightsError },
+    /// The episodes of a cell do not fit its simulators.
+    #[error(transparent)]
+    Episodes(#[from] sf_sim::vec_env::VecEnvError),
+    /// Drawing a frame or writing the GIF failed.
+    #[error(transparent)]
+    Render(#[from] sf_sim::render::RenderError),
+    /// A grid's GIF could not be rendered.
+    #[error("rendering {}: {source}", path.display())]
+    Gif { path: std::path::PathBuf, source: Box<EvalError> },
     /// Simulating or drawing failed.
     #[error("{0}")]
     Run(String),
@@ -60,9 +84,9 @@ fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -
 /// A scenario's map (`<scenarios_dir>/<name>.json`) and its stored evaluation cases
 /// (`<cases_dir>/<name>.v<CASES_VERSION>.json`).
 pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), EvalError> {
-    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|e| EvalError::Invalid(format!("scenario `{name}`: {e}")))?;
+    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|source| EvalError::Scenario { name: name.to_string(), source })?;
     let path = cases_dir.join(format!("{name}.v{}.json", sf_sim::case::CASES_VERSION));
-    let cases = CaseFile::load(&path, &map).map_err(|e| EvalError::Invalid(format!("cases of `{name}` ({}): {e}", path.display())))?;
+    let cases = CaseFile::load(&path, &map).map_err(|source| EvalError::Cases { name: name.to_string(), path: path.clone(), source })?;
     Ok((Arc::new(map), cases))
 }
 
@@ -83,10 +107,10 @@ impl Policy {
     pub fn load(dir: &Path) -> Result<Self, EvalError> {
         let path = dir.join("config.toml");
         let text = std::fs::read_to_string(&path).map_err(io("reading", &path))?;
-        let cfg = JobConfig::from_toml(&text).map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
+        let cfg = JobConfig::from_toml(&text).map_err(|source| EvalError::JobFile { path: path.clone(), source })?;
         let path = dir.join("policy.bpk");
         let weights = std::fs::read(&path).map_err(io("reading (is the job finished?)", &path))?;
-        let coordinator = crate::coordinator::CoordinatorFile::load(dir).map_err(|e| EvalError::Invalid(e.to_string()))?;
+        let coordinator = crate::coordinator::CoordinatorFile::load(dir)?;
         let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
         Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
     }
@@ -144,7 +168,7 @@ pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(Flo
     }
     let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
-        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|e| EvalError::Invalid(format!("config of job {}: {e}", f.job_id)))?;
+        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|source| EvalError::FrozenConfig { job_id: f.job_id, source })?;
         let slot = match f.role {
             FrozenRole::Ego => &mut ego,
             FrozenRole::Background => &mut background,
@@ -341,7 +365,7 @@ pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian
     for seed in 0..episodes.seeds {
         let eps: Vec<EpisodeSpec> =
             episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps).map_err(|e| EvalError::Misfit(e.to_string()))?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
         v.set_svo_gaussian(svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
@@ -404,13 +428,12 @@ pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, m
     use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
     let case = cases.cases.get(case as usize).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}")))?;
-    let renderer = Renderer::new(map, 320, ColourBy::Svo).map_err(|e| EvalError::Run(e.to_string()))?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo)?;
     let mut films = Vec::new();
     for (name, flow) in flows {
         let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
         let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
-        let mut v =
-            VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }]).map_err(|e| EvalError::Misfit(e.to_string()))?;
+        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }])?;
         v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut frames = vec![renderer.frame(v.env(0))];
@@ -425,10 +448,10 @@ pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, m
         let row: Vec<&sf_sim::render::Pixmap> = films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
         let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
         if let Some(o) = out.take() {
-            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10).map_err(|e| EvalError::Run(e.to_string()))?);
+            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10)?);
         }
         if let Some(w) = gif.as_mut() {
-            w.push(&pm).map_err(|e| EvalError::Run(e.to_string()))?;
+            w.push(&pm)?;
         }
     }
     Ok(())
@@ -473,7 +496,7 @@ impl Resolved {
                 continue;
             }
             let (map, cases) = maps.get(s).ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
-            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| EvalError::Run(format!("rendering {}: {e}", path.display())))?;
+            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
             written.push(path);
         }
         Ok(written)

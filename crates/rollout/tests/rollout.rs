@@ -192,3 +192,22 @@ fn a_jobs_seat_follows_its_kind() {
     assert_eq!(Seat::Background.trained(&dec), (&dec.background_rows[..], &dec.background_actions[..]));
     assert_eq!(Seat::Adversary.trained(&dec), (&dec.alive_rows[..], &dec.adversary_actions[..]));
 }
+
+/// Loading a scenario or a finished job's policy fails with the variant of what is wrong and a
+/// message naming the file or scenario.
+#[test]
+fn evaluation_loading_errors_name_what_is_wrong() {
+    use sf_rollout::evaluate::{load_scenario, EvalError, Policy};
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let (scen, cases) = (root.join("configs/scenarios"), root.join("configs/cases"));
+    let Err(e) = load_scenario(&scen, &cases, "nowhere") else { panic!("no such scenario") };
+    assert!(matches!(e, EvalError::Scenario { .. }) && e.to_string().starts_with("scenario `nowhere`: "), "{e}");
+    let empty = std::env::temp_dir().join(format!("sf-rollout-noc-{}", std::process::id()));
+    std::fs::create_dir_all(&empty).expect("tmp");
+    let Err(e) = load_scenario(&scen, &empty, "merge") else { panic!("no cases") };
+    assert!(matches!(e, EvalError::Cases { .. }) && e.to_string().starts_with("cases of `merge` ("), "{e}");
+    std::fs::write(empty.join("config.toml"), "name = \"x\"\nkind = \"ego\"\n[env]\nscenarios = []\n").expect("config");
+    let Err(e) = Policy::load(&empty) else { panic!("invalid config") };
+    assert!(matches!(e, EvalError::JobFile { .. }) && e.to_string().contains("config.toml: "), "{e}");
+    let _ = std::fs::remove_dir_all(&empty);
+}
