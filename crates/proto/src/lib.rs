@@ -390,8 +390,6 @@ mod tests {
         assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));
     }
 
-    /// Regression (found by `tests/fuzz.rs`): shape fields whose byte count overflows 64 bits
-    /// are refused, not a multiplication overflow panic.
     /// The wire's version 0 means warm-up data in a batch and "the latest" in a policy
     /// request; the domain keeps the two apart.
     #[test]
@@ -413,6 +411,8 @@ mod tests {
         }
     }
 
+    /// Regression (found by `tests/fuzz.rs`): shape fields whose byte count overflows 64 bits
+    /// are refused, not a multiplication overflow panic.
     #[test]
     fn huge_shapes_are_refused_without_overflow() {
         let mut b = TransitionBatch::new(3, 4, 2, 2);

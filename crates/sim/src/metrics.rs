@@ -20,6 +20,24 @@ pub struct Scores {
     pub speed: f32,
 }
 
+impl Scores {
+    /// The mean of each metric over `scores` (zeros for none), summed in `f32` in order.
+    pub fn mean(scores: impl IntoIterator<Item = Scores>) -> Scores {
+        let (mut sum, mut n) = (Scores::default(), 0u32);
+        for s in scores {
+            sum.success += s.success;
+            sum.safety += s.safety;
+            sum.speed += s.speed;
+            n += 1;
+        }
+        if n == 0 {
+            return sum;
+        }
+        let n = n as f32;
+        Scores { success: sum.success / n, safety: sum.safety / n, speed: sum.speed / n }
+    }
+}
+
 /// One episode's scores, each a mean over the scored agents, in [0, 1].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeMetrics {
@@ -83,5 +101,13 @@ mod tests {
         assert!((m.scores.speed - 0.5).abs() < 1e-6);
         let e = EpisodeMetrics::from_outcomes(outs, true);
         assert_eq!((e.agents, e.scores.success, e.scores.safety), (1, 1.0, 1.0));
+    }
+
+    #[test]
+    fn scores_average_field_by_field_and_none_average_to_zero() {
+        let a = Scores { success: 1.0, safety: 1.0, speed: 0.5 };
+        let b = Scores { success: 0.0, safety: 0.5, speed: 0.25 };
+        assert_eq!(Scores::mean([a, b]), Scores { success: 0.5, safety: 0.75, speed: 0.375 });
+        assert_eq!(Scores::mean([]), Scores::default());
     }
 }

@@ -109,6 +109,15 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     Ok((flows, egos, grid))
 }
 
+/// Adds the rows' success, safety and speed to the running sums (in that order).
+fn add_scores(sums: &mut [f64; 3], rows: &[EpisodeRow]) {
+    for r in rows {
+        sums[0] += r.ep.scores.success as f64;
+        sums[1] += r.ep.scores.safety as f64;
+        sums[2] += r.ep.scores.speed as f64;
+    }
+}
+
 struct State {
     queued: VecDeque<usize>,
     /// Cell -> (worker, since).
@@ -179,11 +188,7 @@ impl EvalJob {
         let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
         let stored: Vec<bool> = cells.iter().map(|c| have.contains(c)).collect();
         let mut sums = [0.0; 3];
-        for r in &rows {
-            sums[0] += r.ep.scores.success as f64;
-            sums[1] += r.ep.scores.safety as f64;
-            sums[2] += r.ep.scores.speed as f64;
-        }
+        add_scores(&mut sums, &rows);
         let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
         let writer = EpisodesWriter::open(&path)?;
         metrics.eval_cells_pending.set(queued.len() as i64);
@@ -302,11 +307,7 @@ impl EvalJob {
         s.stored[c] = true;
         s.leased.remove(&c);
         s.episodes += rows.len() as u64;
-        for r in &rows {
-            s.sums[0] += r.ep.scores.success as f64;
-            s.sums[1] += r.ep.scores.safety as f64;
-            s.sums[2] += r.ep.scores.speed as f64;
-        }
+        add_scores(&mut s.sums, &rows);
         // A cell that went back to the queue (its worker looked dead) and is now stored.
         s.queued.retain(|&q| q != c);
         self.metrics.eval_episodes.inc_by(rows.len() as u64);

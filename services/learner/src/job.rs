@@ -333,10 +333,10 @@ impl ActiveJob {
         if s.c.env_steps >= self.cfg.train.env_steps {
             self.complete.store(true, Ordering::Release);
         }
-        let (succ, safe, speed) = means(&s.window);
-        self.metrics.success.set(succ as f64);
-        self.metrics.safety.set(safe as f64);
-        self.metrics.speed.set(speed as f64);
+        let m = means(&s.window);
+        self.metrics.success.set(m.success as f64);
+        self.metrics.safety.set(m.safety as f64);
+        self.metrics.speed.set(m.speed as f64);
     }
 
     fn unreserve(&self, n: usize) {
@@ -384,7 +384,7 @@ impl ActiveJob {
 
     pub fn progress(&self) -> Progress {
         let s = lock(&self.stats);
-        let (success, safety, speed) = means(&s.window);
+        let scores = means(&s.window);
         let env_steps_per_s = match (s.rate.front(), s.rate.back()) {
             (Some(a), Some(b)) if b.0 > a.0 => (b.1 - a.1) as f64 / b.0.duration_since(a.0).as_secs_f64(),
             _ => 0.0,
@@ -395,7 +395,7 @@ impl ActiveJob {
             updates: s.updates,
             policy_version: self.latest_version(),
             episodes: s.c.episodes,
-            scores: sf_job::Scores { success, safety, speed },
+            scores,
             critic_loss: s.losses.critic,
             actor_loss: s.losses.actor,
             alpha: s.losses.alpha,
@@ -406,10 +406,6 @@ impl ActiveJob {
     }
 }
 
-fn means(w: &VecDeque<EpisodeResult>) -> (f32, f32, f32) {
-    if w.is_empty() {
-        return (0.0, 0.0, 0.0);
-    }
-    let n = w.len() as f32;
-    (w.iter().map(|e| e.scores.success).sum::<f32>() / n, w.iter().map(|e| e.scores.safety).sum::<f32>() / n, w.iter().map(|e| e.scores.speed).sum::<f32>() / n)
+fn means(w: &VecDeque<EpisodeResult>) -> sf_job::Scores {
+    sf_job::Scores::mean(w.iter().map(|e| e.scores))
 }

@@ -140,7 +140,7 @@ impl Validator {
             updates,
             env_steps,
             episodes: rows.len() as u32,
-            scores: sf_job::Scores { success: mean(|r| r.scores.success), safety: mean(|r| r.scores.safety), speed: mean(|r| r.scores.speed) },
+            scores: sf_job::Scores::mean(rows.iter().map(|r| r.scores)),
             collision: mean(|r| r.collision),
             took_s: t.elapsed().as_secs_f32(),
         })

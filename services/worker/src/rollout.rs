@@ -194,7 +194,7 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
             (Some(r), false) => Some(r),
             _ => None,
         };
-        let acted_by = acting.and_then(|r| std::num::NonZeroU64::new(r.version)).map_or(ActedBy::Warmup, ActedBy::Policy);
+        let acted_by = acting.map_or(ActedBy::Warmup, |r| sf_proto::acted_by_from_wire(r.version));
         if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
