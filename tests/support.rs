@@ -72,9 +72,27 @@ pub fn socialflow_env(args: &[&str], envs: &[(&str, &str)], deadline: Duration) 
     Proc::new(c.spawn().expect("spawn socialflow")).output(&format!("socialflow {args:?}"), deadline)
 }
 
-/// A free TCP port on 127.0.0.1 (bound and released; good enough for tests).
+/// A free TCP port for a test's server (bound on all interfaces and released). Taken below the
+/// kernel's ephemeral range (32768-60999 on Linux): a port the kernel hands out can become the
+/// source port of a concurrently running test's client between this check and the server's bind
+/// (a learner once died on "address already in use" that way). Each process starts at its own
+/// offset and never offers a port twice.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("a free port")
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    const LOW: u32 = 20_000;
+    const SPAN: u32 = 12_000;
+    let start = std::process::id().wrapping_mul(7_919) % SPAN;
+    for _ in 0..SPAN {
+        let k = NEXT.fetch_add(1, Ordering::Relaxed);
+        // 13 is coprime to SPAN, so the steps visit every port of the span.
+        let port = LOW + start.wrapping_add(k.wrapping_mul(13)) % SPAN;
+        let port = u16::try_from(port).expect("below 32000");
+        if std::net::TcpListener::bind(("0.0.0.0", port)).is_ok() {
+            return port;
+        }
+    }
+    panic!("no free port in {LOW}..{}", LOW + SPAN)
 }
 
 /// A fresh scratch directory under the target dir's tmp.
