@@ -283,6 +283,12 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
     let st = push_one(&rt, &mut e, sf_proto::batch_to_wire(&random));
     assert_eq!(st.code(), Code::InvalidArgument, "random observations of the right shape: {st:?}");
     assert!(st.message().contains("mask") || st.message().contains("seg_id"), "{}", st.message());
+    // Transitions summed over more steps than the job's sac.n_step (1 here) are refused by name.
+    let mut spans = random.clone();
+    spans.steps[0] = 2;
+    let st = push_one(&rt, &mut e, sf_proto::batch_to_wire(&spans));
+    assert_eq!(st.code(), Code::InvalidArgument, "a 2-step transition for a 1-step job: {st:?}");
+    assert!(st.message().contains("sac.n_step"), "{}", st.message());
     std::thread::sleep(Duration::from_secs(1));
     assert_eq!(get(&rt, &mut c, job.job_id).state, RUNNING, "the job survives a hostile batch");
     let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();

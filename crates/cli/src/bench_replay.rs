@@ -58,7 +58,7 @@ fn fill(venv: &mut VecEnv, cfg: &SimConfig, r: &mut Replay, n: usize) -> Result<
             }
             let a = [actions[k].ref_speed, actions[k].steer];
             let next = venv.next_observation(k);
-            r.push(Transition { obs: &obs[k * spec.len..(k + 1) * spec.len], action: &a, reward: 0.0, next_obs: next, terminal: step.terminal(), map_id: 0 })
+            r.push(Transition { obs: &obs[k * spec.len..(k + 1) * spec.len], action: &a, reward: 0.0, next_obs: next, terminal: step.terminal(), steps: 1, map_id: 0 })
                 .context("pushing a simulator transition")?;
             pushed += 1;
         }

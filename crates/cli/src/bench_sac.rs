@@ -125,6 +125,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
                 reward: venv.row_steps()[i].rewards.individual,
                 next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
                 terminal: false,
+                steps: 1,
                 map_id: 0,
             })?;
         }

@@ -2,7 +2,7 @@
 //!
 //! Owns: [`TransitionBatch`] and [`TransitionBatch::validate`] (every array holds `count` rows
 //! of the declared widths, observations, actions and rewards are finite, terminal flags are 0
-//! or 1). Observations travel and are stored as IEEE half floats, so the learner copies them
+//! or 1, every transition spans at least one step). Observations travel and are stored as IEEE half floats, so the learner copies them
 //! into replay without converting. [`ActedBy`] and [`PolicyRequest`] say which weights acted
 //! or are asked for, so that warm-up data and "the latest policy" are never the same number.
 
@@ -36,6 +36,16 @@ pub enum PolicyRequest {
     #[default]
     Latest,
     Version(NonZeroU64),
+}
+
+impl PolicyRequest {
+    /// The version asked for, `None` for the latest.
+    pub fn version(self) -> Option<u64> {
+        match self {
+            Self::Latest => None,
+            Self::Version(v) => Some(v.get()),
+        }
+    }
 }
 
 impl fmt::Display for PolicyRequest {
@@ -79,6 +89,24 @@ impl Ends {
     }
 }
 
+/// One transition as a rollout hands it over and the replay takes it: `reward` is the discounted
+/// sum over its `steps` decision steps (n-step returns; 1 for one step), `next_obs` the
+/// observation after the last of them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Transition<'a> {
+    pub obs: &'a [f32],
+    pub action: &'a [f32],
+    pub reward: f32,
+    pub next_obs: &'a [f32],
+    /// The last step ended the agent's episode by a failure or its destination (timeouts are
+    /// not terminal for bootstrapping).
+    pub terminal: bool,
+    /// Decision steps the transition spans: the TD target bootstraps with `gamma^steps`.
+    pub steps: u8,
+    /// Index of the map the observation refers to (query-centric segment ids).
+    pub map_id: u32,
+}
+
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TransitionBatch {
     pub job_id: u64,
@@ -95,6 +123,9 @@ pub struct TransitionBatch {
     pub actions: Vec<f32>,
     pub rewards: Vec<f32>,
     pub terminals: Vec<bool>,
+    /// Decision steps each transition spans (n-step returns: its reward is the discounted sum
+    /// over them and it bootstraps with `gamma^steps`); 1 for one-step transitions.
+    pub steps: Vec<u8>,
     pub map_ids: Vec<u32>,
     pub episodes: Vec<EpisodeResult>,
     /// Decision steps of all vehicles simulated since the previous batch.
@@ -117,14 +148,20 @@ impl TransitionBatch {
         Self { job_id, worker_id, obs_len, action_dim, ..Self::default() }
     }
 
-    /// Appends one transition.
+    /// Appends one one-step transition.
     pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], terminal: bool, map_id: u32) {
-        self.obs.extend(obs.iter().map(|&v| f16::from_f32(v)));
-        self.next_obs.extend(next_obs.iter().map(|&v| f16::from_f32(v)));
-        self.actions.extend_from_slice(action);
-        self.rewards.push(reward);
-        self.terminals.push(terminal);
-        self.map_ids.push(map_id);
+        self.push_transition(Transition { obs, action, reward, next_obs, terminal, steps: 1, map_id });
+    }
+
+    /// Appends one transition spanning `t.steps` decision steps.
+    pub fn push_transition(&mut self, t: Transition<'_>) {
+        self.obs.extend(t.obs.iter().map(|&v| f16::from_f32(v)));
+        self.next_obs.extend(t.next_obs.iter().map(|&v| f16::from_f32(v)));
+        self.actions.extend_from_slice(t.action);
+        self.rewards.push(t.reward);
+        self.terminals.push(t.terminal);
+        self.steps.push(t.steps);
+        self.map_ids.push(t.map_id);
         self.count += 1;
     }
 
@@ -135,6 +172,7 @@ impl TransitionBatch {
         self.actions.clear();
         self.rewards.clear();
         self.terminals.clear();
+        self.steps.clear();
         self.map_ids.clear();
         self.episodes.clear();
         self.count = 0;
@@ -160,7 +198,11 @@ impl TransitionBatch {
         shape("actions", self.actions.len(), n * self.action_dim)?;
         shape("rewards", self.rewards.len(), n)?;
         shape("terminals", self.terminals.len(), n)?;
+        shape("steps", self.steps.len(), n)?;
         shape("map_ids", self.map_ids.len(), n)?;
+        if let Some(i) = self.steps.iter().position(|&s| s == 0) {
+            return Err(BatchError::Invalid { field: "steps", reason: format!("transition {i} spans 0 steps (at least 1)") });
+        }
         let finite16 = |field, v: &[f16]| match v.iter().position(|x| !x.is_finite()) {
             Some(index) => Err(BatchError::NotFinite { field, index }),
             None => Ok(()),
@@ -225,5 +267,11 @@ mod tests {
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
         // An empty batch is a malformed one (workers send only full or flushed batches).
         assert!(matches!(TransitionBatch::new(1, 2, 3, 2).validate(), Err(BatchError::Invalid { field: "count", .. })));
+        let mut b = one();
+        b.steps[0] = 0;
+        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "steps", .. })), "a transition spans at least one step");
+        let mut b = one();
+        b.steps.clear();
+        assert_eq!(b.validate(), Err(BatchError::Shape { field: "steps", got: 0, want: 1 }));
     }
 }

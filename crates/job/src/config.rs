@@ -273,6 +273,9 @@ pub struct NetSection {
     pub squash_mean_twice: bool,
 }
 
+/// The largest `sac.n_step`: longer sums mostly add the behaviour policy's bias.
+pub const MAX_N_STEP: u8 = 16;
+
 /// The `[sac]` section *is* the SAC learner's configuration: the paper's table (its
 /// [`Default`]) plus the released code's and this project's levers. `sf_sac::Sac` takes it as
 /// it is; nothing copies it field by field.
@@ -280,6 +283,10 @@ pub struct NetSection {
 #[serde(deny_unknown_fields, default)]
 pub struct SacConfig {
     pub gamma: f32,
+    /// Steps per stored transition (n-step returns): workers sum `n_step` rewards discounted by
+    /// `gamma` and bootstrap from the observation `n_step` steps later with `gamma^n_step`
+    /// (fewer steps where the agent's episode ends or the acting policy changes). 1: the paper.
+    pub n_step: u8,
     pub tau: f32,
     pub lr_actor: f64,
     /// The actor's learning rate falls linearly from `lr_actor` to this over
@@ -405,6 +412,7 @@ impl Default for SacConfig {
     fn default() -> Self {
         Self {
             gamma: 0.9,
+            n_step: 1,
             tau: 0.005,
             lr_actor: 1e-4,
             lr_actor_final: None,
@@ -731,6 +739,9 @@ impl JobConfig {
         if s.bc_q_filter && s.bc_target != BcTarget::Zero {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the zero action: set sac.bc_target = \"zero\"");
         }
+        if !(1..=MAX_N_STEP).contains(&s.n_step) {
+            return bad("sac.n_step", format!("{} must be in 1..={MAX_N_STEP}", s.n_step));
+        }
         if !(s.huber_delta.is_finite() && s.huber_delta > 0.0) {
             return bad("sac.huber_delta", format!("{} must be positive", s.huber_delta));
         }
@@ -916,6 +927,8 @@ mod tests {
             (format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\n"), "sac.bc_target"),
             (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_q_filter = true\n"), "sac.bc_q_filter"),
             (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nhuber_delta = 0.0\n"), "sac.huber_delta"),
+            (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nn_step = 0\n"), "sac.n_step"),
+            (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nn_step = 17\n"), "sac.n_step"),
             (format!("{env}[net]\npose_layers = 9\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"), "net.pose_layers"),
             (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "max_segments = 0\n[train]")), "env.max_segments"),
             (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "action = \"idm-brake\"\n[train]")), "action"),

@@ -13,7 +13,7 @@ pub mod config;
 pub mod eval;
 pub mod spec;
 
-pub use batch::{ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, TransitionBatch};
+pub use batch::{ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch};
 pub use config::{ConfigError, DepRole, JobConfig};
 pub use spec::{JobSpec, SpecError};
 

@@ -275,6 +275,8 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
         actions: b.actions.clone(),
         rewards: b.rewards.clone(),
         terminals: b.terminals.iter().map(|&t| t as u8).collect(),
+        // One-step batches leave the field empty (what older learners and workers know).
+        steps: if b.steps.iter().all(|&s| s == 1) { Vec::new() } else { b.steps.clone() },
         map_ids: b.map_ids.clone(),
         episodes: b
             .episodes
@@ -311,11 +313,7 @@ pub fn policy_request_from_wire(version: u64) -> PolicyRequest {
 
 /// A `GetPolicy` request for `job_id`.
 pub fn get_policy_to_wire(job_id: u64, which: PolicyRequest) -> pb::GetPolicyRequest {
-    let version = match which {
-        PolicyRequest::Latest => 0,
-        PolicyRequest::Version(v) => v.get(),
-    };
-    pb::GetPolicyRequest { job_id, version }
+    pb::GetPolicyRequest { job_id, version: which.version().unwrap_or(0) }
 }
 
 /// Decodes and validates a batch (shapes, finiteness, flags).
@@ -335,6 +333,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
             _ => return wire("terminals", format!("byte {i} is {t}, expected 0 or 1")),
         }
     }
+    let steps = if m.steps.is_empty() { vec![1; n] } else { m.steps };
     let b = TransitionBatch {
         job_id: m.job_id,
         worker_id: m.worker_id,
@@ -347,6 +346,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
         actions: m.actions,
         rewards: m.rewards,
         terminals,
+        steps,
         map_ids: m.map_ids,
         episodes: m
             .episodes
@@ -385,6 +385,17 @@ mod tests {
         m.rewards[0] = f32::NAN;
         let e = batch_from_wire(m).expect_err("nan");
         assert!(e.reason.contains("rewards"), "{e}");
+        // n-step transitions carry their spans; one-step batches send none and decode to 1s.
+        assert!(batch_to_wire(&b).steps.is_empty());
+        b.steps[0] = 3;
+        assert_eq!(batch_to_wire(&b).steps, vec![3]);
+        assert_eq!(batch_from_wire(batch_to_wire(&b)).expect("n-step round trip"), b);
+        let mut m = batch_to_wire(&b);
+        m.steps = vec![3, 1];
+        assert!(batch_from_wire(m).expect_err("steps shape").reason.contains("steps"));
+        let mut m = batch_to_wire(&b);
+        m.steps = vec![0];
+        assert!(batch_from_wire(m).expect_err("zero steps").reason.contains("steps"));
         let mut m = batch_to_wire(&b);
         m.obs_f16[0..2].copy_from_slice(&f16::NAN.to_bits().to_le_bytes());
         assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));

@@ -161,14 +161,21 @@ impl FlowDef {
 }
 
 /// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
-/// their fetched weights (`weights[i]` belongs to `policies[i]`).
+/// their fetched weights (`weights[i]` belongs to `policies[i]`), each config parsed from the
+/// text it travelled with (a worker's view).
 pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), EvalError> {
+    from_frozen_with(policies, weights, |f| JobConfig::from_toml(&f.config_toml).map_err(|source| EvalError::FrozenConfig { job_id: f.job_id, source }))
+}
+
+/// [`from_frozen`] with each policy's config from `config` (the learner's: the configs it
+/// parsed once when the jobs were stored).
+pub fn from_frozen_with(policies: &[Frozen], weights: &[Arc<Vec<u8>>], config: impl Fn(&Frozen) -> Result<JobConfig, EvalError>) -> Result<(FlowDef, Option<Policy>), EvalError> {
     if policies.len() != weights.len() {
         return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())));
     }
     let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
-        let cfg = JobConfig::from_toml(&f.config_toml).map_err(|source| EvalError::FrozenConfig { job_id: f.job_id, source })?;
+        let cfg = config(f)?;
         let slot = match f.role {
             FrozenRole::Ego => &mut ego,
             FrozenRole::Background => &mut background,

@@ -125,13 +125,14 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
         let fail_at = ep.iter().position(|p| p.failed);
         for (t, p) in ep.iter().enumerate() {
             if i < n_train {
-                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, map_id: p.map_id })?;
+                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, steps: 1, map_id: p.map_id })?;
             } else {
                 test.obs.extend_from_slice(&p.obs);
                 test.next_obs.extend_from_slice(&p.next_obs);
                 test.actions.extend_from_slice(&p.action);
                 test.rewards.push(p.reward);
                 test.terminals.push(p.terminal as u8 as f32);
+                test.steps.push(1);
                 test.map_ids.push(p.map_id);
                 test_labels.push(fail_at.is_some_and(|f| f >= t && f - t < horizon));
                 test_failed.push(p.failed);

@@ -8,19 +8,8 @@
 use half::f16;
 use rand::Rng;
 
-/// One transition as pushed by a rollout.
-#[derive(Clone, Copy, Debug)]
-pub struct Transition<'a> {
-    pub obs: &'a [f32],
-    pub action: &'a [f32],
-    pub reward: f32,
-    pub next_obs: &'a [f32],
-    /// True when the episode ended for this agent by a failure or its destination
-    /// (timeouts are not terminal for bootstrapping).
-    pub terminal: bool,
-    /// Index of the map the observation refers to (query-centric segment ids).
-    pub map_id: u32,
-}
+/// One transition as pushed by a rollout (the type workers batch, `sf_job`'s).
+pub use sf_job::Transition;
 
 /// A sampled minibatch, rows in sampling order.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -30,12 +19,20 @@ pub struct Batch {
     pub actions: Vec<f32>,
     pub rewards: Vec<f32>,
     pub terminals: Vec<f32>,
+    /// Decision steps each row spans (see [`Transition::steps`]).
+    pub steps: Vec<u8>,
     pub map_ids: Vec<u32>,
 }
 
 impl Batch {
     pub fn len(&self) -> usize {
         self.rewards.len()
+    }
+
+    /// Each row's bootstrap factor in the TD target `r + f (min Q' - alpha log pi)`:
+    /// `gamma^steps`, or 0 where the row ends its episode by a failure or its destination.
+    pub fn bootstrap_discounts(&self, gamma: f32) -> Vec<f32> {
+        self.terminals.iter().zip(&self.steps).map(|(&d, &n)| (1.0 - d) * gamma.powi(i32::from(n))).collect()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -49,6 +46,8 @@ pub enum ReplayError {
     Shape { field: &'static str, got: usize, want: usize },
     #[error("transition field `{0}` holds a non-finite value")]
     NotFinite(&'static str),
+    #[error("a transition spans at least one step; got 0")]
+    ZeroSteps,
     #[error("cannot sample from an empty replay buffer")]
     Empty,
 }
@@ -63,6 +62,7 @@ pub struct Replay {
     actions: Vec<f32>,
     rewards: Vec<f32>,
     terminals: Vec<f32>,
+    steps: Vec<u8>,
     map_ids: Vec<u32>,
     len: usize,
     head: usize,
@@ -80,7 +80,15 @@ pub struct Stored<'a> {
     pub action: &'a [f32],
     pub reward: f32,
     pub terminal: bool,
+    pub steps: u8,
     pub map_id: u32,
+}
+
+fn check_steps(steps: u8) -> Result<(), ReplayError> {
+    if steps == 0 {
+        return Err(ReplayError::ZeroSteps);
+    }
+    Ok(())
 }
 
 impl Replay {
@@ -102,6 +110,7 @@ impl Replay {
             actions: Vec::new(),
             rewards: Vec::new(),
             terminals: Vec::new(),
+            steps: Vec::new(),
             map_ids: Vec::new(),
             len: 0,
             head: 0,
@@ -144,13 +153,14 @@ impl Replay {
             action: &self.actions[i * self.act_dim..(i + 1) * self.act_dim],
             reward: self.rewards[i],
             terminal: self.terminals[i] != 0.0,
+            steps: self.steps[i],
             map_id: self.map_ids[i],
         })
     }
 
     /// Bytes one stored transition takes.
     pub fn bytes_per_transition(&self) -> usize {
-        2 * self.obs_len * std::mem::size_of::<f16>() + self.act_dim * 4 + 4 + 4 + 4
+        2 * self.obs_len * std::mem::size_of::<f16>() + self.act_dim * 4 + 4 + 4 + 1 + 4
     }
 
     /// Bytes the buffer takes when full.
@@ -187,72 +197,58 @@ impl Replay {
                 return Err(ReplayError::NotFinite(field));
             }
         }
-        let i = self.head;
+        check_steps(t.steps)?;
         let to16 = |s: &[f32]| s.iter().map(|&x| f16::from_f32(x)).collect::<Vec<_>>();
-        if self.len < self.capacity && i == self.len {
-            self.obs.extend(to16(t.obs));
-            self.next_obs.extend(to16(t.next_obs));
-            self.actions.extend_from_slice(t.action);
-            self.rewards.push(t.reward);
-            self.terminals.push(t.terminal as u8 as f32);
-            self.map_ids.push(t.map_id);
-            self.len += 1;
-        } else {
-            let o = i * self.obs_len;
-            for (dst, &x) in self.obs[o..o + self.obs_len].iter_mut().zip(t.obs) {
-                *dst = f16::from_f32(x);
-            }
-            for (dst, &x) in self.next_obs[o..o + self.obs_len].iter_mut().zip(t.next_obs) {
-                *dst = f16::from_f32(x);
-            }
-            self.actions[i * self.act_dim..(i + 1) * self.act_dim].copy_from_slice(t.action);
-            self.rewards[i] = t.reward;
-            self.terminals[i] = t.terminal as u8 as f32;
-            self.map_ids[i] = t.map_id;
-        }
-        self.head = (self.head + 1) % self.capacity;
-        self.inserted += 1;
+        let (obs, next_obs) = (to16(t.obs), to16(t.next_obs));
+        self.store(Stored { obs: &obs, next_obs: &next_obs, action: t.action, reward: t.reward, terminal: t.terminal, steps: t.steps, map_id: t.map_id });
         Ok(())
     }
 
     /// Stores a transition whose observations are already half floats (the wire format), so
     /// ingest copies instead of converting. Same checks and eviction as [`Replay::push`].
-    #[allow(clippy::too_many_arguments)]
-    pub fn push_f16(&mut self, obs: &[f16], action: &[f32], reward: f32, next_obs: &[f16], terminal: bool, map_id: u32) -> Result<(), ReplayError> {
+    pub fn push_f16(&mut self, t: Stored<'_>) -> Result<(), ReplayError> {
         let check = |field, got: usize, want| if got == want { Ok(()) } else { Err(ReplayError::Shape { field, got, want }) };
-        check("obs", obs.len(), self.obs_len)?;
-        check("next_obs", next_obs.len(), self.obs_len)?;
-        check("action", action.len(), self.act_dim)?;
-        if !obs.iter().all(|x| x.is_finite()) {
+        check("obs", t.obs.len(), self.obs_len)?;
+        check("next_obs", t.next_obs.len(), self.obs_len)?;
+        check("action", t.action.len(), self.act_dim)?;
+        if !t.obs.iter().all(|x| x.is_finite()) {
             return Err(ReplayError::NotFinite("obs"));
         }
-        if !next_obs.iter().all(|x| x.is_finite()) {
+        if !t.next_obs.iter().all(|x| x.is_finite()) {
             return Err(ReplayError::NotFinite("next_obs"));
         }
-        if !(action.iter().all(|x| x.is_finite()) && reward.is_finite()) {
+        if !(t.action.iter().all(|x| x.is_finite()) && t.reward.is_finite()) {
             return Err(ReplayError::NotFinite("action or reward"));
         }
+        check_steps(t.steps)?;
+        self.store(t);
+        Ok(())
+    }
+
+    /// Writes a checked transition at the head, evicting the oldest when full.
+    fn store(&mut self, t: Stored<'_>) {
         let i = self.head;
         if self.len < self.capacity && i == self.len {
-            self.obs.extend_from_slice(obs);
-            self.next_obs.extend_from_slice(next_obs);
-            self.actions.extend_from_slice(action);
-            self.rewards.push(reward);
-            self.terminals.push(terminal as u8 as f32);
-            self.map_ids.push(map_id);
+            self.obs.extend_from_slice(t.obs);
+            self.next_obs.extend_from_slice(t.next_obs);
+            self.actions.extend_from_slice(t.action);
+            self.rewards.push(t.reward);
+            self.terminals.push(t.terminal as u8 as f32);
+            self.steps.push(t.steps);
+            self.map_ids.push(t.map_id);
             self.len += 1;
         } else {
             let o = i * self.obs_len;
-            self.obs[o..o + self.obs_len].copy_from_slice(obs);
-            self.next_obs[o..o + self.obs_len].copy_from_slice(next_obs);
-            self.actions[i * self.act_dim..(i + 1) * self.act_dim].copy_from_slice(action);
-            self.rewards[i] = reward;
-            self.terminals[i] = terminal as u8 as f32;
-            self.map_ids[i] = map_id;
+            self.obs[o..o + self.obs_len].copy_from_slice(t.obs);
+            self.next_obs[o..o + self.obs_len].copy_from_slice(t.next_obs);
+            self.actions[i * self.act_dim..(i + 1) * self.act_dim].copy_from_slice(t.action);
+            self.rewards[i] = t.reward;
+            self.terminals[i] = t.terminal as u8 as f32;
+            self.steps[i] = t.steps;
+            self.map_ids[i] = t.map_id;
         }
         self.head = (self.head + 1) % self.capacity;
         self.inserted += 1;
-        Ok(())
     }
 
     /// Uniformly samples `n` transitions (with replacement) into `out`, reusing its buffers.
@@ -265,6 +261,7 @@ impl Replay {
         out.actions.clear();
         out.rewards.clear();
         out.terminals.clear();
+        out.steps.clear();
         out.map_ids.clear();
         for _ in 0..n {
             let i = rng.random_range(0..self.len);
@@ -274,6 +271,7 @@ impl Replay {
             out.actions.extend_from_slice(&self.actions[i * self.act_dim..(i + 1) * self.act_dim]);
             out.rewards.push(self.rewards[i]);
             out.terminals.push(self.terminals[i]);
+            out.steps.push(self.steps[i]);
             out.map_ids.push(self.map_ids[i]);
         }
         Ok(())
@@ -294,7 +292,7 @@ mod tests {
     use super::*;
 
     fn t(v: f32, obs: &[f32; 3]) -> Transition<'_> {
-        Transition { obs, action: &[0.5, -0.5], reward: v, next_obs: obs, terminal: v > 2.0, map_id: 1 }
+        Transition { obs, action: &[0.5, -0.5], reward: v, next_obs: obs, terminal: v > 2.0, steps: 1, map_id: 1 }
     }
 
     #[test]
@@ -318,7 +316,7 @@ mod tests {
         }
         assert_eq!(&seen[..2], &[0, 0]);
         assert!(seen[2] > 50 && seen[3] > 50 && seen[4] > 50, "{seen:?}");
-        assert_eq!(r.bytes_per_transition(), 2 * 3 * 2 + 8 + 12);
+        assert_eq!(r.bytes_per_transition(), 2 * 3 * 2 + 8 + 13);
     }
 
     #[test]
@@ -329,12 +327,12 @@ mod tests {
             let o = [k as f32, 0.5, -0.25];
             a.push(t(k as f32, &o)).expect("push");
             let h: Vec<f16> = o.iter().map(|&x| f16::from_f32(x)).collect();
-            b.push_f16(&h, &[0.5, -0.5], k as f32, &h, k as f32 > 2.0, 1).expect("push_f16");
+            b.push_f16(Stored { obs: &h, next_obs: &h, action: &[0.5, -0.5], reward: k as f32, terminal: k as f32 > 2.0, steps: 1, map_id: 1 }).expect("push_f16");
         }
         let mut r1 = ChaCha8Rng::seed_from_u64(3);
         let mut r2 = ChaCha8Rng::seed_from_u64(3);
         assert_eq!(a.sample(&mut r1, 20), b.sample(&mut r2, 20));
-        assert_eq!(b.push_f16(&[f16::NAN; 3], &[0.0, 0.0], 0.0, &[f16::ZERO; 3], false, 0), Err(ReplayError::NotFinite("obs")));
+        assert_eq!(b.push_f16(Stored { obs: &[f16::NAN; 3], next_obs: &[f16::ZERO; 3], action: &[0.0, 0.0], reward: 0.0, terminal: false, steps: 1, map_id: 0 }), Err(ReplayError::NotFinite("obs")));
         assert_eq!(b.inserted(), 3);
     }
 
@@ -359,7 +357,32 @@ mod tests {
         let o = [0.0; 3];
         assert_eq!(r.push(Transition { obs: &[0.0; 2], ..t(0.0, &o) }), Err(ReplayError::Shape { field: "obs", got: 2, want: 3 }));
         assert_eq!(r.push(Transition { reward: f32::NAN, ..t(0.0, &o) }), Err(ReplayError::NotFinite("reward")));
+        assert_eq!(r.push(Transition { steps: 0, ..t(0.0, &o) }), Err(ReplayError::ZeroSteps));
         assert_eq!(r.len(), 0);
         assert_eq!(r.sample(&mut ChaCha8Rng::seed_from_u64(0), 1), Err(ReplayError::Empty));
+    }
+
+    /// n-step targets: a row bootstraps with gamma^steps unless it ends its episode.
+    #[test]
+    fn n_step_rows_bootstrap_with_gamma_to_their_span() {
+        let mut r = Replay::new(4, 3, 2);
+        let o = [0.0; 3];
+        for (steps, terminal) in [(1, false), (3, false), (3, true), (2, false)] {
+            r.push(Transition { steps, terminal, reward: f32::from(steps), ..t(0.0, &o) }).expect("push");
+        }
+        let b = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 64).expect("sample");
+        let f = b.bootstrap_discounts(0.9);
+        assert_eq!(f.len(), b.len());
+        for (i, &fi) in f.iter().enumerate() {
+            let want = match (b.steps[i], b.terminals[i] != 0.0) {
+                (_, true) => 0.0,
+                (1, false) => 0.9,
+                (2, false) => 0.81,
+                (3, false) => 0.729,
+                other => panic!("unexpected row {other:?}"),
+            };
+            assert!((fi - want).abs() < 1e-6, "row {i}: {fi} vs {want}");
+            assert_eq!(b.rewards[i], f32::from(b.steps[i]), "the row's fields stay together");
+        }
     }
 }

@@ -5,7 +5,8 @@
 //! writes only what is new; segments whose transitions have all left the FIFO are deleted. A
 //! segment stores every distinct observation row once (an agent's next observation is usually
 //! the observation of its following transition) as f16, then per transition two row indices,
-//! the action, reward, terminal flag and map id; a CRC-32 closes the file, which is written to
+//! the action, reward, terminal flag, map id and (format 2) the steps it spans; format 1
+//! segments (one-step transitions) are still read. A CRC-32 closes the file, which is written to
 //! a temporary name and renamed, so a crash leaves whole segments only. What a crash loses:
 //! the transitions since the last checkpoint, which the job's counters (written after the
 //! segment) do not count either, so workers collect them again. Must not: know about jobs,
@@ -17,10 +18,12 @@ use std::path::{Path, PathBuf};
 
 use half::f16;
 
-use crate::replay::{Replay, ReplayError};
+use crate::replay::{Replay, ReplayError, Stored};
 
 const MAGIC: &[u8; 8] = b"SFREPLAY";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
+/// The first format: one-step transitions, no per-transition step counts.
+const VERSION_ONE_STEP: u32 = 1;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ReplayStoreError {
@@ -65,6 +68,8 @@ pub struct Segment {
     pub rewards: Vec<f32>,
     pub terminals: Vec<bool>,
     pub map_ids: Vec<u32>,
+    /// Decision steps each transition spans.
+    pub steps: Vec<u8>,
 }
 
 impl Segment {
@@ -106,6 +111,7 @@ impl Segment {
             s.rewards.push(t.reward);
             s.terminals.push(t.terminal);
             s.map_ids.push(t.map_id);
+            s.steps.push(t.steps);
         }
         s
     }
@@ -126,6 +132,7 @@ impl Segment {
         self.actions.iter().chain(&self.rewards).for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
         b.extend(self.terminals.iter().map(|&t| t as u8));
         self.map_ids.iter().for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
+        b.extend_from_slice(&self.steps);
         let crc = crc32fast::hash(&b);
         b.extend_from_slice(&crc.to_le_bytes());
         b
@@ -150,8 +157,8 @@ impl Segment {
         let u32_at = |s: &[u8]| u32::from_le_bytes([s[0], s[1], s[2], s[3]]);
         let u64_of = |s: &[u8]| u64::from_le_bytes([s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]]);
         let version = u32_at(take(4)?);
-        if version != VERSION {
-            return Err(bad(&format!("format version {version}; this build reads {VERSION}")));
+        if version != VERSION && version != VERSION_ONE_STEP {
+            return Err(bad(&format!("format version {version}; this build reads {VERSION_ONE_STEP} and {VERSION}")));
         }
         let obs_len = u32_at(take(4)?) as usize;
         let act_dim = u32_at(take(4)?) as usize;
@@ -169,13 +176,17 @@ impl Segment {
         let rewards = f32s(take(n4)?);
         let terminals: Vec<bool> = take(count)?.iter().map(|&t| t != 0).collect();
         let map_ids = u32s(take(n4)?);
+        let steps = if version == VERSION_ONE_STEP { vec![1; count] } else { take(count)?.to_vec() };
+        if steps.contains(&0) {
+            return Err(bad("a transition spanning 0 steps"));
+        }
         if at != body.len() {
             return Err(bad("trailing bytes"));
         }
         if obs_row.iter().chain(&next_row).any(|&r| r as usize >= rows) {
             return Err(bad("a row index past the rows"));
         }
-        Ok(Segment { first, obs_len, act_dim, rows: rows_v, obs_row, next_row, actions, rewards, terminals, map_ids })
+        Ok(Segment { first, obs_len, act_dim, rows: rows_v, obs_row, next_row, actions, rewards, terminals, map_ids, steps })
     }
 
     /// Pushes transitions with insertion numbers below `upto` into `r` (in order).
@@ -192,7 +203,15 @@ impl Segment {
                 break;
             }
             let row = |j: u32| &self.rows[j as usize * ol..(j as usize + 1) * ol];
-            r.push_f16(row(self.obs_row[i]), &self.actions[i * ad..(i + 1) * ad], self.rewards[i], row(self.next_row[i]), self.terminals[i], self.map_ids[i])?;
+            r.push_f16(Stored {
+                obs: row(self.obs_row[i]),
+                next_obs: row(self.next_row[i]),
+                action: &self.actions[i * ad..(i + 1) * ad],
+                reward: self.rewards[i],
+                terminal: self.terminals[i],
+                steps: self.steps[i],
+                map_id: self.map_ids[i],
+            })?;
             n += 1;
         }
         Ok(n)
@@ -318,7 +337,7 @@ mod tests {
         for k in 0..n {
             let o = [k as f32, 0.5, -0.25, (k % 7) as f32];
             let nx = [(k + 1) as f32, 0.5, -0.25, ((k + 1) % 7) as f32];
-            r.push(Transition { obs: &o, action: &[0.1, -(k as f32) / 100.0], reward: k as f32, next_obs: &nx, terminal: k % 5 == 4, map_id: (k % 3) as u32 }).expect("push");
+            r.push(Transition { obs: &o, action: &[0.1, -(k as f32) / 100.0], reward: k as f32, next_obs: &nx, terminal: k % 5 == 4, steps: 1 + (k % 3) as u8, map_id: (k % 3) as u32 }).expect("push");
         }
         r
     }
@@ -351,6 +370,23 @@ mod tests {
         assert!(Segment::decode(&bytes[..30], Path::new("mem")).is_err());
     }
 
+    /// A job stored before n-step returns (format 1, no step counts) resumes with one-step
+    /// transitions; a step count of 0 is a corrupt segment.
+    #[test]
+    fn format_one_segments_are_read_as_one_step_transitions() {
+        let mut seg = Segment::snapshot(&filled(100, 20), 0);
+        seg.steps = vec![1; seg.len()];
+        let v2 = seg.encode();
+        let mut v1 = v2[..v2.len() - 4 - seg.len()].to_vec();
+        v1[8..12].copy_from_slice(&VERSION_ONE_STEP.to_le_bytes());
+        let crc = crc32fast::hash(&v1);
+        v1.extend_from_slice(&crc.to_le_bytes());
+        assert_eq!(Segment::decode(&v1, Path::new("v1")).expect("format 1"), seg);
+        seg.steps[3] = 0;
+        let e = Segment::decode(&seg.encode(), Path::new("zero")).expect_err("zero steps");
+        assert!(e.to_string().contains("0 steps"), "{e}");
+    }
+
     #[test]
     fn checkpoints_append_segments_and_a_restore_rebuilds_the_fifo() {
         let dir = scratch("fifo");
@@ -362,7 +398,7 @@ mod tests {
             for _ in 0..30 {
                 let o = [k as f32, 1.0, 0.0, 0.0];
                 let nx = [(k + 1) as f32, 1.0, 0.0, 0.0];
-                r.push(Transition { obs: &o, action: &[0.0, 1.0], reward: 1.0, next_obs: &nx, terminal: false, map_id: 0 }).expect("push");
+                r.push(Transition { obs: &o, action: &[0.0, 1.0], reward: 1.0, next_obs: &nx, terminal: false, steps: 1, map_id: 0 }).expect("push");
                 k += 1;
             }
             let seg = Segment::snapshot(&r, store.next().expect("next"));

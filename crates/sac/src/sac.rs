@@ -139,7 +139,8 @@ impl Sac {
         let target_entropy = self.cfg.target_entropy.unwrap_or(-(a_dim as f32));
         let col = |v: &[f32], dev: &Device| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), dev);
 
-        // 1. TD target without gradients: y = s r + gamma (1 - d) (min Q'(s', a') - alpha log pi(a'|s')).
+        // 1. TD target without gradients: y = s r + gamma^n (1 - d) (min Q'(s', a') - alpha log pi(a'|s')),
+        //    n the decision steps the row spans (its reward already summed over them).
         let next = self.batch_on(&batch.next_obs, &batch.map_ids, &self.plain);
         let actor_v = self.actor.valid();
         let table = self.seg_plain.as_ref().map(|s| actor_v.enc.segment_table(s));
@@ -149,8 +150,8 @@ impl Sac {
         let table = self.seg_plain.as_ref().map(|s| self.target.enc.segment_table(s));
         let (tq1, tq2) = self.target.forward(&next, table.as_ref(), a2);
         let soft_q = tq1.min_pair(tq2) - logp2.mul_scalar(alpha);
-        let not_done = col(&batch.terminals, &self.plain).neg().add_scalar(1.0);
-        let y = col(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + not_done * soft_q.mul_scalar(self.cfg.gamma);
+        let discount = col(&batch.bootstrap_discounts(self.cfg.gamma), &self.plain);
+        let y = col(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + discount * soft_q;
         let y = Tensor::<2>::from_data(y.into_data(), &self.ad);
 
         // 2. Critic: MSE of both heads to y, one Adam step.

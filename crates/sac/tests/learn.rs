@@ -54,7 +54,7 @@ fn learns_a_contextual_bandit_with_a_known_optimum() {
             use rand::Rng;
             let (o, best) = &pool[rng.random_range(0..pool.len())];
             let a = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
-            replay.push(Transition { obs: o, action: &a, reward: reward(&a, best), next_obs: o, terminal: true, map_id: 0 }).expect("push");
+            replay.push(Transition { obs: o, action: &a, reward: reward(&a, best), next_obs: o, terminal: true, steps: 1, map_id: 0 }).expect("push");
         }
         if round >= 8 {
             let b = replay.sample(&mut rng, 64).expect("batch");

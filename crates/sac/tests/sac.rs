@@ -41,7 +41,7 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
             if alive[i] == 1.0 {
                 let next = &v.observations()[i * spec.len..(i + 1) * spec.len];
                 let a = [acts[i].ref_speed, acts[i].steer];
-                r.push(Transition { obs: &before[i * spec.len..(i + 1) * spec.len], action: &a, reward: 0.1, next_obs: next, terminal: false, map_id: 0 }).expect("valid transition");
+                r.push(Transition { obs: &before[i * spec.len..(i + 1) * spec.len], action: &a, reward: 0.1, next_obs: next, terminal: false, steps: 1, map_id: 0 }).expect("valid transition");
             }
         }
     }

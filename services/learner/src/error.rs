@@ -230,6 +230,8 @@ pub enum IngestError {
     Shape { obs_len: usize, action_dim: usize, job_id: u64, want_obs_len: usize, want_action_dim: usize },
     #[error("map id {map_id} out of range: job {job_id} has {maps} scenarios")]
     MapOutOfRange { map_id: u32, job_id: u64, maps: u32 },
+    #[error("batch field `steps`: a transition spans {steps} steps; job {job_id} sums at most sac.n_step = {n_step}")]
+    Span { steps: u8, job_id: u64, n_step: u8 },
     /// A row the networks would index or branch on wrongly (masks, segment ids).
     #[error("batch field `{field}`, transition {index}: {reason}")]
     BadRow { field: &'static str, index: usize, reason: sf_sim::obs::ObsRowError },
@@ -250,7 +252,7 @@ impl From<IngestError> for ServiceError {
         use IngestError as I;
         let kind: fn(String) -> ServiceError = match &e {
             I::Stopping { .. } | I::Complete { .. } => ServiceError::FailedPrecondition,
-            I::Shape { .. } | I::MapOutOfRange { .. } | I::BadRow { .. } | I::UnpublishedVersion { .. } | I::Replay(_) => ServiceError::InvalidArgument,
+            I::Shape { .. } | I::MapOutOfRange { .. } | I::Span { .. } | I::BadRow { .. } | I::UnpublishedVersion { .. } | I::Replay(_) => ServiceError::InvalidArgument,
             I::Deadline => ServiceError::DeadlineExceeded,
             I::RateLimit(_) => ServiceError::Internal,
         };

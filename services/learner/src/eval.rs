@@ -58,16 +58,29 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Lea
     Ok(())
 }
 
+/// A stored job's parsed config, as the learner keeps it ([`crate::Inner::spec`]).
+pub type Specs<'a> = &'a dyn Fn(&JobRecord) -> Result<Arc<sf_job::JobSpec>, LearnerError>;
+
 /// Per flow its frozen policies, per ego its frozen policy, and the grid resolved for checks.
 pub type GridPolicies = (BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>, Resolved);
 
 /// The policies behind a grid whose names are pinned ([`resolve_names`]): per flow the frozen
 /// policies a worker gets (none for IDM; background and adversary for SocialCommAdv, as a
-/// training job's background gets them: [`crate::flow_frozen`]), per ego its frozen policy, and
+/// training job's background gets them: [`crate::deps::flow_frozen`]), per ego its frozen policy, and
 /// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
-/// the runtime). Refuses an ego that is not an ego job and a flow that is.
-pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> Result<GridPolicies, LearnerError> {
+/// the runtime). `spec` gives a stored job's parsed config ([`crate::Inner::spec`]), so nothing
+/// here parses a job's text again. Refuses an ego that is not an ego job and a flow that is.
+pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spec: Specs<'_>) -> Result<GridPolicies, LearnerError> {
     let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or(LearnerError::NotSucceeded { job_id: id });
+    // A frozen policy's config: its job's spec, parsed when the job was stored.
+    let train_cfg = |rec: &JobRecord| -> Result<sf_job::JobConfig, LearnerError> {
+        spec(rec)?.train().cloned().ok_or_else(|| LearnerError::BadEvalConfig { field: "job", name: rec.name.clone(), reason: format!("job {} is an evaluation, not a policy", rec.id) })
+    };
+    let configs = |fz: &[Frozen]| -> Result<HashMap<u64, sf_job::JobConfig>, LearnerError> { fz.iter().map(|f| Ok((f.job_id, train_cfg(find(f.job_id)?)?))).collect() };
+    let from_frozen = |fz: &[Frozen], w: &[Arc<Vec<u8>>]| -> Result<_, LearnerError> {
+        let configs = configs(fz)?;
+        Ok(sf_rollout::evaluate::from_frozen_with(fz, w, |f| configs.get(&f.job_id).cloned().ok_or_else(|| sf_rollout::evaluate::EvalError::Misfit(format!("job {} has no config", f.job_id))))?)
+    };
     let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, LearnerError> {
         let id = n.job_id.ok_or_else(|| LearnerError::NotPinned { name: n.name.clone() })?;
         find(id).map_err(|e| LearnerError::Grid { name: n.name.clone(), source: Box::new(e) })
@@ -79,15 +92,20 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
                 if !weights {
                     return Ok(Arc::new(Vec::new()));
                 }
-                crate::read_final(Path::new(&find(f.job_id)?.artifact_dir), f.job_id, "policy.bpk").map(Arc::new)
+                crate::deps::read_final(Path::new(&find(f.job_id)?.artifact_dir), f.job_id, "policy.bpk").map(Arc::new)
             })
             .collect()
     };
     let mut grid = Resolved::default();
     let mut flows = BTreeMap::new();
     for f in &cfg.flows {
-        let fz = if f.is_idm() { Vec::new() } else { crate::flow_frozen(pinned(f)?, |id| find(id).cloned())? };
-        let (flow, _) = sf_rollout::evaluate::from_frozen(&fz, &load(&fz)?)?;
+        let fz = if f.is_idm() {
+            Vec::new()
+        } else {
+            let rec = pinned(f)?;
+            crate::deps::flow_frozen(rec, &train_cfg(rec)?, |id| find(id).cloned())?
+        };
+        let (flow, _) = from_frozen(&fz, &load(&fz)?)?;
         if flow.kind() == Some(JobKind::Ego) {
             return Err(LearnerError::BadEvalConfig { field: "flows.job", name: f.name.clone(), reason: format!("job {} is an ego job, not a flow", fz[0].job_id) });
         }
@@ -98,7 +116,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool) -> 
     for e in &cfg.egos {
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
-        let (_, ego) = sf_rollout::evaluate::from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
+        let (_, ego) = from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
         let p = ego.ok_or_else(|| LearnerError::NoEgoPolicy { name: e.name.clone() })?;
         if p.cfg.kind != JobKind::Ego {
             return Err(LearnerError::BadEvalConfig { field: "egos.job", name: e.name.clone(), reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()) });
@@ -159,8 +177,8 @@ impl EvalJob {
     /// Builds the job from its pinned config `cfg` (job `rec`'s), the learner's job records and
     /// the cells its `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking
     /// file IO.
-    pub fn open(rec: &JobRecord, cfg: EvalConfig, jobs: &[JobRecord], metrics: LearnerMetrics) -> Result<Self, LearnerError> {
-        let (flows, egos, grid) = resolve_policies(&cfg, jobs, true)?;
+    pub fn open(rec: &JobRecord, cfg: EvalConfig, jobs: &[JobRecord], spec: Specs<'_>, metrics: LearnerMetrics) -> Result<Self, LearnerError> {
+        let (flows, egos, grid) = resolve_policies(&cfg, jobs, true, spec)?;
         let cells = cfg.cells();
         grid.check(&cells)?;
         let work = cells
@@ -349,8 +367,9 @@ impl crate::Inner {
         resolve_names(&mut cfg, &jobs)?;
         let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
         let c2 = cfg.clone();
+        let me = Arc::clone(self);
         blocking_task(move || {
-            let (_, _, grid) = resolve_policies(&c2, &jobs, false)?;
+            let (_, _, grid) = resolve_policies(&c2, &jobs, false, &|r| me.spec(r))?;
             grid.check(&c2.cells())?;
             load_maps(&c2, &scen, &cases).map(|_| ())
         })
@@ -371,8 +390,8 @@ impl crate::Inner {
     /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
     pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord, cfg: EvalConfig) -> Result<(), LearnerError> {
         let jobs = self.jobs().await?;
-        let (r2, m2) = (rec.clone(), self.metrics.clone());
-        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, cfg, &jobs, m2)).await?);
+        let (r2, m2, me) = (rec.clone(), self.metrics.clone(), Arc::clone(self));
+        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, cfg, &jobs, &|r| me.spec(r), m2)).await?);
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.

@@ -68,8 +68,8 @@ impl Inner {
                 }
                 let dir = std::path::PathBuf::from(&rec.artifact_dir);
                 let (final_version, weights) = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), LearnerError> {
-                    let weights = crate::read_final(&dir, job_id, "policy.bpk")?;
-                    let meta: serde_json::Value = serde_json::from_slice(&crate::read_final(&dir, job_id, "policy.json")?).map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
+                    let weights = crate::deps::read_final(&dir, job_id, "policy.bpk")?;
+                    let meta: serde_json::Value = serde_json::from_slice(&crate::deps::read_final(&dir, job_id, "policy.json")?).map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
                     Ok((meta["version"].as_u64().unwrap_or(0), weights))
                 })
                 .await??;

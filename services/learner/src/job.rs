@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
 use sf_sac::rate_limiter::RateLimitError;
+use sf_sac::replay::Stored;
 use sf_sac::{Losses, RateLimiter, Replay};
 use tokio::sync::watch;
 
@@ -230,6 +231,9 @@ impl ActiveJob {
         if let Some(&m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
             return Err(IngestError::MapOutOfRange { map_id: m, job_id: self.id, maps: n_maps });
         }
+        if let Some(&steps) = b.steps.iter().find(|&&s| s > self.cfg.sac.n_step) {
+            return Err(IngestError::Span { steps, job_id: self.id, n_step: self.cfg.sac.n_step });
+        }
         let ol = self.obs_len;
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
@@ -292,7 +296,16 @@ impl ActiveJob {
         for i in 0..take {
             // Decoding validated shapes and values, so this cannot fail; if it did, the rows
             // already stored stay and the rest is released so the job can still complete.
-            if let Err(e) = r.push_f16(&b.obs[i * ol..(i + 1) * ol], &b.actions[i * ad..(i + 1) * ad], b.rewards[i], &b.next_obs[i * ol..(i + 1) * ol], b.terminals[i], b.map_ids[i]) {
+            let row = Stored {
+                obs: &b.obs[i * ol..(i + 1) * ol],
+                next_obs: &b.next_obs[i * ol..(i + 1) * ol],
+                action: &b.actions[i * ad..(i + 1) * ad],
+                reward: b.rewards[i],
+                terminal: b.terminals[i],
+                steps: b.steps[i],
+                map_id: b.map_ids[i],
+            };
+            if let Err(e) = r.push_f16(row) {
                 drop(r);
                 let mut s = lock(&self.stats);
                 s.reserved -= (take - i) as u64;

@@ -17,6 +17,7 @@
 
 pub mod cmd;
 pub mod config;
+mod deps;
 mod error;
 pub mod eval;
 mod experience;
@@ -31,15 +32,14 @@ pub mod workers;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use anyhow::Context;
 use prometheus_client::registry::Registry;
-use sf_job::config::JobKind;
-use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobSpec, JobState};
+use sf_job::{JobRecord, JobSpec, JobState};
 use sf_proto::pb::experience_service_server::ExperienceServiceServer;
 use sf_proto::pb::job_service_server::JobServiceServer;
 use sf_rollout::setup;
@@ -149,7 +149,7 @@ impl Inner {
             let Some(dep_cfg) = dep_spec.train() else {
                 return Err(refuse("is an evaluation, not a training job").into());
             };
-            check_dep(&cfg, role, dep, dep_cfg)?;
+            deps::check_dep(&cfg, role, dep, dep_cfg)?;
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
                 return Err(refuse(&format!("is {}", rec.state.as_str())).into());
             }
@@ -280,33 +280,7 @@ impl Inner {
         let fill = if resume.is_some() { 4 * cfg.sac.batch_size as u64 } else { cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64) };
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity)?;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
-        let mut frozen = Vec::new();
-        let mut init_dir = None;
-        for (role, dep) in cfg.deps() {
-            let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup { dep, field: role.field(), source })?;
-            if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
-                return Err(LearnerError::NoFinalPolicy { dep, field: role.field(), state: d.state.as_str() });
-            }
-            match role {
-                DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
-                DepRole::Ego => frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml)),
-                DepRole::Background => {
-                    let jobs = self.jobs().await?;
-                    let fz = tokio::task::spawn_blocking(move || flow_frozen(&d, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or(LearnerError::JobNotFound { job_id: id }))).await??;
-                    frozen.extend(fz);
-                }
-            }
-        }
-        // `[validation]` runs episodes with the frozen policies the workers fetch.
-        let mut frozen_weights = Vec::new();
-        if cfg.validation.is_some() {
-            for f in &frozen {
-                let d = self.job(f.job_id).await.map_err(|source| LearnerError::DependencyLookup { dep: f.job_id, field: "validation", source })?;
-                let (dir, job_id) = (PathBuf::from(&d.artifact_dir), f.job_id);
-                let bytes = tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk")).await.map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
-                frozen_weights.push(Arc::new(bytes?));
-            }
-        }
+        let deps::JobDeps { frozen, frozen_weights, init_dir } = self.job_deps(&cfg).await?;
         let r = setup::resolve(&cfg, None);
         let (action_dim, spec, segment_points) = (r.net.action_dim, r.obs, r.sim.obs.segment_points);
         let maps2 = maps.clone();
@@ -539,49 +513,11 @@ impl RunningLearner {
     }
 }
 
-/// The frozen policies with which a finished flow job `rec` drives the background, for a
-/// training job or an evaluation: a SocialCommAdv job brings its SocialComm flow (`find` looks it
-/// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
-/// coordinator's Gaussians if it has fitted them (Stage 2). Blocking file IO (`coordinator.json`).
-pub(crate) fn flow_frozen(rec: &JobRecord, find: impl Fn(u64) -> Result<JobRecord, LearnerError>) -> Result<Vec<Frozen>, LearnerError> {
-    let cfg = JobConfig::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source: source.into() })?;
-    if cfg.kind == JobKind::SocialcommAdv {
-        let flow = cfg.env.background_job.ok_or(LearnerError::NoBackgroundFlow { job_id: rec.id })?;
-        let f = find(flow).map_err(|e| LearnerError::BackgroundFlow { flow, job_id: rec.id, source: Box::new(e) })?;
-        return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
-    }
-    let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_rollout::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
-        f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
-    }
-    Ok(vec![f])
-}
-
-/// A file of finished job `job_id`'s artifact directory `dir` (`policy.bpk`, `policy.json`):
-/// what workers, validation and evaluation grids get of a frozen policy. Blocking.
-pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>, LearnerError> {
-    std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source })
-}
-
-/// Whether job `dep_id` (config `dep`) can serve `job` in `role`: its kind (`DepRole::accepts`),
-/// for `train.init_job` the same network, and the same observation layout. The error names the
-/// field and the job.
-fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobConfig) -> Result<(), LearnerError> {
-    let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
-    role.accepts(job.kind, dep.kind).map_err(|e| refuse(e.to_string()))?;
-    let (mine, theirs) = (setup::resolve(job, None), setup::resolve(dep, None));
-    if role == DepRole::Init && theirs.net != mine.net {
-        return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", theirs.net)));
-    }
-    if theirs.obs.layout != mine.obs.layout {
-        return Err(refuse(format!("observes in the {:?} layout, this job in {:?}", theirs.obs.layout, mine.obs.layout)));
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sf_job::JobConfig;
+    use std::path::Path;
 
     /// Every shipped config parses and validates: job configs as jobs, the learner's as such.
     #[test]

@@ -9,6 +9,7 @@
 //! stamps and sends through a bounded channel, so a back-pressured stream stops the simulators
 //! instead of growing memory. Must not: do network IO itself.
 
+mod nstep;
 mod writer;
 
 pub use writer::Credits;
@@ -176,7 +177,8 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
     // where it drives them (not FailMaker's background).
     let mut brakes = (job.sac.warmup_brake_prob > 0.0 && kind.drives() && kind != JobKind::Failmaker).then(|| drive::BrakeSegments::new(job.sac.warmup_brake_prob, &venvs));
     let mut runner: Option<PolicyRunner> = None;
-    let mut writer = TransitionWriter::new(TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim), job.worker.batch_transitions, Arc::clone(&control), credits, tx, metrics.clone());
+    let nstep = nstep::NStep::new(job.sac.n_step, job.sac.gamma);
+    let mut writer = TransitionWriter::new(TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim), nstep, job.worker.batch_transitions, Arc::clone(&control), credits, tx, metrics.clone());
     loop {
         let (stop, warmup, new_policy) = {
             let c = lock(&control);

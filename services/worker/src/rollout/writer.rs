@@ -2,22 +2,24 @@
 //!
 //! Owns: [`TransitionWriter`] (batching of the job's transitions and finished episodes, version
 //! stamping, sending through the bounded channel) and [`Credits`] (batches it may send before
-//! the learner acknowledges one). Invariant: every batch holds transitions of one acting policy
-//! version (or the warm-up) and is stamped with it; a batch is sent only after a credit is
-//! taken. Must not: do network IO (the session streams what the channel carries), or decide who
+//! the learner acknowledges one). Steps pass through the n-step windows (`super::nstep`) on
+//! their way in. Invariant: every batch holds transitions of one acting policy version (or the
+//! warm-up) and is stamped with it (a version change flushes the windows first); a batch is
+//! sent only after a credit is taken. Must not: do network IO (the session streams what the channel carries), or decide who
 //! acts (the environment loop does).
 
 use std::ops::ControlFlow;
 use std::sync::{Arc, Mutex};
 
 use anyhow::bail;
-use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, TransitionBatch};
+use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, Transition, TransitionBatch};
 use sf_proto::pb;
 use sf_rollout::setup;
 use sf_service::sync::lock;
 use sf_sim::vec_env::VecEnv;
 use tokio::sync::mpsc;
 
+use super::nstep::NStep;
 use super::{Control, STREAM_CLOSED};
 use crate::WorkerMetrics;
 
@@ -61,6 +63,8 @@ impl Credits {
 /// credit.
 pub struct TransitionWriter {
     batch: TransitionBatch,
+    /// Each agent's steps not yet summed into a transition (`sac.n_step`).
+    nstep: NStep,
     /// Version of the policy that acted for the batch's transitions (`None` before the first step).
     acted_by: Option<ActedBy>,
     /// Transitions that make a batch full (`worker.batch_transitions`).
@@ -73,13 +77,25 @@ pub struct TransitionWriter {
 
 impl TransitionWriter {
     /// Fills `batch` (empty, with the job's shapes) up to `full_at` transitions.
-    pub(super) fn new(batch: TransitionBatch, full_at: usize, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> Self {
-        Self { batch, acted_by: None, full_at, control, credits, tx, metrics }
+    pub(super) fn new(
+        batch: TransitionBatch,
+        nstep: NStep,
+        full_at: usize,
+        control: Arc<Mutex<Control>>,
+        credits: Arc<Credits>,
+        tx: mpsc::Sender<pb::TransitionBatch>,
+        metrics: WorkerMetrics,
+    ) -> Self {
+        Self { batch, nstep, acted_by: None, full_at, control, credits, tx, metrics }
     }
 
-    /// The coming step is acted by `acted_by`: a batch holding another actor's transitions is
-    /// sent first.
+    /// The coming step is acted by `acted_by`: the previous actor's pending n-step windows are
+    /// flushed into the batch, and a batch holding another actor's transitions is sent first.
     pub(super) fn stamp(&mut self, acted_by: ActedBy) -> anyhow::Result<ControlFlow<()>> {
+        if self.acted_by.is_some_and(|a| a != acted_by) {
+            let batch = &mut self.batch;
+            self.nstep.flush(&mut |t| batch.push_transition(t));
+        }
         if let Some(held) = self.acted_by.filter(|&a| a != acted_by && self.batch.count > 0) {
             if self.send(held)?.is_break() {
                 return Ok(ControlFlow::Break(()));
@@ -102,8 +118,17 @@ impl TransitionWriter {
                 if !st.stepped {
                     continue;
                 }
-                let act = &actions[k][j * act_dim..(j + 1) * act_dim];
-                self.batch.push(&before[k][r * len..(r + 1) * len], act, setup::reward(job, &st.rewards), v.next_observation(r), st.terminal(), k as u32);
+                let step = Transition {
+                    obs: &before[k][r * len..(r + 1) * len],
+                    action: &actions[k][j * act_dim..(j + 1) * act_dim],
+                    reward: setup::reward(job, &st.rewards),
+                    next_obs: v.next_observation(r),
+                    terminal: st.terminal(),
+                    steps: 1,
+                    map_id: k as u32,
+                };
+                let batch = &mut self.batch;
+                self.nstep.step(k, r, step, st.ended.is_some() || st.truncated, &mut |t| batch.push_transition(t));
             }
             for m in v.take_finished() {
                 self.metrics.episodes.inc();
@@ -150,7 +175,7 @@ mod tests {
         let control = Arc::new(Mutex::new(Control { warmup: false, policy: None, stop: false }));
         let (tx, rx) = mpsc::channel(8);
         let metrics = WorkerMetrics::register(&mut Registry::default());
-        let w = TransitionWriter::new(TransitionBatch::new(7, 3, 2, 1), full_at, Arc::clone(&control), Arc::new(Credits::new(credits)), tx, metrics);
+        let w = TransitionWriter::new(TransitionBatch::new(7, 3, 2, 1), NStep::new(1, 0.9), full_at, Arc::clone(&control), Arc::new(Credits::new(credits)), tx, metrics);
         (w, rx, control)
     }
 
@@ -179,6 +204,26 @@ mod tests {
         // An empty batch is not sent when the version changes.
         assert!(w.stamp(v(7))?.is_continue());
         assert!(rx.try_recv().is_err());
+        Ok(())
+    }
+
+    /// With n-step windows, a version change flushes the previous actor's pending steps into
+    /// its own batch before that batch is sent.
+    #[test]
+    fn a_policy_change_flushes_pending_n_step_windows_into_the_old_batch() -> anyhow::Result<()> {
+        let (mut w, mut rx, _control) = writer(8, 100);
+        w.nstep = NStep::new(3, 0.5);
+        assert!(w.stamp(v(4))?.is_continue());
+        let batch = &mut w.batch;
+        for reward in [1.0, 2.0] {
+            let step = Transition { obs: &[0.0, 1.0], action: &[0.5], reward, next_obs: &[1.0, 2.0], terminal: false, steps: 1, map_id: 0 };
+            w.nstep.step(0, 0, step, false, &mut |t| batch.push_transition(t));
+        }
+        assert_eq!((w.batch.count, w.nstep.pending()), (0, 2), "the window holds both steps");
+        assert!(w.stamp(v(5))?.is_continue());
+        let sent = rx.try_recv()?;
+        assert_eq!((sent.policy_version, sent.count, sent.steps.as_slice(), sent.rewards.as_slice()), (4, 2, &[2u8, 1][..], &[2.0f32, 2.0][..]));
+        assert_eq!(w.nstep.pending(), 0);
         Ok(())
     }
 
