@@ -635,6 +635,16 @@ impl JobConfig {
         if self.name.trim().is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
             return bad("name", format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name));
         }
+        self.validate_env()?;
+        self.validate_net()?;
+        self.validate_sac()?;
+        self.validate_train()?;
+        self.validate_sections()
+    }
+
+    /// `[env]`: scenarios, vehicles, the frozen jobs a kind needs (and `train.init_*`), the action
+    /// for the job's kind, conflict cases and observation caps.
+    fn validate_env(&self) -> Result<(), ConfigError> {
         if self.env.scenarios.is_empty() {
             return bad("env.scenarios", "list at least one scenario");
         }
@@ -677,11 +687,44 @@ impl JobConfig {
         if self.env.vehicles_max > 64 {
             return bad("env.vehicles_max", format!("{} exceeds 64", self.env.vehicles_max));
         }
+        if self.env.action != ActionMode::Direct && !self.kind.drives() {
+            return bad("env.action", format!("a residual action is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
+        }
+        if let Some(p) = self.env.conflict_share {
+            if !(p.is_finite() && (0.0..=1.0).contains(&p)) {
+                return bad("env.conflict_share", format!("{p} must be in [0, 1]"));
+            }
+            if self.kind != JobKind::Ego || self.env.background_job.is_some() || self.env.background_from.is_some() {
+                return bad("env.conflict_share", "conflict cases are chosen by the IDM ego's fate among IDM cars: an ego job with no background job");
+            }
+        }
+        for (f, v, hi) in [("env.max_neighbours", self.env.max_neighbours, 64), ("env.max_segments", self.env.max_segments, 512)] {
+            if let Some(v) = v {
+                if !(1..=hi).contains(&v) {
+                    return bad(f, format!("{v} must be in 1..={hi}"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// `[net]`: the width and the pose embedding's depth.
+    fn validate_net(&self) -> Result<(), ConfigError> {
         if let Some(w) = self.net.width {
             if w == 0 || w % 4 != 0 || w > 1024 {
                 return bad("net.width", format!("{w} must be a positive multiple of 4 (the attention heads) up to 1024"));
             }
         }
+        if let Some(p) = self.net.pose_layers {
+            if !(1..=4).contains(&p) {
+                return bad("net.pose_layers", format!("{p} must be in 1..=4"));
+            }
+        }
+        Ok(())
+    }
+
+    /// `[sac]`: ranges, the warm-up and cloning levers and what they need of the action.
+    fn validate_sac(&self) -> Result<(), ConfigError> {
         let s = &self.sac;
         if !(s.gamma > 0.0 && s.gamma < 1.0) {
             return bad("sac.gamma", format!("{} must be in (0, 1)", s.gamma));
@@ -718,9 +761,6 @@ impl JobConfig {
         if s.warmup_policy == WarmupPolicy::Idm && !self.kind.drives() {
             return bad("sac.warmup_policy", format!("\"idm\" drives a vehicle; a {} job's action is an SVO", self.kind.as_str()));
         }
-        if self.env.action != ActionMode::Direct && !self.kind.drives() {
-            return bad("env.action", format!("a residual action is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
-        }
         if self.env.action != ActionMode::Direct && s.warmup_policy != WarmupPolicy::Idm {
             return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\"");
         }
@@ -745,26 +785,6 @@ impl JobConfig {
         if !(s.huber_delta.is_finite() && s.huber_delta > 0.0) {
             return bad("sac.huber_delta", format!("{} must be positive", s.huber_delta));
         }
-        if let Some(p) = self.env.conflict_share {
-            if !(p.is_finite() && (0.0..=1.0).contains(&p)) {
-                return bad("env.conflict_share", format!("{p} must be in [0, 1]"));
-            }
-            if self.kind != JobKind::Ego || self.env.background_job.is_some() || self.env.background_from.is_some() {
-                return bad("env.conflict_share", "conflict cases are chosen by the IDM ego's fate among IDM cars: an ego job with no background job");
-            }
-        }
-        for (f, v, hi) in [("env.max_neighbours", self.env.max_neighbours, 64), ("env.max_segments", self.env.max_segments, 512)] {
-            if let Some(v) = v {
-                if !(1..=hi).contains(&v) {
-                    return bad(f, format!("{v} must be in 1..={hi}"));
-                }
-            }
-        }
-        if let Some(p) = self.net.pose_layers {
-            if !(1..=4).contains(&p) {
-                return bad("net.pose_layers", format!("{p} must be in 1..=4"));
-            }
-        }
         if s.bc_updates > 0 && s.warmup_policy != WarmupPolicy::Idm {
             return bad("sac.bc_updates", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
         }
@@ -779,7 +799,12 @@ impl JobConfig {
                 return bad("sac.target_entropy", format!("{t} must be finite"));
             }
         }
-        let t = &self.train;
+        Ok(())
+    }
+
+    /// `[train]` and `[worker]`: budgets, replay, publishing and batching.
+    fn validate_train(&self) -> Result<(), ConfigError> {
+        let (t, s) = (&self.train, &self.sac);
         if t.env_steps == 0 {
             return bad("train.env_steps", "must be positive");
         }
@@ -810,6 +835,11 @@ impl JobConfig {
         if self.worker.batch_transitions == 0 || self.worker.batch_transitions > 8192 {
             return bad("worker.batch_transitions", format!("{} must be in 1..=8192", self.worker.batch_transitions));
         }
+        Ok(())
+    }
+
+    /// The optional `[coordinator]` (CoPO Stage 2) and `[validation]` sections.
+    fn validate_sections(&self) -> Result<(), ConfigError> {
         if let Some(c) = &self.coordinator {
             if self.kind != JobKind::Copo {
                 return bad("coordinator", format!("only copo jobs fit a Stage-2 coordinator, not {}", self.kind.as_str()));
