@@ -2,9 +2,11 @@
 //!
 //! Owns: [`TransitionBatch`] and [`TransitionBatch::validate`] (every array holds `count` rows
 //! of the declared widths, observations, actions and rewards are finite, terminal flags are 0
-//! or 1, every transition spans at least one step). Observations travel and are stored as IEEE half floats, so the learner copies them
-//! into replay without converting. [`ActedBy`] and [`PolicyRequest`] say which weights acted
-//! or are asked for, so that warm-up data and "the latest policy" are never the same number.
+//! or 1, every transition spans at least one step) and [`Transition`], one transition as a
+//! rollout hands it over. Observations travel and are stored as IEEE half floats, so the
+//! learner copies them into replay without converting. [`ActedBy`] and [`PolicyRequest`] say
+//! which weights acted or are asked for, so that warm-up data and "the latest policy" are never
+//! the same number.
 
 use std::fmt;
 use std::num::NonZeroU64;

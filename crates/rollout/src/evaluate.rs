@@ -168,10 +168,10 @@ pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(Flo
 }
 
 /// [`from_frozen`] with each policy's config from `config` (the learner's: the configs it
-/// parsed once when the jobs were stored).
-pub fn from_frozen_with(policies: &[Frozen], weights: &[Arc<Vec<u8>>], config: impl Fn(&Frozen) -> Result<JobConfig, EvalError>) -> Result<(FlowDef, Option<Policy>), EvalError> {
+/// parsed once when the jobs were stored), failing with the caller's error type.
+pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<Vec<u8>>], config: impl Fn(&Frozen) -> Result<JobConfig, E>) -> Result<(FlowDef, Option<Policy>), E> {
     if policies.len() != weights.len() {
-        return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())));
+        return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())).into());
     }
     let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
@@ -182,12 +182,12 @@ pub fn from_frozen_with(policies: &[Frozen], weights: &[Arc<Vec<u8>>], config: i
             FrozenRole::Adversary => &mut adversary,
         };
         if slot.replace(Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
-            return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)));
+            return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)).into());
         }
     }
     let flow = match background {
         Some(background) => FlowDef::Learned { background, adversary },
-        None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into())),
+        None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into()).into()),
         None => FlowDef::Idm,
     };
     Ok((flow, ego))

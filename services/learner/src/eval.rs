@@ -76,11 +76,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
     let train_cfg = |rec: &JobRecord| -> Result<sf_job::JobConfig, LearnerError> {
         spec(rec)?.train().cloned().ok_or_else(|| LearnerError::BadEvalConfig { field: "job", name: rec.name.clone(), reason: format!("job {} is an evaluation, not a policy", rec.id) })
     };
-    let configs = |fz: &[Frozen]| -> Result<HashMap<u64, sf_job::JobConfig>, LearnerError> { fz.iter().map(|f| Ok((f.job_id, train_cfg(find(f.job_id)?)?))).collect() };
-    let from_frozen = |fz: &[Frozen], w: &[Arc<Vec<u8>>]| -> Result<_, LearnerError> {
-        let configs = configs(fz)?;
-        Ok(sf_rollout::evaluate::from_frozen_with(fz, w, |f| configs.get(&f.job_id).cloned().ok_or_else(|| sf_rollout::evaluate::EvalError::Misfit(format!("job {} has no config", f.job_id))))?)
-    };
+    let from_frozen = |fz: &[Frozen], w: &[Arc<Vec<u8>>]| sf_rollout::evaluate::from_frozen_with(fz, w, |f| train_cfg(find(f.job_id)?));
     let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, LearnerError> {
         let id = n.job_id.ok_or_else(|| LearnerError::NotPinned { name: n.name.clone() })?;
         find(id).map_err(|e| LearnerError::Grid { name: n.name.clone(), source: Box::new(e) })

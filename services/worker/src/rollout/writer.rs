@@ -5,8 +5,8 @@
 //! the learner acknowledges one). Steps pass through the n-step windows (`super::nstep`) on
 //! their way in. Invariant: every batch holds transitions of one acting policy version (or the
 //! warm-up) and is stamped with it (a version change flushes the windows first); a batch is
-//! sent only after a credit is taken. Must not: do network IO (the session streams what the channel carries), or decide who
-//! acts (the environment loop does).
+//! sent only after a credit is taken. Must not: do network IO (the session streams what the
+//! channel carries), or decide who acts (the environment loop does).
 
 use std::ops::ControlFlow;
 use std::sync::{Arc, Mutex};
