@@ -262,7 +262,7 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
     // A running job, then malformed batches from a token holder.
     let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "target", 1200));
     let mut e = exp(&rt, &l.url);
-    let wid = rt.block_on(e.register(pb::RegisterRequest { name: "hostile".into() })).expect("register").into_inner().worker_id;
+    let wid = rt.block_on(e.register(pb::RegisterRequest { name: "hostile".into(), ..Default::default() })).expect("register").into_inner().worker_id;
     let a = wait_for("an assignment", Duration::from_secs(120), || {
         let r = rt.block_on(e.get_assignment(pb::GetAssignmentRequest { worker_id: wid })).ok()?.into_inner();
         r.assignment.filter(|a| a.job_id == job.job_id)

@@ -40,7 +40,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     // Three scenarios, two workers: every worker simulates every scenario of the job.
     let job = submit(&rt, &mut c, tiny_job(r#""roundabout", "merge", "bottleneck""#, "two-workers", 1500));
     let mut e = exp(&rt, &l.url);
-    let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into() })).expect("register").into_inner().worker_id;
+    let wid = rt.block_on(e.register(pb::RegisterRequest { name: "probe".into(), ..Default::default() })).expect("register").into_inner().worker_id;
     let good = || {
         let obs_len = 8usize;
         let mut b = sf_job::TransitionBatch::new(job.job_id, wid, obs_len, 2);
@@ -251,7 +251,8 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// An evaluation grid over one trained ego and the IDM flow, `runs` / `out` for `socialflow eval`.
+/// An evaluation grid over one trained ego and the IDM driver in the ego's seat in the IDM
+/// flow, `runs` / `out` for `socialflow eval`.
 fn eval_grid(data: &Path, out: &Path, ego_job: &str) -> String {
     format!(
         r#"kind = "eval"
@@ -263,7 +264,7 @@ cases = 2
 seeds = 2
 envs = 4
 flows = [{{ name = "IDM", job = "idm" }}]
-egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}]
+egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}, {{ name = "IDM ego", job = "idm" }}]
 [experiments]
 flow_quality = ["IDM"]
 cross_validation = ["IDM"]
@@ -303,10 +304,11 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
 
     // A worker that leases a cell and is never heard from again.
     let mut x = exp(&rt, &l.url);
-    let lost = rt.block_on(x.register(pb::RegisterRequest { name: "lost".into() })).expect("register").into_inner().worker_id;
+    let lost = rt.block_on(x.register(pb::RegisterRequest { name: "lost".into(), ..Default::default() })).expect("register").into_inner().worker_id;
     let job = submit(&rt, &mut c, eval_grid(&data, &dir.join("embedded"), "ego-t"));
     assert!(job.config_toml.contains(&format!("job_id = {}", ego.job_id)), "the names are pinned: {}", job.config_toml);
-    let cells = 2 + 2 + 2;
+    // Flow quality, cross-validation (the trained ego and the IDM driver), density.
+    let cells = 2 + 2 * 2 + 2;
     assert_eq!(progress(&job).target_env_steps, cells * 4);
     let leased = wait_for("a cell for the lost worker", Duration::from_secs(60), || {
         let r = rt.block_on(x.get_assignment(pb::GetAssignmentRequest { worker_id: lost })).expect("assignment").into_inner();
@@ -328,6 +330,7 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
     let results = Path::new(&done.artifact_dir).join("episodes.csv");
     let rows = sorted_rows(&results);
     assert_eq!(rows.len() as u64, cells * 4);
+    assert_eq!(rows.iter().filter(|r| r.starts_with("cross,IDM ego,IDM,")).count(), 2 * 4, "the IDM driver's cells, run by workers: {rows:?}");
     let metrics = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(metric(&metrics, "socialflow_learner_eval_cells_reassigned") >= 1.0, "the lost worker's cell went to another worker");
     assert_eq!(metric(&metrics, "socialflow_learner_eval_episodes_total"), (cells * 4) as f64);

@@ -97,7 +97,7 @@ fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
 /// One worker stream until `until`: register, take the assignment, push until the end.
 async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: usize, act: usize, until: Instant, st: Arc<StreamStats>) {
     let note = |st: &StreamStats, code: tonic::Code| *lock(&st.errors).entry(format!("{code:?}")).or_default() += 1;
-    let wid = match exp.register(pb::RegisterRequest { name: "soak".into() }).await {
+    let wid = match exp.register(pb::RegisterRequest { name: "soak".into(), ..Default::default() }).await {
         Ok(r) => r.into_inner().worker_id,
         Err(s) => return note(&st, s.code()),
     };

@@ -72,7 +72,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         let job = remote::submit(&mut c, INGEST_JOB.to_string()).await?;
         let ch = tonic::transport::Endpoint::from_shared(emb.url.clone())?.connect().await?;
         let mut exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(emb.token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
-        let wid = exp.register(pb::RegisterRequest { name: "bench".into() }).await?.into_inner().worker_id;
+        let wid = exp.register(pb::RegisterRequest { name: "bench".into(), ..Default::default() }).await?.into_inner().worker_id;
         let asg = loop {
             let r = exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await?.into_inner();
             if let Some(asg) = r.assignment {

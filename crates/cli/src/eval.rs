@@ -105,11 +105,15 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         grid.flows.insert(f.name.clone(), flow_def(&runs, f).with_context(|| format!("flow `{}`", f.name))?);
     }
     for e in &cfg.egos {
+        if e.is_idm() {
+            grid.egos.insert(e.name.clone(), evaluate::EgoDef::Idm);
+            continue;
+        }
         let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
         if t.cfg.kind != JobKind::Ego {
             bail!("ego `{}`: job `{}` is a {} job", e.name, e.job, t.cfg.kind.as_str());
         }
-        grid.egos.insert(e.name.clone(), t);
+        grid.egos.insert(e.name.clone(), evaluate::EgoDef::Learned(t));
     }
     let all = cfg.cells();
     grid.check(&all).map_err(anyhow::Error::msg)?;
@@ -198,7 +202,7 @@ mod tests {
         let c = load(&p).expect("valid");
         let cells = c.cells();
         let count = |e: &str| cells.iter().filter(|c| c.experiment == e).count();
-        assert_eq!(count("cross"), 6 * 4 * 4, "6 egos x 4 flows x 4 scenarios");
+        assert_eq!(count("cross"), 7 * 4 * 4, "6 trained egos and the IDM driver x 4 flows x 4 scenarios");
         assert_eq!(count("svo_sweep"), 2 * 4 * 10);
         assert_eq!(count("density"), 4 * 6);
         let keys: BTreeSet<String> = cells.iter().map(Cell::key).collect();

@@ -276,6 +276,10 @@ pub struct NetSection {
 /// The largest `sac.n_step`: longer sums mostly add the behaviour policy's bias.
 pub const MAX_N_STEP: u8 = 16;
 
+/// The largest weight a row of `sac.bc_awac_lambda`'s cloning term gets before the batch's
+/// normalisation (AWAC and IQL clip theirs likewise, so one row cannot take the whole term).
+pub const AWAC_MAX_WEIGHT: f32 = 20.0;
+
 /// The `[sac]` section *is* the SAC learner's configuration: the paper's table (its
 /// [`Default`]) plus the released code's and this project's levers. `sf_sac::Sac` takes it as
 /// it is; nothing copies it field by field.
@@ -339,6 +343,14 @@ pub struct SacConfig {
     /// critic rates the zero action at least as high as the policy's (`bc_q_filter`).
     pub bc_target: BcTarget,
     pub bc_q_filter: bool,
+    /// AWAC-style advantage weights on the cloning term towards the replayed actions
+    /// (`bc_target = "replay"`; absent: every row weighs 1): row i weighs
+    /// `exp((min Q(s, a_replay) - min Q(s, a~pi)) / lambda)`, clipped at [`AWAC_MAX_WEIGHT`]
+    /// and normalised to mean 1 over the batch, so the policy is pulled towards the stored
+    /// actions the critic rates above its own and let go of the others. Needs `bc_weight > 0`
+    /// (the term it weighs); the `bc_updates` cloning phase stays unweighted.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bc_awac_lambda: Option<f32>,
     /// A Polyak average of the actor's weights (`avg <- (1 - t) avg + t actor` after every
     /// update; absent: none). With it, validation scores and the final policy is the average,
     /// while rollouts keep acting with the online actor. Smooths the policy's oscillation
@@ -435,6 +447,7 @@ impl Default for SacConfig {
             huber_delta: 10.0,
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
+            bc_awac_lambda: None,
             actor_average_tau: None,
             shared_encoder: false,
             reuse_critic_features: true,
@@ -635,6 +648,9 @@ impl JobConfig {
         if self.name.trim().is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
             return bad("name", format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name));
         }
+        if self.name == "idm" {
+            return bad("name", "`idm` is reserved: evaluation grids read `job = \"idm\"` as the IDM driver");
+        }
         self.validate_env()?;
         self.validate_net()?;
         self.validate_sac()?;
@@ -776,6 +792,17 @@ impl JobConfig {
         if s.actor_average_tau.is_some_and(|t| !(t > 0.0 && t <= 1.0)) {
             return bad("sac.actor_average_tau", format!("{:?} must be in (0, 1]", s.actor_average_tau));
         }
+        if let Some(l) = s.bc_awac_lambda {
+            if !(l.is_finite() && l > 0.0) {
+                return bad("sac.bc_awac_lambda", format!("{l} must be finite and positive"));
+            }
+            if s.bc_target != BcTarget::Replay {
+                return bad("sac.bc_awac_lambda", "advantage weights rate the replayed actions: set sac.bc_target = \"replay\"");
+            }
+            if s.bc_weight <= 0.0 {
+                return bad("sac.bc_awac_lambda", "weights the cloning term that stays after the cloning updates: set sac.bc_weight > 0");
+            }
+        }
         if s.bc_q_filter && s.bc_target != BcTarget::Zero {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the zero action: set sac.bc_target = \"zero\"");
         }
@@ -908,6 +935,30 @@ mod tests {
         assert!(e.to_string().contains("coordinator.elite_frac"), "{e}");
         assert_eq!(JobConfig::from_toml(&copo).expect("copo").coordinator(), Some(CoordinatorSection::default()), "copo fits one by default");
         assert_eq!(JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n")).expect("stage 1 only").coordinator(), None);
+    }
+
+    #[test]
+    fn the_name_idm_is_reserved_for_the_idm_driver() {
+        let e = JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm\"")).expect_err("idm");
+        assert!(e.to_string().contains("name") && e.to_string().contains("reserved"), "{e}");
+    }
+
+    #[test]
+    fn awac_weights_need_a_positive_lambda_and_the_replayed_actions() {
+        let base = format!("{MIN}[sac]\nwarmup_policy = \"idm\"\nbc_weight = 0.4\n");
+        let ok = JobConfig::from_toml(&format!("{base}bc_awac_lambda = 1.0\n")).expect("replay target by default");
+        assert_eq!(ok.sac.bc_awac_lambda, Some(1.0));
+        assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip").sac.bc_awac_lambda, Some(1.0));
+        assert!(!JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_awac_lambda"), "absent stays absent");
+        for (extra, needle) in [("bc_awac_lambda = 0.0", "finite and positive"), ("bc_awac_lambda = -1.0", "finite and positive"), ("bc_awac_lambda = nan", "finite and positive"), ("bc_awac_lambda = inf", "finite and positive")] {
+            let e = JobConfig::from_toml(&format!("{base}{extra}\n")).expect_err(extra);
+            assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains(needle), "{extra}: {e}");
+        }
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_policy = \"idm\"\nbc_awac_lambda = 1.0\n")).expect_err("no cloning term");
+        assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("bc_weight > 0"), "{e}");
+        let zero = MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]") + "[sac]\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\nbc_awac_lambda = 1.0\n";
+        let e = JobConfig::from_toml(&zero).expect_err("zero target");
+        assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("replay"), "{e}");
     }
 
     #[test]

@@ -30,7 +30,8 @@ fn bad<T>(msg: impl Into<String>) -> Result<T, EvalConfigError> {
 #[serde(deny_unknown_fields)]
 pub struct Named {
     pub name: String,
-    /// The job's name (the newest succeeded job of that name), or `idm` for the IDM flow.
+    /// The job's name (the newest succeeded job of that name), or `idm`: the IDM flow, or as an
+    /// ego the IDM driver in the ego's seat (the zero residual: what every trained ego starts from).
     pub job: String,
     /// Pins the job by id. The learner fills it in when it accepts an evaluation job, so the
     /// job evaluates what existed at submission.
@@ -213,6 +214,8 @@ pub struct EvalWork {
     /// coordinator's Gaussians) and SocialCommAdv's adversary (`Adversary`). No `Background`:
     /// the IDM flow. Their weights are each job's final policy (GetPolicy, version 0).
     pub policies: Vec<Frozen>,
+    /// The IDM driver sits in the ego's seat (an ego of `job = "idm"`; no `Ego` policy then).
+    pub ego_idm: bool,
 }
 
 impl EvalConfig {
@@ -250,11 +253,22 @@ impl EvalConfig {
                 return bad(format!("eval config: name `{n}` must be non-empty without ',' or '|'"));
             }
         }
-        if let Some(e) = self.egos.iter().find(|e| e.is_idm()) {
-            return bad(format!("eval config field `egos`: `{}` names `idm`, which is a flow, not an ego policy", e.name));
+        // `job = "idm"` as an ego: the IDM driver in the ego's seat, the baseline every trained
+        // ego is tested against. It was trained nowhere and is not the proposed method.
+        if self.egos.iter().filter(|e| e.is_idm()).count() > 1 {
+            return bad("eval config field `egos`: at most one ego may be the IDM driver (`job = \"idm\"`)");
+        }
+        if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.job_id.is_some()) {
+            return bad(format!("eval config field `job_id` of `{}`: `job = \"idm\"` is the IDM driver, not a stored job", n.name));
+        }
+        if let Some(e) = self.egos.iter().find(|e| e.is_idm() && e.trained_in.is_some()) {
+            return bad(format!("eval config field `egos.trained_in` of `{}`: the IDM driver (`job = \"idm\"`) was not trained in a flow", e.name));
         }
         if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
             return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
+        }
+        if let Some(o) = self.ours.as_ref().filter(|o| self.ego(o).is_some_and(Named::is_idm)) {
+            return bad(format!("eval config field `ours`: `{o}` is the IDM driver, not a trained ego"));
         }
         for e in &self.egos {
             if let Some(t) = e.trained_in.as_ref().filter(|t| !flows.contains(t.as_str())) {
@@ -395,7 +409,10 @@ mod tests {
             ("flow_quality = [\"IDM\"]", "flow_quality = [\"Nope\"]", "experiments.flow_quality"),
             ("kind = \"eval\"", "kind = \"ego\"", "`kind`"),
             ("cases = 2", "cases = 0", "`cases`"),
-            ("job = \"ego-a\"", "job = \"idm\"", "`egos`"),
+            ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm\", trained_in = \"IDM\"", "`egos.trained_in` of `E`"),
+            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"I\"\negos = [{ name = \"I\", job = \"idm\" }]", "`ours`: `I` is the IDM driver"),
+            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "egos = [{ name = \"I\", job = \"idm\" }, { name = \"J\", job = \"idm\" }]", "at most one ego may be the IDM driver"),
+            ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"idm\", job_id = 3 }", "`job_id` of `IDM`"),
             ("flow_quality = [\"IDM\"]", "flow_quality = []", "no cells"),
             ("seeds = 1", "seeds = 1\nbogus = 3", "bogus"),
         ] {
@@ -406,6 +423,15 @@ mod tests {
         assert!(is_eval_toml(BASE));
         assert!(!is_eval_toml("name = \"x\"\nkind = \"ego\"\n"));
         assert!(!is_eval_toml("not toml ["));
+    }
+
+    #[test]
+    fn the_idm_driver_is_an_ego_of_the_grid() {
+        let text = BASE.replace("egos = [{ name = \"E\", job = \"ego-a\" }]", "egos = [{ name = \"E\", job = \"ego-a\" }, { name = \"IDM ego\", job = \"idm\" }]");
+        let c = EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\n")).expect("an IDM ego");
+        assert!(c.ego("IDM ego").is_some_and(Named::is_idm) && !c.ego("E").is_some_and(Named::is_idm));
+        let cross: Vec<String> = c.cells().into_iter().filter(|c| c.experiment == "cross").map(|c| c.ego).collect();
+        assert_eq!(cross, ["E", "IDM ego"], "one cross cell per ego, the IDM driver's included");
     }
 
     /// Regression (found by `tests/fuzz.rs`): a huge SVO-sweep count was accepted by the

@@ -287,98 +287,30 @@ pub enum OnnxError {
 
 /// The actor's deterministic action as a serialized ONNX model.
 pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError> {
-    let (spec, net) = (x.spec, x.net);
+    let spec = x.spec;
     let enc: &Encoder = &actor.enc;
-    let d = enc.d();
-    let (h, n, r, m, p) = (spec.history as i64, spec.neighbours as i64, spec.route_points as i64, spec.map_pieces as i64, spec.piece_points as i64);
     let mut g = Graph::default();
-    let ego_hist = g.input("ego_hist", FLOAT, &[h, 4]);
+    let ego_hist = g.input("ego_hist", FLOAT, &[spec.history as i64, 4]);
     let ego_ctx = g.input("ego_ctx", FLOAT, &[EGO_CTX as i64]);
-    let agents_hist = g.input("agents_hist", FLOAT, &[n, h, 4]);
-    let agents_ctx = g.input("agents_ctx", FLOAT, &[n, AGENT_CTX as i64]);
-    let agents_mask = g.input("agents_mask", FLOAT, &[n]);
-    let route = g.input("route", FLOAT, &[r, 4]);
-    let route_mask = g.input("route_mask", FLOAT, &[r]);
+    let agents_hist = g.input("agents_hist", FLOAT, &[spec.neighbours as i64, spec.history as i64, 4]);
+    let agents_ctx = g.input("agents_ctx", FLOAT, &[spec.neighbours as i64, AGENT_CTX as i64]);
+    let agents_mask = g.input("agents_mask", FLOAT, &[spec.neighbours as i64]);
+    let route = g.input("route", FLOAT, &[spec.route_points as i64, 4]);
+    let route_mask = g.input("route_mask", FLOAT, &[spec.route_points as i64]);
 
     // Time channel of history frame k: (H - 1 - k) dt / 2.5, as `[H, 1]`.
     let times: Vec<f32> = (0..spec.history).map(|k| (spec.history - 1 - k) as f32 * x.frame_dt_s / TIME_SCALE_S).collect();
-    let tc = g.constant("time", &[spec.history, 1], &times);
-    let zero = g.constant("zero", &[], &[0.0]);
-
-    // Own history: [B, H, 4] ++ time -> [B, 1, H, 5], every frame valid.
-    let (s0, s1, ax) = (g.ints("starts", &[0]), g.ints("ends", &[1]), g.ints("axes", &[2]));
-    let first = g.op("Slice", &[&ego_hist, &s0, &s1, &ax], vec![]);
-    let zeros = g.op("Mul", &[&first, &zero], vec![]);
-    let tcol = g.op("Add", &[&zeros, &tc], vec![]);
-    let ego_in = g.op("Concat", &[&ego_hist, &tcol], vec![("axis", Attr::Int(-1))]);
-    let a1 = g.ints("axes", &[1]);
-    let ego_in = g.op("Unsqueeze", &[&ego_in, &a1], vec![]);
-    let ego_ds = g.deep_set(&enc.agent_set, &ego_in, None);
-    let ego_ds = g.op("Squeeze", &[&ego_ds, &a1], vec![]);
-    let svo_own = if net.svo != SvoVisibility::None { 1.0 } else { 0.0 };
-    let svo_all = if net.svo == SvoVisibility::All { 1.0 } else { 0.0 };
-    let flag = if net.ego_flag { 1.0 } else { 0.0 };
-    let ego_sel = g.constant("ego_ctx_mask", &[EGO_CTX], &[svo_own, flag]);
-    let ego_ctx = g.op("Mul", &[&ego_ctx, &ego_sel], vec![]);
-    let ego_ctx = g.linear(&enc.ego_ctx, &ego_ctx);
-    let ego = g.op("Add", &[&ego_ds, &ego_ctx], vec![]);
-
-    // Neighbours: time channel times validity; padding slots masked out of the set sum.
-    let a23 = g.ints("axes", &[2, 3]);
-    let valid4 = g.op("Unsqueeze", &[&agents_mask, &a23], vec![]);
-    let vt = g.op("Mul", &[&valid4, &tc], vec![]);
-    let agents_in = g.op("Concat", &[&agents_hist, &vt], vec![("axis", Attr::Int(-1))]);
-    let a2 = g.ints("axes", &[2]);
-    let valid3 = g.op("Unsqueeze", &[&agents_mask, &a2], vec![]);
-    let ones_h = g.constant("ones_h", &[spec.history], &vec![1.0; spec.history]);
-    let vmask = g.op("Mul", &[&valid3, &ones_h], vec![]);
-    let agents_ds = g.deep_set(&enc.agent_set, &agents_in, Some(&vmask));
-    let ag_sel = g.constant("agents_ctx_mask", &[AGENT_CTX], &[1.0, 1.0, 1.0, 1.0, svo_all, flag]);
-    let agents_ctx = g.op("Mul", &[&agents_ctx, &ag_sel], vec![]);
-    let agents_ctx = g.mlp(&enc.agent_ctx, &agents_ctx);
-    let agents = g.op("Add", &[&agents_ds, &agents_ctx], vec![]);
-
-    // Route: [x, y, theta, 0, k] per point, one polyline.
-    let pick = g.ints("route_pick", &[0, 1, 2, 0, 3]);
-    let route5 = g.op("Gather", &[&route, &pick], vec![("axis", Attr::Int(2))]);
-    let keep = g.constant("route_keep", &[5], &[1.0, 1.0, 1.0, 0.0, 1.0]);
-    let route5 = g.op("Mul", &[&route5, &keep], vec![]);
-    let route5 = g.op("Unsqueeze", &[&route5, &a1], vec![]);
-    let rmask = g.op("Unsqueeze", &[&route_mask, &a1], vec![]);
-    let route_tok = g.deep_set(&enc.static_set, &route5, Some(&rmask));
-    let route_any = g.op("ReduceMax", &[&route_mask], vec![("axes", Attr::Ints(vec![1])), ("keepdims", Attr::Int(1))]);
-
-    let (map_tok, map_any) = match spec.layout {
-        Layout::EgoFrame => {
-            let map = g.input("map", FLOAT, &[m, p, 5]);
-            let map_mask = g.input("map_mask", FLOAT, &[m, p]);
-            let tok = g.deep_set(&enc.static_set, &map, Some(&map_mask));
-            let any = g.op("ReduceMax", &[&map_mask], vec![("axes", Attr::Ints(vec![2])), ("keepdims", Attr::Int(0))]);
-            (tok, any)
-        }
-        Layout::QueryCentric => {
-            let table = x.table.ok_or(OnnxError::NoSegmentTable)?;
-            let seg_id = g.input("seg_id", FLOAT, &[m]);
-            let seg_pose = g.input("seg_pose", FLOAT, &[m, 4]);
-            let seg_mask = g.input("seg_mask", FLOAT, &[m]);
-            let map_id = g.input("map_id", INT64, &[]);
-            let [s_total, _] = table.emb.dims();
-            let emb = g.constant("segment_table", &[s_total, d], &tensor_vec(table.emb.clone()));
-            let offsets: Vec<i64> = table.offsets.iter().map(|&o| o as i64).collect();
-            let offsets = g.ints("map_offsets", &offsets);
-            let local = g.op("Mul", &[&seg_id, &seg_mask], vec![]);
-            let local = g.op("Cast", &[&local], vec![("to", Attr::Int(INT64 as i64))]);
-            let off = g.op("Gather", &[&offsets, &map_id], vec![("axis", Attr::Int(0))]);
-            let off = g.op("Unsqueeze", &[&off, &a1], vec![]);
-            let ids = g.op("Add", &[&local, &off], vec![]);
-            let rows = g.op("Gather", &[&emb, &ids], vec![("axis", Attr::Int(0))]);
-            let pose = g.mlp(&enc.seg_pose, &seg_pose);
-            (g.op("Add", &[&rows, &pose], vec![]), seg_mask)
-        }
-    };
+    let (tc, zero, a1) = (g.constant("time", &[spec.history, 1], &times), g.constant("zero", &[], &[0.0]), g.ints("axes", &[1]));
+    let c = Shared { tc, zero, a1 };
+    let ctx_masks = CtxMasks::of(x.net);
+    let ego = ego_token(&mut g, enc, &c, &ctx_masks, &ego_hist, &ego_ctx);
+    let agents = neighbour_tokens(&mut g, enc, spec, &c, &ctx_masks, &agents_hist, &agents_ctx, &agents_mask);
+    let (route_tok, route_any) = route_token(&mut g, enc, &c, &route, &route_mask);
+    let (map_tok, map_any) = map_tokens(&mut g, enc, x, &c)?;
 
     // Tokens [B, T, D]: ego, neighbours, route, map; keys add the type embedding.
-    let ego3 = g.op("Unsqueeze", &[&ego, &a1], vec![]);
+    let d = enc.d();
+    let ego3 = g.op("Unsqueeze", &[&ego, &c.a1], vec![]);
     let tokens = g.op("Concat", &[&ego3, &agents, &route_tok, &map_tok], vec![("axis", Attr::Int(1))]);
     let t = 1 + spec.neighbours + 1 + spec.map_pieces;
     let type_rows: Vec<f32> = {
@@ -397,48 +329,170 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError>
     let (c0, c1, ax1) = (g.ints("starts", &[0]), g.ints("ends", &[1]), g.ints("axes", &[1]));
     let ego_col = g.op("Slice", &[&agents_mask, &c0, &c1, &ax1], vec![]);
     let one = g.constant("one", &[], &[1.0]);
-    let ego_col = g.op("Mul", &[&ego_col, &zero], vec![]);
+    let ego_col = g.op("Mul", &[&ego_col, &c.zero], vec![]);
     let ego_col = g.op("Add", &[&ego_col, &one], vec![]);
     let present = g.op("Concat", &[&ego_col, &agents_mask, &route_any, &map_any], vec![("axis", Attr::Int(1))]);
-    let pad = g.op("Equal", &[&present, &zero], vec![]);
+    let pad = g.op("Equal", &[&present, &c.zero], vec![]);
 
-    // One-query attention (`EgoAttention::forward`).
-    let heads = enc.attn.heads;
-    let dh = d / heads;
-    let q = g.linear(&enc.attn.wq, &ego);
-    let qshape = g.ints("shape", &[-1, 1, heads as i64, dh as i64]);
-    let q = g.op("Reshape", &[&q, &qshape], vec![]);
-    let scale = g.constant("sqrt_dh", &[], &[(dh as f32).sqrt()]);
-    let q = g.op("Div", &[&q, &scale], vec![]);
-    let kvshape = g.ints("shape", &[-1, t as i64, heads as i64, dh as i64]);
-    let k = g.linear(&enc.attn.wk, &keys);
-    let k = g.op("Reshape", &[&k, &kvshape], vec![]);
-    let v = g.linear(&enc.attn.wv, &tokens);
-    let v = g.op("Reshape", &[&v, &kvshape], vec![]);
-    let kq = g.op("Mul", &[&k, &q], vec![]);
-    let a3 = g.ints("axes", &[3]);
-    let scores = g.op("ReduceSum", &[&kq, &a3], vec![("keepdims", Attr::Int(1))]);
-    let pshape = g.ints("shape", &[-1, t as i64, 1, 1]);
-    let pad4 = g.op("Reshape", &[&pad, &pshape], vec![]);
-    let neg = g.constant("neg", &[], &[-1.0e9]);
-    let scores = g.op("Where", &[&pad4, &neg, &scores], vec![]);
-    let w = g.op("Softmax", &[&scores], vec![("axis", Attr::Int(1))]);
-    let vw = g.op("Mul", &[&v, &w], vec![]);
-    let ctx = g.op("ReduceSum", &[&vw, &a1], vec![("keepdims", Attr::Int(0))]);
-    let cshape = g.ints("shape", &[-1, d as i64]);
-    let ctx = g.op("Reshape", &[&ctx, &cshape], vec![]);
-    let mut feat = g.linear(&enc.attn.wo, &ctx);
-    if enc.ego_skip {
-        let sum = g.op("Add", &[&feat, &ego], vec![]);
-        let half = g.constant("half", &[], &[0.5]);
-        feat = g.op("Mul", &[&sum, &half], vec![]);
-    }
+    let feat = attention(&mut g, enc, &c, t, &ego, &tokens, &keys, &pad);
     let mut mean = g.mlp(&actor.mean, &feat);
     if actor.squash_mean_twice {
         mean = g.op("Tanh", &[&mean], vec![]);
     }
     let action = g.op("Tanh", &[&mean], vec![]);
     let out_dim = actor.mean.layers.last().map_or(0, |l| l.weight.dims()[1]) as i64;
+    Ok(model(g, action, out_dim, x))
+}
+
+/// Values every part of the graph uses: the history's time channel `[H, 1]`, the scalar 0 and
+/// the axes list `[1]`.
+struct Shared {
+    tc: String,
+    zero: String,
+    a1: String,
+}
+
+/// Which context features the network sees (`NetConfig::svo`, `ego_flag`), as 0/1 factors.
+struct CtxMasks {
+    svo_own: f32,
+    svo_all: f32,
+    flag: f32,
+}
+
+impl CtxMasks {
+    fn of(net: &NetConfig) -> Self {
+        let on = |b: bool| if b { 1.0 } else { 0.0 };
+        Self { svo_own: on(net.svo != SvoVisibility::None), svo_all: on(net.svo == SvoVisibility::All), flag: on(net.ego_flag) }
+    }
+}
+
+/// The ego's token `[B, D]`: its history (every frame valid) through the agent set, plus its
+/// context.
+fn ego_token(g: &mut Graph, enc: &Encoder, c: &Shared, m: &CtxMasks, ego_hist: &str, ego_ctx: &str) -> String {
+    // Own history: [B, H, 4] ++ time -> [B, 1, H, 5].
+    let (s0, s1, ax) = (g.ints("starts", &[0]), g.ints("ends", &[1]), g.ints("axes", &[2]));
+    let first = g.op("Slice", &[ego_hist, &s0, &s1, &ax], vec![]);
+    let zeros = g.op("Mul", &[&first, &c.zero], vec![]);
+    let tcol = g.op("Add", &[&zeros, &c.tc], vec![]);
+    let ego_in = g.op("Concat", &[ego_hist, &tcol], vec![("axis", Attr::Int(-1))]);
+    let ego_in = g.op("Unsqueeze", &[&ego_in, &c.a1], vec![]);
+    let ego_ds = g.deep_set(&enc.agent_set, &ego_in, None);
+    let ego_ds = g.op("Squeeze", &[&ego_ds, &c.a1], vec![]);
+    let ego_sel = g.constant("ego_ctx_mask", &[EGO_CTX], &[m.svo_own, m.flag]);
+    let ego_ctx = g.op("Mul", &[ego_ctx, &ego_sel], vec![]);
+    let ego_ctx = g.linear(&enc.ego_ctx, &ego_ctx);
+    g.op("Add", &[&ego_ds, &ego_ctx], vec![])
+}
+
+/// The neighbours' tokens `[B, N, D]`: time channel times validity; padding slots masked out
+/// of the set sum.
+#[allow(clippy::too_many_arguments)]
+fn neighbour_tokens(g: &mut Graph, enc: &Encoder, spec: &ObsSpec, c: &Shared, m: &CtxMasks, agents_hist: &str, agents_ctx: &str, agents_mask: &str) -> String {
+    let a23 = g.ints("axes", &[2, 3]);
+    let valid4 = g.op("Unsqueeze", &[agents_mask, &a23], vec![]);
+    let vt = g.op("Mul", &[&valid4, &c.tc], vec![]);
+    let agents_in = g.op("Concat", &[agents_hist, &vt], vec![("axis", Attr::Int(-1))]);
+    let a2 = g.ints("axes", &[2]);
+    let valid3 = g.op("Unsqueeze", &[agents_mask, &a2], vec![]);
+    let ones_h = g.constant("ones_h", &[spec.history], &vec![1.0; spec.history]);
+    let vmask = g.op("Mul", &[&valid3, &ones_h], vec![]);
+    let agents_ds = g.deep_set(&enc.agent_set, &agents_in, Some(&vmask));
+    let ag_sel = g.constant("agents_ctx_mask", &[AGENT_CTX], &[1.0, 1.0, 1.0, 1.0, m.svo_all, m.flag]);
+    let agents_ctx = g.op("Mul", &[agents_ctx, &ag_sel], vec![]);
+    let agents_ctx = g.mlp(&enc.agent_ctx, &agents_ctx);
+    g.op("Add", &[&agents_ds, &agents_ctx], vec![])
+}
+
+/// The route's token `[B, 1, D]` (`[x, y, theta, 0, k]` per point, one polyline) and whether
+/// it has a valid point `[B, 1]`.
+fn route_token(g: &mut Graph, enc: &Encoder, c: &Shared, route: &str, route_mask: &str) -> (String, String) {
+    let pick = g.ints("route_pick", &[0, 1, 2, 0, 3]);
+    let route5 = g.op("Gather", &[route, &pick], vec![("axis", Attr::Int(2))]);
+    let keep = g.constant("route_keep", &[5], &[1.0, 1.0, 1.0, 0.0, 1.0]);
+    let route5 = g.op("Mul", &[&route5, &keep], vec![]);
+    let route5 = g.op("Unsqueeze", &[&route5, &c.a1], vec![]);
+    let rmask = g.op("Unsqueeze", &[route_mask, &c.a1], vec![]);
+    let tok = g.deep_set(&enc.static_set, &route5, Some(&rmask));
+    let any = g.op("ReduceMax", &[route_mask], vec![("axes", Attr::Ints(vec![1])), ("keepdims", Attr::Int(1))]);
+    (tok, any)
+}
+
+/// The map's tokens `[B, M, D]` and their validity `[B, M]`, with the layout's own inputs:
+/// ego-frame polylines through the static set, or query-centric segment ids looked up in the
+/// maps' segment table (a constant of the graph) plus their embedded poses.
+fn map_tokens(g: &mut Graph, enc: &Encoder, x: &ExportSpec, c: &Shared) -> Result<(String, String), OnnxError> {
+    let (m, p) = (x.spec.map_pieces as i64, x.spec.piece_points as i64);
+    Ok(match x.spec.layout {
+        Layout::EgoFrame => {
+            let map = g.input("map", FLOAT, &[m, p, 5]);
+            let map_mask = g.input("map_mask", FLOAT, &[m, p]);
+            let tok = g.deep_set(&enc.static_set, &map, Some(&map_mask));
+            let any = g.op("ReduceMax", &[&map_mask], vec![("axes", Attr::Ints(vec![2])), ("keepdims", Attr::Int(0))]);
+            (tok, any)
+        }
+        Layout::QueryCentric => {
+            let table = x.table.ok_or(OnnxError::NoSegmentTable)?;
+            let seg_id = g.input("seg_id", FLOAT, &[m]);
+            let seg_pose = g.input("seg_pose", FLOAT, &[m, 4]);
+            let seg_mask = g.input("seg_mask", FLOAT, &[m]);
+            let map_id = g.input("map_id", INT64, &[]);
+            let [s_total, _] = table.emb.dims();
+            let emb = g.constant("segment_table", &[s_total, enc.d()], &tensor_vec(table.emb.clone()));
+            let offsets: Vec<i64> = table.offsets.iter().map(|&o| o as i64).collect();
+            let offsets = g.ints("map_offsets", &offsets);
+            let local = g.op("Mul", &[&seg_id, &seg_mask], vec![]);
+            let local = g.op("Cast", &[&local], vec![("to", Attr::Int(INT64 as i64))]);
+            let off = g.op("Gather", &[&offsets, &map_id], vec![("axis", Attr::Int(0))]);
+            let off = g.op("Unsqueeze", &[&off, &c.a1], vec![]);
+            let ids = g.op("Add", &[&local, &off], vec![]);
+            let rows = g.op("Gather", &[&emb, &ids], vec![("axis", Attr::Int(0))]);
+            let pose = g.mlp(&enc.seg_pose, &seg_pose);
+            (g.op("Add", &[&rows, &pose], vec![]), seg_mask)
+        }
+    })
+}
+
+/// The ego's one-query attention over the `t` tokens (`EgoAttention::forward`), padding
+/// masked, then the output projection and the ego skip connection: the features `[B, D]`.
+#[allow(clippy::too_many_arguments)]
+fn attention(g: &mut Graph, enc: &Encoder, c: &Shared, t: usize, ego: &str, tokens: &str, keys: &str, pad: &str) -> String {
+    let d = enc.d();
+    let heads = enc.attn.heads;
+    let dh = d / heads;
+    let q = g.linear(&enc.attn.wq, ego);
+    let qshape = g.ints("shape", &[-1, 1, heads as i64, dh as i64]);
+    let q = g.op("Reshape", &[&q, &qshape], vec![]);
+    let scale = g.constant("sqrt_dh", &[], &[(dh as f32).sqrt()]);
+    let q = g.op("Div", &[&q, &scale], vec![]);
+    let kvshape = g.ints("shape", &[-1, t as i64, heads as i64, dh as i64]);
+    let k = g.linear(&enc.attn.wk, keys);
+    let k = g.op("Reshape", &[&k, &kvshape], vec![]);
+    let v = g.linear(&enc.attn.wv, tokens);
+    let v = g.op("Reshape", &[&v, &kvshape], vec![]);
+    let kq = g.op("Mul", &[&k, &q], vec![]);
+    let a3 = g.ints("axes", &[3]);
+    let scores = g.op("ReduceSum", &[&kq, &a3], vec![("keepdims", Attr::Int(1))]);
+    let pshape = g.ints("shape", &[-1, t as i64, 1, 1]);
+    let pad4 = g.op("Reshape", &[pad, &pshape], vec![]);
+    let neg = g.constant("neg", &[], &[-1.0e9]);
+    let scores = g.op("Where", &[&pad4, &neg, &scores], vec![]);
+    let w = g.op("Softmax", &[&scores], vec![("axis", Attr::Int(1))]);
+    let vw = g.op("Mul", &[&v, &w], vec![]);
+    let ctx = g.op("ReduceSum", &[&vw, &c.a1], vec![("keepdims", Attr::Int(0))]);
+    let cshape = g.ints("shape", &[-1, d as i64]);
+    let ctx = g.op("Reshape", &[&ctx, &cshape], vec![]);
+    let feat = g.linear(&enc.attn.wo, &ctx);
+    if !enc.ego_skip {
+        return feat;
+    }
+    let sum = g.op("Add", &[&feat, ego], vec![]);
+    let half = g.constant("half", &[], &[0.5]);
+    g.op("Mul", &[&sum, &half], vec![])
+}
+
+/// The model around the graph: its one output renamed `action` (`[batch, out_dim]`) through an
+/// Identity, so callers can ask for it by name, and the opset.
+fn model(g: Graph, action: String, out_dim: i64, x: &ExportSpec) -> Vec<u8> {
     let output = ValueInfoProto {
         name: action,
         r#type: Some(TypeProto {
@@ -448,7 +502,6 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError>
             }),
         }),
     };
-    // The output is renamed `action` through an Identity, so callers can ask for it by name.
     let mut graph = GraphProto { node: g.nodes, name: "socialflow_actor".into(), initializer: g.inits, input: g.inputs, output: vec![] };
     graph.node.push(NodeProto { input: vec![output.name.clone()], output: vec!["action".into()], name: "action".into(), op_type: "Identity".into(), attribute: vec![] });
     graph.output.push(ValueInfoProto { name: "action".into(), ..output });
@@ -460,7 +513,7 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError>
         graph: Some(graph),
         opset_import: vec![OperatorSetIdProto { domain: String::new(), version: OPSET }],
     };
-    Ok(model.encode_to_vec())
+    model.encode_to_vec()
 }
 
 #[cfg(test)]

@@ -192,6 +192,7 @@ pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
         seeds: w.seeds,
         envs: w.envs,
         policies: w.policies.iter().map(frozen_to_wire).collect(),
+        ego_idm: w.ego_idm,
     }
 }
 
@@ -211,7 +212,16 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
     }
     let cell = Cell { experiment: c.experiment.clone(), ego: c.ego.clone(), flow: c.flow.clone(), scenario: c.scenario.clone(), svo_deg: c.svo_deg, vehicles: c.vehicles.map(|v| v as usize) };
     let policies = w.policies.iter().map(frozen_from_wire).collect::<Result<Vec<_>, _>>()?;
-    Ok(EvalWork { job_id: w.job_id, cell_id: w.cell_id, cell, cases: w.cases, seeds: w.seeds, envs: w.envs, policies })
+    // Who sits in the ego's seat: a cell that names an ego gets exactly one of the IDM
+    // driver and an EGO policy; a cell without one (a flow on its own) gets neither.
+    let ego_policy = policies.iter().any(|p| p.role == FrozenRole::Ego);
+    match (cell.ego.is_empty(), w.ego_idm, ego_policy) {
+        (true, false, false) | (false, true, false) | (false, false, true) => {}
+        (true, _, _) => return wire("eval.cell.ego", "a cell without an ego gets no EGO policy and no IDM ego"),
+        (false, true, true) => return wire("eval.ego_idm", format!("the IDM driver and an EGO policy both given for ego `{}`", cell.ego)),
+        (false, false, false) => return wire("eval.policies", format!("ego `{}` has no EGO policy and is not the IDM driver", cell.ego)),
+    }
+    Ok(EvalWork { job_id: w.job_id, cell_id: w.cell_id, cell, cases: w.cases, seeds: w.seeds, envs: w.envs, policies, ego_idm: w.ego_idm })
 }
 
 pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
@@ -470,8 +480,23 @@ mod tests {
             seeds: 2,
             envs: 40,
             policies: vec![Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into())],
+            ego_idm: false,
         };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&w)), Ok(w.clone()));
+        // Who sits in the ego's seat: exactly one of the IDM driver and an EGO policy when the
+        // cell names an ego, neither when it does not.
+        let idm_ego = EvalWork { cell: Cell { experiment: "cross".into(), ego: "IDM ego".into(), svo_deg: None, ..w.cell.clone() }, ego_idm: true, ..w.clone() };
+        assert_eq!(eval_work_from_wire(&eval_work_to_wire(&idm_ego)), Ok(idm_ego.clone()));
+        let mut m = eval_work_to_wire(&idm_ego);
+        m.policies.push(frozen_to_wire(&Frozen::new(FrozenRole::Ego, 5, "name = \"e\"".into())));
+        assert_eq!(eval_work_from_wire(&m).expect_err("both").field, "eval.ego_idm");
+        m.ego_idm = false;
+        assert!(eval_work_from_wire(&m).is_ok(), "a learned ego");
+        m.policies.pop();
+        assert_eq!(eval_work_from_wire(&m).expect_err("no ego at all").field, "eval.policies");
+        let mut m = eval_work_to_wire(&w);
+        m.ego_idm = true;
+        assert_eq!(eval_work_from_wire(&m).expect_err("an IDM ego in a flow-only cell").field, "eval.cell.ego");
         let mut m = eval_work_to_wire(&w);
         m.cell = None;
         assert_eq!(eval_work_from_wire(&m).expect_err("no cell").field, "eval.cell");

@@ -142,14 +142,19 @@ fn valid_assignment() -> impl Strategy<Value = Assignment> {
 fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
     let cell = ("[a-z_]{1,12}", "[A-Za-z/]{0,12}", "[A-Za-z]{1,12}", "[a-z]{1,12}", prop::option::of(0u32..=90), prop::option::of(1usize..=64))
         .prop_map(|(experiment, ego, flow, scenario, svo_deg, vehicles)| Cell { experiment, ego, flow, scenario, svo_deg, vehicles });
-    (1u64.., any::<u64>(), cell, 1u32.., 1u32.., 1u32.., prop::collection::vec(frozen(), 0..3)).prop_map(|(job_id, cell_id, cell, cases, seeds, envs, policies)| EvalWork {
-        job_id,
-        cell_id,
-        cell,
-        cases,
-        seeds,
-        envs,
-        policies,
+    // Who sits in the ego's seat: nobody (a flow on its own), the IDM driver, or an EGO policy.
+    let seat = prop_oneof![Just(None), Just(Some(true)), Just(Some(false))];
+    (1u64.., any::<u64>(), cell, 1u32.., 1u32.., 1u32.., prop::collection::vec(frozen(), 0..3), seat, frozen()).prop_map(|(job_id, cell_id, mut cell, cases, seeds, envs, mut policies, seat, ego)| {
+        policies.retain(|p| p.role != FrozenRole::Ego);
+        match seat {
+            None => cell.ego.clear(),
+            Some(_) if cell.ego.is_empty() => cell.ego = "E".into(),
+            Some(_) => {}
+        }
+        if seat == Some(false) {
+            policies.push(Frozen { role: FrozenRole::Ego, ..ego });
+        }
+        EvalWork { job_id, cell_id, cell, cases, seeds, envs, policies, ego_idm: seat == Some(true) }
     })
 }
 

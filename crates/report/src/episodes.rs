@@ -138,6 +138,10 @@ pub struct Meta {
     pub trained_in: BTreeMap<String, String>,
     /// The ego the paper proposes (RARL/SocialCommAdv), compared by paired t-tests.
     pub ours: Option<String>,
+    /// The IDM driver in the ego's seat (an ego of `job = "idm"`), which every trained ego is
+    /// tested against.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub idm_ego: Option<String>,
     /// Flow and ego names in display order.
     pub flows: Vec<String>,
     pub egos: Vec<String>,
@@ -151,6 +155,7 @@ impl Meta {
         Self {
             trained_in: cfg.egos.iter().filter_map(|e| e.trained_in.clone().map(|t| (e.name.clone(), t))).collect(),
             ours: cfg.ours.clone(),
+            idm_ego: cfg.egos.iter().find(|e| e.is_idm()).map(|e| e.name.clone()),
             flows: cfg.flows.iter().map(|f| f.name.clone()).collect(),
             egos: cfg.egos.iter().map(|f| f.name.clone()).collect(),
             cases: cfg.cases,

@@ -56,6 +56,14 @@ fn summary(rows: &[&EpisodeRow], m: Metric) -> Summary {
     Summary::of(&rows.iter().map(|r| m(r) as f64).collect::<Vec<_>>())
 }
 
+/// "= 1.23e-2", or "< 1e-15" below what [`fmt_p`] prints (after a "p").
+fn p_is(p: f64) -> String {
+    match fmt_p(p) {
+        s if s.starts_with('<') => s,
+        s => format!("= {s}"),
+    }
+}
+
 fn pct(s: Summary) -> String {
     if s.n == 0 {
         "-".into()
@@ -535,7 +543,7 @@ fn cross(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), ReportErr
                     .iter()
                     .map(|e| flows.iter().map(|f| summary(&by(rows, |r| r.cell.experiment == "cross" && &r.cell.ego == e && &r.cell.flow == f && &r.cell.scenario == s), m).mean).collect())
                     .collect();
-                let marks = medals(&egos, &flows, &values, &meta.trained_in);
+                let marks = medals(&egos, &flows, &values, &meta.trained_in, meta.idm_ego.as_ref());
                 let file = format!("cross-{}-{s}.png", mname.to_lowercase());
                 plot::heatmap(&ctx.out.join(&file), &format!("{mname}, {s}"), &egos, &flows, &values, &marks)?;
                 doc.figure(&file, &format!("Cross-validation {mname} in {s}"))?;
@@ -553,7 +561,8 @@ fn cross(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), ReportErr
                 let mut bars: Vec<Bar> = means.iter().map(|(_, v)| Bar { mean: v.mean, ci95: v.ci95, stars: String::new() }).collect();
                 if let Some(ours) = meta.ours.as_ref().filter(|o| egos.contains(o)) {
                     let our_mean = means.iter().find(|(e, _)| e == ours).map(|(_, v)| v.mean).unwrap_or(f64::NAN);
-                    let mut others: Vec<&(String, Summary)> = means.iter().filter(|(e, _)| e != ours).collect();
+                    // Among the trained egos: the IDM driver has its own section below.
+                    let mut others: Vec<&(String, Summary)> = means.iter().filter(|(e, _)| e != ours && Some(e) != meta.idm_ego.as_ref()).collect();
                     others.sort_by(|a, b| (a.1.mean - our_mean).abs().total_cmp(&(b.1.mean - our_mean).abs()));
                     for (e, _) in others.into_iter().take(2) {
                         if let Some(t) = paired(&pooled(ours), &pooled(e), m) {
@@ -579,18 +588,61 @@ fn cross(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), ReportErr
                 doc.p(&l);
             }
         }
+        if let Some(idm) = meta.idm_ego.as_ref().filter(|e| egos.contains(e)) {
+            against_idm_ego(ctx, doc, found, idm, &egos, &scen);
+        }
     }
     Ok(())
 }
 
-/// Grey for an ego's own training flow; gold, silver, copper for the best three of each column.
-pub fn medals(egos: &[String], flows: &[String], values: &[Vec<f64>], trained_in: &BTreeMap<String, String>) -> Vec<Vec<Mark>> {
+/// Every trained ego against the IDM driver in its seat, on the same cross-validation episode
+/// starts (flow, scenario, case, seed): per scenario and pooled, with one check per ego.
+fn against_idm_ego(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, idm: &String, egos: &[String], scen: &[String]) {
+    let success = METRICS[0].1;
+    let cells = |e: &String, s: Option<&String>| by(ctx.rows, |r| r.cell.experiment == "cross" && &r.cell.ego == e && s.is_none_or(|s| &r.cell.scenario == s));
+    doc.h(2, "Trained egos against the IDM driver in their seat");
+    doc.p(&format!(
+        "Success in percent over the cross-validation cells (every evaluation flow); in brackets the paired difference to `{idm}` (the IDM driver, the zero residual every trained ego starts from) on the same episode starts and its p-value. The last column pools every scenario."
+    ));
+    let mut head = vec!["Ego".to_string()];
+    head.extend(scen.iter().cloned());
+    head.push("all scenarios".into());
+    let scopes: Vec<Option<&String>> = scen.iter().map(Some).chain([None]).collect();
+    let mean = |rows: &[&EpisodeRow]| if rows.is_empty() { "-".to_string() } else { format!("{:.1}", 100.0 * summary(rows, success).mean) };
+    let mut table = vec![std::iter::once(idm.clone()).chain(scopes.iter().map(|s| mean(&cells(idm, *s)))).collect::<Vec<_>>()];
+    for e in egos.iter().filter(|e| *e != idm) {
+        let mut line = vec![e.clone()];
+        for s in &scopes {
+            let (a, b) = (cells(e, *s), cells(idm, *s));
+            let t = paired(&a, &b, success);
+            line.push(match &t {
+                Some(t) => format!("{} ({:+.1}, p {})", mean(&a), 100.0 * t.mean_diff, p_is(t.p_value)),
+                None => mean(&a),
+            });
+            if let (None, Some(t)) = (s, t) {
+                found.checks.push(Check::from_paired(
+                    format!("{e} succeeds more often than the IDM driver in its seat (cross-validation, all flows and scenarios)"),
+                    &format!("success, {e} - {idm}"),
+                    &t,
+                ));
+            }
+        }
+        table.push(line);
+    }
+    doc.table(&head, &table);
+}
+
+/// Grey for an ego's own training flow; gold, silver, copper for the best three of each column,
+/// `unranked` (a baseline) left out of the ranking.
+pub fn medals(egos: &[String], flows: &[String], values: &[Vec<f64>], trained_in: &BTreeMap<String, String>, unranked: Option<&String>) -> Vec<Vec<Mark>> {
     let mut marks = vec![vec![Mark::None; flows.len()]; egos.len()];
     for (c, f) in flows.iter().enumerate() {
         let mut ranked: Vec<(usize, f64)> = Vec::new();
         for (r, e) in egos.iter().enumerate() {
             if trained_in.get(e) == Some(f) {
                 marks[r][c] = Mark::Diagonal;
+            } else if Some(e) == unranked {
+                // A baseline (the IDM driver in the ego's seat) is shown, not ranked.
             } else if let Some(v) = values.get(r).and_then(|row| row.get(c)).filter(|v| v.is_finite()) {
                 ranked.push((r, *v));
             }
@@ -651,10 +703,13 @@ mod tests {
         let flows: Vec<String> = ["X", "Y"].iter().map(|s| s.to_string()).collect();
         let values = vec![vec![0.9, 0.1], vec![0.5, 0.2], vec![0.7, 0.3], vec![0.6, 0.4]];
         let trained: BTreeMap<String, String> = [("A".to_string(), "X".to_string())].into();
-        let m = medals(&egos, &flows, &values, &trained);
+        let m = medals(&egos, &flows, &values, &trained, None);
         assert_eq!(m[0][0], Mark::Diagonal, "A's own flow is grey though it is the best");
         assert_eq!((m[2][0], m[3][0], m[1][0]), (Mark::Gold, Mark::Silver, Mark::Copper));
         assert_eq!((m[3][1], m[2][1], m[1][1], m[0][1]), (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None));
+        // A baseline row is not ranked: the next ego takes its medal.
+        let m = medals(&egos, &flows, &values, &trained, Some(&egos[3]));
+        assert_eq!((m[2][1], m[1][1], m[0][1], m[3][1]), (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None));
     }
 
     #[test]
@@ -714,6 +769,7 @@ mod tests {
                     rows.push(row("cross", "RARL/SocialCommAdv", flow, case, seed, 0.8 + fb + noise));
                     rows.push(row("cross", "RL/IDM", flow, case, seed, 0.3 + fb + noise));
                     rows.push(row("cross", "RL/SocialComm", flow, case, seed, 0.6 + fb + noise * 0.5));
+                    rows.push(row("cross", "IDM ego", flow, case, seed, 0.45 + fb + noise * 0.5));
                 }
                 rows.push(row("flow_quality", "", "SocialComm", case, seed, 0.7 + noise));
                 rows.push(row("flow_quality", "", "CoPO", case, seed, 0.4 + noise));
@@ -734,7 +790,8 @@ mod tests {
             trained_in: [("RL/IDM".to_string(), "IDM".to_string()), ("RL/SocialComm".to_string(), "SocialComm".to_string())].into(),
             ours: Some("RARL/SocialCommAdv".into()),
             flows: vec!["IDM".into(), "CoPO".into(), "SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()],
-            egos: vec!["RL/IDM".into(), "RL/SocialComm".into(), "RARL/SocialCommAdv".into()],
+            egos: vec!["RL/IDM".into(), "RL/SocialComm".into(), "RARL/SocialCommAdv".into(), "IDM ego".into()],
+            idm_ego: Some("IDM ego".into()),
             cases: 12,
             seeds: 2,
         };
@@ -756,6 +813,13 @@ mod tests {
         let copo = f.checks.iter().find(|c| c.claim == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)").expect("flow check");
         assert!(copo.holds() && copo.test.starts_with("paired t"), "{copo:?}");
         assert!(md.contains("| Finding | Test | Effect (points) | p | Here |"), "the findings table names test, effect and p");
+        // Against the IDM driver in the ego's seat: one check per trained ego, with its direction.
+        let vs_idm = |e: &str| f.checks.iter().find(|c| c.claim.starts_with(&format!("{e} succeeds more often than the IDM driver"))).unwrap_or_else(|| panic!("{e} vs the IDM ego"));
+        assert!(vs_idm("RL/SocialComm").holds() && (vs_idm("RL/SocialComm").effect_points - 15.0).abs() < 1e-3, "{:?}", vs_idm("RL/SocialComm"));
+        assert_eq!(vs_idm("RL/IDM").verdict, crate::findings::Verdict::Opposite, "0.30 vs 0.45 on every start");
+        assert_eq!(f.checks.iter().filter(|c| c.claim.contains("than the IDM driver")).count(), 3, "the IDM ego is not tested against itself");
+        assert!(!f.checks.iter().any(|c| c.claim.contains("better than IDM ego")), "ours is compared with trained egos only");
+        assert!(md.contains("Trained egos against the IDM driver in their seat") && md.contains("| IDM ego | 49.4 | 49.4 |") && md.contains("(+15.0, p < 1e-15)"), "{md}");
         let _ = std::fs::remove_dir_all(&out);
     }
 }

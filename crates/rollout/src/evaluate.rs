@@ -1,7 +1,7 @@
 //! Running one cell of an evaluation grid: `cases x seeds` episodes of stored cases with the
 //! cell's ego and flow, in batched simulators.
 //!
-//! Owns: what acts in a cell ([`Policy`], [`FlowDef`]), the checks that an ego and a flow fit
+//! Owns: what acts in a cell ([`Policy`], [`FlowDef`], [`EgoDef`]), the checks that an ego and a flow fit
 //! together ([`check_cell`]), the per-scenario policy cache ([`Runners`]), [`run_cell`] and the
 //! side-by-side GIF of one case under several flows ([`render_gif`]). `socialflow eval`
 //! (embedded) and the worker (an evaluation job's cells) both call these, so the same cell
@@ -9,7 +9,8 @@
 //! cases through the same settings ([`run_cases`]). Must not: find jobs (callers hand over configs and
 //! weights) or write results.
 //!
-//! Actions: ego policies act with their mean action; learned flows and the adversary sample,
+//! Actions: ego policies act with their mean action (the IDM driver in the ego's seat with
+//! the zero residual, so exactly as IDM drives); learned flows and the adversary sample,
 //! one random stream per seed (the seed is the stream's seed), so the same policies, cases,
 //! seeds and `envs` give the same numbers.
 
@@ -160,6 +161,37 @@ impl FlowDef {
     }
 }
 
+/// Who drives a cell's ego seat: a trained ego policy (its mean action), or the IDM driver
+/// (an evaluation grid's `job = "idm"` ego: the zero residual every trained ego starts from,
+/// the baseline they are tested against).
+#[derive(Clone)]
+// A handful per grid, built once: boxing the policy would buy nothing.
+#[allow(clippy::large_enum_variant)]
+pub enum EgoDef {
+    Idm,
+    Learned(Policy),
+}
+
+impl EgoDef {
+    /// A work item's ego seat: the IDM driver when `idm` (the wire's `ego_idm`), else its EGO
+    /// policy if it has one.
+    pub fn of_work(ego: Option<Policy>, idm: bool) -> Result<Option<Self>, EvalError> {
+        match (ego, idm) {
+            (Some(_), true) => Err(EvalError::Misfit("the IDM driver and an ego policy both given for the ego's seat".into())),
+            (None, true) => Ok(Some(Self::Idm)),
+            (ego, false) => Ok(ego.map(Self::Learned)),
+        }
+    }
+
+    /// What names it in a cell run outside a grid ([`run_cases`]): the policy's key, or `idm`.
+    pub fn key(&self) -> String {
+        match self {
+            Self::Idm => "idm".into(),
+            Self::Learned(p) => p.key.clone(),
+        }
+    }
+}
+
 /// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
 /// their fetched weights (`weights[i]` belongs to `policies[i]`), each config parsed from the
 /// text it travelled with (a worker's view).
@@ -195,7 +227,16 @@ pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<
 
 /// Whether `ego` (or none) can be evaluated in `flow`: an ego is an ego job observing in the
 /// flow's layout; a flow on its own is a Stage-1 flow that drives every vehicle.
-pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&Policy>) -> Result<(), EvalError> {
+pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(), EvalError> {
+    if cell.ego.is_empty() != ego.is_none() {
+        return Err(EvalError::Misfit(format!("cell {} names ego `{}` but {} given", cell.key(), cell.ego, if ego.is_some() { "an ego is" } else { "none is" })));
+    }
+    let ego = match ego {
+        // The IDM driver ignores what it observes: it fits every flow.
+        Some(EgoDef::Idm) => return Ok(()),
+        Some(EgoDef::Learned(p)) => Some(p),
+        None => None,
+    };
     if let Some(e) = ego {
         if e.cfg.kind != JobKind::Ego {
             return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str())));
@@ -257,7 +298,7 @@ impl Runners {
 
 /// The policies acting in a cell.
 struct Acting {
-    ego: Option<Arc<PolicyRunner>>,
+    ego: Seat,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
     /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
@@ -265,21 +306,45 @@ struct Acting {
     svo_gaussian: Option<SvoGaussian>,
 }
 
+/// A cell's ego seat, built.
+enum Seat {
+    /// No ego: the flow drives every vehicle.
+    Empty,
+    Idm,
+    Policy(Arc<PolicyRunner>),
+}
+
 impl Acting {
-    /// The ego acts with its mean; flows and the adversary sample.
+    /// The ego acts with its mean (the IDM driver with the zero residual); flows and the
+    /// adversary sample.
     fn drivers(&self) -> Drivers<'_> {
+        let (background, adversary) = (self.background.as_deref().map(Actor::sampled), self.adversary.as_deref().map(Actor::sampled));
         match (&self.ego, &self.background) {
-            (Some(e), bg) => Drivers { alive: Actor::mean(e), background: bg.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) },
-            (None, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
+            (Seat::Policy(e), _) => Drivers { alive: Actor::mean(e), background, adversary },
+            (Seat::Idm, _) => Drivers { alive: IDM_EGO, background, adversary },
+            (Seat::Empty, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
             // The all-IDM flow: its vehicles' controllers ignore these actions.
-            (None, None) => Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None },
+            (Seat::Empty, None) => Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None },
         }
     }
 }
 
+/// The IDM driver in the ego's seat: the demonstrator with no noise, as a zero residual.
+const IDM_EGO: Actor<'static> = Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual };
+
 /// Simulator settings, mode and acting policies of a cell.
-fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
+fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
     check_cell(cell, flow, ego)?;
+    let ego = match ego {
+        // The IDM driver observes in the flow's settings, as `eval-flow --ego idm` runs it.
+        Some(EgoDef::Idm) => {
+            let f = FlowSetup::new(flow, map, None, runners)?;
+            let svo_gaussian = f.svo_gaussian.filter(|_| cell.svo_deg.is_none());
+            return Ok((f.sim, f.mode, Acting { ego: Seat::Idm, background: f.background, adversary: f.adversary, svo_gaussian }));
+        }
+        Some(EgoDef::Learned(p)) => Some(p),
+        None => None,
+    };
     // The layout comes from whichever job acts; what the background's observations carry from the flow.
     let bg_kind = match flow {
         FlowDef::Idm => None,
@@ -300,6 +365,7 @@ fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&Policy>, runn
         FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g),
         _ => None,
     };
+    let ego = ego.map_or(Seat::Empty, Seat::Policy);
     Ok((Arc::new(sim), mode, Acting { ego, background, adversary, svo_gaussian }))
 }
 
@@ -320,7 +386,7 @@ pub struct CellSize {
 
 /// Runs one cell on `map` (the cell's scenario) over its stored `cases`; episodes in (seed,
 /// case) order.
-pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
     if map.name != cell.scenario {
         return Err(EvalError::Misfit(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name)));
     }
@@ -336,10 +402,10 @@ pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, f
 /// Runs `cases` chosen outside (a training job's generated validation cases, say) once per
 /// seed, as a cell of `ego` (or the flow on its own) in `flow` would: the same settings, mode
 /// and acting policies; episodes in (seed, case) order.
-pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize, flow: &FlowDef, ego: Option<&Policy>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
     let cell = Cell {
         experiment: String::new(),
-        ego: ego.map(|e| e.key.clone()).unwrap_or_default(),
+        ego: ego.map(EgoDef::key).unwrap_or_default(),
         flow: flow.kind().map_or("idm", JobKind::as_str).to_string(),
         scenario: map.name.clone(),
         svo_deg: None,
@@ -431,7 +497,7 @@ impl FlowSetup {
 
 /// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
 /// into a GIF at `path`.
-pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), EvalError> {
+pub fn render_gif(ego: (&str, &EgoDef), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), EvalError> {
     use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
     let case = cases.cases.get(case as usize).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}")))?;
@@ -468,12 +534,12 @@ pub fn render_gif(ego: (&str, &Policy), flows: &[(&str, &FlowDef)], case: u32, m
 #[derive(Clone, Default)]
 pub struct Resolved {
     pub flows: BTreeMap<String, FlowDef>,
-    pub egos: BTreeMap<String, Policy>,
+    pub egos: BTreeMap<String, EgoDef>,
 }
 
 impl Resolved {
     /// The flow and ego (if any) acting in `cell`.
-    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&Policy>), EvalError> {
+    pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&EgoDef>), EvalError> {
         let flow = self.flows.get(&cell.flow).ok_or_else(|| EvalError::Misfit(format!("flow `{}` is not in the grid", cell.flow)))?;
         let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| EvalError::Misfit(format!("ego `{}` is not in the grid", cell.ego)))?) };
         Ok((flow, ego))

@@ -1,5 +1,6 @@
-//! Soft Actor-Critic: configuration, state and the update, which reads top to bottom in
-//! [`Sac::update`] (compare CleanRL's `sac_continuous_action.py`).
+//! Soft Actor-Critic: configuration, state and the update, which reads top to bottom from
+//! [`Sac::update`] through its numbered steps (`td_target`, `critic_step`, `actor_step`; compare
+//! CleanRL's `sac_continuous_action.py`).
 //!
 //! Owns: the actor, the twin critic and its Polyak target, log-alpha, their Adam optimizers,
 //! the update counter and the noise RNG. Must not: do IO on the update path (checkpoints are
@@ -23,6 +24,48 @@ use crate::replay::Batch;
 /// The `[sac]` section of a job config is the SAC config (one struct, one default: the
 /// paper's table).
 pub use sf_job::config::{BcTarget, CriticLoss, SacConfig};
+
+/// What the critic step leaves for the actor step: the batch's observations and replayed
+/// actions on the autodiff device, the critic's features without gradients (when reused or
+/// shared), and the step's numbers.
+struct CriticStep {
+    obs: ObsBatch,
+    act: Tensor<2>,
+    features: Option<Tensor<2>>,
+    q_mean: f32,
+    loss: f32,
+}
+
+/// The actor step's numbers (zeros while the critic alone is trained).
+#[derive(Default)]
+struct ActorLosses {
+    actor: f32,
+    alpha_loss: f32,
+    entropy: f32,
+}
+
+/// The policy's distribution on a batch and its reparameterised sample.
+struct Sampled {
+    mean: Tensor<2>,
+    log_std: Tensor<2>,
+    a_new: Tensor<2>,
+    logp: Tensor<2>,
+}
+
+/// AWAC-style row weights `[B, 1]` of the cloning term: `exp((q_data - q_pi) / lambda)`, the
+/// critic's advantage of the replayed action over the policy's, clipped at
+/// [`sf_job::config::AWAC_MAX_WEIGHT`] and normalised to mean 1 over the batch (so the term's
+/// scale does not depend on lambda).
+pub fn awac_weights(q_data: Tensor<2>, q_pi: Tensor<2>, lambda: f32) -> Tensor<2> {
+    let w = (q_data - q_pi).div_scalar(lambda).exp().clamp_max(sf_job::config::AWAC_MAX_WEIGHT);
+    let mean = w.clone().mean().into_scalar::<f32>().max(f32::MIN_POSITIVE);
+    w.div_scalar(mean)
+}
+
+/// A column `[n, 1]` of `v` on `dev`.
+fn column(v: &[f32], dev: &Device) -> Tensor<2> {
+    Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), dev)
+}
 
 /// `log(alpha)` as a module so Adam can optimise it.
 #[derive(Module, Debug)]
@@ -131,133 +174,17 @@ impl Sac {
         self.log_alpha.value.val().exp().into_scalar::<f32>()
     }
 
-    /// One SAC update on a sampled batch.
+    /// One SAC update on a sampled batch: the TD target, one critic step, one actor and
+    /// temperature step (none while the critic alone is trained), the Polyak moves.
     pub fn update(&mut self, batch: &Batch) -> Losses {
-        let b = batch.len();
-        let a_dim = self.net.action_dim;
         let alpha = self.alpha();
-        let target_entropy = self.cfg.target_entropy.unwrap_or(-(a_dim as f32));
-        let col = |v: &[f32], dev: &Device| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), dev);
-
-        // 1. TD target without gradients: y = s r + gamma^n (1 - d) (min Q'(s', a') - alpha log pi(a'|s')),
-        //    n the decision steps the row spans (its reward already summed over them).
-        let next = self.batch_on(&batch.next_obs, &batch.map_ids, &self.plain);
-        let actor_v = self.actor.valid();
-        let table = self.seg_plain.as_ref().map(|s| actor_v.enc.segment_table(s));
-        let plain = self.plain.clone();
-        let eps = self.noise(b, &plain);
-        let (a2, logp2) = actor_v.sample(&next, table.as_ref(), eps);
-        let table = self.seg_plain.as_ref().map(|s| self.target.enc.segment_table(s));
-        let (tq1, tq2) = self.target.forward(&next, table.as_ref(), a2);
-        let soft_q = tq1.min_pair(tq2) - logp2.mul_scalar(alpha);
-        let discount = col(&batch.bootstrap_discounts(self.cfg.gamma), &self.plain);
-        let y = col(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + discount * soft_q;
-        let y = Tensor::<2>::from_data(y.into_data(), &self.ad);
-
-        // 2. Critic: MSE of both heads to y, one Adam step.
-        let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.ad);
-        let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
-        let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [b, a_dim]), &self.ad);
-        let f_critic = self.critic.enc.forward(&obs, table.as_ref());
-        let f_reuse = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
-        let (q1, q2) = self.critic.heads(f_critic, act.clone());
-        let q_mean = q1.clone().mean().into_scalar::<f32>();
-        let loss_c = match self.cfg.critic_loss {
-            CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
-            // 2 x Huber, so that it equals the squared error within delta of the target.
-            CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta) + huber(q2 - y, self.cfg.huber_delta)).mul_scalar(2.0),
-        };
-        let critic_loss = loss_c.clone().into_scalar::<f32>();
-        let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
-        self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
-        if self.cfg.shared_encoder {
-            self.actor.enc = self.critic.enc.clone();
-        }
-
-        // 3. Actor: maximise min(Q1, Q2)(s, a~pi) - alpha log pi, critic features taken without
-        //    gradients. Not while the critic alone is trained (`critic_pretrain_updates`).
+        let y = self.td_target(batch, alpha);
+        let c = self.critic_step(batch, y);
+        let (critic, q_mean) = (c.loss, c.q_mean);
+        // Not while the critic alone is trained (`critic_pretrain_updates`).
         let cloning = self.updates < self.cfg.bc_updates;
         let evaluating_only = !cloning && self.updates < self.cfg.bc_updates + self.cfg.critic_pretrain_updates;
-        let (mut actor_loss, mut alpha_loss, mut entropy) = (0.0, 0.0, 0.0);
-        if !evaluating_only {
-            let fc = match f_reuse {
-                Some(f) => f,
-                None => {
-                    let critic_v = self.critic.valid();
-                    let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
-                    let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
-                    Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
-                }
-            };
-            let ad = self.ad.clone();
-            let eps = self.noise(b, &ad);
-            let (mean, log_std) = if self.cfg.shared_encoder {
-                self.actor.dist_from_features(fc.clone())
-            } else {
-                let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
-                self.actor.dist(&obs, table.as_ref())
-            };
-            let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
-            // Behaviour cloning: mean action to `target` (row weights `w_rows`, or all rows),
-            // log-std to `bc_log_std`.
-            let bc_log_std = self.cfg.bc_log_std();
-            let bc = |mean: Tensor<2>, log_std: Tensor<2>, target: Tensor<2>, w_rows: Option<Tensor<2>>| {
-                let err = (mean.tanh() - target).square();
-                let err = match w_rows {
-                    Some(w) => (err * w).mean(),
-                    None => err.mean(),
-                };
-                err + log_std.sub_scalar(bc_log_std).square().mean()
-            };
-            let loss_a = if cloning {
-                // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
-                bc(mean, log_std, act, None)
-            } else {
-                let critic_ng = self.critic.clone().no_grad();
-                let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), a_new.clone());
-                let q_pi = q1_pi.min_pair(q2_pi);
-                let since = self.updates - self.cfg.bc_updates - self.cfg.critic_pretrain_updates;
-                let w = match self.cfg.bc_decay_updates {
-                    0 => self.cfg.bc_weight,
-                    d if since < d => self.cfg.bc_weight * (1.0 - since as f32 / d as f32),
-                    _ => 0.0,
-                };
-                let sac = (logp.clone().mul_scalar(alpha) - q_pi.clone()).mean();
-                if w > 0.0 {
-                    // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
-                    let q_scale = q_pi.clone().abs().mean().into_scalar::<f32>().max(1.0);
-                    let term = match self.cfg.bc_target {
-                        BcTarget::Replay => bc(mean, log_std, act, None),
-                        BcTarget::Zero => {
-                            let zeros = Tensor::<2>::zeros([b, a_dim], &self.ad);
-                            let rows = self.cfg.bc_q_filter.then(|| {
-                                let (q1_0, q2_0) = critic_ng.heads(fc, zeros.clone());
-                                let q_zero = q1_0.min_pair(q2_0);
-                                let keep = q_zero.greater_equal(q_pi.detach()).float();
-                                Tensor::<2>::from_data(keep.into_data(), &self.ad)
-                            });
-                            bc(mean, log_std, zeros, rows)
-                        }
-                    };
-                    sac + term.mul_scalar(w * q_scale)
-                } else {
-                    sac
-                }
-            };
-            actor_loss = loss_a.clone().into_scalar::<f32>();
-            let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
-            self.actor = self.opt_actor.step(self.cfg.actor_lr(self.updates), self.actor.clone(), grads);
-
-            // 4. Temperature: push the policy's entropy towards the target (not while cloning).
-            let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
-            entropy = -logp.clone().mean().into_scalar::<f32>();
-            let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
-            alpha_loss = loss_al.clone().into_scalar::<f32>();
-            if !cloning {
-                let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
-                self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
-            }
-        }
+        let a = if evaluating_only { ActorLosses::default() } else { self.actor_step(batch, c, alpha, cloning) };
 
         // 5. Polyak: target <- (1 - tau) target + tau critic.
         self.target = polyak(self.target.clone(), &self.critic.valid(), self.cfg.tau);
@@ -265,7 +192,149 @@ impl Sac {
             self.actor_avg = Some(polyak(avg, &self.actor.valid(), t));
         }
         self.updates += 1;
-        Losses { critic: critic_loss, actor: actor_loss, alpha_loss, alpha: self.alpha(), entropy, q_mean }
+        Losses { critic, actor: a.actor, alpha_loss: a.alpha_loss, alpha: self.alpha(), entropy: a.entropy, q_mean }
+    }
+
+    /// 1. The TD target without gradients, on the autodiff device:
+    ///    y = s r + gamma^n (1 - d) (min Q'(s', a') - alpha log pi(a'|s')), n the decision steps
+    ///    the row spans (its reward already summed over them).
+    fn td_target(&mut self, batch: &Batch, alpha: f32) -> Tensor<2> {
+        let next = self.batch_on(&batch.next_obs, &batch.map_ids, &self.plain);
+        let actor_v = self.actor.valid();
+        let table = self.seg_plain.as_ref().map(|s| actor_v.enc.segment_table(s));
+        let plain = self.plain.clone();
+        let eps = self.noise(batch.len(), &plain);
+        let (a2, logp2) = actor_v.sample(&next, table.as_ref(), eps);
+        let table = self.seg_plain.as_ref().map(|s| self.target.enc.segment_table(s));
+        let (tq1, tq2) = self.target.forward(&next, table.as_ref(), a2);
+        let soft_q = tq1.min_pair(tq2) - logp2.mul_scalar(alpha);
+        let discount = column(&batch.bootstrap_discounts(self.cfg.gamma), &self.plain);
+        let y = column(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + discount * soft_q;
+        Tensor::<2>::from_data(y.into_data(), &self.ad)
+    }
+
+    /// 2. Critic: both heads' loss (MSE or Huber) to `y`, one Adam step; a shared encoder is
+    ///    copied to the actor.
+    fn critic_step(&mut self, batch: &Batch, y: Tensor<2>) -> CriticStep {
+        let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.ad);
+        let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
+        let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [batch.len(), self.net.action_dim]), &self.ad);
+        let f_critic = self.critic.enc.forward(&obs, table.as_ref());
+        let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
+        let (q1, q2) = self.critic.heads(f_critic, act.clone());
+        let q_mean = q1.clone().mean().into_scalar::<f32>();
+        let loss_c = match self.cfg.critic_loss {
+            CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
+            // 2 x Huber, so that it equals the squared error within delta of the target.
+            CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta) + huber(q2 - y, self.cfg.huber_delta)).mul_scalar(2.0),
+        };
+        let loss = loss_c.clone().into_scalar::<f32>();
+        let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
+        self.critic = self.opt_critic.step(self.cfg.lr_critic, self.critic.clone(), grads);
+        if self.cfg.shared_encoder {
+            self.actor.enc = self.critic.enc.clone();
+        }
+        CriticStep { obs, act, features, q_mean, loss }
+    }
+
+    /// 3. Actor: maximise min(Q1, Q2)(s, a~pi) - alpha log pi, critic features taken without
+    ///    gradients (the cloning updates instead fit the replayed actions); 4. temperature.
+    fn actor_step(&mut self, batch: &Batch, c: CriticStep, alpha: f32, cloning: bool) -> ActorLosses {
+        let fc = match c.features {
+            Some(f) => f,
+            None => {
+                let critic_v = self.critic.valid();
+                let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
+                let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
+                Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
+            }
+        };
+        let ad = self.ad.clone();
+        let eps = self.noise(batch.len(), &ad);
+        let (mean, log_std) = if self.cfg.shared_encoder {
+            self.actor.dist_from_features(fc.clone())
+        } else {
+            let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
+            self.actor.dist(&c.obs, table.as_ref())
+        };
+        let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
+        let loss_a = if cloning {
+            // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
+            self.cloning_loss(mean, log_std, c.act, None)
+        } else {
+            self.actor_objective(Sampled { mean, log_std, a_new, logp: logp.clone() }, fc, c.act, alpha)
+        };
+        let actor = loss_a.clone().into_scalar::<f32>();
+        let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
+        self.actor = self.opt_actor.step(self.cfg.actor_lr(self.updates), self.actor.clone(), grads);
+
+        // 4. Temperature: push the policy's entropy towards the target (not while cloning).
+        let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.net.action_dim as f32));
+        let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
+        let entropy = -logp.clone().mean().into_scalar::<f32>();
+        let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
+        let alpha_loss = loss_al.clone().into_scalar::<f32>();
+        if !cloning {
+            let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
+            self.log_alpha = self.opt_alpha.step(self.cfg.lr_alpha, self.log_alpha.clone(), grads);
+        }
+        ActorLosses { actor, alpha_loss, entropy }
+    }
+
+    /// Behaviour cloning: the mean action to `target` (row weights `w_rows`, or all rows), the
+    /// log-std to `bc_log_std`.
+    fn cloning_loss(&self, mean: Tensor<2>, log_std: Tensor<2>, target: Tensor<2>, w_rows: Option<Tensor<2>>) -> Tensor<1> {
+        let err = (mean.tanh() - target).square();
+        let err = match w_rows {
+            Some(w) => (err * w).mean(),
+            None => err.mean(),
+        };
+        err + log_std.sub_scalar(self.cfg.bc_log_std()).square().mean()
+    }
+
+    /// 3. SAC's actor loss `alpha log pi - min Q`, plus the behaviour-cloning term while
+    ///    `bc_weight` (constant, or fading over `bc_decay_updates`) is positive: towards the
+    ///    replayed actions, or towards the zero residual on the rows where the critic does not
+    ///    prefer the policy's action (`bc_q_filter`), scaled by the batch's mean |Q|.
+    fn actor_objective(&self, pi: Sampled, fc: Tensor<2>, act: Tensor<2>, alpha: f32) -> Tensor<1> {
+        let critic_ng = self.critic.clone().no_grad();
+        let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), pi.a_new);
+        let q_pi = q1_pi.min_pair(q2_pi);
+        let since = self.updates - self.cfg.bc_updates - self.cfg.critic_pretrain_updates;
+        let w = match self.cfg.bc_decay_updates {
+            0 => self.cfg.bc_weight,
+            d if since < d => self.cfg.bc_weight * (1.0 - since as f32 / d as f32),
+            _ => 0.0,
+        };
+        let sac = (pi.logp.mul_scalar(alpha) - q_pi.clone()).mean();
+        if w <= 0.0 {
+            return sac;
+        }
+        // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
+        let q_scale = q_pi.clone().abs().mean().into_scalar::<f32>().max(1.0);
+        let term = match self.cfg.bc_target {
+            BcTarget::Replay => {
+                // AWAC-style: rows weighted by how much the critic prefers the replayed action.
+                let rows = self.cfg.bc_awac_lambda.map(|lambda| {
+                    let (q1_d, q2_d) = critic_ng.heads(fc, act.clone());
+                    let w = awac_weights(q1_d.min_pair(q2_d), q_pi.clone().detach(), lambda);
+                    Tensor::<2>::from_data(w.into_data(), &self.ad)
+                });
+                self.cloning_loss(pi.mean, pi.log_std, act, rows)
+            }
+            BcTarget::Zero => {
+                let [b, a_dim] = act.dims();
+                let zeros = Tensor::<2>::zeros([b, a_dim], &self.ad);
+                let rows = self.cfg.bc_q_filter.then(|| {
+                    let (q1_0, q2_0) = critic_ng.heads(fc, zeros.clone());
+                    let q_zero = q1_0.min_pair(q2_0);
+                    let keep = q_zero.greater_equal(q_pi.detach()).float();
+                    Tensor::<2>::from_data(keep.into_data(), &self.ad)
+                });
+                self.cloning_loss(pi.mean, pi.log_std, zeros, rows)
+            }
+        };
+        sac + term.mul_scalar(w * q_scale)
     }
 
     /// An inference copy of the actor and, for query-centric observations, its segment table

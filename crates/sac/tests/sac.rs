@@ -49,9 +49,14 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
 }
 
 fn sac_for(sim: &SimConfig, m: &Map, seed: u64) -> Sac {
+    sac_with(sim, m, SacConfig { seed, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() }, tiny_net())
+}
+
+/// A learner on `m`'s segments with `cfg` and `net`.
+fn sac_with(sim: &SimConfig, m: &Map, cfg: SacConfig, net: NetConfig) -> Sac {
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(m, sim.obs.segment_points);
-    Sac::new(SacConfig { seed, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() }, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac")
+    Sac::new(cfg, net, spec, sim.dt_s, &[&segs]).expect("sac")
 }
 
 struct Flat(Vec<f32>);
@@ -329,6 +334,45 @@ fn huber_is_quadratic_within_delta_and_linear_beyond() {
     let got = sf_sac::sac::huber(d, 10.0).into_scalar::<f32>();
     let want = (0.125 + 2.0 + 10.0 * (30.0 - 5.0) + 50.0) / 4.0;
     assert!((got - want).abs() < 1e-4, "{got} vs {want}");
+}
+
+/// AWAC's row weights: exp of the advantage over lambda, clipped, mean 1 over the batch. The
+/// row whose replayed action the critic rates highest weighs most; equal advantages weigh 1.
+#[test]
+fn awac_weights_follow_the_advantage_and_average_one() {
+    let dev = burn::tensor::Device::flex();
+    let col = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), &dev);
+    let w: Vec<f32> = sf_sac::sac::awac_weights(col(&[1.0, 2.0, 3.0, 2.0]), col(&[2.0, 2.0, 2.0, 2.0]), 1.0).into_data().try_to_vec().expect("f32");
+    let raw = [(-1f32).exp(), 1.0, 1f32.exp(), 1.0];
+    let mean = raw.iter().sum::<f32>() / 4.0;
+    for (got, r) in w.iter().zip(raw) {
+        assert!((got - r / mean).abs() < 1e-5, "{w:?}");
+    }
+    assert!(w[2] > w[1] && w[1] > w[0], "ordered by advantage: {w:?}");
+    let flat: Vec<f32> = sf_sac::sac::awac_weights(col(&[5.0; 3]), col(&[5.0; 3]), 0.3).into_data().try_to_vec().expect("f32");
+    assert!(flat.iter().all(|x| (x - 1.0).abs() < 1e-6), "{flat:?}");
+    // A huge advantage is clipped at AWAC_MAX_WEIGHT before the normalisation: the other rows
+    // keep weight, instead of exp(100) taking the whole term.
+    let clipped: Vec<f32> = sf_sac::sac::awac_weights(col(&[100.0, 0.0]), col(&[0.0, 0.0]), 1.0).into_data().try_to_vec().expect("f32");
+    let max = sf_job::config::AWAC_MAX_WEIGHT;
+    assert!((clipped[0] - 2.0 * max / (max + 1.0)).abs() < 1e-4 && (clipped[1] - 2.0 / (max + 1.0)).abs() < 1e-5, "{clipped:?}");
+}
+
+/// With `bc_awac_lambda` the SAC updates after cloning run the weighted cloning term and stay
+/// finite.
+#[test]
+fn awac_weighted_cloning_updates_run_and_stay_finite() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 128);
+    let cfg = SacConfig { seed: 5, batch_size: 16, bc_updates: 1, bc_weight: 0.5, bc_awac_lambda: Some(1.0), reward_scale: 1.0, ..SacConfig::default() };
+    let mut sac = sac_with(&sim, &m, cfg, tiny_net());
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..4 {
+        let before = flat(&sac.actor.mean);
+        let l = sac.update(&r.sample(&mut rng, 16).expect("batch"));
+        assert!(l.actor.is_finite() && l.critic.is_finite(), "{l:?}");
+        assert_ne!(before, flat(&sac.actor.mean));
+    }
 }
 
 /// The cloning term towards the zero action with the Q filter: where the critic rates zero at

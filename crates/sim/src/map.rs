@@ -183,147 +183,17 @@ impl Map {
 
     /// Validates a parsed scenario; `origin` names it in error messages.
     pub fn from_file(f: &ScenarioFile, origin: &str) -> Result<Self, MapError> {
-        let bad = |field: String, reason: String| invalid(origin, field, reason);
-        if f.format_version != FORMAT_VERSION {
-            return Err(bad("format_version".into(), format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version)));
-        }
-        if f.name.is_empty() {
-            return Err(bad("name".into(), "must not be empty".into()));
-        }
-        let b = &f.boundary;
-        if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite()) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
-            return Err(bad("boundary".into(), "min must be finite and below max on both axes".into()));
-        }
-        let extent_m = [b.max[0] - b.min[0], b.max[1] - b.min[1]];
-        if extent_m.iter().any(|&e| e > MAX_EXTENT_M) {
-            return Err(bad("boundary".into(), format!("{} x {} m exceeds {MAX_EXTENT_M} m a side", extent_m[0], extent_m[1])));
-        }
-        let inside = |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
-        let check_poly = |field: String, pts: &[P2], min_len: usize| -> Result<(), MapError> {
-            if pts.len() < min_len {
-                return Err(bad(field, format!("needs at least {min_len} points, has {}", pts.len())));
-            }
-            for (k, p) in pts.iter().enumerate() {
-                if !(p[0].is_finite() && p[1].is_finite()) {
-                    return Err(bad(format!("{field}[{k}]"), "point is not finite".into()));
-                }
-                if !inside(p) {
-                    return Err(bad(format!("{field}[{k}]"), format!("point {p:?} lies outside the boundary")));
-                }
-            }
-            Ok(())
-        };
-        if f.lanes.is_empty() {
-            return Err(bad("lanes".into(), "a scenario needs at least one lane".into()));
-        }
-        let n_lanes = f.lanes.len() as u32;
-        let mut lanes = Vec::with_capacity(f.lanes.len());
-        for (i, l) in f.lanes.iter().enumerate() {
-            if l.id != i as u32 {
-                return Err(bad(format!("lanes[{i}].id"), format!("is {}, ids must equal their index {i}", l.id)));
-            }
-            if !(l.width_m.is_finite() && l.width_m > 0.0 && l.width_m < 10.0) {
-                return Err(bad(format!("lanes[{i}].width_m"), format!("{} is not in (0, 10) m", l.width_m)));
-            }
-            check_poly(format!("lanes[{i}].centre"), &l.centre, 2)?;
-            for (k, w) in l.centre.windows(2).enumerate() {
-                if geom::dist(w[0], w[1]) < 1e-3 {
-                    return Err(bad(format!("lanes[{i}].centre[{}]", k + 1), "repeats the previous point".into()));
-                }
-            }
-            for &s in &l.successors {
-                if s >= n_lanes {
-                    return Err(bad(format!("lanes[{i}].successors"), format!("lane {s} does not exist")));
-                }
-            }
-            lanes.push(Lane {
-                width_m: l.width_m,
-                headings: geom::polyline_headings(&l.centre),
-                cum_m: geom::cumulative_lengths(&l.centre),
-                centre: l.centre.clone(),
-                successors: l.successors.clone(),
-            });
-        }
-        for (i, e) in f.edges.iter().enumerate() {
-            if e.id != i as u32 {
-                return Err(bad(format!("edges[{i}].id"), format!("is {}, ids must equal their index {i}", e.id)));
-            }
-            check_poly(format!("edges[{i}].points"), &e.points, 2)?;
-        }
-        check_poly("interaction_zone".into(), &f.interaction_zone, 3)?;
-        for (i, z) in f.junction_zones.iter().enumerate() {
-            check_poly(format!("junction_zones[{i}]"), z, 3)?;
-        }
-        if f.routes.is_empty() {
-            return Err(bad("routes".into(), "a scenario needs at least one route".into()));
-        }
-        let mut routes = Vec::with_capacity(f.routes.len());
-        for (i, r) in f.routes.iter().enumerate() {
-            let field = format!("routes[{i}]");
-            if r.id != i as u32 {
-                return Err(bad(format!("{field}.id"), format!("is {}, ids must equal their index {i}", r.id)));
-            }
-            if r.lanes.is_empty() {
-                return Err(bad(format!("{field}.lanes"), "a route needs at least one lane".into()));
-            }
-            for (k, &l) in r.lanes.iter().enumerate() {
-                if l >= n_lanes {
-                    return Err(bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist")));
-                }
-                if k > 0 && !lanes[r.lanes[k - 1] as usize].successors.contains(&l) {
-                    return Err(bad(format!("{field}.lanes[{k}]"), format!("lane {l} is not a successor of lane {}", r.lanes[k - 1])));
-                }
-            }
-            let route = build_route(&lanes, &r.lanes);
-            let crosses = route.points.iter().any(|p| geom::point_in_polygon(*p, &f.interaction_zone));
-            if !crosses {
-                return Err(bad(field.clone(), "the route never enters the interaction zone".into()));
-            }
-            if geom::point_in_polygon(route.points[route.points.len() - 1], &f.interaction_zone) {
-                return Err(bad(field.clone(), "the route ends inside the interaction zone".into()));
-            }
-            routes.push(route);
-        }
-        if f.spawn_points.is_empty() {
-            return Err(bad("spawn_points".into(), "a scenario needs at least one spawn point".into()));
-        }
-        let mut spawns = Vec::with_capacity(f.spawn_points.len());
-        for (i, s) in f.spawn_points.iter().enumerate() {
-            let field = format!("spawn_points[{i}]");
-            if s.routes.is_empty() {
-                return Err(bad(format!("{field}.routes"), "lists no route".into()));
-            }
-            let mut pose = None;
-            for &r in &s.routes {
-                let Some(route) = routes.get(r as usize) else {
-                    return Err(bad(format!("{field}.routes"), format!("route {r} does not exist")));
-                };
-                let first_lane = route.lanes[0];
-                let lane_len = lanes[first_lane as usize].cum_m.last().copied().unwrap_or(0.0);
-                if !(s.s_m.is_finite() && s.s_m >= 0.0 && s.s_m <= lane_len) {
-                    return Err(bad(format!("{field}.s_m"), format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m)));
-                }
-                let here = geom::point_at(&route.points, &route.cum_m, s.s_m);
-                match pose {
-                    None => pose = Some((first_lane, here)),
-                    Some((l0, _)) if l0 != first_lane => return Err(bad(format!("{field}.routes"), "routes listed do not share their first lane".into())),
-                    _ => {}
-                }
-            }
-            let (_, (pos, heading_rad)) = pose.expect("at least one route was checked");
-            if geom::point_in_polygon(pos, &f.interaction_zone) {
-                return Err(bad(field, "spawn point lies inside the interaction zone".into()));
-            }
-            spawns.push(SpawnPoint { s_m: s.s_m, pos, heading_rad, routes: s.routes.clone() });
-        }
-        for i in 0..spawns.len() {
-            for j in 0..i {
-                if geom::dist(spawns[i].pos, spawns[j].pos) < MIN_SPAWN_SEPARATION_M {
-                    return Err(bad(format!("spawn_points[{i}]"), format!("overlaps spawn point {j}")));
-                }
-            }
-        }
+        let v = Checker::new(f, origin)?;
+        let lanes = v.lanes()?;
+        v.shapes()?;
+        let routes = v.routes(&lanes)?;
+        let spawns = v.spawns(&lanes, &routes)?;
+        Ok(Self::indexed(f, lanes, routes, spawns))
+    }
 
+    /// The map of a checked file: its parts and the spatial indices over them.
+    fn indexed(f: &ScenarioFile, lanes: Vec<Lane>, routes: Vec<Route>, spawns: Vec<SpawnPoint>) -> Self {
+        let b = &f.boundary;
         let edges: Vec<Vec<P2>> = f.edges.iter().map(|e| e.points.clone()).collect();
         let edge_segments: Vec<(P2, P2)> = edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
         let seg_boxes: Vec<(P2, P2)> = edge_segments.iter().map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])])).collect();
@@ -339,8 +209,7 @@ impl Map {
             .collect();
         let lp_boxes: Vec<(P2, P2)> = lane_points.iter().map(|(p, _)| (*p, *p)).collect();
         let lane_point_grid = Grid::build(b.min, b.max, 4.0, &lp_boxes);
-
-        Ok(Map {
+        Map {
             name: f.name.clone(),
             boundary: f.boundary.clone(),
             lanes,
@@ -353,7 +222,7 @@ impl Map {
             edge_grid,
             lane_points,
             lane_point_grid,
-        })
+        }
     }
 
     /// Whether `p` lies in a zone where the wrong-lane rule is off.
@@ -377,6 +246,187 @@ impl Map {
     /// Static polylines (lane centre-lines with their widths, then edges with width 0).
     pub fn static_polylines(&self) -> impl Iterator<Item = (PolyKind, &[P2], f32)> {
         self.lanes.iter().map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m)).chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
+    }
+}
+
+/// The checks of [`Map::from_file`], section by section, each error naming the file and field.
+struct Checker<'a> {
+    f: &'a ScenarioFile,
+    origin: &'a str,
+}
+
+impl<'a> Checker<'a> {
+    /// The format version, the name and the boundary.
+    fn new(f: &'a ScenarioFile, origin: &'a str) -> Result<Self, MapError> {
+        let c = Self { f, origin };
+        if f.format_version != FORMAT_VERSION {
+            return Err(c.bad("format_version", format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version)));
+        }
+        if f.name.is_empty() {
+            return Err(c.bad("name", "must not be empty"));
+        }
+        let b = &f.boundary;
+        if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite()) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
+            return Err(c.bad("boundary", "min must be finite and below max on both axes"));
+        }
+        let extent_m = [b.max[0] - b.min[0], b.max[1] - b.min[1]];
+        if extent_m.iter().any(|&e| e > MAX_EXTENT_M) {
+            return Err(c.bad("boundary", format!("{} x {} m exceeds {MAX_EXTENT_M} m a side", extent_m[0], extent_m[1])));
+        }
+        Ok(c)
+    }
+
+    fn bad(&self, field: impl Into<String>, reason: impl Into<String>) -> MapError {
+        invalid(self.origin, field, reason)
+    }
+
+    /// At least `min_len` finite points, all inside the boundary.
+    fn poly(&self, field: String, pts: &[P2], min_len: usize) -> Result<(), MapError> {
+        let b = &self.f.boundary;
+        let inside = |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
+        if pts.len() < min_len {
+            return Err(self.bad(field, format!("needs at least {min_len} points, has {}", pts.len())));
+        }
+        for (k, p) in pts.iter().enumerate() {
+            if !(p[0].is_finite() && p[1].is_finite()) {
+                return Err(self.bad(format!("{field}[{k}]"), "point is not finite"));
+            }
+            if !inside(p) {
+                return Err(self.bad(format!("{field}[{k}]"), format!("point {p:?} lies outside the boundary")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Lanes: dense ids, widths, centre-lines without repeated points, existing successors.
+    fn lanes(&self) -> Result<Vec<Lane>, MapError> {
+        let f = self.f;
+        if f.lanes.is_empty() {
+            return Err(self.bad("lanes", "a scenario needs at least one lane"));
+        }
+        let n_lanes = f.lanes.len() as u32;
+        let mut lanes = Vec::with_capacity(f.lanes.len());
+        for (i, l) in f.lanes.iter().enumerate() {
+            if l.id != i as u32 {
+                return Err(self.bad(format!("lanes[{i}].id"), format!("is {}, ids must equal their index {i}", l.id)));
+            }
+            if !(l.width_m.is_finite() && l.width_m > 0.0 && l.width_m < 10.0) {
+                return Err(self.bad(format!("lanes[{i}].width_m"), format!("{} is not in (0, 10) m", l.width_m)));
+            }
+            self.poly(format!("lanes[{i}].centre"), &l.centre, 2)?;
+            for (k, w) in l.centre.windows(2).enumerate() {
+                if geom::dist(w[0], w[1]) < 1e-3 {
+                    return Err(self.bad(format!("lanes[{i}].centre[{}]", k + 1), "repeats the previous point"));
+                }
+            }
+            if let Some(s) = l.successors.iter().find(|&&s| s >= n_lanes) {
+                return Err(self.bad(format!("lanes[{i}].successors"), format!("lane {s} does not exist")));
+            }
+            lanes.push(Lane {
+                width_m: l.width_m,
+                headings: geom::polyline_headings(&l.centre),
+                cum_m: geom::cumulative_lengths(&l.centre),
+                centre: l.centre.clone(),
+                successors: l.successors.clone(),
+            });
+        }
+        Ok(lanes)
+    }
+
+    /// Road edges (dense ids), the interaction zone and the junction zones.
+    fn shapes(&self) -> Result<(), MapError> {
+        let f = self.f;
+        for (i, e) in f.edges.iter().enumerate() {
+            if e.id != i as u32 {
+                return Err(self.bad(format!("edges[{i}].id"), format!("is {}, ids must equal their index {i}", e.id)));
+            }
+            self.poly(format!("edges[{i}].points"), &e.points, 2)?;
+        }
+        self.poly("interaction_zone".into(), &f.interaction_zone, 3)?;
+        for (i, z) in f.junction_zones.iter().enumerate() {
+            self.poly(format!("junction_zones[{i}]"), z, 3)?;
+        }
+        Ok(())
+    }
+
+    /// Routes: dense ids, connected existing lanes, entering the interaction zone and leaving it.
+    fn routes(&self, lanes: &[Lane]) -> Result<Vec<Route>, MapError> {
+        let f = self.f;
+        if f.routes.is_empty() {
+            return Err(self.bad("routes", "a scenario needs at least one route"));
+        }
+        let n_lanes = lanes.len() as u32;
+        let mut routes = Vec::with_capacity(f.routes.len());
+        for (i, r) in f.routes.iter().enumerate() {
+            let field = format!("routes[{i}]");
+            if r.id != i as u32 {
+                return Err(self.bad(format!("{field}.id"), format!("is {}, ids must equal their index {i}", r.id)));
+            }
+            if r.lanes.is_empty() {
+                return Err(self.bad(format!("{field}.lanes"), "a route needs at least one lane"));
+            }
+            for (k, &l) in r.lanes.iter().enumerate() {
+                if l >= n_lanes {
+                    return Err(self.bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist")));
+                }
+                if k > 0 && !lanes[r.lanes[k - 1] as usize].successors.contains(&l) {
+                    return Err(self.bad(format!("{field}.lanes[{k}]"), format!("lane {l} is not a successor of lane {}", r.lanes[k - 1])));
+                }
+            }
+            let route = build_route(lanes, &r.lanes);
+            if !route.points.iter().any(|p| geom::point_in_polygon(*p, &f.interaction_zone)) {
+                return Err(self.bad(field, "the route never enters the interaction zone"));
+            }
+            if geom::point_in_polygon(route.points[route.points.len() - 1], &f.interaction_zone) {
+                return Err(self.bad(field, "the route ends inside the interaction zone"));
+            }
+            routes.push(route);
+        }
+        Ok(routes)
+    }
+
+    /// Spawn points: on the shared first lane of every route they list, outside the
+    /// interaction zone, apart from each other.
+    fn spawns(&self, lanes: &[Lane], routes: &[Route]) -> Result<Vec<SpawnPoint>, MapError> {
+        let f = self.f;
+        if f.spawn_points.is_empty() {
+            return Err(self.bad("spawn_points", "a scenario needs at least one spawn point"));
+        }
+        let mut spawns = Vec::with_capacity(f.spawn_points.len());
+        for (i, s) in f.spawn_points.iter().enumerate() {
+            let field = format!("spawn_points[{i}]");
+            if s.routes.is_empty() {
+                return Err(self.bad(format!("{field}.routes"), "lists no route"));
+            }
+            let mut pose = None;
+            for &r in &s.routes {
+                let Some(route) = routes.get(r as usize) else {
+                    return Err(self.bad(format!("{field}.routes"), format!("route {r} does not exist")));
+                };
+                let first_lane = route.lanes[0];
+                let lane_len = lanes[first_lane as usize].cum_m.last().copied().unwrap_or(0.0);
+                if !(s.s_m.is_finite() && s.s_m >= 0.0 && s.s_m <= lane_len) {
+                    return Err(self.bad(format!("{field}.s_m"), format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m)));
+                }
+                let here = geom::point_at(&route.points, &route.cum_m, s.s_m);
+                match pose {
+                    None => pose = Some((first_lane, here)),
+                    Some((l0, _)) if l0 != first_lane => return Err(self.bad(format!("{field}.routes"), "routes listed do not share their first lane")),
+                    _ => {}
+                }
+            }
+            let Some((_, (pos, heading_rad))) = pose else { return Err(self.bad(format!("{field}.routes"), "lists no route")) };
+            if geom::point_in_polygon(pos, &f.interaction_zone) {
+                return Err(self.bad(field, "spawn point lies inside the interaction zone"));
+            }
+            spawns.push(SpawnPoint { s_m: s.s_m, pos, heading_rad, routes: s.routes.clone() });
+        }
+        for (i, a) in spawns.iter().enumerate() {
+            if let Some(j) = spawns[..i].iter().position(|b| geom::dist(a.pos, b.pos) < MIN_SPAWN_SEPARATION_M) {
+                return Err(self.bad(format!("spawn_points[{i}]"), format!("overlaps spawn point {j}")));
+            }
+        }
+        Ok(spawns)
     }
 }
 

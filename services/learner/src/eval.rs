@@ -19,7 +19,7 @@ use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
 use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
-use sf_rollout::evaluate::Resolved;
+use sf_rollout::evaluate::{EgoDef, Resolved};
 use sf_service::ServiceError;
 use tokio::sync::Notify;
 
@@ -110,6 +110,11 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
     }
     let mut egos = BTreeMap::new();
     for e in &cfg.egos {
+        // The IDM driver: no policy travels, the work item says so (`EvalWork::ego_idm`).
+        if e.is_idm() {
+            grid.egos.insert(e.name.clone(), EgoDef::Idm);
+            continue;
+        }
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
         let (_, ego) = from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
@@ -118,7 +123,7 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
             return Err(LearnerError::BadEvalConfig { field: "egos.job", name: e.name.clone(), reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()) });
         }
         egos.insert(e.name.clone(), fz);
-        grid.egos.insert(e.name.clone(), p);
+        grid.egos.insert(e.name.clone(), EgoDef::Learned(p));
     }
     Ok((flows, egos, grid))
 }
@@ -263,11 +268,16 @@ impl EvalJob {
         *lock(&self.stop)
     }
 
-    /// The next queued cell for `worker`. Leases of workers not in `live` (forgotten for
-    /// missing heartbeats) and the worker's own earlier lease (it asks again, so it gave that
-    /// cell up) go back to the queue first. `None`: nothing queued now (cells may still be
-    /// leased to others).
-    pub fn lease(&self, worker: u64, live: &BTreeSet<u64>) -> Option<EvalWork> {
+    /// Whether cell `c` has the IDM driver in the ego's seat.
+    fn idm_ego_cell(&self, c: usize) -> bool {
+        self.cfg.ego(&self.cells[c].ego).is_some_and(sf_job::eval::Named::is_idm)
+    }
+
+    /// The next queued cell for `worker` (not an IDM-ego cell unless it `runs_idm_ego`).
+    /// Leases of workers not in `live` (forgotten for missing heartbeats) and the worker's own
+    /// earlier lease (it asks again, so it gave that cell up) go back to the queue first.
+    /// `None`: nothing queued now for this worker (cells may still be leased to others).
+    pub fn lease(&self, worker: u64, live: &BTreeSet<u64>, runs_idm_ego: bool) -> Option<EvalWork> {
         if self.stop_reason().is_some() {
             return None;
         }
@@ -285,9 +295,11 @@ impl EvalJob {
                 s.queued.push_front(c);
             }
         }
-        let c = s.queued.pop_front()?;
+        let k = s.queued.iter().position(|&c| runs_idm_ego || !self.idm_ego_cell(c))?;
+        let c = s.queued.remove(k)?;
         s.leased.insert(c, (worker, Instant::now()));
-        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell: self.cells[c].clone(), cases: self.cfg.cases, seeds: self.cfg.seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone() })
+        let (cell, ego_idm) = (self.cells[c].clone(), self.idm_ego_cell(c));
+        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell, cases: self.cfg.cases, seeds: self.cfg.seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone(), ego_idm })
     }
 
     /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell
@@ -454,7 +466,7 @@ impl crate::Inner {
     /// A cell of the running evaluation for `worker`, if one is queued.
     pub(crate) fn eval_work(&self, worker: u64) -> Option<EvalWork> {
         let e = self.evaluating()?;
-        e.lease(worker, &self.live_workers())
+        e.lease(worker, &self.live_workers(), self.workers.runs_idm_ego(worker))
     }
 
     /// A worker's results for one cell of the running evaluation `job_id`.

@@ -209,8 +209,8 @@ impl Inner {
         Ok(rec)
     }
 
-    pub fn register_worker(&self, name: &str) -> u64 {
-        self.workers.register(name)
+    pub fn register_worker(&self, name: &str, runs_idm_ego: bool) -> u64 {
+        self.workers.register(name, runs_idm_ego)
     }
 
     pub fn heartbeat(&self, id: u64) -> Result<(), ServiceError> {

@@ -111,7 +111,8 @@ impl JobService for Jobs {
 #[tonic::async_trait]
 impl ExperienceService for Experience {
     async fn register(&self, req: Request<pb::RegisterRequest>) -> Res<pb::RegisterResponse> {
-        let id = self.0.register_worker(&req.into_inner().name);
+        let r = req.into_inner();
+        let id = self.0.register_worker(&r.name, r.runs_idm_ego);
         done(&self.0, "Register", Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }))
     }
 

@@ -14,7 +14,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use sf_job::config::ValidationSection;
 use sf_job::{Frozen, JobConfig};
-use sf_rollout::evaluate::{self, FlowDef, Policy, Runners};
+use sf_rollout::evaluate::{self, EgoDef, FlowDef, Policy, Runners};
 use sf_rollout::setup;
 use sf_sim::{Case, Map};
 
@@ -125,10 +125,11 @@ impl Validator {
     pub fn score(&mut self, weights: &[u8], updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
         let t = std::time::Instant::now();
         let policy = Policy { key: format!("validation@{updates}"), cfg: self.cfg.clone(), weights: Arc::new(weights.to_vec()), svo_gaussians: Vec::new() };
+        let ego = EgoDef::Learned(policy.clone());
         let mut rows = Vec::new();
         for (map, cases) in &self.cases {
             let run = match &self.flow {
-                Some(flow) => evaluate::run_cases(map, cases, 1, self.section.envs, flow, Some(&policy), &mut self.runners),
+                Some(flow) => evaluate::run_cases(map, cases, 1, self.section.envs, flow, Some(&ego), &mut self.runners),
                 None => evaluate::run_cases(map, cases, 1, self.section.envs, &FlowDef::Learned { background: policy.clone(), adversary: None }, None, &mut self.runners),
             };
             self.runners.forget(&policy.key);

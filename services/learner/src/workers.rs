@@ -20,6 +20,8 @@ use crate::error::LearnerError;
 struct WorkerInfo {
     name: String,
     last_seen: Instant,
+    /// It runs evaluation cells with the IDM driver in the ego's seat.
+    runs_idm_ego: bool,
 }
 
 /// Registered workers, forgotten after `timeout` without a call.
@@ -37,13 +39,18 @@ impl Workers {
         Self { map: Mutex::new(HashMap::new()), next: AtomicU64::new(first_id.max(1)), timeout, gauge }
     }
 
-    pub fn register(&self, name: &str) -> u64 {
+    pub fn register(&self, name: &str, runs_idm_ego: bool) -> u64 {
         let id = self.next.fetch_add(1, Ordering::Relaxed);
         let mut w = lock(&self.map);
-        w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now() });
+        w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now(), runs_idm_ego });
         self.gauge.set(w.len() as i64);
         tracing::info!(worker_id = id, name, "worker registered");
         id
+    }
+
+    /// Whether worker `id` registered as running IDM-ego evaluation cells.
+    pub fn runs_idm_ego(&self, id: u64) -> bool {
+        lock(&self.map).get(&id).is_some_and(|w| w.runs_idm_ego)
     }
 
     /// Records a call from worker `id`; refused when it is not (or no longer) registered.
@@ -92,8 +99,9 @@ mod tests {
     fn silent_workers_are_forgotten_and_refused_while_callers_stay() {
         let gauge = Gauge::default();
         let w = Workers::new(0, Duration::from_millis(50), gauge.clone());
-        let (a, b) = (w.register("a"), w.register("b"));
+        let (a, b) = (w.register("a", true), w.register("b", false));
         assert!(a >= 1 && b == a + 1, "ids start at 1 and are never reused: {a} {b}");
+        assert!(w.runs_idm_ego(a) && !w.runs_idm_ego(b), "what each worker registered with");
         assert_eq!(gauge.get(), 2);
         std::thread::sleep(Duration::from_millis(80));
         // `a` calls after the timeout: it stays (its own call keeps it), `b` goes.

@@ -64,6 +64,7 @@ impl Cells {
         let (state, result) = tokio::task::spawn_blocking(move || {
             let r = (|| {
                 let (flow, ego) = evaluate::from_frozen(&work.policies, &weights)?;
+                let ego = evaluate::EgoDef::of_work(ego, work.ego_idm)?;
                 let (map, cases) = maps.get(&work.cell.scenario).ok_or_else(|| evaluate::EvalError::Misfit("scenario not loaded".into()))?;
                 let size = CellSize { cases: work.cases, seeds: work.seeds, envs: work.envs as usize };
                 evaluate::run_cell(&work.cell, size, map, cases, &flow, ego.as_ref(), &mut runners)

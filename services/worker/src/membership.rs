@@ -27,7 +27,7 @@ pub struct Registration {
 
 /// Registers this worker under `cfg.name`.
 pub async fn register(client: &mut Client, cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<Registration> {
-    let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone() }, cfg.rpc_timeout)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
+    let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone(), runs_idm_ego: true }, cfg.rpc_timeout)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
     metrics.common.rpc("Register", Code::Ok);
     tracing::info!(worker_id = reg.worker_id, learner = %cfg.learner_url, "registered");
     Ok(Registration { worker_id: reg.worker_id, heartbeat_every: Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64) })
