@@ -950,7 +950,12 @@ mod tests {
         assert_eq!(ok.sac.bc_awac_lambda, Some(1.0));
         assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip").sac.bc_awac_lambda, Some(1.0));
         assert!(!JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_awac_lambda"), "absent stays absent");
-        for (extra, needle) in [("bc_awac_lambda = 0.0", "finite and positive"), ("bc_awac_lambda = -1.0", "finite and positive"), ("bc_awac_lambda = nan", "finite and positive"), ("bc_awac_lambda = inf", "finite and positive")] {
+        for (extra, needle) in [
+            ("bc_awac_lambda = 0.0", "finite and positive"),
+            ("bc_awac_lambda = -1.0", "finite and positive"),
+            ("bc_awac_lambda = nan", "finite and positive"),
+            ("bc_awac_lambda = inf", "finite and positive"),
+        ] {
             let e = JobConfig::from_toml(&format!("{base}{extra}\n")).expect_err(extra);
             assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains(needle), "{extra}: {e}");
         }
