@@ -128,6 +128,13 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
     Ok((flows, egos, grid))
 }
 
+/// Takes the first queued cell `eligible` says the asking worker can run; the others keep
+/// their places.
+fn take_first(queued: &mut VecDeque<usize>, eligible: impl Fn(usize) -> bool) -> Option<usize> {
+    let k = queued.iter().position(|&c| eligible(c))?;
+    queued.remove(k)
+}
+
 /// Adds the rows' success, safety and speed to the running sums (in that order).
 fn add_scores(sums: &mut [f64; 3], rows: &[EpisodeRow]) {
     for r in rows {
@@ -295,8 +302,7 @@ impl EvalJob {
                 s.queued.push_front(c);
             }
         }
-        let k = s.queued.iter().position(|&c| runs_idm_ego || !self.idm_ego_cell(c))?;
-        let c = s.queued.remove(k)?;
+        let c = take_first(&mut s.queued, |c| runs_idm_ego || !self.idm_ego_cell(c))?;
         s.leased.insert(c, (worker, Instant::now()));
         let (cell, ego_idm) = (self.cells[c].clone(), self.idm_ego_cell(c));
         Some(EvalWork { job_id: self.id, cell_id: c as u64, cell, cases: self.cfg.cases, seeds: self.cfg.seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone(), ego_idm })
@@ -480,5 +486,23 @@ impl crate::Inner {
             }
         };
         Ok(tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(LearnerError::from)??)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A worker that cannot run IDM-ego cells skips them and they stay queued, in order, for
+    /// one that can.
+    #[test]
+    fn idm_ego_cells_wait_for_a_worker_that_runs_them() {
+        let idm = |c: usize| c == 0 || c == 2;
+        let mut q: VecDeque<usize> = [0, 1, 2, 3].into();
+        assert_eq!(take_first(&mut q, |c| !idm(c)), Some(1));
+        assert_eq!(take_first(&mut q, |c| !idm(c)), Some(3));
+        assert_eq!(take_first(&mut q, |c| !idm(c)), None, "only IDM-ego cells are left");
+        assert_eq!(q, VecDeque::from([0, 2]));
+        assert_eq!(take_first(&mut q, |_| true), Some(0), "a capable worker takes them in order");
     }
 }
