@@ -154,6 +154,39 @@ fn train_with_validation_keeps_the_best_validated_actor() {
 }
 
 #[test]
+fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
+    let dir = socialflow_e2e::scratch("ladder");
+    std::fs::write(dir.join("job.toml"), format!("kind = \"ego\"\n{}", socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-rung", 600))).expect("job");
+    let rung = "rung = \"L-test\"\nname = \"tiny\"\njob = \"job.toml\"\nseeds = [0]\n[eval]\nscenarios = [\"roundabout\"]\ncases = 3\nseeds = 2\nenvs = 3\n[gate]\nmin_success = 0.0\nmax_other_failures = 1.0\n";
+    std::fs::write(dir.join("rung.toml"), rung).expect("rung");
+    let (data, out) = (dir.join("data").display().to_string(), dir.join("out"));
+    let ladder = |seed: &str| {
+        let o = socialflow(&["ladder", &dir.join("rung.toml").display().to_string(), "--seeds", seed, "--data-dir", &data, "--out", &out.display().to_string(), "--workers", "1"], T);
+        assert!(o.status.success(), "ladder --seeds {seed}: {}", String::from_utf8_lossy(&o.stderr));
+        let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("json");
+        let episodes = std::fs::read_to_string(out.join("episodes.csv")).expect("episodes.csv");
+        (summary, episodes)
+    };
+    let (summary, episodes) = ladder("0");
+    assert_eq!(summary["passed"], true, "{summary}");
+    assert_eq!(summary["seeds"].as_array().map(Vec::len), Some(1), "{summary}");
+    assert_eq!(summary["seeds"][0]["episodes"], 6, "{summary}");
+    // The policy's 3 cases x 2 seeds and the IDM ego's on the same ones.
+    let lines: Vec<&str> = episodes.lines().collect();
+    assert!(lines[0].starts_with("train_seed,driver,scenario,case,seed"), "{episodes}");
+    let drivers = |s: &str| lines[1..].iter().filter(|l| l.starts_with(&format!("0,{s},roundabout,"))).count();
+    assert_eq!((lines.len() - 1, drivers("policy"), drivers("idm")), (12, 6, 6), "{episodes}");
+    assert!(out.join("seed-0/curve.csv").exists() && out.join("success.png").exists());
+    // A second seed run into the same directory keeps the first one's summary and episodes.
+    let (summary, episodes) = ladder("1");
+    let seeds: Vec<u64> = summary["seeds"].as_array().expect("seeds").iter().filter_map(|s| s["train_seed"].as_u64()).collect();
+    assert_eq!(seeds, vec![0, 1], "{summary}");
+    assert_eq!(episodes.lines().count() - 1, 24, "{episodes}");
+    assert_eq!(episodes.lines().filter(|l| l.starts_with("1,")).count(), 12);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn invalid_configs_are_refused_with_the_field_named() {
     let dir = socialflow_e2e::scratch("badcfg");
     let job = dir.join("bad.toml");

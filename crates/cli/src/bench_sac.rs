@@ -107,29 +107,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let map = ctx.map("intersection")?;
     let mut venv = VecEnv::new(map.clone(), sim.clone(), VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (20, 20), seed: 1 });
     let spec = venv.spec.clone();
-    let mut replay = Replay::new(100_000, spec.len, net.action_dim);
-    let mut actions = vec![Action::default(); venv.alive().len()];
-    while replay.len() < 4 * a.batch {
-        let before = venv.observations().to_vec();
-        let alive = venv.alive().to_vec();
-        for (i, act) in actions.iter_mut().enumerate() {
-            *act = route_follower(&spec, &before[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.8);
-        }
-        venv.step(&actions);
-        for i in (0..alive.len()).filter(|&i| alive[i] == 1.0) {
-            let act = [actions[i].ref_speed, actions[i].steer];
-            let act = &act[..net.action_dim];
-            replay.push(Transition {
-                obs: &before[i * spec.len..(i + 1) * spec.len],
-                action: act,
-                reward: venv.row_steps()[i].rewards.individual,
-                next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
-                terminal: false,
-                steps: 1,
-                map_id: 0,
-            })?;
-        }
-    }
+    let replay = fill_replay(&mut venv, &sim, net.action_dim, 4 * a.batch)?;
     let segs = MapSegments::build(&map, sim.obs.segment_points);
     // paper and compact follow the reference update exactly (fresh critic features).
     let reuse = matches!(a.size, Size::Default);
@@ -142,17 +120,7 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let mut sac = Sac::new(cfg, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
-    for b in batches.iter().take(2) {
-        sac.update(b);
-    }
-    let mut times = Vec::new();
-    let start = Instant::now();
-    while start.elapsed().as_secs_f64() < a.seconds || times.len() < 3 {
-        let t = Instant::now();
-        sac.update(&batches[times.len() % batches.len()]);
-        times.push(t.elapsed().as_secs_f64());
-    }
-    let update_median = median(&mut times);
+    let (update_median, updates_timed) = time_updates(&mut sac, &batches, a.seconds);
 
     // Inference: the worker's step, 20 observations of one step through the worker's
     // `PolicyRunner` (batch building included): the live agents of the simulators' current step,
@@ -164,27 +132,13 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let live: Vec<usize> = (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
     anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());
     let rows: Vec<f32> = live.iter().flat_map(|&r| venv.observations()[r * spec.len..(r + 1) * spec.len].iter().copied()).collect();
-    let ids = vec![0u32; 20];
-    let time_inference = |shared: bool| {
-        let mut inf = Vec::new();
-        let start = Instant::now();
-        while start.elapsed().as_secs_f64() < a.seconds / 6.0 || inf.len() < 20 {
-            let t = Instant::now();
-            let obs = if shared { runner.batch(&rows, &ids) } else { runner.batch_unshared(&rows, &ids) };
-            let _ = runner.mean_of(&obs);
-            inf.push(t.elapsed().as_secs_f64());
-        }
-        median(&mut inf)
-    };
-    let infer_median = time_inference(true);
-    let unshared_median = time_inference(false);
-    let encoded = runner.batch(&rows, &ids).histories.encoded_histories();
+    let (infer_median, unshared_median, encoded) = time_inference(&runner, &rows, a.seconds / 6.0);
     let out = json!({
         "size": match &a.job { Some(p) => p.display().to_string(), None => format!("{:?}", a.size).to_lowercase() },
         "batch": a.batch,
         "updates_per_s": 1.0 / update_median,
         "update_median_s": update_median,
-        "updates_timed": times.len(),
+        "updates_timed": updates_timed,
         "inference_obs_per_s": 20.0 / infer_median,
         "inference_batch": 20,
         "inference_unshared_obs_per_s": 20.0 / unshared_median,
@@ -205,6 +159,70 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&out)?);
     }
     Ok(())
+}
+
+/// A replay of at least `rows` real transitions: every agent of `venv` follows its route.
+fn fill_replay(venv: &mut VecEnv, sim: &SimConfig, action_dim: usize, rows: usize) -> Result<Replay> {
+    let spec = venv.spec.clone();
+    let mut replay = Replay::new(100_000, spec.len, action_dim);
+    let mut actions = vec![Action::default(); venv.alive().len()];
+    while replay.len() < rows {
+        let before = venv.observations().to_vec();
+        let alive = venv.alive().to_vec();
+        for (i, act) in actions.iter_mut().enumerate() {
+            *act = route_follower(&spec, &before[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.8);
+        }
+        venv.step(&actions);
+        for i in (0..alive.len()).filter(|&i| alive[i] == 1.0) {
+            let act = [actions[i].ref_speed, actions[i].steer];
+            replay.push(Transition {
+                obs: &before[i * spec.len..(i + 1) * spec.len],
+                action: &act[..action_dim],
+                reward: venv.row_steps()[i].rewards.individual,
+                next_obs: &venv.observations()[i * spec.len..(i + 1) * spec.len],
+                terminal: false,
+                steps: 1,
+                map_id: 0,
+            })?;
+        }
+    }
+    Ok(replay)
+}
+
+/// Two untimed updates, then updates on `batches` in turn for `seconds` (at least 3): the
+/// median update time and how many were timed.
+fn time_updates(sac: &mut Sac, batches: &[sf_sac::Batch], seconds: f64) -> (f64, usize) {
+    for b in batches.iter().take(2) {
+        sac.update(b);
+    }
+    let mut times = Vec::new();
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < seconds || times.len() < 3 {
+        let t = Instant::now();
+        sac.update(&batches[times.len() % batches.len()]);
+        times.push(t.elapsed().as_secs_f64());
+    }
+    (median(&mut times), times.len())
+}
+
+/// Median times of one worker step's batch (built and run through the actor's mean) with each
+/// agent's history encoded once and with a copy per observation, each timed for `seconds` (at
+/// least 20 steps); and how many histories the shared batch encodes.
+fn time_inference(runner: &PolicyRunner, rows: &[f32], seconds: f64) -> (f64, f64, usize) {
+    let ids = vec![0u32; 20];
+    let time = |shared: bool| {
+        let mut inf = Vec::new();
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < seconds || inf.len() < 20 {
+            let t = Instant::now();
+            let obs = if shared { runner.batch(rows, &ids) } else { runner.batch_unshared(rows, &ids) };
+            let _ = runner.mean_of(&obs);
+            inf.push(t.elapsed().as_secs_f64());
+        }
+        median(&mut inf)
+    };
+    let (shared, unshared) = (time(true), time(false));
+    (shared, unshared, runner.batch(rows, &ids).histories.encoded_histories())
 }
 
 fn median(v: &mut [f64]) -> f64 {

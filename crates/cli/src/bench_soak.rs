@@ -174,15 +174,7 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
     if a.streams == 0 || a.batch == 0 || a.seconds <= 0.0 {
         bail!("--streams, --batch and --seconds must be positive");
     }
-    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
-    let mut cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
-    cfg.name = "soak".into();
-    cfg.train.env_steps = 1 << 40;
-    cfg.train.samples_per_insert = a.samples_per_insert;
-    cfg.train.replay_capacity = a.replay_capacity;
-    cfg.train.max_policy_lag = 1 << 20;
-    cfg.sac.warmup_steps = cfg.sac.warmup_steps.min(a.replay_capacity as u64 / 2);
-    cfg.validate().context("job config after the soak's overrides")?;
+    let cfg = soak_config(&a)?;
     let act = setup::resolve(&cfg, None).net.action_dim;
     let pool = Arc::new(observation_pool(ctx, &cfg)?);
 
@@ -192,101 +184,10 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
     let (g, adm) = (free()?, free()?);
     let secret: String = (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
     let token = Token::new(&secret, "soak").context("token")?;
-    let mut learner = std::process::Command::new(std::env::current_exe().context("this executable")?)
-        .args(["learner", "--grpc-addr", &format!("127.0.0.1:{g}"), "--admin-addr", &format!("127.0.0.1:{adm}"), "--data-dir"])
-        .arg(&dir)
-        .arg("--scenarios-dir")
-        .arg(&ctx.scenarios)
-        .arg("--eval-cases-dir")
-        .arg(&ctx.cases)
-        .env("SOCIALFLOW_TOKEN", &secret)
-        .env("RUST_LOG", "warn")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::fs::File::create(std::env::temp_dir().join(format!("socialflow-soak-{}.log", std::process::id()))).context("learner log")?)
-        .spawn()
-        .context("starting the learner")?;
+    let mut learner = spawn_learner(ctx, &dir, g, adm, &secret)?;
     let pid = learner.id();
-    let url = format!("http://127.0.0.1:{g}");
-    let admin = format!("http://127.0.0.1:{adm}/metrics");
-    let out = runtime()?.block_on(async {
-        let ep = sf_service::tls::endpoint(&url, &Default::default())?;
-        let start_wait = Instant::now();
-        let mut c = loop {
-            match remote::jobs_client(ep.clone(), &url, Some(token.clone())).await {
-                Ok(c) => break c,
-                Err(e) if start_wait.elapsed() > Duration::from_secs(60) => return Err(e),
-                Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
-            }
-        };
-        let job = remote::submit(&mut c, cfg.to_toml()).await?;
-        let ch = ep.connect().await?;
-        let exp: Exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
-        let t0 = Instant::now();
-        let until = t0 + Duration::from_secs_f64(a.seconds);
-        let spawn = |st: Arc<StreamStats>| tokio::spawn(stream(exp.clone(), job.id, Arc::clone(&pool), a.batch, act, until, st));
-        let mut live: Vec<(Arc<StreamStats>, tokio::task::JoinHandle<()>)> = (0..a.streams).map(|_| Arc::new(StreamStats::default())).map(|s| (Arc::clone(&s), spawn(s))).collect();
-        let mut killed: Vec<Arc<StreamStats>> = Vec::new();
-        let mut in_flight_killed = 0u64;
-        let mut rss = Vec::new();
-        let (mut next_sample, mut next_kill) = (0.0, if a.kill_every_s > 0.0 { a.kill_every_s } else { f64::INFINITY });
-        while Instant::now() < until {
-            let t = t0.elapsed().as_secs_f64();
-            if t >= next_sample {
-                let replay = http_get(&admin).ok().map(|m| counter(&m, "socialflow_learner_replay_size_transitions"));
-                rss.push(json!([t.round(), rss_mb(pid), replay]));
-                next_sample += a.sample_every_s;
-            }
-            if t >= next_kill {
-                let k = rand::rng().random_range(0..live.len());
-                let (st, h) = live.swap_remove(k);
-                h.abort();
-                let _ = h.await;
-                in_flight_killed += st.sent.load(Ordering::Relaxed).saturating_sub(st.acked.load(Ordering::Relaxed));
-                killed.push(st);
-                let fresh = Arc::new(StreamStats::default());
-                live.push((Arc::clone(&fresh), spawn(fresh)));
-                next_kill += a.kill_every_s;
-            }
-            tokio::time::sleep(Duration::from_millis(250)).await;
-        }
-        for (_, h) in live.iter_mut() {
-            let _ = tokio::time::timeout(Duration::from_secs(150), h).await;
-        }
-        // The learner's own count, after every surviving stream has its acks.
-        let metrics = http_get(&admin)?;
-        let counted = counter(&metrics, "socialflow_learner_transitions_received_total") + counter(&metrics, "socialflow_learner_transitions_dropped_total");
-        let updates = counter(&metrics, "socialflow_learner_updates_total");
-        let sum = |v: &mut dyn Iterator<Item = &Arc<StreamStats>>, f: fn(&StreamStats) -> u64| v.map(|s| f(s)).sum::<u64>();
-        let sent = sum(&mut live.iter().map(|(s, _)| s).chain(&killed), |s| s.sent.load(Ordering::Relaxed));
-        let acked = sum(&mut live.iter().map(|(s, _)| s).chain(&killed), |s| s.acked.load(Ordering::Relaxed));
-        let mut errors: BTreeMap<String, u64> = BTreeMap::new();
-        for (s, _) in &live {
-            for (k, v) in lock(&s.errors).iter() {
-                *errors.entry(k.clone()).or_default() += v;
-            }
-        }
-        let lost = sent as f64 - counted;
-        // Memory once the replay is full (it grows with the replay until then).
-        let full = a.replay_capacity as f64;
-        let steady: Vec<f64> = rss.iter().skip_while(|p| p[2].as_f64().is_none_or(|n| n < full)).filter_map(|p| p[1].as_f64()).collect();
-        let growth = match (steady.first(), steady.last()) {
-            (Some(f), Some(l)) if *f > 0.0 && steady.len() >= 2 => l / f - 1.0,
-            _ => f64::NAN,
-        };
-        let checks = json!({
-            "no_rpc_errors_on_surviving_streams": errors.is_empty(),
-            "learner_counted_every_acked_transition": counted >= acked as f64,
-            "lost_within_killed_in_flight": lost <= in_flight_killed as f64,
-            "rss_flat_within_10_percent_once_the_replay_is_full": growth.abs() <= 0.10,
-        });
-        anyhow::Ok(json!({
-            "streams": a.streams, "seconds": t0.elapsed().as_secs_f64(), "kill_every_s": a.kill_every_s, "kills": killed.len(),
-            "batch": a.batch, "samples_per_insert": a.samples_per_insert, "replay_capacity": a.replay_capacity,
-            "sent": sent, "acked": acked, "learner_counted": counted, "lost": lost, "in_flight_at_kills": in_flight_killed,
-            "transitions_per_s": acked as f64 / t0.elapsed().as_secs_f64(), "updates": updates,
-            "errors_on_surviving_streams": errors, "rss_mb_and_replay": rss, "rss_growth_once_full": growth, "checks": checks,
-        }))
-    });
+    let urls = (format!("http://127.0.0.1:{g}"), format!("http://127.0.0.1:{adm}/metrics"));
+    let out = runtime()?.block_on(soak(&a, &cfg, pool, act, &urls, token, pid));
     let _ = std::process::Command::new("kill").arg("-TERM").arg(pid.to_string()).status();
     let _ = learner.wait();
     let _ = std::fs::remove_dir_all(&dir);
@@ -301,6 +202,129 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
         bail!("soak checks failed: {failed:?}");
     }
     Ok(())
+}
+
+/// `--config` with the soak's overrides: an endless budget, the soak's replay ratio and
+/// capacity, no staleness limit, a warm-up within the replay.
+fn soak_config(a: &SoakArgs) -> Result<JobConfig> {
+    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
+    let mut cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
+    cfg.name = "soak".into();
+    cfg.train.env_steps = 1 << 40;
+    cfg.train.samples_per_insert = a.samples_per_insert;
+    cfg.train.replay_capacity = a.replay_capacity;
+    cfg.train.max_policy_lag = 1 << 20;
+    cfg.sac.warmup_steps = cfg.sac.warmup_steps.min(a.replay_capacity as u64 / 2);
+    cfg.validate().context("job config after the soak's overrides")?;
+    Ok(cfg)
+}
+
+/// `socialflow learner` (this executable) on loopback with the soak's token, its log in the
+/// temporary directory.
+fn spawn_learner(ctx: &Ctx, dir: &std::path::Path, grpc_port: u16, admin_port: u16, secret: &str) -> Result<std::process::Child> {
+    std::process::Command::new(std::env::current_exe().context("this executable")?)
+        .args(["learner", "--grpc-addr", &format!("127.0.0.1:{grpc_port}"), "--admin-addr", &format!("127.0.0.1:{admin_port}"), "--data-dir"])
+        .arg(dir)
+        .arg("--scenarios-dir")
+        .arg(&ctx.scenarios)
+        .arg("--eval-cases-dir")
+        .arg(&ctx.cases)
+        .env("SOCIALFLOW_TOKEN", secret)
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(std::env::temp_dir().join(format!("socialflow-soak-{}.log", std::process::id()))).context("learner log")?)
+        .spawn()
+        .context("starting the learner")
+}
+
+/// Submits the job, runs the streams for `--seconds` (killing and replacing one every
+/// `--kill-every-s`), samples the learner's memory, and returns the soak's JSON with its checks.
+async fn soak(a: &SoakArgs, cfg: &JobConfig, pool: Arc<(Vec<f32>, usize)>, act: usize, urls: &(String, String), token: Token, pid: u32) -> Result<serde_json::Value> {
+    let (url, admin) = urls;
+    let ep = sf_service::tls::endpoint(url, &Default::default())?;
+    let start_wait = Instant::now();
+    let mut c = loop {
+        match remote::jobs_client(ep.clone(), url, Some(token.clone())).await {
+            Ok(c) => break c,
+            Err(e) if start_wait.elapsed() > Duration::from_secs(60) => return Err(e),
+            Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
+        }
+    };
+    let job = remote::submit(&mut c, cfg.to_toml()).await?;
+    let ch = ep.connect().await?;
+    let exp: Exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
+    let t0 = Instant::now();
+    let until = t0 + Duration::from_secs_f64(a.seconds);
+    let spawn = |st: Arc<StreamStats>| tokio::spawn(stream(exp.clone(), job.id, Arc::clone(&pool), a.batch, act, until, st));
+    let mut live: Vec<(Arc<StreamStats>, tokio::task::JoinHandle<()>)> = (0..a.streams).map(|_| Arc::new(StreamStats::default())).map(|s| (Arc::clone(&s), spawn(s))).collect();
+    let mut killed: Vec<Arc<StreamStats>> = Vec::new();
+    let mut in_flight_killed = 0u64;
+    let mut rss = Vec::new();
+    let (mut next_sample, mut next_kill) = (0.0, if a.kill_every_s > 0.0 { a.kill_every_s } else { f64::INFINITY });
+    while Instant::now() < until {
+        let t = t0.elapsed().as_secs_f64();
+        if t >= next_sample {
+            let replay = http_get(admin).ok().map(|m| counter(&m, "socialflow_learner_replay_size_transitions"));
+            rss.push(json!([t.round(), rss_mb(pid), replay]));
+            next_sample += a.sample_every_s;
+        }
+        if t >= next_kill {
+            let k = rand::rng().random_range(0..live.len());
+            let (st, h) = live.swap_remove(k);
+            h.abort();
+            let _ = h.await;
+            in_flight_killed += st.sent.load(Ordering::Relaxed).saturating_sub(st.acked.load(Ordering::Relaxed));
+            killed.push(st);
+            let fresh = Arc::new(StreamStats::default());
+            live.push((Arc::clone(&fresh), spawn(fresh)));
+            next_kill += a.kill_every_s;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    for (_, h) in live.iter_mut() {
+        let _ = tokio::time::timeout(Duration::from_secs(150), h).await;
+    }
+    // The learner's own count, after every surviving stream has its acks.
+    let metrics = http_get(admin)?;
+    let survivors: Vec<Arc<StreamStats>> = live.into_iter().map(|(s, _)| s).collect();
+    Ok(summary(a, &metrics, &survivors, &killed, in_flight_killed, rss, t0.elapsed().as_secs_f64()))
+}
+
+/// The soak's JSON: what the streams sent and saw acked against what the learner counted, the
+/// memory curve, and the checks.
+fn summary(a: &SoakArgs, metrics: &str, survivors: &[Arc<StreamStats>], killed: &[Arc<StreamStats>], in_flight_killed: u64, rss: Vec<serde_json::Value>, seconds: f64) -> serde_json::Value {
+    let counted = counter(metrics, "socialflow_learner_transitions_received_total") + counter(metrics, "socialflow_learner_transitions_dropped_total");
+    let updates = counter(metrics, "socialflow_learner_updates_total");
+    let all = || survivors.iter().chain(killed);
+    let sent: u64 = all().map(|s| s.sent.load(Ordering::Relaxed)).sum();
+    let acked: u64 = all().map(|s| s.acked.load(Ordering::Relaxed)).sum();
+    let mut errors: BTreeMap<String, u64> = BTreeMap::new();
+    for s in survivors {
+        for (k, v) in lock(&s.errors).iter() {
+            *errors.entry(k.clone()).or_default() += v;
+        }
+    }
+    let lost = sent as f64 - counted;
+    // Memory once the replay is full (it grows with the replay until then).
+    let full = a.replay_capacity as f64;
+    let steady: Vec<f64> = rss.iter().skip_while(|p| p[2].as_f64().is_none_or(|n| n < full)).filter_map(|p| p[1].as_f64()).collect();
+    let growth = match (steady.first(), steady.last()) {
+        (Some(f), Some(l)) if *f > 0.0 && steady.len() >= 2 => l / f - 1.0,
+        _ => f64::NAN,
+    };
+    let checks = json!({
+        "no_rpc_errors_on_surviving_streams": errors.is_empty(),
+        "learner_counted_every_acked_transition": counted >= acked as f64,
+        "lost_within_killed_in_flight": lost <= in_flight_killed as f64,
+        "rss_flat_within_10_percent_once_the_replay_is_full": growth.abs() <= 0.10,
+    });
+    json!({
+        "streams": a.streams, "seconds": seconds, "kill_every_s": a.kill_every_s, "kills": killed.len(),
+        "batch": a.batch, "samples_per_insert": a.samples_per_insert, "replay_capacity": a.replay_capacity,
+        "sent": sent, "acked": acked, "learner_counted": counted, "lost": lost, "in_flight_at_kills": in_flight_killed,
+        "transitions_per_s": acked as f64 / seconds, "updates": updates,
+        "errors_on_surviving_streams": errors, "rss_mb_and_replay": rss, "rss_growth_once_full": growth, "checks": checks,
+    })
 }
 
 /// A GET of the learner's /metrics over a plain socket (no HTTP client dependency).

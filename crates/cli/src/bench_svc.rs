@@ -156,7 +156,7 @@ pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         let warm_deadline = Instant::now() + Duration::from_secs(600);
         let p0 = loop {
             let p = get(&mut c).await?;
-            if p.updates > 0 && p.env_steps > cfg.sac.warmup_steps + 2 * cfg.worker.batch_transitions as u64 {
+            if p.learning.updates > 0 && p.learning.env_steps > cfg.sac.warmup_steps + 2 * cfg.worker.batch_transitions as u64 {
                 break p;
             }
             if Instant::now() > warm_deadline {
@@ -171,8 +171,8 @@ pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         emb.stop().await?;
         anyhow::Ok(json!({
             "workers": a.workers, "seconds": secs,
-            "env_steps_per_s": (p1.env_steps - p0.env_steps) as f64 / secs,
-            "updates_per_s": (p1.updates - p0.updates) as f64 / secs,
+            "env_steps_per_s": (p1.learning.env_steps - p0.learning.env_steps) as f64 / secs,
+            "updates_per_s": (p1.learning.updates - p0.learning.updates) as f64 / secs,
             "samples_per_insert": cfg.train.samples_per_insert, "envs_per_worker": cfg.worker.envs,
             "dropped_stale": p1.dropped_stale, "policy_version": p1.policy_version,
         }))

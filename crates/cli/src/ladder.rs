@@ -205,14 +205,7 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("docs/ladder").join(&rung.name));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let seeds = a.seeds.clone().unwrap_or_else(|| rung.seeds.clone());
-    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_rollout::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
-    if let Some(g) = &rung.eval.generate {
-        let sim = Arc::new(SimConfig::default());
-        for (map, cases) in &mut maps {
-            let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
-            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), Some(g.conflict_share))).collect();
-        }
-    }
+    let maps = rung_cases(dirs, &rung)?;
 
     // 1. Train (or find) one job per seed.
     let mut jobs = Vec::new();
@@ -234,25 +227,8 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         idm.extend(evaluate(&rung.eval, 0, map, cases, None, &mut runners)?);
     }
     for (seed, policy) in &jobs {
-        let dir = &PathBuf::from(&policy.key);
-        let seed_out = out.join(format!("seed-{seed}"));
-        std::fs::create_dir_all(&seed_out)?;
-        for f in ["curve.csv", "curve.png", "config.toml", "validation.csv"] {
-            if dir.join(f).exists() {
-                std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
-            }
-        }
-        let curve = read_curve(&dir.join("curve.csv"))?;
-        let mut mine = Vec::new();
-        for (map, cases) in &maps {
-            mine.extend(evaluate(&rung.eval, *seed, map, cases, Some(policy), &mut runners)?);
-        }
-        mine.extend(idm.iter().map(|r| Row { train_seed: *seed, ..r.clone() }));
-        let [updates, _, wall_s] = curve.last().copied().unwrap_or_default();
-        let mut s = summarise(*seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
-        s.selected_updates = selected_updates(dir)?;
-        check_curve(&mut s, &rung.gate, &curve);
-        summaries.push(s);
+        let (summary, curve, mine) = evaluate_seed(&rung, *seed, policy, &maps, &idm, &mut runners, &out)?;
+        summaries.push(summary);
         curves.push((*seed, curve));
         rows.extend(mine);
     }
@@ -267,16 +243,8 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     }
     summaries.sort_by_key(|s| s.train_seed);
     curves.sort_by_key(|c| c.0);
-    let mut csv = String::from(Row::HEADER);
-    csv.push('\n');
-    for line in &kept_rows {
-        csv.push_str(line);
-        csv.push('\n');
-    }
-    for r in &rows {
-        csv.push_str(&r.csv());
-        csv.push('\n');
-    }
+    let lines = kept_rows.into_iter().chain(rows.iter().map(Row::csv));
+    let csv: String = std::iter::once(Row::HEADER.to_string()).chain(lines).map(|l| l + "\n").collect();
     std::fs::write(out.join("episodes.csv"), csv)?;
     let passed = summaries.iter().all(|s| s.passed);
     let json = serde_json::json!({"rung": rung.rung, "name": rung.name, "gate": rung.gate, "eval": rung.eval, "passed": passed, "seeds": summaries});
@@ -287,6 +255,45 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     println!("{}", serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()}));
     print!("{}", summary_md(&rung, &summaries, passed));
     Ok(())
+}
+
+/// The rung's scenarios with the cases it evaluates on: the stored ones, or with
+/// `eval.generate` cases drawn from its seed (the same for every scenario's generator).
+fn rung_cases(dirs: &Ctx, rung: &Rung) -> Result<Vec<(Arc<Map>, CaseFile)>> {
+    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_rollout::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    if let Some(g) = &rung.eval.generate {
+        let sim = Arc::new(SimConfig::default());
+        for (map, cases) in &mut maps {
+            let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
+            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), Some(g.conflict_share))).collect();
+        }
+    }
+    Ok(maps)
+}
+
+/// One training seed's job: its curve files copied into `out/seed-N`, its episodes (with the
+/// IDM ego's, relabelled to this seed) and its summary against the gate.
+#[allow(clippy::too_many_arguments)]
+fn evaluate_seed(rung: &Rung, seed: u64, policy: &Policy, maps: &[(Arc<Map>, CaseFile)], idm: &[Row], runners: &mut Runners, out: &Path) -> Result<(SeedSummary, Vec<CurvePt>, Vec<Row>)> {
+    let dir = &PathBuf::from(&policy.key);
+    let seed_out = out.join(format!("seed-{seed}"));
+    std::fs::create_dir_all(&seed_out)?;
+    for f in ["curve.csv", "curve.png", "config.toml", "validation.csv"] {
+        if dir.join(f).exists() {
+            std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
+        }
+    }
+    let curve = read_curve(&dir.join("curve.csv"))?;
+    let mut mine = Vec::new();
+    for (map, cases) in maps {
+        mine.extend(evaluate(&rung.eval, seed, map, cases, Some(policy), runners)?);
+    }
+    mine.extend(idm.iter().map(|r| Row { train_seed: seed, ..r.clone() }));
+    let [updates, _, wall_s, _] = curve.last().copied().unwrap_or_default();
+    let mut s = summarise(seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
+    s.selected_updates = selected_updates(dir)?;
+    check_curve(&mut s, &rung.gate, &curve, policy.cfg.train.window);
+    Ok((s, curve, mine))
 }
 
 /// The seed summaries and episode lines already in `out` from earlier runs of the same rung,
@@ -477,20 +484,30 @@ fn selected_updates(dir: &Path) -> Result<Option<u64>> {
 }
 
 /// The gate's checks on the training curve.
-fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[CurvePt]) {
+fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[CurvePt], window: usize) {
+    let learner: Vec<&CurvePt> = learner_points(curve, window).collect();
     if let Some(v) = g.curve_min_success {
-        let after: Vec<f64> = curve.iter().filter(|p| p[0] >= g.curve_from_updates as f64).map(|p| p[1]).collect();
+        let after: Vec<f64> = learner.iter().filter(|p| p[0] >= g.curve_from_updates as f64).map(|p| p[1]).collect();
         let low = after.iter().copied().fold(f64::INFINITY, f64::min);
         if after.is_empty() || low < v {
             s.failed_checks.push(format!("curve success from {} updates on: min {:.3} < {v}", g.curve_from_updates, if after.is_empty() { 0.0 } else { low }));
         }
     }
     if let Some(v) = g.curve_reach_success {
-        if !curve.iter().any(|p| p[0] <= g.curve_reach_updates as f64 && p[1] >= v) {
+        if !learner.iter().any(|p| p[0] <= g.curve_reach_updates as f64 && p[1] >= v) {
             s.failed_checks.push(format!("curve success never reached {v} within {} updates", g.curve_reach_updates));
         }
     }
     s.passed = s.failed_checks.is_empty();
+}
+
+/// The curve points whose rolling window (the job's last `window` episodes) holds only
+/// episodes driven by the learned policy: after the first update, and at least `window`
+/// episodes after the warm-up's last point. Before that the window holds the warm-up's
+/// episodes, which an IDM warm-up's demonstrator drove, not the policy.
+fn learner_points(curve: &[CurvePt], window: usize) -> impl Iterator<Item = &CurvePt> {
+    let warmup_episodes = curve.iter().filter(|p| p[0] == 0.0).map(|p| p[3]).fold(0.0, f64::max);
+    curve.iter().filter(move |p| p[0] > 0.0 && p[3] >= warmup_episodes + window as f64)
 }
 
 fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
@@ -524,8 +541,8 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     m
 }
 
-/// One curve point as the ladder reads it: `[updates, rolling success, wall_s]`.
-type CurvePt = [f64; 3];
+/// One curve point as the ladder reads it: `[updates, rolling success, wall_s, episodes]`.
+type CurvePt = [f64; 4];
 
 /// A job's `curve.csv`, read by column name.
 fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
@@ -533,11 +550,11 @@ fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
-    let idx = [col("updates")?, col("success")?, col("wall_s")?];
+    let idx = [col("updates")?, col("success")?, col("wall_s")?, col("episodes")?];
     let mut out = Vec::new();
     for (i, l) in lines.enumerate() {
         let f: Vec<&str> = l.split(',').collect();
-        let mut p = [0.0; 3];
+        let mut p = [0.0; 4];
         for (k, &c) in idx.iter().enumerate() {
             p[k] = f.get(c).and_then(|v| v.parse().ok()).with_context(|| format!("{} line {}: column {c}", path.display(), i + 2))?;
         }
@@ -583,4 +600,55 @@ fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<(
     let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() }).collect();
     line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500))
         .map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn summary() -> SeedSummary {
+        SeedSummary {
+            train_seed: 0,
+            job_dir: String::new(),
+            episodes: 0,
+            success: 0.0,
+            idm_success: 0.0,
+            collision: 0.0,
+            idm_collision: 0.0,
+            other_failures: 0.0,
+            speed: 0.0,
+            idm_speed: 0.0,
+            p_value: 1.0,
+            per_scenario: BTreeMap::new(),
+            updates: 0,
+            selected_updates: None,
+            wall_s: 0.0,
+            passed: false,
+            failed_checks: Vec::new(),
+        }
+    }
+
+    /// The curve checks count only points whose rolling window the policy drove: a
+    /// demonstrator's warm-up at 0.95 does not reach a 0.90 gate for a policy at 0.5, and the
+    /// first `window` episodes after the warm-up still hold the demonstrator's.
+    #[test]
+    fn curve_checks_ignore_the_warmup_episodes() {
+        let gate = Gate { curve_reach_success: Some(0.9), curve_reach_updates: 10_000, curve_min_success: Some(0.8), curve_from_updates: 2_000, ..Default::default() };
+        // [updates, success, wall_s, episodes]: warm-up to 150 episodes, then the policy.
+        let warmup = [[0.0, 0.95, 1.0, 50.0], [0.0, 0.95, 2.0, 150.0]];
+        let check = |tail: &[CurvePt]| {
+            let curve: Vec<CurvePt> = warmup.iter().chain(tail).copied().collect();
+            let mut s = summary();
+            check_curve(&mut s, &gate, &curve, 100);
+            s
+        };
+        let poor = check(&[[500.0, 0.93, 3.0, 200.0], [3_000.0, 0.5, 4.0, 400.0], [6_000.0, 0.5, 5.0, 700.0]]);
+        assert!(!poor.passed, "0.93 at 200 episodes is the warm-up's window");
+        assert!(poor.failed_checks.iter().any(|c| c.contains("never reached 0.9")), "{:?}", poor.failed_checks);
+        assert!(poor.failed_checks.iter().any(|c| c.contains("min 0.500")), "{:?}", poor.failed_checks);
+        let good = check(&[[500.0, 0.6, 3.0, 200.0], [3_000.0, 0.92, 4.0, 400.0], [6_000.0, 0.91, 5.0, 700.0]]);
+        assert!(good.passed, "{:?}", good.failed_checks);
+        let none = check(&[]);
+        assert_eq!(none.failed_checks.len(), 2, "{:?}", none.failed_checks);
+    }
 }

@@ -104,15 +104,16 @@ pub fn bar(target: u64) -> ProgressBar {
     pb
 }
 
-pub fn show(pb: &ProgressBar, state: JobState, p: &Progress) {
-    pb.set_length(p.target_env_steps.max(1));
+pub fn show(pb: &ProgressBar, state: JobState, progress: &Progress) {
+    let p = &progress.learning;
+    pb.set_length(progress.target_env_steps.max(1));
     pb.set_position(p.env_steps);
     pb.set_message(format!(
         "{} | updates {} | v{} | {:.0} steps/s | success {:.2} safety {:.2} speed {:.2} (last {} episodes)",
         state.as_str(),
         p.updates,
-        p.policy_version,
-        p.env_steps_per_s,
+        progress.policy_version,
+        progress.env_steps_per_s,
         p.scores.success,
         p.scores.safety,
         p.scores.speed,
@@ -172,10 +173,10 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
                             j.id,
                             j.name,
                             j.state.as_str(),
-                            p.env_steps,
+                            p.learning.env_steps,
                             p.target_env_steps,
-                            p.updates,
-                            p.scores.success,
+                            p.learning.updates,
+                            p.learning.scores.success,
                             j.message
                         );
                     }

@@ -323,6 +323,14 @@ pub struct SacConfig {
     /// SAC and alpha stays put; once the warm-up is over the cloned policy acts meanwhile.
     /// Requires `warmup_policy = "idm"`. 0: plain SAC.
     pub bc_updates: u64,
+    /// The cloning updates draw their batches from the warm-up's transitions only (the first
+    /// `warmup_steps` the replay took, all acted by the demonstrator) instead of the whole
+    /// replay, which holds the clone's own actions once the warm-up is over: without it a
+    /// clone that acts while it learns partly clones itself. Needs `bc_updates > 0` and
+    /// `bc_target = "replay"`. The critic learns from the same batches meanwhile. Written
+    /// only when set, so the configs stored before it read and write back the same.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub bc_from_warmup: bool,
     /// After the cloning updates, the cloning loss (mean action and log-std) stays in the actor
     /// loss as a term scaled by the critic's mean |Q| (as TD3+BC does) with this weight:
     /// constant if `bc_decay_updates` is 0, else falling linearly to 0 over that many updates.
@@ -379,6 +387,13 @@ impl SacConfig {
     /// The actor's learning rate at update `updates` (0-based, counted from the job's first
     /// update): `lr_actor` until the actor's SAC phase starts, then the linear decay towards
     /// `lr_actor_final` if one is set.
+    /// Where update number `updates` (0-based) draws its batch: `Some(n)` restricts it to the
+    /// replay's first `n` transitions (`bc_from_warmup` during the cloning updates), `None` is
+    /// the whole replay.
+    pub fn sample_before(&self, updates: u64) -> Option<u64> {
+        (self.bc_from_warmup && updates < self.bc_updates).then_some(self.warmup_steps)
+    }
+
     pub fn actor_lr(&self, updates: u64) -> f64 {
         let Some(last) = self.lr_actor_final else { return self.lr_actor };
         let since = updates.saturating_sub(self.bc_updates + self.critic_pretrain_updates);
@@ -439,6 +454,7 @@ impl Default for SacConfig {
             warmup_noise: 0.1,
             warmup_brake_prob: 0.0,
             bc_updates: 0,
+            bc_from_warmup: false,
             bc_weight: 0.0,
             bc_decay_updates: 0,
             target_entropy: None,
@@ -815,6 +831,9 @@ impl JobConfig {
         if s.bc_updates > 0 && s.warmup_policy != WarmupPolicy::Idm {
             return bad("sac.bc_updates", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
         }
+        if s.bc_from_warmup && (s.bc_updates == 0 || s.bc_target != BcTarget::Replay) {
+            return bad("sac.bc_from_warmup", "draws the cloning updates' batches from the demonstrator's warm-up: set sac.bc_updates > 0 and sac.bc_target = \"replay\"");
+        }
         if !(s.bc_weight.is_finite() && s.bc_weight >= 0.0) {
             return bad("sac.bc_weight", format!("{} must be a non-negative number", s.bc_weight));
         }
@@ -988,6 +1007,26 @@ mod tests {
         assert_eq!((ok.sac.warmup_policy, ok.sac.bc_updates, ok.sac.target_entropy), (WarmupPolicy::Idm, 50, Some(-3.0)));
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nbc_updates = 50\n")).expect_err("nothing to clone");
         assert!(e.to_string().contains("sac.bc_updates"), "{e}");
+    }
+
+    /// `bc_from_warmup` restricts the cloning updates, and only those, to the warm-up's rows;
+    /// it needs cloning updates towards the replayed actions, and is written only when set.
+    #[test]
+    fn cloning_from_the_warmup_only() {
+        let sac = "[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 50\n";
+        let off = JobConfig::from_toml(&format!("{MIN}{sac}")).expect("valid");
+        assert_eq!((off.sac.sample_before(0), off.sac.sample_before(49)), (None, None));
+        assert!(!off.to_toml().contains("bc_from_warmup"), "unset is not written");
+        let on = JobConfig::from_toml(&format!("{MIN}{sac}bc_from_warmup = true\n")).expect("valid");
+        assert_eq!((on.sac.sample_before(0), on.sac.sample_before(49), on.sac.sample_before(50)), (Some(100), Some(100), None));
+        assert_eq!(JobConfig::from_toml(&on.to_toml()).expect("round trip").sac, on.sac);
+        for body in
+            ["warmup_steps = 100\nwarmup_policy = \"idm\"\nbc_from_warmup = true\n", "warmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 5\nbc_target = \"zero\"\nbc_from_warmup = true\n"]
+        {
+            let cfg = if body.contains("zero") { MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]") } else { MIN.to_string() };
+            let e = JobConfig::from_toml(&format!("{cfg}[sac]\n{body}")).expect_err(body);
+            assert!(e.to_string().contains("sac.bc_from_warmup"), "{body}: {e}");
+        }
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_noise = 2.0\n")).expect_err("noise");
         assert!(e.to_string().contains("sac.warmup_noise"), "{e}");
         let adv = "kind = \"socialcomm-adv\"\n".to_string() + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\n[train]");

@@ -2,9 +2,10 @@
 //! transition batches.
 //!
 //! Owns: [`JobConfig`] (the TOML a user submits; `deny_unknown_fields`, validated with errors
-//! that name the field), [`JobState`], [`JobRecord`], [`Progress`], [`Assignment`],
-//! [`TransitionBatch`] with its shape and finiteness checks, evaluation grids ([`eval`]), and
-//! [`JobSpec`], the one parse of a submitted or stored text into either. Must not: depend on
+//! that name the field), [`JobState`], [`JobRecord`], [`Progress`] and the [`Learning`] it
+//! shares with curve points, [`Assignment`], [`TransitionBatch`] with its shape and finiteness
+//! checks, evaluation grids ([`eval`]), and [`JobSpec`], the one parse of a submitted or stored
+//! text into either. Must not: depend on
 //! burn, tokio or the wire format (`sf_proto` converts to and from these types).
 
 pub use sf_sim::{Scores, SvoGaussian};
@@ -46,25 +47,37 @@ impl JobState {
     }
 }
 
-/// A job's progress: counters and rolling episode statistics.
+/// Where a job's learning stands: its counters, the rolling scores of its last finished
+/// training episodes and its last update's losses. A job's [`Progress`] reports it and every
+/// point of its learning curve (`sf_sac::CurvePoint`) records it; both flatten it, so the
+/// JSON and CSV they write keep these fields at their top level.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
-pub struct Progress {
+pub struct Learning {
     /// Learner transitions accepted into replay.
     pub env_steps: u64,
-    pub target_env_steps: u64,
     pub updates: u64,
-    pub policy_version: u64,
     pub episodes: u64,
     /// Rolling means over the last finished training episodes.
     #[serde(flatten)]
     pub scores: sf_sim::Scores,
+    /// The last update's single-batch losses and temperature.
     pub critic_loss: f32,
     pub actor_loss: f32,
     pub alpha: f32,
-    pub env_steps_per_s: f64,
     /// Training wall-clock, summed over restarts.
     pub wall_s: f64,
+}
+
+/// A job's progress: where its learning stands, its budget, its policy version and rates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Progress {
+    #[serde(flatten)]
+    pub learning: Learning,
+    pub target_env_steps: u64,
+    pub policy_version: u64,
+    pub env_steps_per_s: f64,
     pub dropped_stale: u64,
 }
 
@@ -135,4 +148,24 @@ impl Frozen {
 /// Milliseconds since the Unix epoch (0 if the clock is before it).
 pub fn now_unix_ms() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Job records stored before `Learning` existed (flat fields) still read, and records
+    /// written now keep the same flat layout.
+    #[test]
+    fn progress_json_stays_flat() {
+        let old = r#"{"env_steps":120,"target_env_steps":500,"updates":30,"policy_version":4,"episodes":9,"success":0.5,"safety":0.75,"speed":0.25,"critic_loss":1.5,"actor_loss":-2.0,"alpha":0.25,"env_steps_per_s":61.0,"wall_s":12.5,"dropped_stale":3}"#;
+        let p: Progress = serde_json::from_str(old).expect("an old record's progress");
+        let l = p.learning;
+        assert_eq!((l.env_steps, l.updates, l.episodes, p.target_env_steps, p.policy_version, p.dropped_stale), (120, 30, 9, 500, 4, 3));
+        assert_eq!((l.scores.success, l.scores.safety, l.scores.speed), (0.5, 0.75, 0.25));
+        assert_eq!((l.critic_loss, l.actor_loss, l.alpha, l.wall_s, p.env_steps_per_s), (1.5, -2.0, 0.25, 12.5, 61.0));
+        let again: serde_json::Value = serde_json::to_value(p).expect("serialises");
+        let old: serde_json::Value = serde_json::from_str(old).expect("json");
+        assert_eq!(again, old, "the written layout is the old flat one");
+    }
 }

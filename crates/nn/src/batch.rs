@@ -88,109 +88,196 @@ impl ObsBatch {
     pub fn from_rows(rows: &[f32], spec: &ObsSpec, cfg: &NetConfig, frame_dt_s: f32, map_ids: &[u32], map_offsets: &[u32], histories: Histories, device: &Device) -> Self {
         let b = rows.len() / spec.len;
         assert_eq!(b * spec.len, rows.len(), "rows must be whole observations");
-        let (h, n, r, m, p) = (spec.history, spec.neighbours, spec.route_points, spec.map_pieces, spec.piece_points);
-        let mut ego = Vec::with_capacity(b * h * AGENT_IN);
-        let mut ego_ctx = Vec::with_capacity(b * EGO_CTX);
-        let mut agents = Vec::with_capacity(b * n * h * AGENT_IN);
-        let mut agents_vmask = Vec::with_capacity(b * n * h);
-        let mut agents_ctx = Vec::with_capacity(b * n * AGENT_CTX);
-        let mut route = Vec::with_capacity(b * r * STATIC_IN);
-        let mut route_mask = Vec::with_capacity(b * r);
-        let t = 1 + n + 1 + m;
-        let mut pad = Vec::with_capacity(b * t);
-        let mut map_pts = Vec::new();
-        let mut map_mask = Vec::new();
-        let mut ids: Vec<i64> = Vec::new();
-        let mut pose = Vec::new();
-        let time = |k: usize| (h - 1 - k) as f32 * frame_dt_s / TIME_SCALE_S;
-        let svo_own = cfg.svo != SvoVisibility::None;
-        let svo_all = cfg.svo == SvoVisibility::All;
-        let shared = histories == Histories::Shared;
-        let mut table = SharedHistories::default();
-        let mut hist = vec![0f32; h * AGENT_IN];
-        let mut hist_mask = vec![0f32; h];
+        let mut builder = Builder::new(spec, cfg, frame_dt_s, histories == Histories::Shared, b);
         for (bi, row) in rows.chunks_exact(spec.len).enumerate() {
-            for k in 0..h {
-                hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&row[spec.ego_hist.start + k * AGENT_FEATS..][..AGENT_FEATS]);
-                hist[k * AGENT_IN + AGENT_FEATS] = time(k);
-            }
-            if shared {
-                hist_mask.fill(1.0);
-                let k = table.index(&hist, &hist_mask);
-                table.ego_idx.push(k);
+            builder.ego(row);
+            builder.agents(row);
+            builder.route(row);
+            let map_offset = map_ids.get(bi).and_then(|&k| map_offsets.get(k as usize)).copied().unwrap_or(0) as i64;
+            builder.map(row, map_offset);
+        }
+        builder.finish(device)
+    }
+}
+
+/// [`ObsBatch::from_rows`]'s buffers, filled row by row and token by token (ego, neighbours,
+/// route, map pieces, each pushing its padding flags in token order), then made tensors.
+struct Builder<'a> {
+    spec: &'a ObsSpec,
+    cfg: &'a NetConfig,
+    frame_dt_s: f32,
+    shared: bool,
+    batch: usize,
+    ego: Vec<f32>,
+    ego_ctx: Vec<f32>,
+    agents: Vec<f32>,
+    agents_vmask: Vec<f32>,
+    agents_ctx: Vec<f32>,
+    route: Vec<f32>,
+    route_mask: Vec<f32>,
+    pad: Vec<bool>,
+    map_pts: Vec<f32>,
+    map_mask: Vec<f32>,
+    ids: Vec<i64>,
+    pose: Vec<f32>,
+    table: SharedHistories,
+    /// One history being assembled (features + time channel) and its vector mask.
+    hist: Vec<f32>,
+    hist_mask: Vec<f32>,
+}
+
+impl<'a> Builder<'a> {
+    fn new(spec: &'a ObsSpec, cfg: &'a NetConfig, frame_dt_s: f32, shared: bool, b: usize) -> Self {
+        let (h, n, r) = (spec.history, spec.neighbours, spec.route_points);
+        Self {
+            spec,
+            cfg,
+            frame_dt_s,
+            shared,
+            batch: b,
+            ego: Vec::with_capacity(b * h * AGENT_IN),
+            ego_ctx: Vec::with_capacity(b * EGO_CTX),
+            agents: Vec::with_capacity(b * n * h * AGENT_IN),
+            agents_vmask: Vec::with_capacity(b * n * h),
+            agents_ctx: Vec::with_capacity(b * n * AGENT_CTX),
+            route: Vec::with_capacity(b * r * STATIC_IN),
+            route_mask: Vec::with_capacity(b * r),
+            pad: Vec::with_capacity(b * Self::tokens(spec)),
+            map_pts: Vec::new(),
+            map_mask: Vec::new(),
+            ids: Vec::new(),
+            pose: Vec::new(),
+            table: SharedHistories::default(),
+            hist: vec![0f32; h * AGENT_IN],
+            hist_mask: vec![0f32; h],
+        }
+    }
+
+    /// Tokens per observation: ego, neighbours, route, map pieces.
+    fn tokens(spec: &ObsSpec) -> usize {
+        1 + spec.neighbours + 1 + spec.map_pieces
+    }
+
+    /// The time channel of history step `k` (oldest first), normalised.
+    fn time(&self, k: usize) -> f32 {
+        (self.spec.history - 1 - k) as f32 * self.frame_dt_s / TIME_SCALE_S
+    }
+
+    /// `hist[k]`'s features from `src` (step `k` at `src[k * AGENT_FEATS..]`) with its time
+    /// channel times `valid`.
+    fn load_history(&mut self, src: &[f32], valid: f32) {
+        for k in 0..self.spec.history {
+            let t = valid * self.time(k);
+            self.hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&src[k * AGENT_FEATS..][..AGENT_FEATS]);
+            self.hist[k * AGENT_IN + AGENT_FEATS] = t;
+        }
+    }
+
+    /// The observer's own history and context (unconsumed channels zero).
+    fn ego(&mut self, row: &[f32]) {
+        let spec = self.spec;
+        self.load_history(&row[spec.ego_hist.clone()], 1.0);
+        if self.shared {
+            self.hist_mask.fill(1.0);
+            let k = self.table.index(&self.hist, &self.hist_mask);
+            self.table.ego_idx.push(k);
+        } else {
+            self.ego.extend_from_slice(&self.hist);
+        }
+        let ec = &row[spec.ego_ctx.clone()];
+        let svo_own = self.cfg.svo != SvoVisibility::None;
+        self.ego_ctx.extend_from_slice(&[if svo_own { ec[0] } else { 0.0 }, if self.cfg.ego_flag { ec[1] } else { 0.0 }]);
+        self.pad.push(false);
+    }
+
+    /// Each neighbour slot's history (time channel and mask zero in empty slots) and context.
+    fn agents(&mut self, row: &[f32]) {
+        let spec = self.spec;
+        let h = spec.history;
+        let svo_all = self.cfg.svo == SvoVisibility::All;
+        for j in 0..spec.neighbours {
+            let valid = row[spec.agents_mask.start + j];
+            self.load_history(&row[spec.agents_hist.start + j * h * AGENT_FEATS..], valid);
+            self.hist_mask.fill(valid);
+            if self.shared {
+                let k = self.table.index(&self.hist, &self.hist_mask);
+                self.table.agent_idx.push(k);
             } else {
-                ego.extend_from_slice(&hist);
+                self.agents.extend_from_slice(&self.hist);
+                self.agents_vmask.extend_from_slice(&self.hist_mask);
             }
-            let ec = &row[spec.ego_ctx.clone()];
-            ego_ctx.extend_from_slice(&[if svo_own { ec[0] } else { 0.0 }, if cfg.ego_flag { ec[1] } else { 0.0 }]);
-            pad.push(false);
-            for j in 0..n {
-                let valid = row[spec.agents_mask.start + j];
-                for k in 0..h {
-                    hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&row[spec.agents_hist.start + (j * h + k) * AGENT_FEATS..][..AGENT_FEATS]);
-                    hist[k * AGENT_IN + AGENT_FEATS] = valid * time(k);
+            let c = &row[spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
+            self.agents_ctx.extend_from_slice(&[c[0], c[1], c[2], c[3], if svo_all { c[4] } else { 0.0 }, if self.cfg.ego_flag { c[5] } else { 0.0 }]);
+            self.pad.push(valid == 0.0);
+        }
+    }
+
+    /// The route's points as static vectors (width channel zero); one token, padding when empty.
+    fn route(&mut self, row: &[f32]) {
+        let spec = self.spec;
+        let mut any_route = false;
+        for k in 0..spec.route_points {
+            let q = &row[spec.route.start + k * ROUTE_FEATS..][..ROUTE_FEATS];
+            self.route.extend_from_slice(&[q[0], q[1], q[2], 0.0, q[3]]);
+            let v = row[spec.route_mask.start + k];
+            any_route |= v != 0.0;
+            self.route_mask.push(v);
+        }
+        self.pad.push(!any_route);
+    }
+
+    /// Map pieces: points and masks (ego frame) or segment-table rows offset by the row's map
+    /// and poses (query-centric).
+    fn map(&mut self, row: &[f32], map_offset: i64) {
+        let spec = self.spec;
+        match spec.layout {
+            Layout::EgoFrame => {
+                self.map_pts.extend_from_slice(&row[spec.map.clone()]);
+                let mm = &row[spec.map_mask.clone()];
+                self.map_mask.extend_from_slice(mm);
+                for piece in mm.chunks_exact(spec.piece_points) {
+                    self.pad.push(piece.iter().all(|&v| v == 0.0));
                 }
-                hist_mask.fill(valid);
-                if shared {
-                    let k = table.index(&hist, &hist_mask);
-                    table.agent_idx.push(k);
-                } else {
-                    agents.extend_from_slice(&hist);
-                    agents_vmask.extend_from_slice(&hist_mask);
-                }
-                let c = &row[spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
-                agents_ctx.extend_from_slice(&[c[0], c[1], c[2], c[3], if svo_all { c[4] } else { 0.0 }, if cfg.ego_flag { c[5] } else { 0.0 }]);
-                pad.push(valid == 0.0);
             }
-            let mut any_route = false;
-            for k in 0..r {
-                let q = &row[spec.route.start + k * ROUTE_FEATS..][..ROUTE_FEATS];
-                route.extend_from_slice(&[q[0], q[1], q[2], 0.0, q[3]]);
-                let v = row[spec.route_mask.start + k];
-                any_route |= v != 0.0;
-                route_mask.push(v);
-            }
-            pad.push(!any_route);
-            match spec.layout {
-                Layout::EgoFrame => {
-                    map_pts.extend_from_slice(&row[spec.map.clone()]);
-                    let mm = &row[spec.map_mask.clone()];
-                    map_mask.extend_from_slice(mm);
-                    for piece in mm.chunks_exact(p) {
-                        pad.push(piece.iter().all(|&v| v == 0.0));
-                    }
-                }
-                Layout::QueryCentric => {
-                    let off = map_ids.get(bi).and_then(|&k| map_offsets.get(k as usize)).copied().unwrap_or(0) as i64;
-                    for s in 0..m {
-                        let valid = row[spec.seg_mask.start + s] != 0.0;
-                        ids.push(off + if valid { row[spec.seg_id.start + s] as i64 } else { 0 });
-                        pose.extend_from_slice(&row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE]);
-                        pad.push(!valid);
-                    }
+            Layout::QueryCentric => {
+                for s in 0..spec.map_pieces {
+                    let valid = row[spec.seg_mask.start + s] != 0.0;
+                    self.ids.push(map_offset + if valid { row[spec.seg_id.start + s] as i64 } else { 0 });
+                    self.pose.extend_from_slice(&row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE]);
+                    self.pad.push(!valid);
                 }
             }
         }
+    }
+
+    fn finish(self, device: &Device) -> ObsBatch {
+        let spec = self.spec;
+        let (b, h, n, r, m, p) = (self.batch, spec.history, spec.neighbours, spec.route_points, spec.map_pieces, spec.piece_points);
         let map = match spec.layout {
-            Layout::EgoFrame => MapInput::EgoFrame { pts: tensor(map_pts, [b, m, p, MAP_FEATS], device), mask: tensor(map_mask, [b, m, p], device) },
-            Layout::QueryCentric => MapInput::QueryCentric { ids: Tensor::from_data(TensorData::new(ids, [b * m]), device), pose: tensor(pose, [b, m, SEG_POSE], device) },
+            Layout::EgoFrame => MapInput::EgoFrame { pts: tensor(self.map_pts, [b, m, p, MAP_FEATS], device), mask: tensor(self.map_mask, [b, m, p], device) },
+            Layout::QueryCentric => MapInput::QueryCentric { ids: Tensor::from_data(TensorData::new(self.ids, [b * m]), device), pose: tensor(self.pose, [b, m, SEG_POSE], device) },
         };
-        let histories = if shared {
+        let histories = if self.shared {
+            let table = self.table;
             let u = table.ids.len();
             let idx = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device);
             AgentInput::Shared { hist: tensor(table.hist, [1, u, h, AGENT_IN], device), vmask: tensor(table.vmask, [1, u, h], device), ego_idx: idx(table.ego_idx), agent_idx: idx(table.agent_idx) }
         } else {
-            AgentInput::PerObservation { ego: tensor(ego, [b, 1, h, AGENT_IN], device), agents: tensor(agents, [b, n, h, AGENT_IN], device), vmask: tensor(agents_vmask, [b, n, h], device) }
+            AgentInput::PerObservation {
+                ego: tensor(self.ego, [b, 1, h, AGENT_IN], device),
+                agents: tensor(self.agents, [b, n, h, AGENT_IN], device),
+                vmask: tensor(self.agents_vmask, [b, n, h], device),
+            }
         };
-        Self {
+        ObsBatch {
             batch: b,
             histories,
-            ego_ctx: tensor(ego_ctx, [b, EGO_CTX], device),
-            agents_ctx: tensor(agents_ctx, [b, n, AGENT_CTX], device),
-            route: tensor(route, [b, 1, r, STATIC_IN], device),
-            route_mask: tensor(route_mask, [b, 1, r], device),
+            ego_ctx: tensor(self.ego_ctx, [b, EGO_CTX], device),
+            agents_ctx: tensor(self.agents_ctx, [b, n, AGENT_CTX], device),
+            route: tensor(self.route, [b, 1, r, STATIC_IN], device),
+            route_mask: tensor(self.route_mask, [b, 1, r], device),
             map,
-            pad: Tensor::from_data(TensorData::new(pad, [b, t]), device),
+            pad: Tensor::from_data(TensorData::new(self.pad, [b, Self::tokens(spec)]), device),
         }
     }
 }

@@ -10,7 +10,7 @@
 
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};
-use sf_job::{ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, PolicyRequest, Progress, Scores, TransitionBatch};
+use sf_job::{ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Learning, PolicyRequest, Progress, Scores, TransitionBatch};
 
 #[allow(clippy::all, missing_docs)]
 pub mod pb {
@@ -53,14 +53,15 @@ pub fn state_from_wire(v: i32) -> Result<JobState, WireError> {
     }
 }
 
-pub fn progress_to_wire(job_id: u64, state: JobState, p: &Progress) -> pb::JobProgress {
+pub fn progress_to_wire(job_id: u64, state: JobState, progress: &Progress) -> pb::JobProgress {
+    let p = &progress.learning;
     pb::JobProgress {
         job_id,
         state: state_to_wire(state) as i32,
         env_steps: p.env_steps,
-        target_env_steps: p.target_env_steps,
+        target_env_steps: progress.target_env_steps,
         updates: p.updates,
-        policy_version: p.policy_version,
+        policy_version: progress.policy_version,
         episodes: p.episodes,
         success: p.scores.success,
         safety: p.scores.safety,
@@ -68,9 +69,9 @@ pub fn progress_to_wire(job_id: u64, state: JobState, p: &Progress) -> pb::JobPr
         critic_loss: p.critic_loss,
         actor_loss: p.actor_loss,
         alpha: p.alpha,
-        env_steps_per_s: p.env_steps_per_s,
+        env_steps_per_s: progress.env_steps_per_s,
         wall_s: p.wall_s,
-        dropped_stale: p.dropped_stale,
+        dropped_stale: progress.dropped_stale,
     }
 }
 
@@ -78,17 +79,19 @@ pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), W
     Ok((
         state_from_wire(p.state)?,
         Progress {
-            env_steps: p.env_steps,
+            learning: Learning {
+                env_steps: p.env_steps,
+                updates: p.updates,
+                episodes: p.episodes,
+                scores: Scores { success: p.success, safety: p.safety, speed: p.speed },
+                critic_loss: p.critic_loss,
+                actor_loss: p.actor_loss,
+                alpha: p.alpha,
+                wall_s: p.wall_s,
+            },
             target_env_steps: p.target_env_steps,
-            updates: p.updates,
             policy_version: p.policy_version,
-            episodes: p.episodes,
-            scores: Scores { success: p.success, safety: p.safety, speed: p.speed },
-            critic_loss: p.critic_loss,
-            actor_loss: p.actor_loss,
-            alpha: p.alpha,
             env_steps_per_s: p.env_steps_per_s,
-            wall_s: p.wall_s,
             dropped_stale: p.dropped_stale,
         },
     ))

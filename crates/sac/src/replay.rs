@@ -253,7 +253,15 @@ impl Replay {
 
     /// Uniformly samples `n` transitions (with replacement) into `out`, reusing its buffers.
     pub fn sample_into(&self, rng: &mut impl Rng, n: usize, out: &mut Batch) -> Result<(), ReplayError> {
-        if self.len == 0 {
+        self.sample_before_into(rng, n, u64::MAX, out)
+    }
+
+    /// Like [`Replay::sample_into`], among the held transitions whose insertion number is
+    /// below `before` only (the first ones a job took, e.g. its warm-up's). `Empty` if none of
+    /// them is held any more.
+    pub fn sample_before_into(&self, rng: &mut impl Rng, n: usize, before: u64, out: &mut Batch) -> Result<(), ReplayError> {
+        let (first, end) = (self.oldest(), self.inserted.min(before));
+        if end <= first {
             return Err(ReplayError::Empty);
         }
         out.obs.clear();
@@ -263,8 +271,11 @@ impl Replay {
         out.terminals.clear();
         out.steps.clear();
         out.map_ids.clear();
+        let all = end - first == self.len as u64;
         for _ in 0..n {
-            let i = rng.random_range(0..self.len);
+            // The whole buffer draws a position directly (as it always has, so seeded runs keep
+            // their batches); a prefix draws an insertion number and finds its position.
+            let i = if all { rng.random_range(0..self.len) } else { ((rng.random_range(first..end) - self.offset) % self.capacity as u64) as usize };
             let o = i * self.obs_len;
             out.obs.extend(self.obs[o..o + self.obs_len].iter().map(|x| x.to_f32()));
             out.next_obs.extend(self.next_obs[o..o + self.obs_len].iter().map(|x| x.to_f32()));
@@ -317,6 +328,38 @@ mod tests {
         assert_eq!(&seen[..2], &[0, 0]);
         assert!(seen[2] > 50 && seen[3] > 50 && seen[4] > 50, "{seen:?}");
         assert_eq!(r.bytes_per_transition(), 2 * 3 * 2 + 8 + 13);
+    }
+
+    /// Sampling below an insertion number draws only those transitions still held, and says
+    /// so when none is.
+    #[test]
+    fn sampling_a_prefix_draws_only_its_rows() {
+        let mut r = Replay::new(4, 3, 2);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut b = Batch::default();
+        for k in 0..3 {
+            r.push(t(k as f32, &[k as f32, 0.0, 0.0])).expect("push");
+        }
+        r.sample_before_into(&mut rng, 200, 2, &mut b).expect("rows 0 and 1");
+        let mut seen = [0; 3];
+        b.rewards.iter().for_each(|&k| seen[k as usize] += 1);
+        assert!(seen[0] > 50 && seen[1] > 50 && seen[2] == 0, "{seen:?}");
+        assert!(b.obs.chunks(3).zip(&b.rewards).all(|(o, &k)| o[0] == k), "rows stay whole");
+        // Three more: rows 0 and 1 are evicted (row 4 took position 0), so a prefix below 3
+        // keeps only row 2.
+        for k in 3..6 {
+            r.push(t(k as f32, &[k as f32, 0.0, 0.0])).expect("push");
+        }
+        r.sample_before_into(&mut rng, 20, 3, &mut b).expect("row 2");
+        assert!(b.rewards.iter().all(|&k| k == 2.0), "{:?}", b.rewards);
+        assert_eq!(r.sample_before_into(&mut rng, 5, 2, &mut b), Err(ReplayError::Empty));
+        // A restored buffer numbers from its job's count.
+        let mut q = Replay::numbered_from(4, 3, 2, 10);
+        for k in 0..4 {
+            q.push(t(k as f32, &[k as f32, 0.0, 0.0])).expect("push");
+        }
+        q.sample_before_into(&mut rng, 50, 12, &mut b).expect("rows 10 and 11");
+        assert!(b.rewards.iter().all(|&k| k < 2.0), "{:?}", b.rewards);
     }
 
     #[test]

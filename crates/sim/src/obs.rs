@@ -311,23 +311,36 @@ impl Observer {
         assert_eq!(out.len(), self.spec.len, "observation slice has the wrong length");
         assert_eq!(self.own_hist.len(), env.len() * self.cfg.history * AGENT_FEATS, "prepare() must run after each step");
         out.fill(0.0);
-        let spec = &self.spec;
-        let cfg = &self.cfg;
-        let h = cfg.history;
-        let agents = env.agents();
-        let me = &agents[i];
+        let me = &env.agents()[i];
         let frame = me.frame();
-        let hist_len = h * AGENT_FEATS;
+        self.write_ego(env, i, out);
+        self.write_neighbours(env, i, &frame, out);
+        self.write_route(env, i, &frame, out);
+        self.write_map(me.state.pos(), &frame, out);
+    }
+
+    /// The ego's own history and context (its SVO, the ego flag).
+    fn write_ego(&self, env: &Env, i: usize, out: &mut [f32]) {
+        let (spec, cfg) = (&self.spec, &self.cfg);
+        let hist_len = cfg.history * AGENT_FEATS;
         out[spec.ego_hist.clone()].copy_from_slice(&self.own_hist[i * hist_len..(i + 1) * hist_len]);
         let ctx = &mut out[spec.ego_ctx.clone()];
         if cfg.svo != SvoVisibility::None {
-            ctx[0] = me.svo_deg / 90.0;
+            ctx[0] = env.agents()[i].svo_deg / 90.0;
         }
         if cfg.ego_flag && i == 0 {
             ctx[1] = 1.0;
         }
+    }
 
-        // Neighbours: nearest live agents within the radius.
+    /// Neighbours: the nearest live agents within the radius, their histories, poses relative
+    /// to agent `i`, communicated SVO and ego flag.
+    fn write_neighbours(&mut self, env: &Env, i: usize, frame: &Frame, out: &mut [f32]) {
+        let (spec, cfg) = (&self.spec, &self.cfg);
+        let h = cfg.history;
+        let hist_len = h * AGENT_FEATS;
+        let agents = env.agents();
+        let me = &agents[i];
         let r2 = cfg.radius_m * cfg.radius_m;
         self.cand.clear();
         for (j, b) in agents.iter().enumerate() {
@@ -366,8 +379,12 @@ impl Observer {
             }
             out[spec.agents_mask.start + slot] = 1.0;
         }
+    }
 
-        // Route ahead.
+    /// The route ahead of agent `i`: its next points with headings and their rank.
+    fn write_route(&self, env: &Env, i: usize, frame: &Frame, out: &mut [f32]) {
+        let spec = &self.spec;
+        let me = &env.agents()[i];
         let route = &env.map.routes[me.route as usize];
         for k in 0..spec.route_points {
             let idx = me.seg + 1 + k;
@@ -379,12 +396,17 @@ impl Observer {
             out[o..o + ROUTE_FEATS].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, frame.angle_to_local(route.headings[idx]) / PI, k as f32 / spec.route_points as f32]);
             out[spec.route_mask.start + k] = 1.0;
         }
+    }
 
-        // Map pieces whose bounding circle reaches within the radius, nearest first.
+    /// Map pieces whose bounding circle reaches within the radius of `pos`, nearest first: as
+    /// segment ids and poses (query-centric) or as points in the observer's frame (ego frame).
+    fn write_map(&mut self, pos: P2, frame: &Frame, out: &mut [f32]) {
+        let (spec, cfg) = (&self.spec, &self.cfg);
+        let r2 = cfg.radius_m * cfg.radius_m;
         let segs = &*self.segments;
         self.pieces.clear();
         for (k, c) in segs.centres.iter().enumerate() {
-            let d = geom::dist(me.state.pos(), *c) - segs.radii_m[k];
+            let d = geom::dist(pos, *c) - segs.radii_m[k];
             if d <= cfg.radius_m {
                 self.pieces.push((d, k as u32));
             }
@@ -407,7 +429,7 @@ impl Observer {
                 Layout::EgoFrame => {
                     for q in 0..segs.counts[k] {
                         let w = segs.world[k * p + q];
-                        if geom::dist2(w, me.state.pos()) > r2 {
+                        if geom::dist2(w, pos) > r2 {
                             continue;
                         }
                         let l = frame.to_local(w);

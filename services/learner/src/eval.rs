@@ -230,7 +230,7 @@ impl EvalJob {
             stop: Mutex::new(None),
             changed: Notify::new(),
             started: Instant::now(),
-            wall_s_before: rec.progress.wall_s,
+            wall_s_before: rec.progress.learning.wall_s,
             metrics,
         })
     }
@@ -247,11 +247,14 @@ impl EvalJob {
         let s = lock(&self.state);
         let n = s.episodes.max(1) as f64;
         Progress {
-            env_steps: s.episodes,
+            learning: sf_job::Learning {
+                env_steps: s.episodes,
+                episodes: s.episodes,
+                scores: sf_job::Scores { success: (s.sums[0] / n) as f32, safety: (s.sums[1] / n) as f32, speed: (s.sums[2] / n) as f32 },
+                wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
+                ..Default::default()
+            },
             target_env_steps: self.cells.len() as u64 * self.episodes_per_cell(),
-            episodes: s.episodes,
-            scores: sf_job::Scores { success: (s.sums[0] / n) as f32, safety: (s.sums[1] / n) as f32, speed: (s.sums[2] / n) as f32 },
-            wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
             ..Progress::default()
         }
     }
@@ -426,7 +429,7 @@ impl crate::Inner {
             self.wake.notify_one();
             return started.map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
         }
-        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().episodes, "evaluation started");
+        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().learning.episodes, "evaluation started");
         let me = Arc::clone(self);
         tokio::spawn(async move {
             let out = loop {

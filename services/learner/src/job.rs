@@ -403,17 +403,19 @@ impl ActiveJob {
             _ => 0.0,
         };
         Progress {
-            env_steps: s.c.env_steps,
+            learning: sf_job::Learning {
+                env_steps: s.c.env_steps,
+                updates: s.updates,
+                episodes: s.c.episodes,
+                scores,
+                critic_loss: s.losses.critic,
+                actor_loss: s.losses.actor,
+                alpha: s.losses.alpha,
+                wall_s: s.c.wall_s + self.started.elapsed().as_secs_f64(),
+            },
             target_env_steps: self.cfg.train.env_steps,
-            updates: s.updates,
             policy_version: self.latest_version(),
-            episodes: s.c.episodes,
-            scores,
-            critic_loss: s.losses.critic,
-            actor_loss: s.losses.actor,
-            alpha: s.losses.alpha,
             env_steps_per_s,
-            wall_s: s.c.wall_s + self.started.elapsed().as_secs_f64(),
             dropped_stale: s.c.dropped_stale,
         }
     }

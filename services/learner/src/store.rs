@@ -136,7 +136,7 @@ mod tests {
             assert_eq!((a.id, b.id), (1, 2));
             s.update(1, |r| {
                 r.state = JobState::Running;
-                r.progress.updates = 5;
+                r.progress.learning.updates = 5;
             })
             .expect("update");
             assert!(s.update(99, |_| {}).expect("update").is_none());
@@ -145,7 +145,7 @@ mod tests {
         let all = s.list().expect("list");
         assert_eq!(all.len(), 2);
         assert_eq!(all[0].state, JobState::Running);
-        assert_eq!(all[0].progress.updates, 5);
+        assert_eq!(all[0].progress.learning.updates, 5);
         assert_eq!(all[1].config_toml, "cfg-b");
         assert_eq!(s.create("c", "x", 1, |id| id.to_string()).expect("create").id, 3);
         let _ = std::fs::remove_dir_all(&dir);

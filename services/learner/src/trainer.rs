@@ -108,52 +108,21 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     let resolved = setup::resolve(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
     let mut sac = Sac::new(resolved.sac.clone(), resolved.net.clone(), resolved.obs.clone(), resolved.sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
-    let ckpt = dir.join("checkpoint");
     let mut st = resume.unwrap_or_default();
-    if ckpt.exists() {
-        checkpoint::restore(&mut sac, &ckpt).map_err(|source| LearnerError::Checkpoint { action: "restoring", path: ckpt.clone(), source })?;
-        tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
-    } else if let Some(init) = &init_dir {
-        checkpoint::warm_start(&mut sac, init).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: init.clone(), source })?;
-        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's final state");
-    }
+    let resumed = start_state(&job, &mut sac, &dir, init_dir.as_deref(), &st)?;
     std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
     // The replay comes back before the first policy is published, i.e. before any worker
     // can push.
-    let mut persist = None;
-    if cfg.train.persist_replay {
-        let store = ReplayStore::new(dir.join("replay"));
-        let mut next = 0;
-        if ckpt.exists() {
-            let t = Instant::now();
-            let (r, from) = store.restore(cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|source| LearnerError::Replay { action: "restoring", source })?;
-            tracing::info!(job_id = job.id, transitions = r.len(), ms = t.elapsed().as_millis() as u64, "replay restored");
-            job.metrics.replay_size.set(r.len() as i64);
-            next = from;
-            *lock(&job.replay) = r;
-        }
-        persist = Some((store, next));
-    }
+    let mut persist = if cfg.train.persist_replay { Some(restore_replay(&job, &dir, resumed, &st)?) } else { None };
     // TensorBoard scalars beside curve.csv (a new event file per start; TensorBoard reads all).
     let mut tb = EventWriter::create(&dir.join("tensorboard")).map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file")).ok();
     let mut validator = match &cfg.validation {
         Some(v) => Some((Validator::new(v.clone(), cfg, &maps, &job.frozen, &frozen_weights)?, BestPolicy::load(&dir)?)),
         None => None,
     };
-    // Version numbers are never issued twice, even across a crash: the newest is written
-    // before workers can see it, and a restart continues above it (not above the checkpoint's).
-    let version_file = dir.join("published_version");
-    let issued = std::fs::read_to_string(&version_file).ok().and_then(|s| s.trim().parse::<u64>().ok()).unwrap_or(0);
-    let mut version = st.policy_version.max(issued);
-    let publish = |sac: &Sac, version: &mut u64| -> Result<(), LearnerError> {
-        *version += 1;
-        let bytes = sac.actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
-        write_atomic(&version_file, version.to_string().as_bytes())?;
-        job.publish(*version, bytes);
-        Ok(())
-    };
-    publish(&sac, &mut version)?;
+    let mut publisher = Publisher::new(&job, &dir, st.policy_version);
+    publisher.publish(&sac)?;
     job.record_update(sac.updates, Default::default());
 
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.sac.seed ^ 0x7261_6e64 ^ sac.updates);
@@ -175,14 +144,19 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
             Ok(()) => {
                 let sampled = {
                     let r = lock(&job.replay);
-                    r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)
+                    // The cloning updates of `sac.bc_from_warmup` draw from the warm-up's rows
+                    // (the whole replay once those are evicted).
+                    match cfg.sac.sample_before(sac.updates) {
+                        Some(before) => r.sample_before_into(&mut rng, cfg.sac.batch_size, before, &mut batch).or_else(|_| r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)),
+                        None => r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch),
+                    }
                 };
                 if sampled.is_ok() {
                     last_loss = sac.update(&batch);
                     curve.after_update(&last_loss);
                     job.record_update(sac.updates, last_loss);
                     if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
-                        publish(&sac, &mut version)?;
+                        publisher.publish(&sac)?;
                     }
                     if let Some((v, best)) = validator.as_mut().filter(|(v, _)| sac.updates.is_multiple_of(v.section.every_updates)) {
                         validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
@@ -193,9 +167,9 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
             Err(RateLimitError::Closed) => continue,
             Err(e) => return Err(e.into()),
         }
-        curve.record(&job, &last_loss, version, &mut st, &mut tb);
+        curve.record(&job, &last_loss, publisher.version, &mut st, &mut tb);
         if last_ckpt.elapsed() >= Duration::from_secs(cfg.train.checkpoint_every_s) {
-            save(&job, &sac, &dir, &mut st, version, &mut persist)?;
+            save(&job, &sac, &dir, &mut st, publisher.version, &mut persist)?;
             last_ckpt = Instant::now();
         }
     };
@@ -204,13 +178,13 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
         if let Some((v, best)) = validator.as_mut().filter(|_| st.validation.last().is_none_or(|p| p.updates < sac.updates)) {
             validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
         }
-        publish(&sac, &mut version)?;
+        publisher.publish(&sac)?;
         // A finished job never resumes: its replay need not be written, and goes.
         if persist.take().is_some() {
             let _ = std::fs::remove_dir_all(dir.join("replay"));
         }
     }
-    save(&job, &sac, &dir, &mut st, version, &mut persist)?;
+    save(&job, &sac, &dir, &mut st, publisher.version, &mut persist)?;
     if outcome == Outcome::Succeeded {
         let weights = write_final_policy(&job, &sac, validator.as_ref().map(|(_, best)| best), &dir)?;
         if let Some(c) = cfg.coordinator() {
@@ -218,6 +192,63 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
         }
     }
     Ok(outcome)
+}
+
+/// The SAC state a run starts from: the job's own checkpoint when it has one (a resumed job;
+/// returns true), else `train.init_job`'s final state when it names one, else fresh weights.
+fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init_dir: Option<&Path>, st: &JobState) -> Result<bool, LearnerError> {
+    let ckpt = dir.join("checkpoint");
+    if ckpt.exists() {
+        checkpoint::restore(sac, &ckpt).map_err(|source| LearnerError::Checkpoint { action: "restoring", path: ckpt.clone(), source })?;
+        tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
+        return Ok(true);
+    }
+    if let Some(init) = init_dir {
+        checkpoint::warm_start(sac, init).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: init.to_path_buf(), source })?;
+        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's final state");
+    }
+    Ok(false)
+}
+
+/// `train.persist_replay`: the replay's segment store, with a resumed job's replay read back
+/// into the job (up to the transitions its counters say were on disk).
+fn restore_replay(job: &ActiveJob, dir: &Path, resumed: bool, st: &JobState) -> Result<(ReplayStore, u64), LearnerError> {
+    let store = ReplayStore::new(dir.join("replay"));
+    if !resumed {
+        return Ok((store, 0));
+    }
+    let t = Instant::now();
+    let (r, next) = store.restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|source| LearnerError::Replay { action: "restoring", source })?;
+    tracing::info!(job_id = job.id, transitions = r.len(), ms = t.elapsed().as_millis() as u64, "replay restored");
+    job.metrics.replay_size.set(r.len() as i64);
+    *lock(&job.replay) = r;
+    Ok((store, next))
+}
+
+/// Publishes the actor to workers under version numbers that are never issued twice, even
+/// across a crash: the newest is written (`published_version`) before workers can see it, and
+/// a restart continues above it (not above the checkpoint's).
+struct Publisher<'a> {
+    job: &'a ActiveJob,
+    file: PathBuf,
+    /// The last version published.
+    version: u64,
+}
+
+impl<'a> Publisher<'a> {
+    fn new(job: &'a ActiveJob, dir: &Path, saved_version: u64) -> Self {
+        let file = dir.join("published_version");
+        let issued = std::fs::read_to_string(&file).ok().and_then(|s| s.trim().parse::<u64>().ok()).unwrap_or(0);
+        Self { job, file, version: saved_version.max(issued) }
+    }
+
+    fn publish(&mut self, sac: &Sac) -> Result<(), LearnerError> {
+        self.version += 1;
+        let bytes = sac.actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
+        write_atomic(&self.file, self.version.to_string().as_bytes())?;
+        self.job.publish(self.version, bytes);
+        Ok(())
+    }
 }
 
 /// The learning curve: a point every `every` learner transitions (`curve.csv`, `state.json`)
@@ -245,7 +276,8 @@ impl CurveRecorder {
 
     /// Adds the points the job's progress has passed (none most of the time).
     fn record(&mut self, job: &ActiveJob, last_loss: &Losses, version: u64, st: &mut JobState, tb: &mut Option<EventWriter>) {
-        let p = job.progress();
+        let progress = job.progress();
+        let p = progress.learning;
         if p.env_steps < self.next_point {
             return;
         }
@@ -258,15 +290,8 @@ impl CurveRecorder {
         self.recent_q = 0.0;
         while p.env_steps >= self.next_point {
             st.curve.push(CurvePoint {
-                env_steps: self.next_point.min(p.env_steps),
-                updates: p.updates,
-                episodes: p.episodes,
-                scores: p.scores,
-                critic_loss: last_loss.critic,
-                actor_loss: last_loss.actor,
-                alpha: last_loss.alpha,
+                learning: sf_job::Learning { env_steps: self.next_point.min(p.env_steps), critic_loss: last_loss.critic, actor_loss: last_loss.actor, alpha: last_loss.alpha, ..p },
                 entropy: last_loss.entropy,
-                wall_s: p.wall_s,
                 ends,
                 critic_loss_mean: mean as f32,
                 critic_loss_median: median,
@@ -300,7 +325,7 @@ impl CurveRecorder {
             ("rate/transitions_per_s", transitions_per_s),
             ("policy/lag_versions", lag),
             ("policy/version", version as f64),
-            ("policy/dropped_stale", p.dropped_stale as f64),
+            ("policy/dropped_stale", progress.dropped_stale as f64),
         ];
         if let Err(e) = w.scalars(p.env_steps, &scalars) {
             tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events; no more for this run");
@@ -335,7 +360,7 @@ fn write_final_policy(job: &ActiveJob, sac: &Sac, best: Option<&BestPolicy>, dir
 /// records the point (curve, TensorBoard, log).
 fn validate(job: &ActiveJob, sac: &Sac, v: &mut Validator, best: &mut BestPolicy, st: &mut JobState, tb: Option<&mut EventWriter>) -> Result<(), LearnerError> {
     let weights = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
-    let p = v.score(&weights, sac.updates, job.progress().env_steps)?;
+    let p = v.score(&weights, sac.updates, job.progress().learning.env_steps)?;
     let kept = best.offer(&p, &weights)?;
     tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, safety = p.scores.safety, collision = p.collision, took_s = p.took_s, best = kept, "validation");
     if let Some(w) = tb {
@@ -428,8 +453,8 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64,
         write_atomic(&dir.join("validation.csv"), csv(ValidationPoint::CSV_HEADER, st.validation.iter().map(ValidationPoint::csv_row)).as_bytes())?;
     }
     if st.curve.len() >= 2 {
-        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.scores.success as f64)).collect();
-        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.env_steps as f64, p.scores.safety as f64)).collect();
+        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.learning.env_steps as f64, p.learning.scores.success as f64)).collect();
+        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.learning.env_steps as f64, p.learning.scores.safety as f64)).collect();
         let series = [Series { name: "success", points: pts }, Series { name: "safety", points: safety }];
         let title = format!("job {} ({})", job.id, job.cfg.name);
         if let Err(e) = line_chart(&dir.join("curve.png"), &title, "learner transitions", "rolling fraction of episodes", &series, Some((0.0, 1.0)), (800, 500)) {
