@@ -271,6 +271,11 @@ pub struct NetSection {
     /// The released code's doubly squashed mean (deterministic actions within +-0.762); off
     /// by default, kept for fidelity comparisons.
     pub squash_mean_twice: bool,
+    /// The bottom of the actor's log-std range (absent: the released code's -2.5, a spread of
+    /// at least 0.082 per action component); must be in [-10, 0.5). The cloning updates'
+    /// log-std target (`sac.warmup_noise`) is clamped into the range.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub log_std_min: Option<f32>,
 }
 
 /// The largest `sac.n_step`: longer sums mostly add the behaviour policy's bias.
@@ -365,6 +370,12 @@ pub struct SacConfig {
     /// between neighbouring updates.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub actor_average_tau: Option<f32>,
+    /// Rollouts act with the averaged actor of `actor_average_tau` too (published to workers
+    /// instead of the online actor), so the data comes from the policy that is validated and
+    /// kept rather than from whichever snapshot the last update left. Needs
+    /// `actor_average_tau`. Written only when set.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub act_with_average: bool,
     /// The actor reads the critic's (detached) encoder features and publishes a copy of the
     /// critic's encoder instead of training its own: one encoder pass forward and backward
     /// fewer per update.
@@ -379,9 +390,9 @@ pub struct SacConfig {
 
 impl SacConfig {
     /// The log-std the cloning updates fit: the demonstrator's noise as the cloned policy's
-    /// spread, inside the actor's log-std range.
-    pub fn bc_log_std(&self) -> f32 {
-        self.warmup_noise.max(1e-3).ln().clamp(-2.5, 0.5)
+    /// spread, inside the actor's log-std range `[log_std_min, 0.5]` (`net.log_std_min`).
+    pub fn bc_log_std(&self, log_std_min: f32) -> f32 {
+        self.warmup_noise.max(1e-3).ln().clamp(log_std_min, 0.5)
     }
 
     /// The actor's learning rate at update `updates` (0-based, counted from the job's first
@@ -465,6 +476,7 @@ impl Default for SacConfig {
             bc_q_filter: false,
             bc_awac_lambda: None,
             actor_average_tau: None,
+            act_with_average: false,
             shared_encoder: false,
             reuse_critic_features: true,
             seed: 0,
@@ -747,6 +759,11 @@ impl JobConfig {
                 return bad("net.width", format!("{w} must be a positive multiple of 4 (the attention heads) up to 1024"));
             }
         }
+        if let Some(m) = self.net.log_std_min {
+            if !(m.is_finite() && (-10.0..0.5).contains(&m)) {
+                return bad("net.log_std_min", format!("{m} must be finite and in [-10, 0.5)"));
+            }
+        }
         if let Some(p) = self.net.pose_layers {
             if !(1..=4).contains(&p) {
                 return bad("net.pose_layers", format!("{p} must be in 1..=4"));
@@ -807,6 +824,9 @@ impl JobConfig {
         }
         if s.actor_average_tau.is_some_and(|t| !(t > 0.0 && t <= 1.0)) {
             return bad("sac.actor_average_tau", format!("{:?} must be in (0, 1]", s.actor_average_tau));
+        }
+        if s.act_with_average && s.actor_average_tau.is_none() {
+            return bad("sac.act_with_average", "acts with the averaged actor: set sac.actor_average_tau");
         }
         if let Some(l) = s.bc_awac_lambda {
             if !(l.is_finite() && l > 0.0) {
@@ -1009,6 +1029,21 @@ mod tests {
         assert!(e.to_string().contains("sac.bc_updates"), "{e}");
     }
 
+    /// The averaged actor: its rate in (0, 1], acting with it only when there is one, and
+    /// `act_with_average` written only when set.
+    #[test]
+    fn acting_with_the_averaged_actor_needs_an_average() {
+        let off = JobConfig::from_toml(&format!("{MIN}[sac]\nactor_average_tau = 0.01\n")).expect("valid");
+        assert!(!off.sac.act_with_average && !off.to_toml().contains("act_with_average"), "unset is not written");
+        let on = JobConfig::from_toml(&format!("{MIN}[sac]\nactor_average_tau = 0.01\nact_with_average = true\n")).expect("valid");
+        assert!(on.sac.act_with_average);
+        assert_eq!(JobConfig::from_toml(&on.to_toml()).expect("round trip").sac, on.sac);
+        for (body, field) in [("act_with_average = true\n", "sac.act_with_average"), ("actor_average_tau = 0.0\n", "sac.actor_average_tau"), ("actor_average_tau = 1.5\n", "sac.actor_average_tau")] {
+            let e = JobConfig::from_toml(&format!("{MIN}[sac]\n{body}")).expect_err(body);
+            assert!(e.to_string().contains(field), "{body}: {e}");
+        }
+    }
+
     /// `bc_from_warmup` restricts the cloning updates, and only those, to the warm-up's rows;
     /// it needs cloning updates towards the replayed actions, and is written only when set.
     #[test]
@@ -1055,6 +1090,8 @@ mod tests {
             (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nn_step = 0\n"), "sac.n_step"),
             (format!("{env}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nn_step = 17\n"), "sac.n_step"),
             (format!("{env}[net]\npose_layers = 9\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"), "net.pose_layers"),
+            (format!("{env}[net]\nlog_std_min = 0.5\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"), "net.log_std_min"),
+            (format!("{env}[net]\nlog_std_min = -12.0\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"), "net.log_std_min"),
             (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "max_segments = 0\n[train]")), "env.max_segments"),
             (format!("{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", "action = \"idm-brake\"\n[train]")), "action"),
         ] {

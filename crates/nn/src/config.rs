@@ -15,8 +15,10 @@ pub use sf_sim::SvoVisibility;
 pub enum NetConfigError {
     #[error("net config field `{field}` must be positive")]
     NotPositive { field: &'static str },
-    #[error("net config field `init_log_std` must lie in the actor's log-std range [-2.5, 0.5], got {init_log_std}")]
-    InitLogStd { init_log_std: f32 },
+    #[error("net config field `init_log_std` must lie in the actor's log-std range [{log_std_min}, 0.5], got {init_log_std}")]
+    InitLogStd { init_log_std: f32, log_std_min: f32 },
+    #[error("net config field `log_std_min` must be finite and in [-10, 0.5), got {log_std_min}")]
+    LogStdMin { log_std_min: f32 },
     #[error("net config field `heads`: d_model {d_model} is not divisible by {heads}")]
     Heads { d_model: usize, heads: usize },
 }
@@ -52,6 +54,10 @@ pub struct NetConfig {
     /// The actor's log-std at initialisation (the log-std head's output bias); a warm-up with a
     /// demonstrator sets it to the demonstrator's noise so the first policy is not noisier.
     pub init_log_std: f32,
+    /// The bottom of the actor's log-std range `[log_std_min, 0.5]` (the released code's:
+    /// -2.5, a spread of at least e^-2.5 = 0.082 per action component). A policy that must
+    /// act with less noise than that (steering a direct action) needs a lower one.
+    pub log_std_min: f32,
     /// LayerNorm on the critic's encoder features and between its Q-head layers (RLPD, DroQ).
     pub critic_layer_norm: bool,
     /// The heads read `[ego token, attention output]` instead of the attention output alone,
@@ -82,6 +88,7 @@ impl NetConfig {
             action: DriveAction::Direct,
             squash_mean_twice: false,
             init_log_std: -1.0,
+            log_std_min: crate::policy::LOG_STD_MIN,
             critic_layer_norm: false,
             ego_skip: false,
         }
@@ -112,8 +119,11 @@ impl NetConfig {
                 return Err(NetConfigError::NotPositive { field: f });
             }
         }
-        if !(-2.5..=0.5).contains(&self.init_log_std) {
-            return Err(NetConfigError::InitLogStd { init_log_std: self.init_log_std });
+        if !(self.log_std_min.is_finite() && (-10.0..crate::policy::LOG_STD_MAX).contains(&self.log_std_min)) {
+            return Err(NetConfigError::LogStdMin { log_std_min: self.log_std_min });
+        }
+        if !(self.log_std_min..=crate::policy::LOG_STD_MAX).contains(&self.init_log_std) {
+            return Err(NetConfigError::InitLogStd { init_log_std: self.init_log_std, log_std_min: self.log_std_min });
         }
         if !self.d_model.is_multiple_of(self.heads) {
             return Err(NetConfigError::Heads { d_model: self.d_model, heads: self.heads });

@@ -22,6 +22,9 @@ pub struct Actor {
     /// `NetConfig::squash_mean_twice` (the released code's double tanh).
     #[module(skip)]
     pub squash_mean_twice: bool,
+    /// `NetConfig::log_std_min`: the bottom of the log-std range.
+    #[module(skip)]
+    pub log_std_min: f32,
 }
 
 /// Twin Q: `(obs, action) -> (Q1, Q2)`.
@@ -35,15 +38,28 @@ pub struct Critic {
     pub norms: Vec<LayerNorm>,
 }
 
-/// `x -> atanh((x + 1) / 1.5)`: the pre-squash value whose [`squash_log_std`] is `x`.
-fn unsquash_log_std(x: f32) -> f32 {
-    let y = ((x + 1.0) / 1.5).clamp(-0.999, 0.999);
+/// The top of the actor's log-std range (the released code's).
+pub const LOG_STD_MAX: f32 = 0.5;
+/// The bottom of it unless `NetConfig::log_std_min` says otherwise (the released code's).
+pub const LOG_STD_MIN: f32 = -2.5;
+
+/// Half the width and the middle of the log-std range `[min, LOG_STD_MAX]`.
+fn log_std_range(min: f32) -> (f32, f32) {
+    ((LOG_STD_MAX - min) / 2.0, (LOG_STD_MAX + min) / 2.0)
+}
+
+/// `x -> atanh((x - mid) / half)`: the pre-squash value whose [`squash_log_std`] is `x`.
+fn unsquash_log_std(x: f32, min: f32) -> f32 {
+    let (half, mid) = log_std_range(min);
+    let y = ((x - mid) / half).clamp(-0.999, 0.999);
     0.5 * ((1.0 + y) / (1.0 - y)).ln()
 }
 
-/// `0.5 * (3 tanh(x) - 2)`: log standard deviation in [-2.5, 0.5] (log variance in [-5, 1]).
-pub fn squash_log_std(x: Tensor<2>) -> Tensor<2> {
-    x.tanh().mul_scalar(1.5).sub_scalar(1.0)
+/// `mid + half tanh(x)`: log standard deviation in `[min, 0.5]`; with the released code's
+/// `min = -2.5` that is `0.5 * (3 tanh(x) - 2)` (log variance in [-5, 1]).
+pub fn squash_log_std(x: Tensor<2>, min: f32) -> Tensor<2> {
+    let (half, mid) = log_std_range(min);
+    x.tanh().mul_scalar(half).add_scalar(mid)
 }
 
 /// Log-probability `[B, 1]` of `a = tanh(mean + exp(log_std) * eps)`:
@@ -71,10 +87,10 @@ impl Actor {
         let mut log_std = init.mlp(&[d, h, h, a], device);
         // The first policy's spread: the log-std head's output bias.
         if let Some(last) = log_std.layers.last_mut() {
-            let b = TensorData::new(vec![unsquash_log_std(cfg.init_log_std); a], [a]);
+            let b = TensorData::new(vec![unsquash_log_std(cfg.init_log_std, cfg.log_std_min); a], [a]);
             last.bias = Some(Param::from_tensor(Tensor::from_data(b, device)));
         }
-        Self { enc, mean, log_std, squash_mean_twice: cfg.squash_mean_twice }
+        Self { enc, mean, log_std, squash_mean_twice: cfg.squash_mean_twice, log_std_min: cfg.log_std_min }
     }
 
     /// `obs -> (mean [B, A] before the sample's tanh, log_std [B, A])`. The mean is unbounded,
@@ -87,7 +103,7 @@ impl Actor {
     pub fn dist_from_features(&self, f: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
         let mean = self.mean.forward(f.clone());
         let mean = if self.squash_mean_twice { mean.tanh() } else { mean };
-        (mean, squash_log_std(self.log_std.forward(f)))
+        (mean, squash_log_std(self.log_std.forward(f), self.log_std_min))
     }
 
     /// Reparameterised sample with standard-normal noise `eps: [B, A]` -> `(a [B, A], logp [B, 1])`.

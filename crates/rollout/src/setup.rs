@@ -63,9 +63,12 @@ fn net_config(job: &JobConfig) -> NetConfig {
     n.ego_skip = job.net.ego_skip;
     n.critic_layer_norm = job.net.critic_layer_norm;
     n.squash_mean_twice = job.net.squash_mean_twice;
+    if let Some(m) = job.net.log_std_min {
+        n.log_std_min = m;
+    }
     // A demonstrator's warm-up: the first policy is as spread as the demonstrator.
     if job.sac.warmup_policy == sf_job::config::WarmupPolicy::Idm {
-        n.init_log_std = job.sac.bc_log_std();
+        n.init_log_std = job.sac.bc_log_std(n.log_std_min);
     }
     n
 }

@@ -289,7 +289,7 @@ impl Sac {
             Some(w) => (err * w).mean(),
             None => err.mean(),
         };
-        err + log_std.sub_scalar(self.cfg.bc_log_std()).square().mean()
+        err + log_std.sub_scalar(self.cfg.bc_log_std(self.actor.log_std_min)).square().mean()
     }
 
     /// 3. SAC's actor loss `alpha log pi - min Q`, plus the behaviour-cloning term while
@@ -348,6 +348,15 @@ impl Sac {
     /// The actor's weights (inference copy) as `sf_nn::weights` bytes: what workers load.
     pub fn actor_bytes(&self) -> Result<Vec<u8>, sf_nn::weights::WeightsError> {
         sf_nn::weights::to_bytes(&self.actor.valid())
+    }
+
+    /// The weights rollouts act with: the averaged actor with `sac.act_with_average`, else
+    /// the actor itself.
+    pub fn acting_actor_bytes(&self) -> Result<Vec<u8>, sf_nn::weights::WeightsError> {
+        match &self.actor_avg {
+            Some(avg) if self.cfg.act_with_average => sf_nn::weights::to_bytes(avg),
+            _ => self.actor_bytes(),
+        }
     }
 
     /// The weights a job's validation scores and its final policy takes: the averaged actor

@@ -144,8 +144,13 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
         let want = 0.9 * avg0[i] + 0.1 * actor1[i];
         assert!((avg1[i] - want).abs() <= 1e-6 * want.abs().max(1.0), "param {i}: {} vs {want}", avg1[i]);
     }
-    // What validation scores and the final policy takes is the average, not the actor.
+    // What validation scores and the final policy takes is the average, not the actor;
+    // rollouts keep the actor unless `act_with_average` says otherwise.
     assert_ne!(a.selected_actor_bytes().expect("bytes"), a.actor_bytes().expect("bytes"));
+    assert_eq!(a.acting_actor_bytes().expect("bytes"), a.actor_bytes().expect("bytes"));
+    a.cfg.act_with_average = true;
+    assert_eq!(a.acting_actor_bytes().expect("bytes"), a.selected_actor_bytes().expect("bytes"));
+    a.cfg.act_with_average = false;
     let dir = std::env::temp_dir().join(format!("sf-sac-avg-{}", std::process::id()));
     checkpoint::save(&a, &dir).expect("save");
     a.update(&batches[1]);
@@ -157,6 +162,7 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
     let plain = sac_for(&sim, &m, 4);
     assert!(plain.actor_avg.is_none());
     assert_eq!(plain.selected_actor_bytes().expect("bytes"), plain.actor_bytes().expect("bytes"));
+    assert_eq!(plain.acting_actor_bytes().expect("bytes"), plain.actor_bytes().expect("bytes"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -292,10 +298,26 @@ fn the_first_policy_starts_at_the_configured_log_std() {
         let net = NetConfig { init_log_std: want, ..tiny_net() };
         let actor = sf_nn::Actor::new(&net, 3, &burn::tensor::Device::flex());
         let b = actor.log_std.layers.last().and_then(|l| l.bias.as_ref()).expect("bias").val();
-        let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0)).into_data().try_to_vec().expect("f32");
+        let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), net.log_std_min).into_data().try_to_vec().expect("f32");
         assert!(got.iter().all(|&g| (g - want).abs() < 1e-4), "{got:?} vs {want}");
     }
     assert!(NetConfig { init_log_std: -3.0, ..tiny_net() }.validate().is_err(), "outside the log-std range");
+    // A lower floor (`net.log_std_min`) admits a smaller first spread, and the released
+    // code's range is the default: 1.5 tanh(x) - 1.
+    let low = NetConfig { init_log_std: -4.0, log_std_min: -5.0, ..tiny_net() };
+    low.validate().expect("inside the lower range");
+    let actor = sf_nn::Actor::new(&low, 3, &burn::tensor::Device::flex());
+    let b = actor.log_std.layers.last().and_then(|l| l.bias.as_ref()).expect("bias").val();
+    let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), low.log_std_min).into_data().try_to_vec().expect("f32");
+    assert!(got.iter().all(|&g| (g + 4.0).abs() < 1e-4), "{got:?} vs -4");
+    let x = Tensor::<2>::from_data(TensorData::new(vec![-20.0f32, -0.3, 0.0, 0.7, 20.0], [1, 5]), &burn::tensor::Device::flex());
+    let paper: Vec<f32> = sf_nn::policy::squash_log_std(x, tiny_net().log_std_min).into_data().try_to_vec().expect("f32");
+    for (got, x) in paper.iter().zip([-20.0f32, -0.3, 0.0, 0.7, 20.0]) {
+        assert!((got - (1.5 * x.tanh() - 1.0)).abs() < 1e-5, "{x}: {got}");
+    }
+    for m in [0.5f32, -11.0, f32::NAN] {
+        assert!(NetConfig { log_std_min: m, init_log_std: 0.0, ..tiny_net() }.validate().is_err(), "log_std_min {m}");
+    }
 }
 
 /// During `critic_pretrain_updates` (after the cloning updates) only the critic learns: the

@@ -244,7 +244,7 @@ impl<'a> Publisher<'a> {
 
     fn publish(&mut self, sac: &Sac) -> Result<(), LearnerError> {
         self.version += 1;
-        let bytes = sac.actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
+        let bytes = sac.acting_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
         write_atomic(&self.file, self.version.to_string().as_bytes())?;
         self.job.publish(self.version, bytes);
         Ok(())
