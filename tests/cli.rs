@@ -107,6 +107,19 @@ fn plot_curves_overlays_runs_and_names_a_missing_column() {
     let out = socialflow(&["plot-curves", "just-a-path.csv", "--out", &o], T);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("must be NAME=PATH"));
+    // A validation.csv (updates first) by updates; a curve without the x column is named.
+    let v = dir.join("validation.csv");
+    std::fs::write(&v, "updates,env_steps,episodes,success\n1000,19000,200,0.6\n2000,23000,200,0.8\n").expect("v");
+    let rv = format!("v={}", v.display());
+    let _ = std::fs::remove_file(&png);
+    let out = socialflow(&["plot-curves", &rv, "--x", "updates", "--out", &o], T);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(std::fs::read(&png).expect("png").starts_with(b"\x89PNG"));
+    std::fs::write(&b, "episodes,success\n3,0.1\n").expect("b without steps");
+    let out = socialflow(&["plot-curves", &rb, "--out", &o], T);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("b.csv") && err.contains("no column `env_steps`"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -183,6 +196,17 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
     assert_eq!(seeds, vec![0, 1], "{summary}");
     assert_eq!(episodes.lines().count() - 1, 24, "{episodes}");
     assert_eq!(episodes.lines().filter(|l| l.starts_with("1,")).count(), 12);
+    // `eval.sampled`: the same finished policy re-evaluated (`--eval-only`) with its sampled
+    // actions; the IDM driver's episodes are the same, the policy's are not.
+    std::fs::write(dir.join("rung-sampled.toml"), rung.replace("envs = 3\n", "envs = 3\nsampled = true\n")).expect("rung");
+    let out2 = dir.join("out-sampled");
+    let o = socialflow(&["ladder", &dir.join("rung-sampled.toml").display().to_string(), "--seeds", "0", "--eval-only", "--data-dir", &data, "--out", &out2.display().to_string()], T);
+    assert!(o.status.success(), "ladder --eval-only (sampled): {}", String::from_utf8_lossy(&o.stderr));
+    let sampled = std::fs::read_to_string(out2.join("episodes.csv")).expect("episodes.csv");
+    let rows = |text: &str, driver: &str| -> Vec<String> { text.lines().filter(|l| l.starts_with(&format!("0,{driver},"))).map(str::to_string).collect() };
+    assert_eq!(rows(&sampled, "idm"), rows(&episodes, "idm"));
+    assert_eq!(rows(&sampled, "policy").len(), 6, "{sampled}");
+    assert_ne!(rows(&sampled, "policy"), rows(&episodes, "policy"), "sampled actions drive other episodes than the mean action");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -47,6 +47,29 @@ pub struct SacArgs {
     /// (e.g. configs/ladder/jobs/l4-ego-idm.toml).
     #[arg(long)]
     job: Option<std::path::PathBuf>,
+    /// Which updates to time: full SAC updates, the behaviour-cloning updates of
+    /// `sac.bc_updates`, or the critic-only updates of `sac.critic_pretrain_updates`.
+    #[arg(long, value_enum, default_value = "full")]
+    phase: Phase,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Phase {
+    Full,
+    Cloning,
+    Critic,
+}
+
+impl Phase {
+    /// `(bc_updates, critic_pretrain_updates)` that keep every timed update in this phase.
+    fn schedule(self) -> (u64, u64) {
+        const ALWAYS: u64 = 1 << 40;
+        match self {
+            Phase::Full => (0, 0),
+            Phase::Cloning => (ALWAYS, 0),
+            Phase::Critic => (0, ALWAYS),
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -111,16 +134,24 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let segs = MapSegments::build(&map, sim.obs.segment_points);
     // paper and compact follow the reference update exactly (fresh critic features).
     let reuse = matches!(a.size, Size::Default);
+    // Every timed update in the chosen phase (by default past the job's cloning and
+    // critic-only updates: full updates).
+    let (bc_updates, critic_pretrain_updates) = a.phase.schedule();
     let cfg = match &job {
-        // The job's SAC settings past its cloning and critic-only updates: full updates.
-        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates: 0, critic_pretrain_updates: 0, ..j.sac.clone() },
-        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), reward_scale: 1.0, ..SacConfig::default() },
+        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates, critic_pretrain_updates, ..j.sac.clone() },
+        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), reward_scale: 1.0, bc_updates, critic_pretrain_updates, ..SacConfig::default() },
     };
     let reuse = cfg.reuse_critic_features;
     let mut sac = Sac::new(cfg, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
-    let (update_median, updates_timed) = time_updates(&mut sac, &batches, a.seconds);
+    let mut times = time_updates(&mut sac, &batches, a.seconds);
+    let updates_timed = times.len();
+    // The first and the last tenth of the timed updates: an update that slows as training goes
+    // on shows here, not in the median.
+    let tenth = (updates_timed / 10).max(1);
+    let (first_tenth, last_tenth) = (median(&mut times[..tenth].to_vec()), median(&mut times[updates_timed - tenth..].to_vec()));
+    let update_median = median(&mut times);
 
     // Inference: the worker's step, 20 observations of one step through the worker's
     // `PolicyRunner` (batch building included): the live agents of the simulators' current step,
@@ -139,6 +170,9 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         "updates_per_s": 1.0 / update_median,
         "update_median_s": update_median,
         "updates_timed": updates_timed,
+        "phase": format!("{:?}", a.phase).to_lowercase(),
+        "update_first_tenth_median_s": first_tenth,
+        "update_last_tenth_median_s": last_tenth,
         "inference_obs_per_s": 20.0 / infer_median,
         "inference_batch": 20,
         "inference_unshared_obs_per_s": 20.0 / unshared_median,
@@ -189,9 +223,9 @@ fn fill_replay(venv: &mut VecEnv, sim: &SimConfig, action_dim: usize, rows: usiz
     Ok(replay)
 }
 
-/// Two untimed updates, then updates on `batches` in turn for `seconds` (at least 3): the
-/// median update time and how many were timed.
-fn time_updates(sac: &mut Sac, batches: &[sf_sac::Batch], seconds: f64) -> (f64, usize) {
+/// Two untimed updates, then updates on `batches` in turn for `seconds` (at least 3): each
+/// timed update's seconds, in order.
+fn time_updates(sac: &mut Sac, batches: &[sf_sac::Batch], seconds: f64) -> Vec<f64> {
     for b in batches.iter().take(2) {
         sac.update(b);
     }
@@ -202,7 +236,7 @@ fn time_updates(sac: &mut Sac, batches: &[sf_sac::Batch], seconds: f64) -> (f64,
         sac.update(&batches[times.len() % batches.len()]);
         times.push(t.elapsed().as_secs_f64());
     }
-    (median(&mut times), times.len())
+    times
 }
 
 /// Median times of one worker step's batch (built and run through the actor's mean) with each

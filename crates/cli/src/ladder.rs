@@ -1,8 +1,9 @@
 //! `socialflow ladder <rung.toml>`: one rung of the learning ladder. Trains the rung's job once
 //! per training seed (embedded learner and workers, reusing a finished job of the same name in
-//! `--data-dir`), evaluates each final policy with its mean action on the stored cases against
-//! the IDM driver in the ego's seat (the same episodes, paired), checks the rung's gate and
-//! writes the curves, episodes and a summary to `--out`.
+//! `--data-dir`), evaluates each final policy with its mean action (or, `eval.sampled`, its
+//! sampled actions) on the stored cases against the IDM driver in the ego's seat (the same
+//! episodes, paired), checks the rung's gate and writes the curves, episodes and a summary to
+//! `--out`.
 //!
 //! Owns: the rung file format ([`Rung`]), the paired ego-vs-IDM evaluation and the gate.
 //! Must not: change how jobs train (it submits ordinary job configs) or how episodes run
@@ -83,6 +84,10 @@ pub struct RungEval {
     /// Evaluate on `cases` generated cases per scenario instead of the stored ones.
     #[serde(default)]
     pub generate: Option<Generate>,
+    /// Drive the policy's sampled actions (what its training curve measures) instead of its
+    /// mean action; the IDM driver's episodes are the same either way.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub sampled: bool,
 }
 
 /// Generated evaluation cases: vehicle counts uniform in `vehicles`, and with probability
@@ -355,8 +360,9 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
     })
 }
 
-/// The evaluation episodes of one scenario: the policy's mean action in the ego's seat, or
-/// (`policy = None`) the IDM driver there (an acceleration residual of zero: IDM exactly).
+/// The evaluation episodes of one scenario: the policy's mean action (sampled actions with
+/// `eval.sampled`) in the ego's seat, or (`policy = None`) the IDM driver there (an
+/// acceleration residual of zero: IDM exactly).
 fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, policy: Option<&Policy>, runners: &mut Runners) -> Result<Vec<Row>> {
     let n = e.cases as usize;
     if n > cases.cases.len() {
@@ -369,6 +375,7 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
     let runner = policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;
     let drivers = Drivers {
         alive: match &runner {
+            Some(r) if e.sampled => Actor::sampled(r),
             Some(r) => Actor::mean(r),
             None => Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual },
         },
@@ -513,6 +520,9 @@ fn learner_points(curve: &[CurvePt], window: usize) -> impl Iterator<Item = &Cur
 fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     let mut m = String::new();
     let _ = writeln!(m, "## {} `{}`: {}\n", r.rung, r.name, if passed { "PASSED" } else { "NOT PASSED" });
+    if r.eval.sampled {
+        let _ = writeln!(m, "The policies drove their sampled actions (`eval.sampled`), not their mean action.\n");
+    }
     let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | p (paired) | gate |");
     let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|");
     for s in seeds {

@@ -257,7 +257,12 @@ impl Sac {
             let table = self.seg_ad.as_ref().map(|s| self.actor.enc.segment_table(s));
             self.actor.dist(&c.obs, table.as_ref())
         };
-        let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean.clone(), log_std.clone(), eps);
+        // Cloning trains the mean and log-std alone, so its sample (only the reported entropy
+        // reads it) is drawn off the autodiff graph: nodes that no backward pass consumes stay
+        // in burn's graph, which every later backward sweeps, and updates slowed with every
+        // cloning update (2x after 1,000 of them on the L3 job, `bench sac --phase cloning`).
+        let (mean_s, log_std_s) = if cloning { (mean.clone().detach(), log_std.clone().detach()) } else { (mean.clone(), log_std.clone()) };
+        let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean_s, log_std_s, eps);
         let loss_a = if cloning {
             // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
             self.cloning_loss(mean, log_std, c.act, None)
@@ -272,7 +277,9 @@ impl Sac {
         let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.net.action_dim as f32));
         let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
         let entropy = -logp.clone().mean().into_scalar::<f32>();
-        let loss_al = (self.log_alpha.value.val().unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
+        // While cloning the temperature does not move: its loss is reported, off the graph.
+        let log_alpha = if cloning { self.log_alpha.value.val().detach() } else { self.log_alpha.value.val() };
+        let loss_al = (log_alpha.unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
         let alpha_loss = loss_al.clone().into_scalar::<f32>();
         if !cloning {
             let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
@@ -311,7 +318,7 @@ impl Sac {
             return sac;
         }
         // 3''. Behaviour-cloning term, constant or fading (offline-to-online hand-over).
-        let q_scale = q_pi.clone().abs().mean().into_scalar::<f32>().max(1.0);
+        let q_scale = q_pi.clone().detach().abs().mean().into_scalar::<f32>().max(1.0);
         let term = match self.cfg.bc_target {
             BcTarget::Replay => {
                 // AWAC-style: rows weighted by how much the critic prefers the replayed action.
