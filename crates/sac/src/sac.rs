@@ -222,7 +222,9 @@ impl Sac {
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
         let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
         let (q1, q2) = self.critic.heads(f_critic, act.clone());
-        let q_mean = q1.clone().mean().into_scalar::<f32>();
+        // Detached: a node on q1 that no backward consumes would stay in the autodiff graph and
+        // slow every later update that has no actor backward (cloning, critic-only).
+        let q_mean = q1.clone().detach().mean().into_scalar::<f32>();
         let loss_c = match self.cfg.critic_loss {
             CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
             // 2 x Huber, so that it equals the squared error within delta of the target.
