@@ -223,7 +223,8 @@ impl Sac {
         let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
         let (q1, q2) = self.critic.heads(f_critic, act.clone());
         // Detached: a node on q1 that no backward consumes would stay in the autodiff graph and
-        // slow every later update that has no actor backward (cloning, critic-only).
+        // slow every later critic-only update (`critic_pretrain_updates`), which has no actor
+        // backward (`bench sac --phase critic`).
         let q_mean = q1.clone().detach().mean().into_scalar::<f32>();
         let loss_c = match self.cfg.critic_loss {
             CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
