@@ -356,7 +356,6 @@ impl ActiveJob {
         lock(&self.stats).reserved -= n as u64;
     }
 
-    /// Rolling means of how episodes ended (the window of [`ActiveJob::progress`]).
     /// Mean policy lag (versions) of the policy batches since the previous call, if any.
     pub fn take_mean_lag(&self) -> Option<f64> {
         let mut s = lock(&self.stats);
@@ -365,6 +364,13 @@ impl ActiveJob {
         m
     }
 
+    /// Episodes in the rolling window (none at the start and after a resume until the first
+    /// episode ends).
+    pub fn window_episodes(&self) -> usize {
+        lock(&self.stats).window.len()
+    }
+
+    /// Rolling means of how episodes ended (the window of [`ActiveJob::progress`]).
     pub fn ends(&self) -> Ends {
         let s = lock(&self.stats);
         let n = s.window.len().max(1) as f32;

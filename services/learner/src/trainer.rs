@@ -274,11 +274,28 @@ impl CurveRecorder {
         self.recent_q += loss.q_mean as f64;
     }
 
+    /// Whether the job's progress at `env_steps` has passed a point that should be written.
+    /// Points passed while the rolling episode window holds no episode (at the start and after
+    /// a resume, until the first episode ends) are skipped, not written with success 0: nothing
+    /// was measured there. The losses keep accumulating into the next written point.
+    fn due(&mut self, env_steps: u64, window_episodes: usize) -> bool {
+        if env_steps < self.next_point {
+            return false;
+        }
+        if window_episodes == 0 {
+            while env_steps >= self.next_point {
+                self.next_point += self.every;
+            }
+            return false;
+        }
+        true
+    }
+
     /// Adds the points the job's progress has passed (none most of the time).
     fn record(&mut self, job: &ActiveJob, last_loss: &Losses, version: u64, st: &mut JobState, tb: &mut Option<EventWriter>) {
         let progress = job.progress();
         let p = progress.learning;
-        if p.env_steps < self.next_point {
+        if !self.due(p.env_steps, job.window_episodes()) {
             return;
         }
         let n = self.recent_losses.len().max(1);
@@ -464,4 +481,23 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64,
     job.metrics.checkpoints.inc();
     tracing::info!(job_id = job.id, updates = sac.updates, policy_version = version, replay_bytes, ms = t.elapsed().as_millis() as u64, "checkpoint written");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::CurveRecorder;
+
+    /// Until an episode ends (at the start, and after a resume) the rolling window is empty:
+    /// the points passed meanwhile are skipped (they used to be written with success 0), later
+    /// ones keep their places on the grid of `every` transitions.
+    #[test]
+    fn curve_points_wait_for_an_episode_in_the_window() {
+        let mut c = CurveRecorder::new(100, 1_000);
+        assert_eq!(c.next_point, 1_100);
+        assert!(!c.due(1_050, 0), "not yet at a point");
+        assert!(!c.due(1_250, 0), "points passed with an empty window are skipped");
+        assert_eq!(c.next_point, 1_300, "1,100 and 1,200 skipped, the grid kept");
+        assert!(!c.due(1_299, 4));
+        assert!(c.due(1_300, 4), "a point with episodes in the window is written");
+    }
 }
