@@ -477,10 +477,44 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     assert!(!bad.status.success() && err.contains("eval-other") && err.contains("same grid"), "{err}");
     assert!(!dir.join("report-bad").exists(), "nothing written");
 
+    // The probes: a constant message told of the ego, a flow's actor in the ego's seat, and an
+    // experiment sized on its own (3 cases, the grid's 2 elsewhere) run in `eval`.
+    let probe = dir.join("probe.toml");
+    std::fs::write(
+        &probe,
+        format!(
+            r#"kind = "eval"
+runs = "{data}"
+out = "{out}"
+scenarios = ["merge"]
+cases = 2
+seeds = 1
+envs = 3
+flows = [{{ name = "SocialComm", job = "flow-sc" }}, {{ name = "SC told0", job = "flow-sc", messages = {{ told_ego_deg = 0.0 }} }}]
+egos = [{{ name = "RL/SocialComm", job = "ego-sc" }}, {{ name = "SC actor", job = "flow-sc", flow_actor = true }}]
+[sizes]
+adversary = {{ cases = 3 }}
+[experiments]
+adversary = {{ egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC told0"] }}
+"#,
+            out = dir.join("probe").display()
+        ),
+    )
+    .expect("probe config");
+    let o = socialflow(&["eval", &probe.display().to_string()], 4 * T);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let p = std::fs::read_to_string(dir.join("probe/episodes.csv")).expect("probe results");
+    assert_eq!(p.lines().count(), 1 + 2 * 2 * 3, "2 egos x 2 flows x 3 cases x 1 seed: {p}");
+    assert!(p.lines().any(|l| l.starts_with("adversary,SC actor,SC told0,merge,")), "{p}");
+
     // The same file submitted to a learner on that data directory: its cells shared by two
     // worker processes, the same episodes and the same GIF.
     let l = socialflow_e2e::start_learner(&dir, 64 << 20);
     let _w: Vec<socialflow_e2e::Proc> = (0..2).map(|k| socialflow_e2e::start_worker(&l, &dir, k)).collect();
+    // A probe only `socialflow eval` runs: the learner refuses it, naming the entry.
+    let refused = socialflow_env(&["submit", &probe.display().to_string(), "--learner", &l.url], &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)], T);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && err.contains("SC told0") && err.contains("`socialflow eval` only"), "{err}");
     let sub = socialflow_env(&["submit", &dir.join("eval-a.toml").display().to_string(), "--learner", &l.url, "--watch"], &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)], 4 * T);
     assert!(sub.status.success(), "{}", String::from_utf8_lossy(&sub.stderr));
     let job: serde_json::Value = String::from_utf8_lossy(&sub.stdout).lines().next().and_then(|l| serde_json::from_str(l).ok()).expect("the job as JSON");

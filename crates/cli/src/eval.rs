@@ -5,7 +5,9 @@
 //! `runs`), running the cells not yet stored (`sf_rollout::evaluate::run_cell`, the code a worker
 //! runs for an evaluation job's cells) and appending them to `episodes.csv` in the config's
 //! `out`; `socialflow report`. A rerun skips cells already stored and appends the rest, so
-//! nothing stored is lost. The grid itself (`sf_job::eval::EvalConfig`) is shared with the
+//! nothing stored is lost (a stored cell whose episode count is not what the config now asks,
+//! e.g. after its `sizes` changed, is kept and warned about, not rerun). The grid itself
+//! (`sf_job::eval::EvalConfig`, each cell sized by `EvalConfig::size_of`) is shared with the
 //! learner's evaluation jobs (`socialflow submit` of the same file), which spread the cells over
 //! workers. Must not: compute statistics or draw (`sf_report::report` does).
 
@@ -73,14 +75,15 @@ fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {
         return Ok(FlowDef::Idm);
     }
     let t = find_job(runs, &f.job, f.job_id)?;
+    let messages = f.messages;
     match t.cfg.kind {
         JobKind::Ego => bail!("`{}` ({}) is an ego job, not a flow", f.job, t.key),
         JobKind::SocialcommAdv => {
             let bg_id = t.cfg.env.background_job.with_context(|| format!("{}: a socialcomm-adv job without its flow", t.key))?;
             let bg = find_job(runs, "", Some(bg_id))?;
-            Ok(FlowDef::Learned { background: bg, adversary: Some(t) })
+            Ok(FlowDef::Learned { background: bg, adversary: Some(t), messages })
         }
-        _ => Ok(FlowDef::Learned { background: t, adversary: None }),
+        _ => Ok(FlowDef::Learned { background: t, adversary: None, messages }),
     }
 }
 
@@ -110,26 +113,58 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
             continue;
         }
         let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
-        if t.cfg.kind != JobKind::Ego {
-            bail!("ego `{}`: job `{}` is a {} job", e.name, e.job, t.cfg.kind.as_str());
+        // A probe places a Stage-1 flow's actor in the ego's seat, zero-shot.
+        let stage1_flow = matches!(t.cfg.kind, JobKind::Macad | JobKind::Copo | JobKind::Socialcomm);
+        match (e.flow_actor, t.cfg.kind) {
+            (false, JobKind::Ego) => {}
+            (true, _) if stage1_flow => {}
+            (true, k) => bail!("ego `{}`: `flow_actor = true` needs a Stage-1 flow job (macad, copo, socialcomm), job `{}` is a {} job", e.name, e.job, k.as_str()),
+            (false, k) => bail!("ego `{}`: job `{}` is a {} job (a flow's actor in the ego's seat needs `flow_actor = true`)", e.name, e.job, k.as_str()),
         }
         grid.egos.insert(e.name.clone(), evaluate::EgoDef::Learned(t));
     }
     let all = cfg.cells();
     grid.check(&all).map_err(anyhow::Error::msg)?;
     let maps = load_maps(ctx, &cfg)?;
+    for cell in &all {
+        let (cases, stored) = (cfg.size_of(cell).0, maps.get(&cell.scenario).map_or(0, |(_, c)| c.cases.len()));
+        if cases as usize > stored {
+            let field = if cfg.sizes.get(&cell.experiment).is_some_and(|s| s.cases.is_some()) { format!("sizes.{}.cases", cell.experiment) } else { "cases".into() };
+            bail!("{}: field `{field}`: {cases} exceeds the {stored} stored cases of {}", a.config.display(), cell.scenario);
+        }
+    }
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let meta_path = out.join("meta.json");
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?).with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
     let stored = sf_report::episodes::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
-    let have: BTreeSet<Cell> = stored.iter().map(EpisodeRow::cell).collect();
-    let todo: Vec<Cell> = all.into_iter().filter(|c| !have.contains(c)).collect();
-    eprintln!("{} cells to run ({} stored), {} episodes each", todo.len(), have.len(), cfg.cases * cfg.seeds);
+    let mut have: BTreeMap<Cell, u64> = BTreeMap::new();
+    for r in &stored {
+        *have.entry(r.cell()).or_default() += 1;
+    }
+    for cell in all.iter().filter(|c| have.get(c).is_some_and(|&n| n != cfg.episodes_of(c))) {
+        let (cases, seeds) = cfg.size_of(cell);
+        eprintln!(
+            "warning: cell {} is stored in {} with {} episodes, the config now asks {} ({cases} cases x {seeds} seeds); keeping the stored ones (remove its rows to rerun it)",
+            cell.key(),
+            path.display(),
+            have[cell],
+            cfg.episodes_of(cell)
+        );
+    }
+    let todo: Vec<Cell> = all.into_iter().filter(|c| !have.contains_key(c)).collect();
+    let per_cell: BTreeSet<u64> = todo.iter().map(|c| cfg.episodes_of(c)).collect();
+    let each = match (per_cell.first(), per_cell.last()) {
+        (Some(lo), Some(hi)) if lo == hi => format!("{lo} episodes each"),
+        (Some(lo), Some(hi)) => format!("{} episodes ({lo} to {hi} per cell)", todo.iter().map(|c| cfg.episodes_of(c)).sum::<u64>()),
+        _ => "no episodes".to_string(),
+    };
+    eprintln!("{} cells to run ({} stored), {each}", todo.len(), have.len());
     let mut file = EpisodesWriter::open(&path)?;
-    let size = CellSize { cases: cfg.cases, seeds: cfg.seeds, envs: cfg.envs };
     for (k, cell) in todo.iter().enumerate() {
+        let (n_cases, n_seeds) = cfg.size_of(cell);
+        let size = CellSize { cases: n_cases, seeds: n_seeds, envs: cfg.envs };
         let (map, cases) = maps.get(&cell.scenario).context("scenario loaded")?;
         let t = std::time::Instant::now();
         let (flow, ego) = grid.cell(cell).map_err(anyhow::Error::msg)?;

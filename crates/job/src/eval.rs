@@ -2,17 +2,20 @@
 //! return.
 //!
 //! Owns: [`EvalConfig`] (`kind = "eval"`: which flows and ego policies, which experiments, how
-//! many stored cases and seeds; validated with errors that name the field), the expansion of
-//! its experiments into [`Cell`]s ([`EvalConfig::cells`]), the work a worker is handed for one
+//! many stored cases and seeds, grid-wide or per experiment ([`SizeOverride`]); validated with
+//! errors that name the field), the expansion of its experiments into [`Cell`]s
+//! ([`EvalConfig::cells`]) and each cell's size ([`EvalConfig::size_of`]), the work a worker is handed for one
 //! cell ([`EvalWork`]) and the metrics of one evaluated episode ([`EvalEpisode`]). Both
 //! `socialflow eval` (embedded) and the learner's evaluation jobs (cells shared by workers)
 //! expand the same config into the same cells. Must not: run simulations (`sf_rollout::evaluate`
 //! does) or know the results file (`sf_report::report` does).
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
+
+use sf_sim::config::MessageProbe;
 
 use crate::Frozen;
 
@@ -40,11 +43,26 @@ pub struct Named {
     /// Egos: the flow (by name) the ego was trained in; its cell is grey in the heatmaps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trained_in: Option<String>,
+    /// Learned flows, a probe: constants in place of the SVOs its observers are told (`{
+    /// neighbours_deg = 45 }`: every neighbour's; `{ told_ego_deg = 0 }`: the ego's, a
+    /// constant-message adversary). `socialflow eval` only.
+    #[serde(default, skip_serializing_if = "MessageProbe::is_off")]
+    pub messages: MessageProbe,
+    /// Egos, a probe: the job is a Stage-1 flow (MACAD, CoPO, SocialComm) whose actor drives
+    /// in the ego's seat, zero-shot. `socialflow eval` only.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub flow_actor: bool,
 }
 
 impl Named {
     pub fn is_idm(&self) -> bool {
         self.job == "idm"
+    }
+
+    /// Whether the entry asks for an evaluation probe (a message constant or a flow's actor in
+    /// the ego's seat), which only `socialflow eval` runs.
+    pub fn is_probe(&self) -> bool {
+        !self.messages.is_off() || self.flow_actor
     }
 }
 
@@ -100,6 +118,21 @@ pub struct Experiments {
     pub adversary: Option<Adversary>,
 }
 
+/// The experiments of a grid, as [`Cell::experiment`] names them (cross-validation's cells are
+/// `cross`): the keys of [`EvalConfig::sizes`].
+pub const EXPERIMENTS: [&str; 5] = ["flow_quality", "cross", "svo_sweep", "density", "adversary"];
+
+/// One experiment's own number of stored cases and seeds (`[sizes]` of an eval config); a
+/// field left out is the grid-wide value.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SizeOverride {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cases: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seeds: Option<u32>,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EvalConfig {
@@ -117,9 +150,14 @@ pub struct EvalConfig {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub out: Option<PathBuf>,
     pub scenarios: Vec<String>,
-    /// The first N stored cases of each scenario.
+    /// The first N stored cases of each scenario, in every cell not sized by `sizes`.
     pub cases: u32,
+    /// Seeds per stored case, in every cell not sized by `sizes`.
     pub seeds: u32,
+    /// Experiment name (one of [`EXPERIMENTS`]) -> its own cases and/or seeds, e.g.
+    /// `adversary = { cases = 200, seeds = 2 }`. Read through [`EvalConfig::size_of`].
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub sizes: BTreeMap<String, SizeOverride>,
     /// Episodes stepped together. Part of what an episode's numbers depend on (the learned
     /// flows sample from one stream per seed, shared by the episodes stepped together).
     #[serde(default = "d_envs")]
@@ -146,7 +184,7 @@ pub fn is_eval_toml(text: &str) -> bool {
     text.parse::<toml::Table>().is_ok_and(|t| t.get("kind").and_then(|k| k.as_str()) == Some("eval"))
 }
 
-/// One cell of the grid: `cases x seeds` episodes.
+/// One cell of the grid: `cases x seeds` episodes ([`EvalConfig::size_of`]).
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct Cell {
     pub experiment: String,
@@ -240,6 +278,16 @@ impl EvalConfig {
         if self.cases == 0 || self.seeds == 0 || self.envs == 0 {
             return bad("eval config fields `cases`, `seeds` and `envs` must be positive");
         }
+        for (experiment, size) in &self.sizes {
+            if !EXPERIMENTS.contains(&experiment.as_str()) {
+                return bad(format!("eval config field `sizes.{experiment}`: not an experiment ({})", EXPERIMENTS.join(", ")));
+            }
+            for (field, value) in [("cases", size.cases), ("seeds", size.seeds)] {
+                if value == Some(0) {
+                    return bad(format!("eval config field `sizes.{experiment}.{field}` must be positive"));
+                }
+            }
+        }
         if self.scenarios.is_empty() {
             return bad("eval config field `scenarios`: list at least one");
         }
@@ -263,6 +311,20 @@ impl EvalConfig {
         }
         if let Some(e) = self.egos.iter().find(|e| e.is_idm() && e.trained_in.is_some()) {
             return bad(format!("eval config field `egos.trained_in` of `{}`: the IDM driver (`job = \"idm\"`) was not trained in a flow", e.name));
+        }
+        if let Some(n) = self.flows.iter().find(|n| n.flow_actor) {
+            return bad(format!("eval config field `flow_actor` of flow `{}`: only an ego can be a flow's actor", n.name));
+        }
+        if let Some(n) = self.egos.iter().find(|n| !n.messages.is_off()) {
+            return bad(format!("eval config field `messages` of ego `{}`: message probes belong to a learned flow", n.name));
+        }
+        if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.is_probe()) {
+            return bad(format!("eval config entry `{}`: a probe (`messages`, `flow_actor`) needs a learned job, not `job = \"idm\"`", n.name));
+        }
+        for (n, field, v) in self.flows.iter().flat_map(|n| [(n, "neighbours_deg", n.messages.neighbours_deg), (n, "told_ego_deg", n.messages.told_ego_deg)]) {
+            if let Some(v) = v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))) {
+                return bad(format!("eval config field `messages.{field}` of flow `{}`: {v} is not an SVO in [-90, 90] degrees", n.name));
+            }
         }
         if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
             return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
@@ -341,6 +403,30 @@ impl EvalConfig {
         self.egos.iter().find(|f| f.name == name)
     }
 
+    /// `(cases, seeds)` of `cell`: its experiment's entry in `sizes`, field by field, else the
+    /// grid-wide `cases` and `seeds`.
+    pub fn size_of(&self, cell: &Cell) -> (u32, u32) {
+        let o = self.sizes.get(&cell.experiment).copied().unwrap_or_default();
+        (o.cases.unwrap_or(self.cases), o.seeds.unwrap_or(self.seeds))
+    }
+
+    /// The episodes of `cell`: its cases times its seeds.
+    pub fn episodes_of(&self, cell: &Cell) -> u64 {
+        let (cases, seeds) = self.size_of(cell);
+        cases as u64 * seeds as u64
+    }
+
+    /// The episodes of every cell of the grid together.
+    pub fn episodes(&self) -> u64 {
+        self.cells().iter().map(|c| self.episodes_of(c)).sum()
+    }
+
+    /// The most stored cases any cell of the grid uses (what every scenario must have stored);
+    /// the grid-wide `cases` for a grid without cells.
+    pub fn max_cases(&self) -> u32 {
+        self.cells().iter().map(|c| self.size_of(c).0).max().unwrap_or(self.cases)
+    }
+
     /// The grid's cells in a fixed order (a cell's index is its id in an evaluation job).
     pub fn cells(&self) -> Vec<Cell> {
         let cell = |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell {
@@ -415,6 +501,15 @@ mod tests {
             ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"idm\", job_id = 3 }", "`job_id` of `IDM`"),
             ("flow_quality = [\"IDM\"]", "flow_quality = []", "no cells"),
             ("seeds = 1", "seeds = 1\nbogus = 3", "bogus"),
+            ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"idm\", messages = { neighbours_deg = 45.0 } }", "needs a learned job"),
+            ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"flow-sc\", messages = { told_ego_deg = 120.0 } }", "`messages.told_ego_deg` of flow `IDM`"),
+            ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"flow-sc\", flow_actor = true }", "only an ego can be a flow's actor"),
+            ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"ego-a\", messages = { neighbours_deg = 45.0 }", "`messages` of ego `E`"),
+            ("seeds = 1", "seeds = 1\nsizes = { adversry = { cases = 3 } }", "field `sizes.adversry`: not an experiment (flow_quality, cross, svo_sweep, density, adversary)"),
+            ("seeds = 1", "seeds = 1\nsizes = { cross_validation = { seeds = 3 } }", "field `sizes.cross_validation`: not an experiment"),
+            ("seeds = 1", "seeds = 1\nsizes = { adversary = { cases = 0 } }", "field `sizes.adversary.cases` must be positive"),
+            ("seeds = 1", "seeds = 1\nsizes = { cross = { cases = 3, seeds = 0 } }", "field `sizes.cross.seeds` must be positive"),
+            ("seeds = 1", "seeds = 1\nsizes = { cross = { envs = 3 } }", "envs"),
         ] {
             let text = BASE.replace(from, to);
             let e = EvalConfig::from_toml(&text).expect_err(needle);
@@ -444,6 +539,39 @@ mod tests {
             let e = EvalConfig::from_toml(&sweep(v)).expect_err(v);
             assert!(e.0.contains("experiments.svo_sweep.values"), "{v}: {e}");
         }
+    }
+
+    /// `BASE` with cross-validation and adversary cells, and `[sizes]` appended.
+    fn sized(sizes: &str) -> EvalConfig {
+        let text = BASE.replace("flows = [{ name = \"IDM\", job = \"idm\" }]", "flows = [{ name = \"IDM\", job = \"idm\" }, { name = \"Adv\", job = \"flow-adv\" }]");
+        EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\nadversary = {{ egos = [\"E\"], flows = [\"Adv\"] }}\n[sizes]\n{sizes}")).expect(sizes)
+    }
+
+    #[test]
+    fn a_size_override_applies_to_its_experiments_cells_field_by_field() {
+        let c = sized("adversary = { cases = 200, seeds = 3 }\ncross = { cases = 50 }\n");
+        let size = |e: &str| c.cells().iter().filter(|c| c.experiment == e).map(|cell| c.size_of(cell)).collect::<BTreeSet<_>>().into_iter().collect::<Vec<_>>();
+        assert_eq!(size("flow_quality"), [(2, 1)], "no override: the grid-wide size");
+        assert_eq!(size("cross"), [(50, 1)], "seeds left out: the grid-wide seeds");
+        assert_eq!(size("adversary"), [(200, 3)]);
+        assert_eq!(c.max_cases(), 200);
+        assert_eq!(c.episodes(), 2 + 50 + 600, "one cell per experiment");
+        let plain = sized("");
+        assert!(plain.sizes.is_empty());
+        assert_eq!((plain.max_cases(), plain.episodes()), (2, 3 * 2));
+        // An override of an experiment without cells changes nothing.
+        let unused = sized("density = { cases = 900 }\n");
+        assert_eq!((unused.max_cases(), unused.episodes()), (2, 3 * 2));
+    }
+
+    #[test]
+    fn a_config_with_sizes_round_trips_through_its_resolved_toml() {
+        let c = sized("adversary = { cases = 200, seeds = 3 }\ncross = { seeds = 4 }\n");
+        let text = c.to_toml();
+        let back = EvalConfig::from_toml(&text).expect(&text);
+        assert_eq!(back, c);
+        assert_eq!(back.sizes["cross"], SizeOverride { cases: None, seeds: Some(4) });
+        assert!(!sized("").to_toml().contains("sizes"), "no `sizes` written when empty");
     }
 
     #[test]

@@ -147,9 +147,22 @@ pub struct Meta {
     pub egos: Vec<String>,
     pub cases: u32,
     pub seeds: u32,
+    /// Experiments whose cells run another number of stored cases and seeds than the grid's
+    /// (`[sizes]` of the eval config): experiment -> [cases, seeds].
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub sizes: BTreeMap<String, [u32; 2]>,
 }
 
 impl Meta {
+    /// "20 stored cases x 2 seeds per cell; adversary: 200 x 2".
+    pub fn sizes_text(&self) -> String {
+        let mut t = format!("{} stored cases x {} seeds per cell", self.cases, self.seeds);
+        for (e, [c, s]) in &self.sizes {
+            t.push_str(&format!("; {e}: {c} x {s}"));
+        }
+        t
+    }
+
     /// What a report of `cfg`'s grid needs to know.
     pub fn of(cfg: &EvalConfig) -> Self {
         Self {
@@ -160,6 +173,7 @@ impl Meta {
             egos: cfg.egos.iter().map(|f| f.name.clone()).collect(),
             cases: cfg.cases,
             seeds: cfg.seeds,
+            sizes: cfg.sizes.iter().map(|(e, o)| (e.clone(), [o.cases.unwrap_or(cfg.cases), o.seeds.unwrap_or(cfg.seeds)])).collect(),
         }
     }
 }

@@ -1,7 +1,8 @@
 //! socialflow-report: the statistics of the paper's evaluation protocol.
 //!
 //! Owns: [`Summary`] (mean with a Student-t 95% confidence interval), [`paired_t_test`],
-//! [`welch_t_test`], the
+//! [`one_sample_t_test`], [`welch_t_test`], corrections and combinations over several tests
+//! ([`inference`]), the
 //! charts ([`plot`]), TensorBoard event files ([`tensorboard`]), the paper's findings as tested
 //! claims ([`findings`]), the evaluation's result files ([`episodes`]) and the reproduction
 //! report built from them ([`report`]). Must not: run simulations; callers pass
@@ -9,6 +10,7 @@
 
 pub mod episodes;
 pub mod findings;
+pub mod inference;
 pub mod plot;
 pub mod report;
 pub mod tensorboard;
@@ -52,6 +54,8 @@ fn t_quantile(p: f64, df: f64) -> f64 {
 pub struct PairedT {
     pub n: usize,
     pub mean_diff: f64,
+    /// Standard error of `mean_diff` (0 without variance).
+    pub se: f64,
     pub t: f64,
     pub p_value: f64,
 }
@@ -79,21 +83,28 @@ pub fn paired_t_test(a: &[f64], b: &[f64]) -> Result<PairedT, StatsError> {
     if a.len() != b.len() {
         return Err(StatsError::LengthMismatch(a.len(), b.len()));
     }
-    let n = a.len();
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    one_sample_t_test(&d)
+}
+
+/// Two-sided one-sample t-test of `mean(d) = 0`: the paired test on the differences `d`
+/// (e.g. per-episode-start differences already averaged over the start's seeds).
+pub fn one_sample_t_test(d: &[f64]) -> Result<PairedT, StatsError> {
+    let n = d.len();
     if n < 2 {
         return Err(StatsError::TooFew(n));
     }
-    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
-    let s = Summary::of(&d);
+    let s = Summary::of(d);
     if s.std == 0.0 {
         let p = if s.mean == 0.0 { 1.0 } else { 0.0 };
         let t = if s.mean == 0.0 { 0.0 } else { s.mean.signum() * f64::INFINITY };
-        return Ok(PairedT { n, mean_diff: s.mean, t, p_value: p });
+        return Ok(PairedT { n, mean_diff: s.mean, se: 0.0, t, p_value: p });
     }
-    let t = s.mean / (s.std / (n as f64).sqrt());
+    let se = s.std / (n as f64).sqrt();
+    let t = s.mean / se;
     let dist = StudentsT::new(0.0, 1.0, (n - 1) as f64).map_err(|_| StatsError::TooFew(n))?;
     let p_value = 2.0 * (1.0 - dist.cdf(t.abs()));
-    Ok(PairedT { n, mean_diff: s.mean, t, p_value })
+    Ok(PairedT { n, mean_diff: s.mean, se, t, p_value })
 }
 
 /// Result of Welch's two-sided t-test (unequal variances) of `mean(a) - mean(b)`.
@@ -102,6 +113,8 @@ pub struct WelchT {
     pub n_a: usize,
     pub n_b: usize,
     pub mean_diff: f64,
+    /// Standard error of `mean_diff`.
+    pub se: f64,
     pub t: f64,
     /// Welch-Satterthwaite degrees of freedom.
     pub df: f64,
@@ -121,13 +134,13 @@ pub fn welch_t_test(a: &[f64], b: &[f64]) -> Result<WelchT, StatsError> {
     if se == 0.0 {
         let p_value = if mean_diff == 0.0 { 1.0 } else { 0.0 };
         let t = if mean_diff == 0.0 { 0.0 } else { mean_diff.signum() * f64::INFINITY };
-        return Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, t, df: (sa.n + sb.n - 2) as f64, p_value });
+        return Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, se, t, df: (sa.n + sb.n - 2) as f64, p_value });
     }
     let t = mean_diff / se;
     let df = (va + vb).powi(2) / (va * va / (sa.n - 1) as f64 + vb * vb / (sb.n - 1) as f64);
     let dist = StudentsT::new(0.0, 1.0, df).map_err(|_| StatsError::TooFew(sa.n.min(sb.n)))?;
     let p_value = 2.0 * (1.0 - dist.cdf(t.abs()));
-    Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, t, df, p_value })
+    Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, se, t, df, p_value })
 }
 
 #[cfg(test)]

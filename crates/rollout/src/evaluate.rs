@@ -24,6 +24,7 @@ use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalEpisode};
 use sf_job::{Frozen, FrozenRole, JobConfig, SvoGaussian};
 use sf_sim::case::CaseFile;
+use sf_sim::config::MessageProbe;
 use sf_sim::env::Controller;
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{EpisodeSpec, VecEnv};
@@ -123,7 +124,27 @@ impl Policy {
 #[allow(clippy::large_enum_variant)]
 pub enum FlowDef {
     Idm,
-    Learned { background: Policy, adversary: Option<Policy> },
+    /// `messages`: an evaluation probe's constants in place of the SVOs observers are told (off
+    /// unless an evaluation grid's flow asks for it).
+    Learned {
+        background: Policy,
+        adversary: Option<Policy>,
+        messages: MessageProbe,
+    },
+}
+
+impl FlowDef {
+    /// A learned flow as it was trained (no message probe).
+    pub fn learned(background: Policy, adversary: Option<Policy>) -> Self {
+        Self::Learned { background, adversary, messages: MessageProbe::default() }
+    }
+
+    /// The flow's message probe on `sim` (nothing for IDM, whose drivers read no messages).
+    fn probe(&self, sim: &mut SimConfig) {
+        if let Self::Learned { messages, .. } = self {
+            sim.obs.messages = *messages;
+        }
+    }
 }
 
 impl FlowDef {
@@ -154,9 +175,9 @@ impl FlowDef {
                     .map(|e| e.path())
                     .find(|d| d.file_name().and_then(|n| n.to_str()).and_then(|n| n.split_once('-')).is_some_and(|(i, _)| i.parse::<u64>() == Ok(id)))
                     .ok_or_else(|| EvalError::Misfit(format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display())))?;
-                Ok(Self::Learned { background: Policy::load(&bg)?, adversary: Some(p) })
+                Ok(Self::learned(Policy::load(&bg)?, Some(p)))
             }
-            _ => Ok(Self::Learned { background: p, adversary: None }),
+            _ => Ok(Self::learned(p, None)),
         }
     }
 }
@@ -218,7 +239,7 @@ pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<
         }
     }
     let flow = match background {
-        Some(background) => FlowDef::Learned { background, adversary },
+        Some(background) => FlowDef::learned(background, adversary),
         None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into()).into()),
         None => FlowDef::Idm,
     };
@@ -238,8 +259,10 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(
         None => None,
     };
     if let Some(e) = ego {
-        if e.cfg.kind != JobKind::Ego {
-            return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy", cell.ego, e.cfg.kind.as_str())));
+        // A Stage-1 flow's actor may sit in the ego's seat (`flow_actor`, a probe); the
+        // observation is one layout for every kind, each network reads the channels it consumes.
+        if !matches!(e.cfg.kind, JobKind::Ego | JobKind::Macad | JobKind::Copo | JobKind::Socialcomm) {
+            return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy (or a Stage-1 flow's actor)", cell.ego, e.cfg.kind.as_str())));
         }
     }
     match (ego, flow) {
@@ -356,10 +379,12 @@ fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&EgoDef>, runn
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
         (None, FlowDef::Learned { background, .. }) => (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent),
     };
+    let mut sim = sim;
+    flow.probe(&mut sim);
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
         FlowDef::Idm => (None, None),
-        FlowDef::Learned { background, adversary } => (Some(runners.get(background, map, &sim)?), adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?),
+        FlowDef::Learned { background, adversary, .. } => (Some(runners.get(background, map, &sim)?), adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?),
     };
     let svo_gaussian = match flow {
         FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g),
@@ -476,8 +501,9 @@ impl FlowSetup {
                 }
                 Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::Idm }, background: None, adversary: None, svo_gaussian: None })
             }
-            FlowDef::Learned { background, adversary } => {
-                let sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
+            FlowDef::Learned { background, adversary, .. } => {
+                let mut sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
+                flow.probe(&mut sim);
                 if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
                     return Err(EvalError::Misfit(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str())));
                 }

@@ -79,6 +79,28 @@ pub struct ObsConfig {
     pub svo: SvoVisibility,
     /// FailMaker: background agents can tell the ego apart.
     pub ego_flag: bool,
+    /// Evaluation probes only: constants in place of the SVOs observers are told.
+    #[serde(skip_serializing_if = "MessageProbe::is_off")]
+    pub messages: MessageProbe,
+}
+
+/// An evaluation probe of what the SVO messages carry: constants in place of the SVOs that
+/// observers are told (with [`SvoVisibility`] showing them). Off in training and by default.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct MessageProbe {
+    /// Every other agent's SVO as any observer is told it, in degrees (each agent still knows its
+    /// own): does a policy read its neighbours' messages?
+    pub neighbours_deg: Option<f32>,
+    /// The ego's (agent 0's) SVO as every other observer is told it, in degrees: a
+    /// constant-message adversary.
+    pub told_ego_deg: Option<f32>,
+}
+
+impl MessageProbe {
+    pub fn is_off(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 impl Default for ObsConfig {
@@ -95,6 +117,7 @@ impl Default for ObsConfig {
             segment_points: 10,
             svo: SvoVisibility::None,
             ego_flag: false,
+            messages: MessageProbe::default(),
         }
     }
 }
@@ -212,6 +235,11 @@ impl SimConfig {
         at_least("obs.segment_points", self.obs.segment_points, 2)?;
         if self.vehicle.max_steer_deg >= 90.0 {
             return Err(ConfigError { field: "vehicle.max_steer_deg", reason: "must be below 90".into() });
+        }
+        for (field, v) in [("obs.messages.neighbours_deg", self.obs.messages.neighbours_deg), ("obs.messages.told_ego_deg", self.obs.messages.told_ego_deg)] {
+            if let Some(v) = v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))) {
+                return Err(ConfigError { field, reason: format!("{v} must be an SVO in [-90, 90] degrees") });
+            }
         }
         Ok(())
     }

@@ -337,9 +337,19 @@ impl Env {
         }
     }
 
-    /// The SVO of agent `j` as observer `o` sees it.
+    /// The SVO of agent `j` as observer `o` sees it: the genuine one, what a Stage 2 adversary
+    /// tells `o` of the ego, or an evaluation probe's constant ([`crate::config::MessageProbe`]).
     #[inline]
     pub fn communicated_svo_deg(&self, o: usize, j: usize) -> f32 {
+        if j != o {
+            let probe = &self.cfg.obs.messages;
+            if let Some(s) = probe.told_ego_deg.filter(|_| j == 0) {
+                return s;
+            }
+            if let Some(s) = probe.neighbours_deg {
+                return s;
+            }
+        }
         if j == 0 && o != 0 {
             if let Some(s) = self.seen_ego_svo[o] {
                 return s;

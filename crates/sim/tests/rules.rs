@@ -187,6 +187,30 @@ fn adversary_svo_reaches_only_the_told_observer() {
     assert_eq!(e.communicated_svo_deg(0, 0), 10.0, "the ego is not fooled about itself");
 }
 
+/// The message probes: a constant in place of every neighbour's SVO (each agent keeps its own),
+/// or of the ego's SVO as the others are told it; an SVO outside [-90, 90] is refused.
+#[test]
+fn message_probes_replace_what_observers_are_told() {
+    let m = map("intersection");
+    let mut cfg = sf_sim::SimConfig::default();
+    cfg.obs.messages.neighbours_deg = Some(45.0);
+    let mut e = sf_sim::Env::new(m.clone(), std::sync::Arc::new(cfg.clone()));
+    let (s0, s1, s2) = (spawn_for(&m, 0, 0), spawn_for(&m, 0, 2), spawn_for(&m, 0, 4));
+    let c = case(&[(s0, 0, 10.0), (s1, 0, 20.0), (s2, 0, 30.0)]);
+    e.reset(&c, Mode::MultiAgent, None).expect("reset");
+    assert_eq!((e.communicated_svo_deg(1, 2), e.communicated_svo_deg(2, 0), e.communicated_svo_deg(0, 1)), (45.0, 45.0, 45.0));
+    assert_eq!((e.communicated_svo_deg(1, 1), e.communicated_svo_deg(2, 2)), (20.0, 30.0), "each agent knows its own SVO");
+    cfg.obs.messages = sf_sim::config::MessageProbe { neighbours_deg: None, told_ego_deg: Some(90.0) };
+    let mut e = sf_sim::Env::new(m.clone(), std::sync::Arc::new(cfg.clone()));
+    e.reset(&c, Mode::MultiAgent, None).expect("reset");
+    e.set_seen_ego_svo(1, Some(-45.0));
+    assert_eq!((e.communicated_svo_deg(1, 0), e.communicated_svo_deg(2, 0)), (90.0, 90.0), "the constant message wins over an adversary's");
+    assert_eq!((e.communicated_svo_deg(0, 0), e.communicated_svo_deg(1, 2)), (10.0, 30.0), "the ego's own and the others' SVOs stay genuine");
+    cfg.obs.messages.told_ego_deg = Some(120.0);
+    let err = cfg.validate().expect_err("out of range").to_string();
+    assert!(err.contains("obs.messages.told_ego_deg"), "{err}");
+}
+
 /// The IDM warm-up's demonstrator: its action, held for whole decision steps by an externally
 /// driven car, crosses every route of every scenario cleanly at nearly full speed, and it asks
 /// for a lower reference speed than free road when a stopped car is close ahead.

@@ -67,6 +67,10 @@ pub enum LearnerError {
     /// A submitted job that names its dependencies instead of giving their ids.
     #[error("job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids")]
     UnresolvedName { name: String },
+    /// An evaluation grid that asks for a probe only `socialflow eval` runs.
+    #[error("eval config entry `{name}`: probes (`messages`, `flow_actor`) run in `socialflow eval` only, not as a learner's evaluation job")]
+    ProbeInService { name: String },
+
     /// A submitted job's `sac.device` this learner cannot open.
     #[error("job config field `sac.device`: {0}")]
     DeviceField(#[source] sf_nn::device::DeviceError),
@@ -181,7 +185,7 @@ impl LearnerError {
             | L::Dependency { .. }
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
-            L::UnresolvedName { .. } | L::DeviceField(_) => S::InvalidArgument,
+            L::UnresolvedName { .. } | L::DeviceField(_) | L::ProbeInService { .. } => S::InvalidArgument,
             L::ShuttingDown => S::Unavailable,
             L::JobNotFound { .. } | L::WorkerNotRegistered { .. } | L::NoPolicyVersion { .. } | L::VersionGone { .. } => S::NotFound,
             L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => S::FailedPrecondition,

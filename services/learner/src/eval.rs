@@ -239,8 +239,9 @@ impl EvalJob {
         self.cells.len()
     }
 
-    fn episodes_per_cell(&self) -> u64 {
-        self.cfg.cases as u64 * self.cfg.seeds as u64
+    /// The episodes of every cell together (each cell's own cases x seeds).
+    fn target_episodes(&self) -> u64 {
+        self.cells.iter().map(|c| self.cfg.episodes_of(c)).sum()
     }
 
     pub fn progress(&self) -> Progress {
@@ -254,7 +255,7 @@ impl EvalJob {
                 wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
                 ..Default::default()
             },
-            target_env_steps: self.cells.len() as u64 * self.episodes_per_cell(),
+            target_env_steps: self.target_episodes(),
             ..Progress::default()
         }
     }
@@ -308,12 +309,13 @@ impl EvalJob {
         let c = take_first(&mut s.queued, |c| runs_idm_ego || !self.idm_ego_cell(c))?;
         s.leased.insert(c, (worker, Instant::now()));
         let (cell, ego_idm) = (self.cells[c].clone(), self.idm_ego_cell(c));
-        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell, cases: self.cfg.cases, seeds: self.cfg.seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone(), ego_idm })
+        let (cases, seeds) = self.cfg.size_of(&cell);
+        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell, cases, seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone(), ego_idm })
     }
 
     /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell
     /// was already stored. The episodes must be exactly one per stored case and seed of the
-    /// grid; nothing is written otherwise.
+    /// cell's size ([`EvalConfig::size_of`]); nothing is written otherwise.
     pub fn store(&self, worker: u64, cell_id: u64, episodes: &[EvalEpisode], error: &str) -> Result<bool, LearnerError> {
         let c = usize::try_from(cell_id).ok().filter(|&c| c < self.cells.len()).ok_or(LearnerError::NoCell { job_id: self.id, cell_id })?;
         let cell = &self.cells[c];
@@ -328,10 +330,11 @@ impl EvalJob {
             self.changed.notify_one();
             return Err(failed);
         }
-        let want = self.episodes_per_cell() as usize;
+        let (cases, n_seeds) = self.cfg.size_of(cell);
+        let want = cases as usize * n_seeds as usize;
         let seeds: BTreeSet<(u32, u32)> = episodes.iter().map(|e| (e.case, e.seed)).collect();
-        if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= self.cfg.seeds) {
-            let reason = format!("{} episodes, expected {want} distinct (case, seed) pairs with seeds below {}", episodes.len(), self.cfg.seeds);
+        if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= n_seeds) {
+            let reason = format!("{} episodes, expected {want} distinct (case, seed) pairs with seeds below {n_seeds}", episodes.len());
             return Err(LearnerError::BadCellResults { cell_id, reason });
         }
         if let Some(bad) = episodes.iter().find_map(|e| e.validate().err()) {
@@ -358,13 +361,15 @@ impl EvalJob {
     }
 }
 
-/// Loads the map and stored cases of every scenario the grid runs in (blocking file IO).
+/// Loads the map and stored cases of every scenario the grid runs in (blocking file IO). Each
+/// must store the most cases any cell asks ([`EvalConfig::max_cases`]).
 pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
     let mut maps = BTreeMap::new();
+    let need = cfg.max_cases();
     for s in cfg.all_scenarios() {
         let (map, cases) = sf_rollout::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
-        if (cfg.cases as usize) > cases.cases.len() {
-            return Err(LearnerError::TooFewCases { cases: cfg.cases, stored: cases.cases.len(), scenario: s });
+        if (need as usize) > cases.cases.len() {
+            return Err(LearnerError::TooFewCases { cases: need, stored: cases.cases.len(), scenario: s });
         }
         maps.insert(s, (map, cases));
     }
@@ -380,6 +385,11 @@ impl crate::Inner {
     /// Validates an evaluation grid, pins its names to this learner's succeeded jobs, checks
     /// every cell's ego and flow fit and that the cases exist, and queues it.
     pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, mut cfg: EvalConfig) -> Result<JobRecord, ServiceError> {
+        // A probe changes what a flow's observers are told or who sits in the ego's seat; the
+        // workers' cells carry neither, so the learner refuses it rather than run it unprobed.
+        if let Some(n) = cfg.flows.iter().chain(&cfg.egos).find(|n| n.is_probe()) {
+            return Err(LearnerError::ProbeInService { name: n.name.clone() }.into());
+        }
         let jobs = self.jobs().await?;
         resolve_names(&mut cfg, &jobs)?;
         let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
@@ -394,7 +404,7 @@ impl crate::Inner {
         let store = Arc::clone(&self.store);
         let root = self.cfg.data_dir.join("jobs");
         let name = cfg.name.clone();
-        let target = cfg.cells().len() as u64 * cfg.cases as u64 * cfg.seeds as u64;
+        let target = cfg.episodes();
         let resolved = cfg.to_toml();
         let rec = crate::blocking(move || store.create(&name, &resolved, target, |id| root.join(format!("{id}-{name}")).display().to_string())).await?;
         tracing::info!(job_id = rec.id, name = %rec.name, cells = cfg.cells().len(), "evaluation queued");

@@ -130,7 +130,7 @@ impl Validator {
         for (map, cases) in &self.cases {
             let run = match &self.flow {
                 Some(flow) => evaluate::run_cases(map, cases, 1, self.section.envs, flow, Some(&ego), &mut self.runners),
-                None => evaluate::run_cases(map, cases, 1, self.section.envs, &FlowDef::Learned { background: policy.clone(), adversary: None }, None, &mut self.runners),
+                None => evaluate::run_cases(map, cases, 1, self.section.envs, &FlowDef::learned(policy.clone(), None), None, &mut self.runners),
             };
             self.runners.forget(&policy.key);
             rows.extend(run?);

@@ -5,17 +5,17 @@ The evaluation grid has no IDM ego (an ego is a trained policy), so the baseline
 among the same flows (the IDM flow, or a trained flow's job directory). For replicate k of the
 graph (run 1: `--data-dir runs/paper-small`, run 2: `runs/paper-small-seed1`):
 
-    out=docs/report-sessions12-13/run-$k/idm-ego; runs=runs/paper-small-seed1
+    out=docs/archive/2026-11-25-report-seeds-0-1/run-$k/idm-ego; runs=runs/paper-small-seed1
     for s in intersection bottleneck merge roundabout; do
       socialflow eval-flow --flow idm --ego idm --scenario $s --cases 20 --seeds 2 --json > $out/IDM-$s.json
       socialflow eval-flow --policy $runs/jobs/3-flow-macad --ego idm --scenario $s --cases 20 --seeds 2 --json > $out/MACAD-$s.json
       # likewise 2-flow-copo (CoPO) and 4-flow-socialcomm (SocialComm)
     done
-    python3 docs/report-sessions12-13/idm-ego-compare.py docs/report-sessions12-13/run-$k/results/episodes.csv $out > $out/summary.md
+    python3 docs/archive/2026-11-25-report-seeds-0-1/idm-ego-compare.py docs/archive/2026-11-25-report-seeds-0-1/run-$k/results/episodes.csv $out > $out/summary.md
 
 Both replicates pooled (pairs within a replicate): give every run's pair of arguments, e.g.
-`idm-ego-compare.py docs/report-sessions12-13/run-1/results/episodes.csv docs/report-sessions12-13/run-1/idm-ego
-docs/report-sessions12-13/run-2/results/episodes.csv docs/report-sessions12-13/run-2/idm-ego > docs/report-sessions12-13/idm-ego.md`.
+`idm-ego-compare.py docs/archive/2026-11-25-report-seeds-0-1/run-1/results/episodes.csv docs/archive/2026-11-25-report-seeds-0-1/run-1/idm-ego
+docs/archive/2026-11-25-report-seeds-0-1/run-2/results/episodes.csv docs/archive/2026-11-25-report-seeds-0-1/run-2/idm-ego > docs/archive/2026-11-25-report-seeds-0-1/idm-ego.md`.
 
 Each trained ego's success is paired with the IDM ego's on the same (flow, scenario, case,
 seed); the p-value is the paired t-test's in its normal approximation (160-640 pairs).
