@@ -126,13 +126,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let all = cfg.cells();
     grid.check(&all).map_err(anyhow::Error::msg)?;
     let maps = load_maps(ctx, &cfg)?;
-    for cell in &all {
-        let (cases, stored) = (cfg.size_of(cell).0, maps.get(&cell.scenario).map_or(0, |(_, c)| c.cases.len()));
-        if cases as usize > stored {
-            let field = if cfg.sizes.get(&cell.experiment).is_some_and(|s| s.cases.is_some()) { format!("sizes.{}.cases", cell.experiment) } else { "cases".into() };
-            bail!("{}: field `{field}`: {cases} exceeds the {stored} stored cases of {}", a.config.display(), cell.scenario);
-        }
-    }
+    cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c)| c.cases.len())).with_context(|| a.config.display().to_string())?;
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let meta_path = out.join("meta.json");

@@ -122,6 +122,16 @@ pub struct Experiments {
 /// `cross`): the keys of [`EvalConfig::sizes`].
 pub const EXPERIMENTS: [&str; 5] = ["flow_quality", "cross", "svo_sweep", "density", "adversary"];
 
+/// A cell of a grid that asks for more stored cases than its scenario has.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("eval config field `{field}`: {cases} exceeds the {stored} stored cases of {scenario}")]
+pub struct TooFewCases {
+    pub field: String,
+    pub cases: u32,
+    pub stored: usize,
+    pub scenario: String,
+}
+
 /// One experiment's own number of stored cases and seeds (`[sizes]` of an eval config); a
 /// field left out is the grid-wide value.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -321,10 +331,8 @@ impl EvalConfig {
         if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.is_probe()) {
             return bad(format!("eval config entry `{}`: a probe (`messages`, `flow_actor`) needs a learned job, not `job = \"idm\"`", n.name));
         }
-        for (n, field, v) in self.flows.iter().flat_map(|n| [(n, "neighbours_deg", n.messages.neighbours_deg), (n, "told_ego_deg", n.messages.told_ego_deg)]) {
-            if let Some(v) = v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))) {
-                return bad(format!("eval config field `messages.{field}` of flow `{}`: {v} is not an SVO in [-90, 90] degrees", n.name));
-            }
+        if let Some((n, (field, v))) = self.flows.iter().find_map(|n| n.messages.out_of_range().map(|o| (n, o))) {
+            return bad(format!("eval config field `messages.{field}` of flow `{}`: {v} is not an SVO in [-90, 90] degrees", n.name));
         }
         if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
             return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
@@ -421,10 +429,18 @@ impl EvalConfig {
         self.cells().iter().map(|c| self.episodes_of(c)).sum()
     }
 
-    /// The most stored cases any cell of the grid uses (what every scenario must have stored);
-    /// the grid-wide `cases` for a grid without cells.
-    pub fn max_cases(&self) -> u32 {
-        self.cells().iter().map(|c| self.size_of(c).0).max().unwrap_or(self.cases)
+    /// Every cell's cases against what its scenario has stored (`stored(scenario)`): the first
+    /// cell that asks for more is named by the field that set its size (`cases`, or
+    /// `sizes.<experiment>.cases`).
+    pub fn check_stored_cases(&self, stored: impl Fn(&str) -> usize) -> Result<(), TooFewCases> {
+        for cell in self.cells() {
+            let (cases, have) = (self.size_of(&cell).0, stored(&cell.scenario));
+            if cases as usize > have {
+                let field = if self.sizes.get(&cell.experiment).is_some_and(|s| s.cases.is_some()) { format!("sizes.{}.cases", cell.experiment) } else { "cases".into() };
+                return Err(TooFewCases { field, cases, stored: have, scenario: cell.scenario });
+            }
+        }
+        Ok(())
     }
 
     /// The grid's cells in a fixed order (a cell's index is its id in an evaluation job).
@@ -554,14 +570,19 @@ mod tests {
         assert_eq!(size("flow_quality"), [(2, 1)], "no override: the grid-wide size");
         assert_eq!(size("cross"), [(50, 1)], "seeds left out: the grid-wide seeds");
         assert_eq!(size("adversary"), [(200, 3)]);
-        assert_eq!(c.max_cases(), 200);
+        let e = c.check_stored_cases(|_| 199).expect_err("the adversary cells need 200");
+        assert_eq!((e.field.as_str(), e.cases), ("sizes.adversary.cases", 200), "{e}");
+        assert!(c.check_stored_cases(|_| 200).is_ok(), "200 stored cases are the most any cell uses");
         assert_eq!(c.episodes(), 2 + 50 + 600, "one cell per experiment");
         let plain = sized("");
         assert!(plain.sizes.is_empty());
-        assert_eq!((plain.max_cases(), plain.episodes()), (2, 3 * 2));
+        assert_eq!(plain.episodes(), 3 * 2);
+        assert!(plain.check_stored_cases(|_| 2).is_ok());
+        assert_eq!(plain.check_stored_cases(|_| 1).expect_err("2 cases").field, "cases");
         // An override of an experiment without cells changes nothing.
         let unused = sized("density = { cases = 900 }\n");
-        assert_eq!((unused.max_cases(), unused.episodes()), (2, 3 * 2));
+        assert_eq!(unused.episodes(), 3 * 2);
+        assert!(unused.check_stored_cases(|_| 2).is_ok());
     }
 
     #[test]

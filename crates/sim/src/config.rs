@@ -101,6 +101,13 @@ impl MessageProbe {
     pub fn is_off(&self) -> bool {
         *self == Self::default()
     }
+
+    /// The first constant that is not an SVO in [-90, 90] degrees, as (field, value).
+    pub fn out_of_range(&self) -> Option<(&'static str, f32)> {
+        [("neighbours_deg", self.neighbours_deg), ("told_ego_deg", self.told_ego_deg)]
+            .into_iter()
+            .find_map(|(field, v)| v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))).map(|v| (field, v)))
+    }
 }
 
 impl Default for ObsConfig {
@@ -236,10 +243,9 @@ impl SimConfig {
         if self.vehicle.max_steer_deg >= 90.0 {
             return Err(ConfigError { field: "vehicle.max_steer_deg", reason: "must be below 90".into() });
         }
-        for (field, v) in [("obs.messages.neighbours_deg", self.obs.messages.neighbours_deg), ("obs.messages.told_ego_deg", self.obs.messages.told_ego_deg)] {
-            if let Some(v) = v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))) {
-                return Err(ConfigError { field, reason: format!("{v} must be an SVO in [-90, 90] degrees") });
-            }
+        if let Some((field, v)) = self.obs.messages.out_of_range() {
+            let field = if field == "neighbours_deg" { "obs.messages.neighbours_deg" } else { "obs.messages.told_ego_deg" };
+            return Err(ConfigError { field, reason: format!("{v} must be an SVO in [-90, 90] degrees") });
         }
         Ok(())
     }

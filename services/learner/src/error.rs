@@ -23,9 +23,9 @@ pub enum LearnerError {
     /// A flow or ego of an evaluation grid names a job that cannot serve it.
     #[error("eval config field `{field}` of `{name}`: {reason}")]
     BadEvalConfig { field: &'static str, name: String, reason: String },
-    /// The grid asks for more cases than a scenario has stored.
-    #[error("eval config field `cases`: {cases} exceeds the {stored} stored cases of {scenario}")]
-    TooFewCases { cases: u32, stored: usize, scenario: String },
+    /// A cell of the grid asks for more cases than its scenario has stored.
+    #[error(transparent)]
+    TooFewCases(#[from] sf_job::eval::TooFewCases),
     /// A flow or ego of a grid that [`crate::eval::resolve_names`] has not pinned to a job.
     #[error("`{name}` is not pinned to a job")]
     NotPinned { name: String },
@@ -172,7 +172,7 @@ impl LearnerError {
         match self {
             L::Grid { source, .. } | L::BackgroundFlow { source, .. } => source.status(),
             L::BadEvalConfig { .. }
-            | L::TooFewCases { .. }
+            | L::TooFewCases(_)
             | L::NotPinned { .. }
             | L::NotSucceeded { .. }
             | L::NoEgoPolicy { .. }
@@ -275,7 +275,7 @@ mod tests {
         assert_eq!(e.code(), Code::InvalidArgument);
         assert_eq!(e.to_string(), "eval config field `egos.job` of `nope`: job 3 does not exist");
 
-        let e = ServiceError::from(LearnerError::TooFewCases { cases: 9, stored: 4, scenario: "merge".into() });
+        let e = ServiceError::from(LearnerError::TooFewCases(sf_job::eval::TooFewCases { field: "cases".into(), cases: 9, stored: 4, scenario: "merge".into() }));
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.to_string().contains("`cases`"), "{e}");
 

@@ -330,8 +330,7 @@ impl EvalJob {
             self.changed.notify_one();
             return Err(failed);
         }
-        let (cases, n_seeds) = self.cfg.size_of(cell);
-        let want = cases as usize * n_seeds as usize;
+        let (want, n_seeds) = (self.cfg.episodes_of(cell) as usize, self.cfg.size_of(cell).1);
         let seeds: BTreeSet<(u32, u32)> = episodes.iter().map(|e| (e.case, e.seed)).collect();
         if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= n_seeds) {
             let reason = format!("{} episodes, expected {want} distinct (case, seed) pairs with seeds below {n_seeds}", episodes.len());
@@ -361,18 +360,15 @@ impl EvalJob {
     }
 }
 
-/// Loads the map and stored cases of every scenario the grid runs in (blocking file IO). Each
-/// must store the most cases any cell asks ([`EvalConfig::max_cases`]).
+/// Loads the map and stored cases of every scenario the grid runs in (blocking file IO); each
+/// cell's cases must be stored ([`EvalConfig::check_stored_cases`]).
 pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
     let mut maps = BTreeMap::new();
-    let need = cfg.max_cases();
     for s in cfg.all_scenarios() {
         let (map, cases) = sf_rollout::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
-        if (need as usize) > cases.cases.len() {
-            return Err(LearnerError::TooFewCases { cases: need, stored: cases.cases.len(), scenario: s });
-        }
         maps.insert(s, (map, cases));
     }
+    cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c): &(_, sf_sim::CaseFile)| c.cases.len()))?;
     Ok(maps)
 }
 

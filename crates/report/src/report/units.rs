@@ -25,15 +25,20 @@ fn unit(r: &EpisodeRow) -> Unit {
     (r.cell.ego.clone(), r.cell.flow.clone(), r.cell.scenario.clone(), r.cell.svo_deg, r.cell.vehicles, r.ep.case)
 }
 
-/// Means of `values` grouped by key, in key order.
-fn group_means<K: Ord>(values: impl IntoIterator<Item = (K, f64)>) -> Vec<f64> {
+/// The mean of `values` per key.
+fn group_mean_map<K: Ord>(values: impl IntoIterator<Item = (K, f64)>) -> BTreeMap<K, f64> {
     let mut acc: BTreeMap<K, (f64, usize)> = BTreeMap::new();
     for (k, v) in values {
         let e = acc.entry(k).or_insert((0.0, 0));
         e.0 += v;
         e.1 += 1;
     }
-    acc.into_values().map(|(s, n)| s / n as f64).collect()
+    acc.into_iter().map(|(k, (s, n))| (k, s / n as f64)).collect()
+}
+
+/// Means of `values` grouped by key, in key order.
+fn group_means<K: Ord>(values: impl IntoIterator<Item = (K, f64)>) -> Vec<f64> {
+    group_mean_map(values).into_values().collect()
 }
 
 /// The metric of each distinct start among `rows` (seeds and replicates averaged).
@@ -71,18 +76,8 @@ pub(crate) fn paired_across_flows(a: &[&EpisodeRow], b: &[&EpisodeRow], m: Metri
 /// Per start (ego, scenario, case) with the same ego: the metric under each of `flows`' rows,
 /// for starts every flow ran (for a bootstrap that resamples whole starts).
 pub(crate) fn unit_columns<const N: usize>(flows: [&[&EpisodeRow]; N], m: Metric) -> Vec<[f64; N]> {
-    let per: Vec<BTreeMap<EgoStart, f64>> = flows
-        .iter()
-        .map(|rows| {
-            let mut acc: BTreeMap<_, (f64, usize)> = BTreeMap::new();
-            for r in rows.iter() {
-                let e = acc.entry((r.cell.ego.clone(), r.cell.scenario.clone(), r.cell.svo_deg, r.cell.vehicles, r.ep.case)).or_insert((0.0, 0));
-                e.0 += m(r) as f64;
-                e.1 += 1;
-            }
-            acc.into_iter().map(|(k, (s, n))| (k, s / n as f64)).collect()
-        })
-        .collect();
+    let per: Vec<BTreeMap<EgoStart, f64>> =
+        flows.iter().map(|rows| group_mean_map(rows.iter().map(|r| ((r.cell.ego.clone(), r.cell.scenario.clone(), r.cell.svo_deg, r.cell.vehicles, r.ep.case), m(r) as f64)))).collect();
     per[0].keys().filter_map(|k| per.iter().map(|p| p.get(k).copied()).collect::<Option<Vec<f64>>>().and_then(|v| <[f64; N]>::try_from(v).ok())).collect()
 }
 
