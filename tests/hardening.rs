@@ -81,6 +81,23 @@ fn health_and_reflection_answer_without_a_token_and_metrics_pass_promtool() {
         Some(MessageResponse::FileDescriptorResponse(f)) => assert!(!f.file_descriptor_proto.is_empty()),
         other => panic!("file containing socialflow.v1.JobService answered {other:?}"),
     }
+    // The older v1alpha reflection, which some clients still ask for, lists the same services.
+    {
+        use tonic_reflection::pb::v1alpha::server_reflection_client::ServerReflectionClient as AlphaClient;
+        use tonic_reflection::pb::v1alpha::server_reflection_request::MessageRequest as AlphaRequest;
+        use tonic_reflection::pb::v1alpha::server_reflection_response::MessageResponse as AlphaResponse;
+        use tonic_reflection::pb::v1alpha::ServerReflectionRequest as AlphaReflectionRequest;
+        let mut alpha = AlphaClient::new(channel(&rt, &l.url));
+        let req = AlphaReflectionRequest { host: String::new(), message_request: Some(AlphaRequest::ListServices(String::new())) };
+        let mut replies = rt.block_on(alpha.server_reflection_info(tokio_stream::iter(vec![req]))).expect("v1alpha reflection without a token").into_inner();
+        match rt.block_on(replies.message()).expect("a v1alpha reply").and_then(|r| r.message_response) {
+            Some(AlphaResponse::ListServicesResponse(l)) => {
+                let names: Vec<&str> = l.service.iter().map(|s| s.name.as_str()).collect();
+                assert!(names.contains(&"socialflow.v1.JobService"), "v1alpha reflection lists {names:?}");
+            }
+            other => panic!("v1alpha list services answered {other:?}"),
+        }
+    }
     // Everything else still needs the token.
     let mut anon = jobs(&rt, &l.url, None);
     assert_eq!(rt.block_on(anon.list_jobs(pb::ListJobsRequest {})).expect_err("no token").code(), Code::Unauthenticated);

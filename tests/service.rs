@@ -53,6 +53,12 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
     let mut nan = sf_proto::batch_to_wire(&good());
     nan.rewards[0] = f32::NAN;
     assert_eq!(push_one(&rt, &mut e, nan).code(), Code::InvalidArgument);
+    // An action outside the action space [-1, 1] is refused, naming the transition.
+    let mut wild = sf_proto::batch_to_wire(&good());
+    wild.actions[1] = 7.0;
+    let st = push_one(&rt, &mut e, wild);
+    assert_eq!(st.code(), Code::InvalidArgument, "{st:?}");
+    assert!(st.message().contains("transition 0, component 1") && st.message().contains("[-1, 1]"), "{}", st.message());
     let mut unknown = sf_proto::batch_to_wire(&good());
     unknown.job_id = 777;
     assert_eq!(push_one(&rt, &mut e, unknown).code(), Code::NotFound);

@@ -35,8 +35,10 @@ def _check_actions(actions, n, dim):
 class EgoEnv(gym.Env):
     """One simulator; Python drives the ego. Observations: a dict of the observation blocks
     (`obs_format="dict"`, masks included) or the flat row (`"flat"`). Actions in [-1, 1]:
-    `direct` (the paper's `[reference speed, steer]`), `idm-residual` or `idm-accel-residual`
-    (one number added to the IDM driver's acceleration: 0 drives exactly like IDM).
+    `direct` (the paper's `[reference speed, steer]`), `idm-residual`, `idm-accel-residual`
+    (one number moving the IDM driver's acceleration: 0 drives exactly like IDM) or
+    `idm-residual-lateral` (that number and a lateral target of up to one lane either side:
+    zeros drive exactly like IDM, other values change lanes).
 
     `reset(seed=s)` draws random cases from `s`; `reset(options={"case": i})` runs stored
     evaluation case `i` (`socialflow eval`'s cases). `info` carries `success`, `termination`

@@ -17,8 +17,8 @@ _GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_d
 
 
 def zero_residual_policy(dim=1):
-    """The IDM driver as a policy: with `action="idm-accel-residual"` a zero residual drives
-    exactly like IDM."""
+    """The IDM driver as a policy: with `action="idm-accel-residual"` (`dim=1`) or
+    `"idm-residual-lateral"` (`dim=2`) zeros drive exactly like IDM."""
 
     def policy(obs):
         return np.zeros((len(obs), dim), np.float32)

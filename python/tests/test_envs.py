@@ -8,7 +8,7 @@ import socialflow
 
 
 @pytest.mark.parametrize("obs_format", ["dict", "flat"])
-@pytest.mark.parametrize("action", ["direct", "idm-accel-residual"])
+@pytest.mark.parametrize("action", ["direct", "idm-accel-residual", "idm-residual-lateral"])
 def test_check_env(obs_format, action):
     env = socialflow.make_ego(scenario="merge", vehicles=(4, 8), obs_format=obs_format, action=action)
     check_env(env, skip_render_check=True)

@@ -31,6 +31,9 @@ pub struct EvalArgs {
     /// Override the config's `out` directory.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Override the config's `runs` directory (the same grid on another replicate's jobs).
+    #[arg(long)]
+    pub runs: Option<PathBuf>,
 }
 
 /// Reads and validates an evaluation config file.
@@ -100,7 +103,7 @@ pub fn load_maps(ctx: &Ctx, cfg: &EvalConfig) -> Result<BTreeMap<String, (Arc<sf
 
 pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let cfg = load(&a.config)?;
-    let runs = cfg.runs.clone().with_context(|| format!("{}: field `runs` (the data directory of the trained jobs) is needed to evaluate here", a.config.display()))?;
+    let runs = a.runs.or(cfg.runs.clone()).with_context(|| format!("{}: field `runs` (or --runs: the data directory of the trained jobs) is needed to evaluate here", a.config.display()))?;
     let out = a.out.or(cfg.out.clone()).with_context(|| format!("{}: field `out` (or --out) is needed to evaluate here", a.config.display()))?;
     // Everything named must exist, and every cell's ego and flow fit, before anything runs.
     let mut grid = evaluate::Resolved::default();

@@ -22,11 +22,11 @@ use serde::{Deserialize, Serialize};
 use sf_job::{JobConfig, JobState};
 use sf_report::plot::{line_chart, Series};
 use sf_rollout::drive::{self, Actor, Drivers};
-use sf_rollout::evaluate::{Policy, Runners};
+use sf_rollout::evaluate::{EgoDef, FlowDef, Policy, Runners};
 use sf_rollout::setup;
 use sf_sim::env::{Controller, Mode};
 use sf_sim::metrics::EpisodeMetrics;
-use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::vec_env::{CaseDraw, EpisodeSpec, SlowLeader, VecEnv};
 use sf_sim::{CaseFile, DriveAction, Map, SimConfig};
 
 use crate::remote;
@@ -88,16 +88,34 @@ pub struct RungEval {
     /// mean action; the IDM driver's episodes are the same either way.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub sampled: bool,
+    /// GIFs of the first `gifs` evaluated cases of the first scenario: each seed's policy
+    /// (`seed-<s>/gif-<scenario>-case-<c>.gif`) and the IDM ego (`gif-<scenario>-case-<c>-idm.gif`).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub gifs: u32,
 }
 
-/// Generated evaluation cases: vehicle counts uniform in `vehicles`, and with probability
-/// `conflict_share` a case in which the IDM ego collides (`sf_sim::vec_env::draw_case`).
+fn is_zero(n: &u32) -> bool {
+    *n == 0
+}
+
+/// Generated evaluation cases: vehicle counts uniform in `vehicles`, with probability
+/// `conflict_share` a case in which the IDM ego collides, and with `slow_leader` a slow
+/// vehicle ahead of the ego (`sf_sim::vec_env::draw_case`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Generate {
     pub vehicles: [u32; 2],
+    #[serde(default)]
     pub conflict_share: f32,
     pub seed: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slow_leader: Option<SlowLeader>,
+}
+
+impl Generate {
+    fn draw(&self) -> CaseDraw {
+        CaseDraw { conflict_share: Some(self.conflict_share), slow_leader: self.slow_leader }
+    }
 }
 
 fn d_envs() -> usize {
@@ -118,6 +136,10 @@ pub struct Gate {
     pub max_other_failures: Option<f64>,
     /// Paired t-test of success against the IDM ego.
     pub max_p: Option<f64>,
+    /// Mean speed over the IDM ego's, minus 1 (0.2: at least 20 % faster).
+    pub min_speed_gain: Option<f64>,
+    /// The share of episodes in which the ego left its route's lane (a lane change).
+    pub min_lane_change: Option<f64>,
     /// The training curve's rolling success at every point from `curve_from_updates` updates on.
     pub curve_min_success: Option<f64>,
     pub curve_from_updates: u64,
@@ -139,6 +161,9 @@ impl Rung {
         if let Some(g) = &r.eval.generate {
             if g.vehicles[0] == 0 || g.vehicles[0] > g.vehicles[1] || !(0.0..=1.0).contains(&g.conflict_share) {
                 bail!("{}: `eval.generate` needs 1 <= vehicles[0] <= vehicles[1] and conflict_share in [0, 1]", path.display());
+            }
+            if let Some(Err(why)) = g.slow_leader.map(|s| s.check(sf_sim::vehicle::VehicleParams::default().max_speed_mps)) {
+                bail!("{}: `eval.generate.slow_leader.{why}", path.display());
             }
         }
         if r.eval.vehicles.contains(&0) {
@@ -162,15 +187,16 @@ struct Row {
     other_failure: f32,
     timeout: f32,
     speed: f32,
+    lane_change: f32,
 }
 
 impl Row {
-    const HEADER: &'static str = "train_seed,driver,scenario,case,seed,vehicles,success,collision,other_failure,timeout,speed";
+    const HEADER: &'static str = "train_seed,driver,scenario,case,seed,vehicles,success,collision,other_failure,timeout,speed,lane_change";
 
     fn csv(&self) -> String {
         format!(
-            "{},{},{},{},{},{},{},{},{},{},{}",
-            self.train_seed, self.driver, self.scenario, self.case, self.seed, self.vehicles, self.success, self.collision, self.other_failure, self.timeout, self.speed
+            "{},{},{},{},{},{},{},{},{},{},{},{}",
+            self.train_seed, self.driver, self.scenario, self.case, self.seed, self.vehicles, self.success, self.collision, self.other_failure, self.timeout, self.speed, self.lane_change
         )
     }
 }
@@ -188,6 +214,10 @@ struct SeedSummary {
     other_failures: f64,
     speed: f64,
     idm_speed: f64,
+    /// Share of the policy's episodes with a lane change (absent in summaries written before
+    /// it was measured).
+    #[serde(default)]
+    lane_change: f64,
     p_value: f64,
     per_scenario: BTreeMap<String, [f64; 2]>,
     updates: u64,
@@ -231,6 +261,9 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     for (map, cases) in &maps {
         idm.extend(evaluate(&rung.eval, 0, map, cases, None, &mut runners)?);
     }
+    if let Some((map, cases)) = maps.first() {
+        render_gifs(&rung.eval, map, cases, None, &mut runners, &out)?;
+    }
     for (seed, policy) in &jobs {
         let (summary, curve, mine) = evaluate_seed(&rung, *seed, policy, &maps, &idm, &mut runners, &out)?;
         summaries.push(summary);
@@ -270,7 +303,7 @@ fn rung_cases(dirs: &Ctx, rung: &Rung) -> Result<Vec<(Arc<Map>, CaseFile)>> {
         let sim = Arc::new(SimConfig::default());
         for (map, cases) in &mut maps {
             let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
-            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), Some(g.conflict_share))).collect();
+            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), g.draw())).collect();
         }
     }
     Ok(maps)
@@ -294,6 +327,9 @@ fn evaluate_seed(rung: &Rung, seed: u64, policy: &Policy, maps: &[(Arc<Map>, Cas
         mine.extend(evaluate(&rung.eval, seed, map, cases, Some(policy), runners)?);
     }
     mine.extend(idm.iter().map(|r| Row { train_seed: seed, ..r.clone() }));
+    if let Some((map, cases)) = maps.first() {
+        render_gifs(&rung.eval, map, cases, Some(policy), runners, &seed_out)?;
+    }
     let [updates, _, wall_s, _] = curve.last().copied().unwrap_or_default();
     let mut s = summarise(seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
     s.selected_updates = selected_updates(dir)?;
@@ -318,7 +354,13 @@ fn earlier_seeds(out: &Path, rung: &Rung, ran: &BTreeSet<u64>) -> Result<(Vec<Se
     let keep: BTreeSet<u64> = kept.iter().map(|s| s.train_seed).collect();
     let episodes = out.join("episodes.csv");
     let lines = match std::fs::read_to_string(&episodes) {
-        Ok(t) => t.lines().skip(1).filter(|l| l.split(',').next().and_then(|f| f.parse::<u64>().ok()).is_some_and(|s| keep.contains(&s))).map(str::to_string).collect(),
+        // Lines written before a column was added get it empty.
+        Ok(t) => t
+            .lines()
+            .skip(1)
+            .filter(|l| l.split(',').next().and_then(|f| f.parse::<u64>().ok()).is_some_and(|s| keep.contains(&s)))
+            .map(|l| l.to_string() + &",".repeat(Row::HEADER.split(',').count().saturating_sub(l.split(',').count())))
+            .collect(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
         Err(e) => return Err(e).with_context(|| format!("reading {}", episodes.display())),
     };
@@ -406,10 +448,28 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
                 other_failure: m.off_road + m.off_route + m.wrong_lane,
                 timeout: m.timeout,
                 speed: m.scores.speed,
+                lane_change: m.lane_change,
             });
         }
     }
     Ok(rows)
+}
+
+/// `eval.gifs` episodes of `map`'s first cases with `policy` (or the IDM driver) in the ego's
+/// seat among IDM cars, one GIF each into `dir`.
+fn render_gifs(e: &RungEval, map: &Arc<Map>, cases: &CaseFile, policy: Option<&Policy>, runners: &mut Runners, dir: &Path) -> Result<()> {
+    let ego = match policy {
+        Some(p) => EgoDef::Learned(p.clone()),
+        None => EgoDef::Idm,
+    };
+    for c in 0..e.gifs.min(cases.cases.len() as u32) {
+        let suffix = if policy.is_some() { "" } else { "-idm" };
+        let path = dir.join(format!("gif-{}-case-{c}{suffix}.gif", map.name));
+        sf_rollout::evaluate::render_gif(("ego", &ego), &[("IDM", &FlowDef::Idm)], c, map, cases, runners, &path)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("rendering {}", path.display()))?;
+    }
+    Ok(())
 }
 
 fn mean(xs: impl Iterator<Item = f32>) -> f64 {
@@ -449,6 +509,7 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
         other_failures: mean(pol.iter().map(|r| r.other_failure)),
         speed: mean(pol.iter().map(|r| r.speed)),
         idm_speed: mean(idm.iter().map(|r| r.speed)),
+        lane_change: mean(pol.iter().map(|r| r.lane_change)),
         p_value,
         per_scenario,
         updates,
@@ -476,6 +537,13 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
     }
     if let Some(v) = g.max_p {
         fail(s.p_value <= v && s.success > s.idm_success, format!("p = {:.3e} (policy {:.3} vs IDM {:.3}), need p <= {v} in the policy's favour", s.p_value, s.success, s.idm_success));
+    }
+    if let Some(v) = g.min_speed_gain {
+        let gain = if s.idm_speed > 0.0 { s.speed / s.idm_speed - 1.0 } else { f64::INFINITY };
+        fail(gain >= v, format!("speed {:.3} is {:+.1} % of the IDM ego's {:.3}, need {:+.0} %", s.speed, 100.0 * gain, s.idm_speed, 100.0 * v));
+    }
+    if let Some(v) = g.min_lane_change {
+        fail(s.lane_change >= v, format!("lane change in {:.3} of episodes < {v}", s.lane_change));
     }
     s.passed = s.failed_checks.is_empty();
     Ok(s)
@@ -523,12 +591,12 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     if r.eval.sampled {
         let _ = writeln!(m, "The policies drove their sampled actions (`eval.sampled`), not their mean action.\n");
     }
-    let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | p (paired) | gate |");
-    let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | lane change | p (paired) | gate |");
+    let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|---|");
     for s in seeds {
         let _ = writeln!(
             m,
-            "| {} | {}{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} |",
+            "| {} | {}{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {} |",
             s.train_seed,
             s.updates,
             s.selected_updates.map(|u| format!(" (policy of {u})")).unwrap_or_default(),
@@ -539,6 +607,7 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
             s.other_failures,
             s.speed,
             s.idm_speed,
+            s.lane_change,
             sf_report::report::fmt_p(s.p_value),
             if s.passed { "pass".to_string() } else { s.failed_checks.join("; ") }
         );
@@ -628,6 +697,7 @@ mod tests {
             other_failures: 0.0,
             speed: 0.0,
             idm_speed: 0.0,
+            lane_change: 0.0,
             p_value: 1.0,
             per_scenario: BTreeMap::new(),
             updates: 0,
@@ -660,5 +730,35 @@ mod tests {
         assert!(good.passed, "{:?}", good.failed_checks);
         let none = check(&[]);
         assert_eq!(none.failed_checks.len(), 2, "{:?}", none.failed_checks);
+    }
+
+    /// The lane-change rung's checks: speed over the IDM ego's as a ratio, the share of episodes
+    /// with a lane change, and failures even when the IDM ego's success is 0.
+    #[test]
+    fn speed_gain_and_lane_change_are_gated() {
+        let row = |driver: &'static str, case: u32, success: f32, speed: f32, lane_change: f32, other_failure: f32| Row {
+            train_seed: 0,
+            driver,
+            scenario: "bottleneck".into(),
+            case,
+            seed: 0,
+            vehicles: 3,
+            success,
+            collision: 0.0,
+            other_failure,
+            timeout: 1.0 - success,
+            speed,
+            lane_change,
+        };
+        let gate = Gate { min_success_gain: Some(0.0), min_speed_gain: Some(0.2), min_lane_change: Some(0.5), max_other_failures: Some(0.05), min_collision_drop: Some(-0.1), ..Default::default() };
+        let idm: Vec<Row> = (0..4).map(|c| row("idm", c, 0.0, 0.3, 0.0, 0.0)).collect();
+        let run = |pol: Vec<Row>| summarise(0, Path::new("."), &pol.into_iter().chain(idm.clone()).collect::<Vec<_>>(), &gate, 0, 0.0).expect("summary");
+        let good = run((0..4).map(|c| row("policy", c, 1.0, 0.9, 1.0, 0.0)).collect());
+        assert!(good.passed && (good.lane_change - 1.0).abs() < 1e-9, "{:?}", good.failed_checks);
+        let slow = run((0..4).map(|c| row("policy", c, 0.0, 0.33, if c < 1 { 1.0 } else { 0.0 }, 0.0)).collect());
+        assert!(slow.failed_checks.iter().any(|c| c.contains("need +20 %")), "{:?}", slow.failed_checks);
+        assert!(slow.failed_checks.iter().any(|c| c.contains("lane change in 0.250")), "{:?}", slow.failed_checks);
+        let reckless = run((0..4).map(|c| row("policy", c, 0.25, 0.9, 1.0, if c > 0 { 1.0 } else { 0.0 })).collect());
+        assert!(reckless.failed_checks.iter().any(|c| c.contains("other failures 0.750")), "success above IDM's 0 is not enough: {:?}", reckless.failed_checks);
     }
 }

@@ -254,17 +254,41 @@ mod tests {
             assert_eq!(jobs[pos(&format!("ego-{k}"))].1.env.background_from.as_deref(), Some(format!("flow-{k}").as_str()));
         }
         assert!(jobs[pos("ego-idm")].1.env.background_from.is_none());
-        // RARL: each phase after the frozen side it acts against and the phase it continues.
-        for (job, after) in [
-            ("flow-failmaker", "ego-idm"),
-            ("ego-failmaker", "flow-failmaker"),
-            ("flow-socialcomm-adv", "ego-socialcomm"),
-            ("flow-socialcomm-adv", "flow-socialcomm"),
-            ("ego-socialcomm-adv", "flow-socialcomm-adv"),
-        ] {
-            assert!(pos(after) < pos(job), "{after} before {job}");
+        // RARL, three rounds per arm, both arms from `ego-idm`: each phase after the frozen side it
+        // acts against and after the phase it continues (`train.init_from`).
+        let arms = [
+            ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "flow-failmaker", "ego-failmaker"],
+            ["ego-idm", "socialcomm-adv-1", "ego-socialcomm-adv-1", "socialcomm-adv-2", "ego-socialcomm-adv-2", "flow-socialcomm-adv", "ego-socialcomm-adv"],
+        ];
+        for chain in &arms {
+            for w in chain.windows(2) {
+                assert!(pos(w[0]) < pos(w[1]), "{} before {}", w[0], w[1]);
+            }
+            for round in 0..3 {
+                let (ego_before, adv, ego) = (chain[2 * round], chain[2 * round + 1], chain[2 * round + 2]);
+                let (a, e) = (&jobs[pos(adv)].1, &jobs[pos(ego)].1);
+                assert_eq!(a.env.ego_from.as_deref(), Some(ego_before), "{adv} acts against the previous ego");
+                assert_eq!(e.env.background_from.as_deref(), Some(adv), "{ego} drives among this round's adversary");
+                assert_eq!(e.train.init_from.as_deref(), Some(ego_before), "{ego} continues the previous ego");
+                let prev_adv = (round > 0).then(|| chain[2 * round - 1]);
+                assert_eq!(a.train.init_from.as_deref(), prev_adv, "{adv} continues its arm's previous adversary");
+                assert_eq!(e.sac.warmup_policy, sf_job::config::WarmupPolicy::Policy, "{ego} warms up with the policy it continues");
+            }
         }
-        assert_eq!(jobs[pos("ego-failmaker")].1.train.init_from.as_deref(), Some("ego-idm"));
+        // The SocialCommAdv adversary acts in the frozen SocialComm flow in every round.
+        for adv in ["socialcomm-adv-1", "socialcomm-adv-2", "flow-socialcomm-adv"] {
+            assert_eq!(jobs[pos(adv)].1.env.background_from.as_deref(), Some("flow-socialcomm"), "{adv}");
+            assert!(pos("flow-socialcomm") < pos(adv), "flow-socialcomm before {adv}");
+        }
+        assert_eq!(jobs[pos("socialcomm-adv-1")].1.env.ego_from.as_deref(), Some("ego-idm"));
+        assert_eq!(jobs[pos("ego-socialcomm-adv-1")].1.train.init_from.as_deref(), Some("ego-idm"));
+        assert_eq!(jobs[pos("ego-failmaker-1")].1.train.init_from.as_deref(), Some("ego-idm"));
+        // No other ego continues a job: the six above are all of Stage 2's ego phases.
+        let rarl_egos: Vec<&JobConfig> = jobs.iter().map(|(_, c, _)| c).filter(|c| c.kind == sf_job::config::JobKind::Ego && c.train.init_from.is_some()).collect();
+        assert_eq!(rarl_egos.len(), 6, "three ego phases per arm");
+        for c in rarl_egos {
+            assert_eq!(c.sac.warmup_policy, sf_job::config::WarmupPolicy::Policy, "{}", c.name);
+        }
     }
 
     /// The paper graph chains five rounds: every phase continues its side's previous phase.

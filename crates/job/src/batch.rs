@@ -216,6 +216,12 @@ impl TransitionBatch {
         finite16("obs_f16", &self.obs)?;
         finite16("next_obs_f16", &self.next_obs)?;
         finite32("actions", &self.actions)?;
+        // Every action space is [-1, 1] per component (tanh-squashed policies, clipped
+        // demonstrators, uniform warm-ups); a value outside it is a misbehaving worker.
+        if let Some(i) = self.actions.iter().position(|a| !(-1.0..=1.0).contains(a)) {
+            let (t, k) = (i / self.action_dim, i % self.action_dim);
+            return Err(BatchError::Invalid { field: "actions", reason: format!("transition {t}, component {k}: {} is outside the action space [-1, 1]", self.actions[i]) });
+        }
         finite32("rewards", &self.rewards)?;
         for (i, e) in self.episodes.iter().enumerate() {
             let [c, r, o, w, t] = e.ends.values();
@@ -264,6 +270,12 @@ mod tests {
         let mut b = one();
         b.actions[1] = f32::INFINITY;
         assert_eq!(b.validate(), Err(BatchError::NotFinite { field: "actions", index: 1 }));
+        let mut b = one();
+        b.actions[1] = -1.5;
+        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "actions", ref reason }) if reason.contains("transition 0, component 1")), "{:?}", b.validate());
+        let mut b = one();
+        b.actions = vec![1.0, -1.0];
+        assert_eq!(b.validate(), Ok(()), "the bounds themselves are in the action space");
         let mut b = one();
         b.obs_len = 0;
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));

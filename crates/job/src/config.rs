@@ -234,6 +234,11 @@ pub struct EnvSection {
     /// yield in, for the ladder's learn-to-yield rung. Absent: every case as drawn.
     #[serde(default)]
     pub conflict_share: Option<f32>,
+    /// Ego jobs: the share of training episodes with a slow vehicle ahead of the ego in its
+    /// lane, and that vehicle's speed cap (`{ share = 1.0, speed_mps = 1.5 }`; the ladder's
+    /// lane-change rung, `sf_sim::vec_env::SlowLeader`). Absent: every case as drawn.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slow_leader: Option<sf_sim::vec_env::SlowLeader>,
     /// Overrides the observation's cap on other agents (nearest first; default 20).
     #[serde(default)]
     pub max_neighbours: Option<usize>,
@@ -276,6 +281,10 @@ pub struct NetSection {
     /// log-std target (`sac.warmup_noise`) is clamped into the range.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub log_std_min: Option<f32>,
+}
+
+fn is_zero(v: &f32) -> bool {
+    *v == 0.0
 }
 
 /// The largest `sac.n_step`: longer sums mostly add the behaviour policy's bias.
@@ -323,6 +332,11 @@ pub struct SacConfig {
     /// braking segment (its residual held at U(-1, -0.2) for 4-12 steps), so the data shows
     /// what braking early buys. 0: none.
     pub warmup_brake_prob: f32,
+    /// IDM warm-up with the `idm-residual-lateral` action: the probability per step that a
+    /// vehicle starts a lane-change segment (its lateral target held at -1 or +1 for 8-20
+    /// steps), so the data shows what IDM never does: leave its lane. 0: none.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub warmup_lane_change_prob: f32,
     /// The first this many updates fit the actor to the replayed actions (behaviour cloning:
     /// mean to the stored action, log-std to `ln(warmup_noise)`) while the critic learns as in
     /// SAC and alpha stays put; once the warm-up is over the cloned policy acts meanwhile.
@@ -442,6 +456,10 @@ pub enum WarmupPolicy {
     Random,
     /// The IDM driver's action plus `warmup_noise`.
     Idm,
+    /// The job's own first policy, sampled: for a continuation (`train.init_job`), whose first
+    /// policy is the one it continues, so that its replay holds that policy's data and no
+    /// demonstrator's (Stage 2's ego phases).
+    Policy,
 }
 
 impl Default for SacConfig {
@@ -464,6 +482,7 @@ impl Default for SacConfig {
             warmup_policy: WarmupPolicy::Random,
             warmup_noise: 0.1,
             warmup_brake_prob: 0.0,
+            warmup_lane_change_prob: 0.0,
             bc_updates: 0,
             bc_from_warmup: false,
             bc_weight: 0.0,
@@ -613,6 +632,12 @@ impl DepRole {
 }
 
 impl JobConfig {
+    /// How its training episodes' random cases are drawn (`env.conflict_share`,
+    /// `env.slow_leader`); validation draws its held-out cases the same way.
+    pub fn case_draw(&self) -> sf_sim::vec_env::CaseDraw {
+        sf_sim::vec_env::CaseDraw { conflict_share: self.env.conflict_share, slow_leader: self.env.slow_leader }
+    }
+
     /// Floats in its policy's action: the drive action's for driving kinds, 1 (an SVO) for the
     /// SocialCommAdv adversary.
     pub fn action_dim(&self) -> usize {
@@ -742,6 +767,14 @@ impl JobConfig {
                 return bad("env.conflict_share", "conflict cases are chosen by the IDM ego's fate among IDM cars: an ego job with no background job");
             }
         }
+        if let Some(slow) = &self.env.slow_leader {
+            if let Err(why) = slow.check(sf_sim::vehicle::VehicleParams::default().max_speed_mps) {
+                return bad("env.slow_leader", why);
+            }
+            if self.kind != JobKind::Ego {
+                return bad("env.slow_leader", format!("a slow vehicle ahead of the ego is for ego jobs, not a {} job", self.kind.as_str()));
+            }
+        }
         for (f, v, hi) in [("env.max_neighbours", self.env.max_neighbours, 64), ("env.max_segments", self.env.max_segments, 512)] {
             if let Some(v) = v {
                 if !(1..=hi).contains(&v) {
@@ -810,11 +843,21 @@ impl JobConfig {
         if s.warmup_policy == WarmupPolicy::Idm && !self.kind.drives() {
             return bad("sac.warmup_policy", format!("\"idm\" drives a vehicle; a {} job's action is an SVO", self.kind.as_str()));
         }
-        if self.env.action != ActionMode::Direct && s.warmup_policy != WarmupPolicy::Idm {
-            return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\"");
+        let continues = self.train.init_job.is_some() || self.train.init_from.is_some();
+        if s.warmup_policy == WarmupPolicy::Policy && !continues {
+            return bad("sac.warmup_policy", "\"policy\" warms up with the policy a continuation starts from: set train.init_job or train.init_from");
+        }
+        if self.env.action != ActionMode::Direct && s.warmup_policy == WarmupPolicy::Random {
+            return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\" (or \"policy\" for a continuation)");
         }
         if !(s.warmup_brake_prob.is_finite() && (0.0..=1.0).contains(&s.warmup_brake_prob)) {
             return bad("sac.warmup_brake_prob", format!("{} must be in [0, 1]", s.warmup_brake_prob));
+        }
+        if !(s.warmup_lane_change_prob.is_finite() && (0.0..=1.0).contains(&s.warmup_lane_change_prob)) {
+            return bad("sac.warmup_lane_change_prob", format!("{} must be in [0, 1]", s.warmup_lane_change_prob));
+        }
+        if s.warmup_lane_change_prob > 0.0 && (self.env.action != ActionMode::IdmResidualLateral || s.warmup_policy != WarmupPolicy::Idm) {
+            return bad("sac.warmup_lane_change_prob", "lane-change segments hold the lateral target of an IDM warm-up: set env.action = \"idm-residual-lateral\" and sac.warmup_policy = \"idm\"");
         }
         if s.warmup_brake_prob > 0.0 && (self.env.action == ActionMode::Direct || s.warmup_policy != WarmupPolicy::Idm) {
             return bad("sac.warmup_brake_prob", "braking segments hold a residual of an IDM warm-up: set env.action to a residual kind and sac.warmup_policy = \"idm\"");
@@ -857,7 +900,9 @@ impl JobConfig {
         if !(s.bc_weight.is_finite() && s.bc_weight >= 0.0) {
             return bad("sac.bc_weight", format!("{} must be a non-negative number", s.bc_weight));
         }
-        if (s.bc_weight > 0.0 || s.bc_decay_updates > 0) && s.warmup_policy != WarmupPolicy::Idm {
+        // Cloning towards the zero residual needs no demonstrator's data: zero is IDM.
+        let zero_target = s.bc_target == BcTarget::Zero && self.env.action != ActionMode::Direct;
+        if (s.bc_weight > 0.0 || s.bc_decay_updates > 0) && s.warmup_policy != WarmupPolicy::Idm && !zero_target {
             return bad("sac.bc_weight", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
         }
         if let Some(t) = s.target_entropy {
@@ -957,6 +1002,32 @@ mod tests {
         assert_eq!(c.net.preset, NetPreset::Fast);
         let again = JobConfig::from_toml(&c.to_toml()).expect("round trip");
         assert_eq!(again, c);
+    }
+
+    #[test]
+    fn lateral_action_slow_leader_and_policy_warmup_are_checked() {
+        let lat = MIN.replace("[train]", "action = \"idm-residual-lateral\"\n[train]");
+        let ok = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_lane_change_prob = 0.05\n")).expect("valid");
+        assert_eq!((ok.action_dim(), ok.sac.warmup_lane_change_prob), (2, 0.05));
+        assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
+        let accel = MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]");
+        let e = JobConfig::from_toml(&format!("{accel}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_lane_change_prob = 0.05\n")).expect_err("no lateral");
+        assert!(e.to_string().contains("sac.warmup_lane_change_prob") && e.to_string().contains("idm-residual-lateral"), "{e}");
+        let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_lane_change_prob = 1.5\n")).expect_err("range");
+        assert!(e.to_string().contains("sac.warmup_lane_change_prob"), "{e}");
+        let slow = |v: &str, kind: &str| JobConfig::from_toml(&format!("{kind}{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", &format!("slow_leader = {v}\n[train]"))));
+        assert_eq!(slow("{ share = 1.0, speed_mps = 1.5 }", "").expect("valid").case_draw().slow_leader.map(|s| s.speed_mps), Some(1.5));
+        let e = slow("{ share = 1.0, speed_mps = 9.0 }", "").expect_err("too fast");
+        assert!(e.to_string().contains("env.slow_leader") && e.to_string().contains("speed_mps"), "{e}");
+        let e = slow("{ share = 1.0, speed_mps = 1.0 }", "kind = \"macad\"\n").expect_err("not an ego job");
+        assert!(e.to_string().contains("env.slow_leader"), "{e}");
+        let policy = format!("{lat}[sac]\nwarmup_steps = 100\nwarmup_policy = \"policy\"\nbc_weight = 0.4\nbc_target = \"zero\"\nbc_q_filter = true\n");
+        let e = JobConfig::from_toml(&policy).expect_err("not a continuation");
+        assert!(e.to_string().contains("sac.warmup_policy") && e.to_string().contains("init_job"), "{e}");
+        let cont = JobConfig::from_toml(&policy.replace("[train]\n", "[train]\ninit_job = 1\n")).expect("a continuation warms up with its own policy");
+        assert_eq!(cont.sac.warmup_policy, WarmupPolicy::Policy);
+        let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\n")).expect_err("random warm-up");
+        assert!(e.to_string().contains("sac.warmup_policy"), "{e}");
     }
 
     #[test]

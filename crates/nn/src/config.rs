@@ -104,6 +104,13 @@ impl NetConfig {
         Self { encoder: Layout::QueryCentric, d_model: 64, set_hidden: 64, phi_layers: 1, pose_layers: 1, head_hidden: 128, ..Self::paper() }
     }
 
+    /// Whether weights of a network built from `other` load into one built from `self` and
+    /// mean the same: every field but `init_log_std`, which only sets fresh weights (a
+    /// continuation or a restored checkpoint brings its own).
+    pub fn same_network(&self, other: &Self) -> bool {
+        Self { init_log_std: other.init_log_std, ..self.clone() } == *other
+    }
+
     /// Checks sizes; names the field.
     pub fn validate(&self) -> Result<(), NetConfigError> {
         for (f, v) in [
@@ -129,5 +136,19 @@ impl NetConfig {
             return Err(NetConfigError::Heads { d_model: self.d_model, heads: self.heads });
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A continuation may start fresh weights with another spread; any other field differs.
+    #[test]
+    fn the_same_network_ignores_only_the_initial_spread() {
+        let a = NetConfig::fast();
+        assert!(a.same_network(&NetConfig { init_log_std: -1.7, ..a.clone() }));
+        assert!(!a.same_network(&NetConfig { d_model: 32, ..a.clone() }));
+        assert!(!a.same_network(&NetConfig { action_dim: 2, action: DriveAction::IdmResidualLateral, ..a.clone() }));
     }
 }

@@ -252,35 +252,64 @@ pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
     }
 }
 
-/// Braking segments in a demonstrator's warm-up: with probability `start_prob` per step a
-/// driving row starts holding its action's first component (the speed or acceleration
-/// residual) at a value drawn from U(-1, -0.2) for 4 to 12 decision steps, so the data shows
-/// what braking early buys (and costs). State per row, cleared when the row's episode ends.
-pub struct BrakeSegments {
-    start_prob: f32,
-    /// Per batch, per row: steps left and the value held.
-    left: Vec<Vec<(u32, f32)>>,
+/// Segments in a demonstrator's warm-up that show what IDM never does. Braking: with
+/// probability `brake_prob` per step a driving row starts holding its action's first component
+/// (the speed or acceleration residual) at a value drawn from U(-1, -0.2) for 4 to 12 decision
+/// steps, so the data shows what braking early buys (and costs). Lane changes (actions with a
+/// lateral component, `idm-residual-lateral`): with probability `lane_change_prob` per step a
+/// row starts holding its lateral target at -1 or +1 (one lane right or left) for 8 to 20
+/// decision steps (2-5 s, enough to move one lane at the default rate). The segments go to the
+/// rows the job drives: the `alive` rows, or with [`WarmupSegments::on_background`] the
+/// background's (FailMaker's own vehicles). State per row, cleared when the row's episode ends.
+pub struct WarmupSegments {
+    brake_prob: f32,
+    lane_change_prob: f32,
+    background: bool,
+    /// Per batch, per row: steps left and the value held, for braking and for lane changes.
+    brake: Vec<Vec<(u32, f32)>>,
+    lateral: Vec<Vec<(u32, f32)>>,
 }
 
-impl BrakeSegments {
-    pub fn new(start_prob: f32, venvs: &[VecEnv]) -> Self {
-        Self { start_prob, left: venvs.iter().map(|v| vec![(0, 0.0); v.alive().len()]).collect() }
+impl WarmupSegments {
+    pub fn new(brake_prob: f32, lane_change_prob: f32, venvs: &[VecEnv]) -> Self {
+        let rows = || venvs.iter().map(|v| vec![(0, 0.0); v.alive().len()]).collect();
+        Self { brake_prob, lane_change_prob, background: false, brake: rows(), lateral: rows() }
+    }
+
+    /// Overlay the background rows instead of the `alive` ones.
+    pub fn on_background(mut self) -> Self {
+        self.background = true;
+        self
     }
 
     /// Overrides the decided `alive` actions of rows in a segment (call between [`decide`]
     /// and [`apply`]; the recorded action is then the one applied).
     pub fn overlay(&mut self, d: &mut Decision, rng: &mut impl Rng) {
-        let dim = d.alive_action.dim();
-        for (k, rows) in d.alive_rows.iter().enumerate() {
+        let (all_rows, all_actions, kind) = if self.background { (&d.background_rows, &mut d.background_actions, d.background_action) } else { (&d.alive_rows, &mut d.alive_actions, d.alive_action) };
+        let dim = kind.dim();
+        let lateral = kind == sf_sim::DriveAction::IdmResidualLateral && self.lane_change_prob > 0.0;
+        for (k, (rows, actions)) in all_rows.iter().zip(all_actions.iter_mut()).enumerate() {
             for (j, &r) in rows.iter().enumerate() {
-                let (left, value) = &mut self.left[k][r];
-                if *left == 0 && rng.random::<f32>() < self.start_prob {
+                let (left, value) = &mut self.brake[k][r];
+                if *left == 0 && self.brake_prob > 0.0 && rng.random::<f32>() < self.brake_prob {
                     *left = rng.random_range(4..=12);
                     *value = rng.random_range(-1.0..-0.2);
                 }
                 if *left > 0 {
                     *left -= 1;
-                    d.alive_actions[k][j * dim] = *value;
+                    actions[j * dim] = *value;
+                }
+                if !lateral {
+                    continue;
+                }
+                let (left, value) = &mut self.lateral[k][r];
+                if *left == 0 && rng.random::<f32>() < self.lane_change_prob {
+                    *left = rng.random_range(8..=20);
+                    *value = if rng.random::<bool>() { 1.0 } else { -1.0 };
+                }
+                if *left > 0 {
+                    *left -= 1;
+                    actions[j * dim + 1] = *value;
                 }
             }
         }
@@ -291,7 +320,8 @@ impl BrakeSegments {
         for (k, v) in venvs.iter().enumerate() {
             for (r, st) in v.row_steps().iter().enumerate() {
                 if st.ended.is_some() {
-                    self.left[k][r] = (0, 0.0);
+                    self.brake[k][r] = (0, 0.0);
+                    self.lateral[k][r] = (0, 0.0);
                 }
             }
         }

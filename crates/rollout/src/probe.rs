@@ -75,7 +75,7 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
     let len = venvs[0].spec.len;
     let drivers = Drivers { alive: Actor::Demo { noise: job.sac.warmup_noise, action: net.action }, background: None, adversary: None };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut brakes = (job.sac.warmup_brake_prob > 0.0).then(|| drive::BrakeSegments::new(job.sac.warmup_brake_prob, &venvs));
+    let mut brakes = (job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0).then(|| drive::WarmupSegments::new(job.sac.warmup_brake_prob, job.sac.warmup_lane_change_prob, &venvs));
     // Per environment row: the episode in progress.
     let mut open: Vec<Vec<Vec<Pending>>> = venvs.iter().map(|v| (0..v.alive().len()).map(|_| Vec::new()).collect()).collect();
     let mut episodes: Vec<Vec<Pending>> = Vec::new();

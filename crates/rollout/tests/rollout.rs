@@ -93,13 +93,13 @@ fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
 /// steps (the recorded action is the applied one), then may start another.
 #[test]
 fn braking_segments_hold_a_braking_residual_for_4_to_12_steps() {
-    use sf_rollout::drive::{apply, decide, Actor, BrakeSegments, Drivers};
+    use sf_rollout::drive::{apply, decide, Actor, Drivers, WarmupSegments};
     use sf_sim::env::Controller;
     use sf_sim::DriveAction;
     let sim = Arc::new(SimConfig::default());
     let mut v = vec![VecEnv::new(map(), sim, VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 2 })];
     let d = Drivers { alive: Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual }, background: None, adversary: None };
-    let mut brakes = BrakeSegments::new(1.0, &v);
+    let mut brakes = WarmupSegments::new(1.0, 0.0, &v);
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     // Per row: the run of equal values so far.
     let mut runs: std::collections::BTreeMap<usize, (f32, u32)> = Default::default();

@@ -120,8 +120,27 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
 /// Starts a new run from another run's checkpoint (a RARL phase continuing the previous one of
 /// its side): weights, target, alpha and optimizer states are restored; this run's SAC
 /// settings are kept (as [`restore`] does) and its update counter starts at 0.
-pub fn warm_start(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
+///
+/// `kept_actor` (the other run's final policy, `policy.bpk`: with `[validation]` the actor it
+/// kept, not its last) replaces the actor and the averaged actor. This is the one rule of a
+/// continuation: it goes on with exactly the policy that every job depending on the other run
+/// (an adversary trained against it, an evaluation) acted with.
+pub fn warm_start(sac: &mut Sac, dir: &Path, kept_actor: Option<&[u8]>) -> Result<(), CheckpointError> {
+    // Decoded first, so that nothing is changed on error.
+    let kept = match kept_actor {
+        Some(bytes) => {
+            let err = |e: sf_nn::weights::WeightsError| CheckpointError::Record { path: dir.display().to_string(), what: "the kept actor (policy.bpk)", reason: e.to_string() };
+            let actor = weights::from_bytes(sac.actor.clone(), bytes).map_err(err)?;
+            let avg = sac.actor_avg.clone().map(|avg| weights::from_bytes(avg, bytes).map_err(err)).transpose()?;
+            Some((actor, avg))
+        }
+        None => None,
+    };
     restore(sac, dir)?;
+    if let Some((actor, avg)) = kept {
+        sac.actor = actor;
+        sac.actor_avg = avg;
+    }
     sac.updates = 0;
     Ok(())
 }
@@ -145,7 +164,7 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     if state.version != CHECKPOINT_VERSION {
         return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("version {} is not supported (this build reads {CHECKPOINT_VERSION})", state.version) });
     }
-    if state.net != sac.net {
+    if !state.net.same_network(&sac.net) {
         return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net) });
     }
     let actor = load_module(sac.actor.clone(), read("actor.bpk")?, dir, "actor")?;

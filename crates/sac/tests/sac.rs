@@ -166,6 +166,43 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A continuation (`train.init_job`) goes on with the other run's kept actor, not the actor of
+/// its last checkpoint, and with the checkpoint's critic; a kept actor that does not decode
+/// changes nothing.
+#[test]
+fn a_continuation_starts_from_the_kept_actor_and_the_last_critic() {
+    let sim = Arc::new(SimConfig::default());
+    let (replay, m) = replay_from_sim(&sim, 200);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut batch = Batch::default();
+    let mut a = sac_for(&sim, &m, 1);
+    replay.sample_into(&mut rng, 16, &mut batch).expect("sample");
+    a.update(&batch);
+    let kept = a.actor_bytes().expect("bytes");
+    for _ in 0..3 {
+        replay.sample_into(&mut rng, 16, &mut batch).expect("sample");
+        a.update(&batch);
+    }
+    assert_ne!(a.actor_bytes().expect("bytes"), kept, "the last actor moved on from the kept one");
+    let dir = std::env::temp_dir().join(format!("sf-sac-continue-{}", std::process::id()));
+    checkpoint::save(&a, &dir).expect("save");
+    let mut b = sac_for(&sim, &m, 2);
+    checkpoint::warm_start(&mut b, &dir, Some(&kept)).expect("continue");
+    assert_eq!(b.actor_bytes().expect("bytes"), kept, "the kept actor, which adversaries attacked");
+    assert_eq!(flat(&b.critic), flat(&a.critic), "the last critic");
+    assert_eq!(b.updates, 0);
+    let mut c = sac_for(&sim, &m, 3);
+    checkpoint::warm_start(&mut c, &dir, None).expect("continue");
+    assert_eq!(c.actor_bytes().expect("bytes"), a.actor_bytes().expect("bytes"), "no kept actor: the checkpoint's");
+    let mut d = sac_for(&sim, &m, 4);
+    let fresh = d.actor_bytes().expect("bytes");
+    let e = checkpoint::warm_start(&mut d, &dir, Some(b"not a module")).expect_err("garbage");
+    assert!(e.to_string().contains("kept actor"), "{e}");
+    assert_eq!(d.actor_bytes().expect("bytes"), fresh, "nothing changed on error");
+    assert_eq!(d.updates, 0);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn gradients_do_not_reach_frozen_modules() {
     let sim = Arc::new(SimConfig::default());

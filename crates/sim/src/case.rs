@@ -63,6 +63,10 @@ pub struct CaseVehicle {
     pub spawn: u32,
     pub route: u32,
     pub svo_deg: f32,
+    /// A slow vehicle: its speed never exceeds this (m/s; the ladder's lane-change rung puts
+    /// one ahead of the ego). Absent: the vehicle's own limit. Files without it are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_speed_mps: Option<f32>,
 }
 
 /// One evaluation case; vehicle 0 is the ego in ego mode.
@@ -102,7 +106,7 @@ pub fn random_case(map: &Map, rng: &mut impl Rng, id: u32, n_vehicles: usize) ->
             let sp = &map.spawns[s];
             let route = sp.routes[rng.random_range(0..sp.routes.len())];
             let svo_deg = rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1);
-            CaseVehicle { spawn: s as u32, route, svo_deg }
+            CaseVehicle { spawn: s as u32, route, svo_deg, max_speed_mps: None }
         })
         .collect();
     Case { id, vehicles }
@@ -140,6 +144,9 @@ impl Case {
             }
             if !(v.svo_deg.is_finite() && (-90.0..=90.0).contains(&v.svo_deg)) {
                 return Err((format!("{f}.svo_deg"), format!("{} is not in [-90, 90]", v.svo_deg)));
+            }
+            if let Some(cap) = v.max_speed_mps.filter(|c| !(c.is_finite() && *c >= 0.0)) {
+                return Err((format!("{f}.max_speed_mps"), format!("{cap} must be a speed >= 0 m/s")));
             }
         }
         Ok(())

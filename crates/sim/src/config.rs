@@ -167,6 +167,25 @@ pub struct SimConfig {
     /// The range a case's SVO (stored in [0, 90] deg) is mapped onto linearly at reset.
     /// FailMaker's background uses [-90, 90]: `c < 0` makes an agent want the ego to lose.
     pub svo_range_deg: [f32; 2],
+    /// How far and how fast the `idm-residual-lateral` action moves a vehicle's path sideways.
+    pub lateral: LateralConfig,
+}
+
+/// The lateral part of the `idm-residual-lateral` action (`Action::lateral`).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct LateralConfig {
+    /// The offset of a full lateral action (+-1) from the route, m: one lane by default.
+    pub max_offset_m: f32,
+    /// How fast the followed path's offset moves towards its target, m/s (a lane change of
+    /// 3.5 m takes 2.3 s at the default).
+    pub rate_mps: f32,
+}
+
+impl Default for LateralConfig {
+    fn default() -> Self {
+        Self { max_offset_m: 3.5, rate_mps: 1.5 }
+    }
 }
 
 impl Default for SimConfig {
@@ -184,6 +203,7 @@ impl Default for SimConfig {
             obs: ObsConfig::default(),
             reward: RewardConfig::default(),
             svo_range_deg: [0.0, 90.0],
+            lateral: LateralConfig::default(),
         }
     }
 }
@@ -228,6 +248,8 @@ impl SimConfig {
         pos("idm.max_accel_mps2", self.idm.max_accel_mps2)?;
         pos("idm.comfort_decel_mps2", self.idm.comfort_decel_mps2)?;
         pos("obs.radius_m", self.obs.radius_m)?;
+        pos("lateral.max_offset_m", self.lateral.max_offset_m)?;
+        pos("lateral.rate_mps", self.lateral.rate_mps)?;
         at_least("substeps", self.substeps as usize, 1)?;
         let [lo, hi] = self.svo_range_deg;
         if !(lo.is_finite() && hi.is_finite() && -90.0 <= lo && lo <= hi && hi <= 90.0) {

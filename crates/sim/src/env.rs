@@ -102,6 +102,10 @@ pub struct AgentOutcome {
     /// Mean over its steps of clip(v / v_max, 0, 1).
     pub speed_ratio: f32,
     pub steps: u32,
+    /// The vehicle's centre was more than half its route's lane width off the route at some
+    /// decision step: it changed lanes (or left the road).
+    #[serde(default)]
+    pub left_lane: bool,
 }
 
 /// One vehicle's full state.
@@ -128,6 +132,16 @@ pub struct Agent {
     steer_rad: f32,
     /// External agents driving as IDM with this residual on its acceleration (`Action::idm_accel`).
     idm_accel_residual: Option<f32>,
+    /// `Action::lateral`: the offset (m, left positive) the followed path moves towards, and
+    /// where it is now (rate-limited, updated every sub-step). Zero for everyone else.
+    lateral_target_m: f32,
+    lateral_offset_m: f32,
+    /// The largest |lateral_m| seen at a decision step (a lane left: [`AgentOutcome::left_lane`]).
+    max_abs_lateral_m: f32,
+    /// The case's speed cap for this vehicle (`CaseVehicle::max_speed_mps`), else the vehicle's.
+    max_speed_mps: f32,
+    /// Its route's lane width.
+    lane_width_m: f32,
     collided: bool,
     /// IDM: bumper gap and leader speed along the route, updated every sub-step.
     leader: Option<(f32, f32)>,
@@ -161,6 +175,7 @@ impl Agent {
             termination: self.termination,
             speed_ratio: if self.steps > 0 { self.speed_ratio_sum / self.steps as f32 } else { 0.0 },
             steps: self.steps,
+            left_lane: self.max_abs_lateral_m > 0.5 * self.lane_width_m,
         }
     }
 }
@@ -195,13 +210,24 @@ pub struct Env {
 }
 
 /// The IDM driver's steer for agent `a`: pure pursuit toward the point of its route
-/// `max(1.5 s x speed, 4 m)` ahead. The IDM controller recomputes it every sub-step; the
-/// demonstrator ([`Env::demo_action`]) holds it for a decision step.
+/// `max(1.5 s x speed, 4 m)` ahead, moved `a.lateral_offset_m` to the left of the route there
+/// (zero but for the `idm-residual-lateral` action). The IDM controller recomputes it every
+/// sub-step; the demonstrator ([`Env::demo_action`]) holds it for a decision step.
 fn route_steer_rad(map: &Map, vp: &VehicleParams, a: &Agent) -> f32 {
     let route = &map.routes[a.route as usize];
     let look = (1.5 * a.state.speed_mps).max(4.0);
-    let (target, _) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
+    let (mut target, heading) = geom::point_at(&route.points, &route.cum_m, a.s_m + look);
+    if a.lateral_offset_m != 0.0 {
+        let (s, c) = heading.sin_cos();
+        target = [target[0] - s * a.lateral_offset_m, target[1] + c * a.lateral_offset_m];
+    }
     pure_pursuit_steer(vp.wheelbase_m, a.frame().to_local(target))
+}
+
+/// `offset_m` moved towards `target_m` by at most `rate_mps * dt_s`.
+pub fn lateral_step(offset_m: f32, target_m: f32, rate_mps: f32, dt_s: f32) -> f32 {
+    let max = rate_mps * dt_s;
+    offset_m + (target_m - offset_m).clamp(-max, max)
 }
 
 /// IDM's acceleration `a_idm` moved by a residual `r` in [-1, 1] towards full braking (r = -1:
@@ -273,6 +299,11 @@ impl Env {
                 ref_speed_mps: 0.0,
                 steer_rad: 0.0,
                 idm_accel_residual: None,
+                lateral_target_m: 0.0,
+                lateral_offset_m: 0.0,
+                max_abs_lateral_m: 0.0,
+                max_speed_mps: cv.max_speed_mps.map_or(self.cfg.vehicle.max_speed_mps, |v| v.min(self.cfg.vehicle.max_speed_mps)),
+                lane_width_m: route.width_m,
                 collided: false,
                 leader: None,
                 hist: vec![[state.x_m, state.y_m, state.theta_rad, 0.0]; h],
@@ -385,6 +416,10 @@ impl Env {
                 a.ref_speed_mps = v;
                 a.steer_rad = d;
                 a.idm_accel_residual = actions[i].idm_accel.map(|r| if r.is_finite() { r.clamp(-1.0, 1.0) } else { 0.0 });
+                a.lateral_target_m = match (a.idm_accel_residual, actions[i].lateral) {
+                    (Some(_), Some(l)) if l.is_finite() => l.clamp(-1.0, 1.0) * cfg.lateral.max_offset_m,
+                    _ => 0.0,
+                };
             }
         }
         self.find_leaders();
@@ -394,12 +429,18 @@ impl Env {
                 let accel = match (a.controller, a.idm_accel_residual) {
                     (Controller::External, None) => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
                     (Controller::Idm, _) | (Controller::External, Some(_)) => {
+                        if a.lateral_offset_m != a.lateral_target_m {
+                            a.lateral_offset_m = lateral_step(a.lateral_offset_m, a.lateral_target_m, cfg.lateral.rate_mps, dt);
+                        }
                         a.steer_rad = route_steer_rad(map, vp, a);
                         residual_accel(idm_accel(&cfg.idm, a.state.speed_mps, a.leader), a.idm_accel_residual, vp.max_accel_mps2)
                     }
                 };
                 let v0 = a.state.speed_mps;
                 a.state.step(vp, accel, a.steer_rad, dt);
+                if a.state.speed_mps > a.max_speed_mps {
+                    a.state.speed_mps = a.max_speed_mps;
+                }
                 a.s_m += 0.5 * (v0 + a.state.speed_mps) * dt;
                 if let Some((gap, v_lead)) = a.leader.as_mut() {
                     *gap -= (a.state.speed_mps - *v_lead) * dt;
@@ -432,8 +473,9 @@ impl Env {
         }
     }
 
-    /// Agent `i`'s IDM leader: the nearest live vehicle ahead on its remaining route within
-    /// the look-ahead, as `(gap_m, speed along the route in m/s)`.
+    /// Agent `i`'s IDM leader: the nearest live vehicle ahead on its remaining route (moved
+    /// sideways by its lateral offset, zero but for `idm-residual-lateral`) within the
+    /// look-ahead, as `(gap_m, speed along the route in m/s)`.
     fn leader_of(&self, i: usize) -> Option<(f32, f32)> {
         let p = &self.cfg.idm;
         let len = self.cfg.vehicle.length_m;
@@ -447,7 +489,7 @@ impl Env {
             }
             let pr = geom::project_range(&route.points, &route.cum_m, b.state.pos(), a.seg, hi);
             let ahead = pr.s_m - a.s_m;
-            if pr.lateral_m.abs() > p.lateral_tolerance_m || ahead <= 0.0 {
+            if (pr.lateral_m - a.lateral_offset_m).abs() > p.lateral_tolerance_m || ahead <= 0.0 {
                 continue;
             }
             let gap = ahead - len;
@@ -542,6 +584,7 @@ impl Env {
             a.seg = pr.seg;
             a.s_m = pr.s_m;
             a.lateral_m = pr.lateral_m;
+            a.max_abs_lateral_m = a.max_abs_lateral_m.max(pr.lateral_m.abs());
             let pos = a.state.pos();
             let in_zone = geom::point_in_polygon(pos, &map.zone);
             if in_zone {

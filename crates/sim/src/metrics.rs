@@ -50,6 +50,10 @@ pub struct EpisodeMetrics {
     pub wrong_lane: f32,
     pub timeout: f32,
     pub destination: f32,
+    /// The share of scored agents that left their route's lane at some point
+    /// ([`AgentOutcome::left_lane`]).
+    #[serde(default)]
+    pub lane_change: f32,
 }
 
 impl EpisodeMetrics {
@@ -64,6 +68,7 @@ impl EpisodeMetrics {
             m.scores.success += o.success as u32 as f32;
             m.scores.safety += !o.termination.is_some_and(Termination::is_failure) as u32 as f32;
             m.scores.speed += o.speed_ratio;
+            m.lane_change += o.left_lane as u32 as f32;
             match o.termination {
                 Some(Termination::Collision) => m.collision += 1.0,
                 Some(Termination::OffRoad) => m.off_road += 1.0,
@@ -76,7 +81,18 @@ impl EpisodeMetrics {
         }
         if m.agents > 0 {
             let n = m.agents as f32;
-            for v in [&mut m.scores.success, &mut m.scores.safety, &mut m.scores.speed, &mut m.collision, &mut m.off_road, &mut m.off_route, &mut m.wrong_lane, &mut m.timeout, &mut m.destination] {
+            for v in [
+                &mut m.scores.success,
+                &mut m.scores.safety,
+                &mut m.scores.speed,
+                &mut m.collision,
+                &mut m.off_road,
+                &mut m.off_route,
+                &mut m.wrong_lane,
+                &mut m.timeout,
+                &mut m.destination,
+                &mut m.lane_change,
+            ] {
                 *v /= n;
             }
         }
@@ -89,7 +105,7 @@ mod tests {
     use super::*;
 
     fn o(role: Role, success: bool, t: Termination, speed: f32) -> AgentOutcome {
-        AgentOutcome { role, success, termination: Some(t), speed_ratio: speed, steps: 10 }
+        AgentOutcome { role, success, termination: Some(t), speed_ratio: speed, steps: 10, left_lane: false }
     }
 
     #[test]

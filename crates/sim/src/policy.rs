@@ -16,10 +16,10 @@ pub fn route_follower(spec: &ObsSpec, obs: &[f32], vp: &VehicleParams, look: usi
         k -= 1;
     }
     if m[k] == 0.0 {
-        return Action { ref_speed: -1.0, steer: 0.0, idm_accel: None };
+        return Action { ref_speed: -1.0, steer: 0.0, ..Action::default() };
     }
     let (x, y) = (r[k * ROUTE_FEATS] * POS_SCALE_M, r[k * ROUTE_FEATS + 1] * POS_SCALE_M);
     let ld2 = (x * x + y * y).max(1e-6);
     let steer_rad = (2.0 * vp.wheelbase_m * y / ld2).atan();
-    Action { ref_speed: speed, steer: steer_rad / vp.max_steer_deg.to_radians(), idm_accel: None }
+    Action { ref_speed: speed, steer: steer_rad / vp.max_steer_deg.to_radians(), ..Action::default() }
 }

@@ -13,11 +13,13 @@
 
 use std::sync::Arc;
 
+use rand::seq::index::sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
-use crate::case::{random_case, Case, SvoGaussian};
+use crate::case::{random_case, Case, CaseVehicle, SvoGaussian, SVO_RANGE_DEG};
 use crate::config::SimConfig;
 use crate::env::{Controller, Env, Mode, Rewards, Role, Termination};
 use crate::map::Map;
@@ -58,12 +60,54 @@ impl RowStep {
     }
 }
 
-/// A random case with a vehicle count uniform in `vehicles`; with `conflict_share = Some(p)`,
-/// with probability p one in which the IDM driver in agent 0's seat ends by a collision (tried
-/// up to 200 draws, then the last draw is taken).
-pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u32, vehicles: (u32, u32), conflict_share: Option<f32>) -> Case {
-    let want_conflict = conflict_share.is_some_and(|p| rng.random::<f32>() < p);
+/// How random cases are drawn beyond their vehicle count (training resets, validation and
+/// generated evaluation cases); the default draws every case as [`random_case`] does.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CaseDraw {
+    /// The share of cases in which the IDM driver in agent 0's seat collides.
+    pub conflict_share: Option<f32>,
+    /// Cases with a slow vehicle ahead of agent 0 in its lane.
+    pub slow_leader: Option<SlowLeader>,
+}
+
+/// A slow vehicle ahead of the ego in its lane (the ladder's lane-change rung): with
+/// probability `share` a case puts agent 0 on a spawn point in the first half of its lane's
+/// spawn points and a vehicle capped at `speed_mps` one to three spawn points (7.5-22.5 m)
+/// ahead of it on the same lane and route; the case's other vehicles start off that lane.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SlowLeader {
+    pub share: f32,
+    pub speed_mps: f32,
+}
+
+impl SlowLeader {
+    /// Why these numbers cannot be used (naming the field), if they cannot.
+    pub fn check(&self, vehicle_max_speed_mps: f32) -> Result<(), String> {
+        if !(self.share.is_finite() && (0.0..=1.0).contains(&self.share)) {
+            return Err(format!("share: {} must be in [0, 1]", self.share));
+        }
+        if !(self.speed_mps.is_finite() && self.speed_mps >= 0.0 && self.speed_mps < vehicle_max_speed_mps) {
+            return Err(format!("speed_mps: {} must be in [0, {vehicle_max_speed_mps}) m/s (a vehicle slower than the others)", self.speed_mps));
+        }
+        Ok(())
+    }
+}
+
+/// A random case with a vehicle count uniform in `vehicles`; with `draw.conflict_share =
+/// Some(p)`, with probability p one in which the IDM driver in agent 0's seat ends by a
+/// collision (tried up to 200 draws, then the last draw is taken); with `draw.slow_leader`,
+/// with its probability a case with a slow vehicle ahead of agent 0 ([`SlowLeader`]).
+pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u32, vehicles: (u32, u32), draw: CaseDraw) -> Case {
+    let want_conflict = draw.conflict_share.is_some_and(|p| rng.random::<f32>() < p);
     let n = rng.random_range(vehicles.0..=vehicles.1) as usize;
+    if let Some(slow) = draw.slow_leader {
+        if rng.random::<f32>() < slow.share {
+            if let Some(case) = slow_leader_case(map, rng, id, n, slow.speed_mps) {
+                return case;
+            }
+        }
+    }
     let mut case = random_case(map, rng, id, n);
     if want_conflict {
         for _ in 0..200 {
@@ -75,6 +119,47 @@ pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u
         }
     }
     case
+}
+
+/// Spawn points that start the same lane as spawn `k` (spawn points of one first lane share
+/// their route list), in order along it.
+fn same_lane(map: &Map, k: usize) -> Vec<usize> {
+    let mut lane: Vec<usize> = (0..map.spawns.len()).filter(|&j| map.spawns[j].routes == map.spawns[k].routes).collect();
+    lane.sort_by(|&a, &b| map.spawns[a].s_m.total_cmp(&map.spawns[b].s_m));
+    lane
+}
+
+/// A case of `n` vehicles (at least 2) with a slow leader ahead of agent 0 ([`SlowLeader`]);
+/// `None` if the map has no lane with room for one.
+fn slow_leader_case(map: &Map, rng: &mut impl Rng, id: u32, n: usize, speed_mps: f32) -> Option<Case> {
+    let starts: Vec<(usize, Vec<usize>)> = (0..map.spawns.len())
+        .filter_map(|k| {
+            let lane = same_lane(map, k);
+            let at = lane.iter().position(|&j| j == k)?;
+            let ahead: Vec<usize> = lane[at + 1..].iter().copied().take(3).collect();
+            (2 * at < lane.len() && !ahead.is_empty()).then_some((k, ahead))
+        })
+        .collect();
+    if starts.is_empty() {
+        return None;
+    }
+    let (ego, ahead) = &starts[rng.random_range(0..starts.len())];
+    let lead = ahead[rng.random_range(0..ahead.len())];
+    let routes = &map.spawns[*ego].routes;
+    let route = routes[rng.random_range(0..routes.len())];
+    let mut vehicles = vec![
+        CaseVehicle { spawn: *ego as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: None },
+        CaseVehicle { spawn: lead as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: Some(speed_mps) },
+    ];
+    let lane = same_lane(map, *ego);
+    let others: Vec<usize> = (0..map.spawns.len()).filter(|j| !lane.contains(j)).collect();
+    let k = n.max(2).saturating_sub(2).min(others.len());
+    for j in sample(rng, others.len(), k) {
+        let sp = &map.spawns[others[j]];
+        let route = sp.routes[rng.random_range(0..sp.routes.len())];
+        vehicles.push(CaseVehicle { spawn: others[j] as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: None });
+    }
+    Some(Case { id, vehicles })
 }
 
 /// Whether the IDM driver in agent 0's seat (every vehicle IDM) ends its episode of `case` by
@@ -144,8 +229,8 @@ pub struct VecEnv {
     /// CoPO Stage 2: every flow-driven agent's SVO is redrawn from this at every reset and
     /// after every step (`None`: SVOs stay as the case gives them).
     svo_gaussian: Option<SvoGaussian>,
-    /// [`VecEnv::with_conflicts`].
-    conflict_share: Option<f32>,
+    /// [`VecEnv::with_conflicts`], [`VecEnv::with_slow_leader`].
+    draw: CaseDraw,
 }
 
 impl VecEnv {
@@ -215,7 +300,7 @@ impl VecEnv {
         let (spec_len, mode, vehicles, max_agents) = (v.spec.len, v.cfg.mode, v.cfg.vehicles, v.max_agents);
         v.slots.par_iter_mut().zip(v.obs.par_chunks_mut(max_agents * spec_len)).zip(v.alive.par_chunks_mut(max_agents)).zip(v.background.par_chunks_mut(max_agents)).for_each(
             |(((s, obs), alive), bg)| {
-                s.reset(mode, vehicles, None);
+                s.reset(mode, vehicles, CaseDraw::default());
                 s.observe(obs, alive, bg, spec_len);
             },
         );
@@ -226,9 +311,20 @@ impl VecEnv {
     /// `share`, only cases in which the IDM driver in agent 0's seat collides ([`draw_case`]):
     /// a training distribution rich in the conflicts IDM does not yield in.
     pub fn with_conflicts(mut self, share: f32) -> Self {
-        self.conflict_share = Some(share);
-        let (mode, vehicles) = (self.cfg.mode, self.cfg.vehicles);
-        self.redo_live_slots(|s| s.reset(mode, vehicles, Some(share)));
+        self.draw.conflict_share = Some(share);
+        self.redraw()
+    }
+
+    /// Random resets (from now on, and of every running episode now) put a slow vehicle ahead
+    /// of agent 0 in `slow.share` of the cases ([`SlowLeader`]).
+    pub fn with_slow_leader(mut self, slow: SlowLeader) -> Self {
+        self.draw.slow_leader = Some(slow);
+        self.redraw()
+    }
+
+    fn redraw(mut self) -> Self {
+        let (mode, vehicles, draw) = (self.cfg.mode, self.cfg.vehicles, self.draw);
+        self.redo_live_slots(|s| s.reset(mode, vehicles, draw));
         self
     }
 
@@ -278,7 +374,7 @@ impl VecEnv {
             agent_steps: 0,
             queue: None,
             svo_gaussian: None,
-            conflict_share: None,
+            draw: CaseDraw::default(),
         }
     }
 
@@ -383,7 +479,7 @@ impl VecEnv {
         let learners_only = matches!(mode, Mode::Ego { .. });
         let queued = self.queue.is_some();
         let svo_gaussian = self.svo_gaussian;
-        let conflict_share = self.conflict_share;
+        let draw = self.draw;
         let agent_steps: u64 = self
             .slots
             .par_iter_mut()
@@ -408,7 +504,7 @@ impl VecEnv {
                         s.idle = true;
                         return stepped;
                     }
-                    s.reset(mode, vehicles, conflict_share);
+                    s.reset(mode, vehicles, draw);
                 }
                 s.redraw_svos(svo_gaussian, mode);
                 s.observe(obs, alive, bg, spec_len);
@@ -458,8 +554,8 @@ impl Slot {
         }
     }
 
-    fn reset(&mut self, mode: Mode, vehicles: (u32, u32), conflict_share: Option<f32>) {
-        let case = draw_case(&self.env.map, &self.env.cfg, &mut self.rng, self.episodes, vehicles, conflict_share);
+    fn reset(&mut self, mode: Mode, vehicles: (u32, u32), draw: CaseDraw) {
+        let case = draw_case(&self.env.map, &self.env.cfg, &mut self.rng, self.episodes, vehicles, draw);
         self.tag = self.episodes as u64;
         self.episodes += 1;
         self.env.reset(&case, mode, None).expect("generated cases are valid for their map");

@@ -87,11 +87,18 @@ impl Pid {
 /// sub-step) with its acceleration moved linearly towards full braking (-1) or full
 /// acceleration (+1) (`env::residual_accel`; clipped to [-1, 1], non-finite counts as 0).
 /// `Some(0.0)` is the IDM driver, bit for bit.
+///
+/// `lateral`, with `idm_accel` set, moves the point IDM's pure pursuit steers towards sideways
+/// off the route: the target offset in [-1, 1] of `lateral.max_offset_m` (positive to the left
+/// of travel), approached at `lateral.rate_mps` (`SimConfig::lateral`); IDM's leader is then
+/// searched along the offset path. `None` or `Some(0.0)` from the start keeps the route: the
+/// IDM driver, bit for bit. Without `idm_accel` it is ignored.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Action {
     pub ref_speed: f32,
     pub steer: f32,
     pub idm_accel: Option<f32>,
+    pub lateral: Option<f32>,
 }
 
 /// How a driving policy's action vector moves its vehicle (`env.action` of a job).
@@ -108,6 +115,11 @@ pub enum DriveAction {
     /// braking at -1 and full acceleration at +1, with IDM's pure-pursuit steering. Zero is IDM
     /// exactly; -1 brakes at full force from any IDM command.
     IdmAccelResidual,
+    /// Two numbers: the acceleration residual of `IdmAccelResidual` and a lateral target in
+    /// [-1, 1] that moves the path IDM's pure pursuit follows sideways by up to one lane
+    /// (`SimConfig::lateral`, rate-limited), so a policy can change lanes, cut in, block a lane
+    /// or cross into the opposite one (judged by the usual rules). Zeros are IDM exactly.
+    IdmResidualLateral,
 }
 
 /// An action name [`DriveAction::parse`] does not know.
@@ -118,7 +130,8 @@ pub enum DriveActionError {
 }
 
 impl DriveAction {
-    pub const NAMES: [&'static str; 3] = ["direct", "idm-residual", "idm-accel-residual"];
+    pub const ALL: [Self; 4] = [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual, Self::IdmResidualLateral];
+    pub const NAMES: [&'static str; 4] = ["direct", "idm-residual", "idm-accel-residual", "idm-residual-lateral"];
 
     /// The name in configuration files (`env.action`).
     pub fn as_str(self) -> &'static str {
@@ -126,18 +139,19 @@ impl DriveAction {
             Self::Direct => Self::NAMES[0],
             Self::IdmResidual => Self::NAMES[1],
             Self::IdmAccelResidual => Self::NAMES[2],
+            Self::IdmResidualLateral => Self::NAMES[3],
         }
     }
 
     /// Parses [`DriveAction::as_str`]'s names; the error lists them.
     pub fn parse(s: &str) -> Result<Self, DriveActionError> {
-        [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual].into_iter().find(|a| a.as_str() == s).ok_or_else(|| DriveActionError::Unknown { name: s.to_string() })
+        Self::ALL.into_iter().find(|a| a.as_str() == s).ok_or_else(|| DriveActionError::Unknown { name: s.to_string() })
     }
 
     /// Floats per action.
     pub fn dim(self) -> usize {
         match self {
-            Self::Direct | Self::IdmResidual => 2,
+            Self::Direct | Self::IdmResidual | Self::IdmResidualLateral => 2,
             Self::IdmAccelResidual => 1,
         }
     }
@@ -146,12 +160,13 @@ impl DriveAction {
     /// driver's normalised action, needed only by `IdmResidual` (see `needs_demo`).
     pub fn command(self, a: &[f32], demo: Option<Action>) -> Action {
         match self {
-            Self::Direct => Action { ref_speed: a[0], steer: a[1], idm_accel: None },
+            Self::Direct => Action { ref_speed: a[0], steer: a[1], ..Action::default() },
             Self::IdmResidual => {
                 let d = demo.unwrap_or_default();
-                Action { ref_speed: (d.ref_speed + a[0]).clamp(-1.0, 1.0), steer: (d.steer + a[1]).clamp(-1.0, 1.0), idm_accel: None }
+                Action { ref_speed: (d.ref_speed + a[0]).clamp(-1.0, 1.0), steer: (d.steer + a[1]).clamp(-1.0, 1.0), ..Action::default() }
             }
             Self::IdmAccelResidual => Action { idm_accel: Some(a[0]), ..Action::default() },
+            Self::IdmResidualLateral => Action { idm_accel: Some(a[0]), lateral: Some(a[1]), ..Action::default() },
         }
     }
 
@@ -165,7 +180,7 @@ impl DriveAction {
     pub fn demonstrator(self, demo: Action) -> Vec<f32> {
         match self {
             Self::Direct => vec![demo.ref_speed, demo.steer],
-            Self::IdmResidual | Self::IdmAccelResidual => vec![0.0; self.dim()],
+            Self::IdmResidual | Self::IdmAccelResidual | Self::IdmResidualLateral => vec![0.0; self.dim()],
         }
     }
 }
@@ -182,7 +197,7 @@ impl Action {
 
     /// Encodes physical values into a normalised action (inverse of [`Action::decode`]).
     pub fn encode(p: &VehicleParams, ref_speed_mps: f32, steer_rad: f32) -> Self {
-        Self { ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0), steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0), idm_accel: None }
+        Self { ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0), steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0), ..Self::default() }
     }
 }
 
@@ -221,7 +236,7 @@ mod tests {
         assert_eq!(s.speed_mps, p.max_speed_mps);
         s.step(&p, -100.0, 0.0, 10.0);
         assert_eq!(s.speed_mps, 0.0);
-        let (v, d) = Action { ref_speed: 7.0, steer: f32::NAN, idm_accel: None }.decode(&p);
+        let (v, d) = Action { ref_speed: 7.0, steer: f32::NAN, ..Action::default() }.decode(&p);
         assert_eq!((v, d), (p.max_speed_mps, 0.0));
     }
 

@@ -4,8 +4,7 @@
 
 mod common;
 
-use common::{case, configs, env, map, spawn_for};
-use sf_sim::case::CaseFile;
+use common::{case, env, map, spawn_for};
 use sf_sim::env::{Controller, Mode};
 use sf_sim::vehicle::{Action, DriveAction};
 
@@ -18,25 +17,7 @@ fn residual(r: f32) -> Action {
 /// last bit, and ends the same way.
 #[test]
 fn a_zero_residual_ego_drives_exactly_like_the_idm_driver() {
-    for name in ["intersection", "bottleneck", "merge", "roundabout"] {
-        let m = map(name);
-        let cases = CaseFile::load(&configs().join(format!("cases/{name}.v1.json")), &m).expect("shipped cases load");
-        for c in cases.cases.iter().take(25) {
-            let (mut ego, mut idm) = (env(&m), env(&m));
-            ego.reset(c, Mode::Ego { background: Controller::Idm }, None).expect("reset");
-            idm.reset(c, Mode::AllIdm, None).expect("reset");
-            let mut acts = vec![Action::default(); ego.agents().len()];
-            acts[0] = residual(0.0);
-            let idle = vec![Action::default(); idm.agents().len()];
-            while !ego.done() {
-                ego.step(&acts).expect("step");
-                idm.step(&idle).expect("step");
-                let (a, b) = (&ego.agents()[0], &idm.agents()[0]);
-                assert_eq!(a.state, b.state, "{name} case {} step {}", c.id, ego.step_index());
-                assert_eq!(a.termination, b.termination, "{name} case {} step {}", c.id, ego.step_index());
-            }
-        }
-    }
+    common::assert_ego_drives_like_idm(|_| residual(0.0));
 }
 
 /// -1 brakes at the vehicle's full deceleration on a free road, where IDM still accelerates
@@ -77,7 +58,7 @@ fn the_residual_interpolates_between_full_braking_idm_and_full_acceleration() {
 #[test]
 fn drive_actions_have_their_dimensions_and_demonstrators() {
     assert_eq!((DriveAction::Direct.dim(), DriveAction::IdmResidual.dim(), DriveAction::IdmAccelResidual.dim()), (2, 2, 1));
-    let demo = Action { ref_speed: 0.5, steer: -0.2, idm_accel: None };
+    let demo = Action { ref_speed: 0.5, steer: -0.2, ..Action::default() };
     assert_eq!(DriveAction::Direct.demonstrator(demo), vec![0.5, -0.2]);
     assert_eq!(DriveAction::IdmAccelResidual.demonstrator(demo), vec![0.0]);
     let c = DriveAction::IdmResidual.command(&[0.8, 0.0], Some(demo));
@@ -91,13 +72,13 @@ fn drive_actions_have_their_dimensions_and_demonstrators() {
 #[test]
 fn conflict_cases_are_those_the_idm_ego_collides_in() {
     use rand::SeedableRng;
-    use sf_sim::vec_env::{draw_case, idm_ego_collides, VecEnv, VecEnvConfig};
+    use sf_sim::vec_env::{draw_case, idm_ego_collides, CaseDraw, VecEnv, VecEnvConfig};
     let m = map("intersection");
     let sim = std::sync::Arc::new(sf_sim::SimConfig::default());
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let conflicts: Vec<_> = (0..20).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), Some(1.0))).collect();
+    let conflicts: Vec<_> = (0..20).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), CaseDraw { conflict_share: Some(1.0), slow_leader: None })).collect();
     assert!(conflicts.iter().all(|c| idm_ego_collides(&m, &sim, c)), "every conflict case makes the IDM ego collide");
-    let plain: Vec<_> = (0..200).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), None)).collect();
+    let plain: Vec<_> = (0..200).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), CaseDraw::default())).collect();
     let share = plain.iter().filter(|c| idm_ego_collides(&m, &sim, c)).count() as f32 / 200.0;
     assert!(share < 0.5, "without the filter the IDM ego collides less often ({share})");
     // An ego whose residual is zero collides in every episode of a conflicts-only VecEnv.

@@ -191,7 +191,7 @@ fn externally_driven_background_rows_are_observed_and_flagged() {
                 assert_eq!(filled, v.alive()[row] == 1.0 || v.background()[row] == 1.0, "row {row} filled iff observed");
             }
         }
-        let acts = vec![Action { ref_speed: 0.5, steer: 0.0, idm_accel: None }; v.alive().len()];
+        let acts = vec![Action { ref_speed: 0.5, steer: 0.0, ..Action::default() }; v.alive().len()];
         v.step(&acts);
     }
     let idm = VecEnv::new(m, cfg, VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 1 });

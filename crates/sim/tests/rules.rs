@@ -7,7 +7,7 @@ use sf_sim::env::{Controller, Mode, Termination};
 use sf_sim::vehicle::Action;
 
 fn stop() -> Action {
-    Action { ref_speed: -1.0, steer: 0.0, idm_accel: None }
+    Action { ref_speed: -1.0, steer: 0.0, ..Action::default() }
 }
 
 /// Steps with constant actions until agent 0 ends; returns its termination and step count.
@@ -27,7 +27,7 @@ fn collision_ends_both_and_nothing_else() {
     let p0 = e.agents()[0].state.pos();
     e.place_agent(1, [p0[0], p0[1] + 4.5], std::f32::consts::FRAC_PI_2, 0.0);
     e.place_agent(0, p0, std::f32::consts::FRAC_PI_2, 6.0);
-    e.step(&[Action { ref_speed: 1.0, steer: 0.0, idm_accel: None }, stop()]).expect("step");
+    e.step(&[Action { ref_speed: 1.0, steer: 0.0, ..Action::default() }, stop()]).expect("step");
     let t: Vec<_> = e.agents().iter().map(|a| a.termination).collect();
     assert_eq!(t, vec![Some(Termination::Collision), Some(Termination::Collision)]);
     assert!(e.done(), "every learner ended");
@@ -42,7 +42,7 @@ fn off_road_from_steering_into_the_edge() {
     // Outer inbound lane of the south arm (x = 5.25): the road edge is 1.75 m to its right.
     let r = 2;
     e.reset(&case(&[(spawn_for(&m, r, 0), r, 0.0)]), Mode::MultiAgent, None).expect("reset");
-    let (t, _) = run_until_end(&mut e, &[Action { ref_speed: 0.0, steer: -0.5, idm_accel: None }]);
+    let (t, _) = run_until_end(&mut e, &[Action { ref_speed: 0.0, steer: -0.5, ..Action::default() }]);
     assert_eq!(t, Some(Termination::OffRoad));
 }
 
@@ -149,7 +149,7 @@ fn rewards_individual_composed_and_failmaker() {
     let mut e = env(&m);
     let (s0, s1) = (spawn_for(&m, 0, 0), spawn_for(&m, 0, 3));
     e.reset(&case(&[(s0, 0, 0.0), (s1, 0, 60.0)]), Mode::MultiAgent, None).expect("reset");
-    e.step(&[Action { ref_speed: 1.0, steer: 0.0, idm_accel: None }, stop()]).expect("step");
+    e.step(&[Action { ref_speed: 1.0, steer: 0.0, ..Action::default() }, stop()]).expect("step");
     let a = e.agents();
     let r = e.rewards();
     let ind = |i: usize| 0.07 * (2.0 * a[i].state.speed_mps / 6.0 - 1.0);
@@ -167,7 +167,7 @@ fn rewards_individual_composed_and_failmaker() {
     let p0 = e.agents()[0].state.pos();
     e.place_agent(1, [p0[0], p0[1] + 4.5], std::f32::consts::FRAC_PI_2, 0.0);
     e.place_agent(0, p0, std::f32::consts::FRAC_PI_2, 6.0);
-    e.step(&[Action { ref_speed: 1.0, steer: 0.0, idm_accel: None }, stop()]).expect("step");
+    e.step(&[Action { ref_speed: 1.0, steer: 0.0, ..Action::default() }, stop()]).expect("step");
     let r = e.rewards();
     assert_eq!(e.agents()[1].termination, Some(Termination::Collision));
     assert!(r[1].individual < -4.9);

@@ -1,8 +1,8 @@
 //! What a finished job gives the jobs that depend on it.
 //!
 //! Owns: [`JobDeps`] and [`crate::Inner::job_deps`] (a starting training job's frozen policies,
-//! their final weights when `[validation]` runs episodes with them, and the checkpoint a RARL
-//! phase continues from), [`flow_frozen`] (how a finished flow drives a background: itself, its
+//! their final weights when `[validation]` runs episodes with them, and the job a RARL phase
+//! continues from), [`flow_frozen`] (how a finished flow drives a background: itself, its
 //! SocialComm flow and itself as the adversary for SocialCommAdv, a CoPO coordinator's
 //! Gaussians), [`read_final`] (a finished job's `policy.bpk` / `policy.json`) and [`check_dep`]
 //! (whether a job can serve another in a role). Configs come parsed ([`crate::Inner::spec`]); the
@@ -24,7 +24,8 @@ pub(crate) struct JobDeps {
     pub frozen: Vec<Frozen>,
     /// `frozen`'s final weights, in order, when the job validates (`[validation]`); else empty.
     pub frozen_weights: Vec<Arc<Vec<u8>>>,
-    /// The checkpoint directory `train.init_job` continues from.
+    /// `train.init_job`'s artifact directory: a continuation starts from its checkpoint's
+    /// critic and its final policy (`sf_sac::checkpoint::warm_start`).
     pub init_dir: Option<PathBuf>,
 }
 
@@ -42,7 +43,7 @@ impl crate::Inner {
                 return Err(LearnerError::NoFinalPolicy { dep, field: role.field(), state: d.state.as_str() });
             }
             match role {
-                DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir).join("checkpoint")),
+                DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir)),
                 DepRole::Ego => {
                     dirs.insert(dep, PathBuf::from(&d.artifact_dir));
                     frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
@@ -109,7 +110,7 @@ pub(crate) fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobCo
     let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
     role.accepts(job.kind, dep.kind).map_err(|e| refuse(e.to_string()))?;
     let (mine, theirs) = (setup::resolve(job, None), setup::resolve(dep, None));
-    if role == DepRole::Init && theirs.net != mine.net {
+    if role == DepRole::Init && !theirs.net.same_network(&mine.net) {
         return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", theirs.net)));
     }
     if theirs.obs.layout != mine.obs.layout {

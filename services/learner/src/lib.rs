@@ -436,11 +436,12 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     let (health_reporter, health) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<JobServiceServer<service::Jobs>>().await;
     health_reporter.set_serving::<ExperienceServiceServer<service::Experience>>().await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(sf_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .context("gRPC reflection service")?;
+    // Reflection in both versions: `v1alpha` is what older clients (and some GUI clients) ask.
+    let reflection_builder = || {
+        tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(sf_proto::FILE_DESCRIPTOR_SET).register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection = reflection_builder().build_v1().context("gRPC reflection service (v1)")?;
+    let reflection_v1alpha = reflection_builder().build_v1alpha().context("gRPC reflection service (v1alpha)")?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
     let mut builder = tonic::transport::Server::builder();
@@ -456,6 +457,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
             // one, and neither reveals more than the public schema and "serving".
             .add_service(health)
             .add_service(reflection)
+            .add_service(reflection_v1alpha)
             .serve_with_incoming_shutdown(incoming, async {
                 let _ = stop_rx.await;
             }),
@@ -526,7 +528,7 @@ mod tests {
         let mut files: Vec<PathBuf> =
             std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
         files.push(root.join("deploy/smoke-job.toml"));
-        for sub in ["configs/paper-small", "configs/paper"] {
+        for sub in ["configs/paper-small", "configs/paper", "configs/ladder/jobs", "configs/ladder/l7-steering-adversary"] {
             files.extend(std::fs::read_dir(root.join(sub)).expect("pipeline dir").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")));
         }
         assert!(files.len() >= 3, "{files:?}");

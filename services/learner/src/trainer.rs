@@ -87,7 +87,8 @@ pub struct TrainerInput {
     pub segs: Vec<Arc<MapSegments>>,
     pub dir: PathBuf,
     pub resume: Option<JobState>,
-    /// `train.init_job`'s checkpoint: the SAC state a fresh job starts from.
+    /// `train.init_job`'s artifact directory: its checkpoint and final policy are the SAC
+    /// state a fresh job starts from.
     pub init_dir: Option<PathBuf>,
     /// With `[validation]`: the final weights of the job's frozen policies (`job.frozen`, in
     /// order), which validation episodes run with. Empty otherwise.
@@ -195,7 +196,9 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
 }
 
 /// The SAC state a run starts from: the job's own checkpoint when it has one (a resumed job;
-/// returns true), else `train.init_job`'s final state when it names one, else fresh weights.
+/// returns true), else `train.init_job`'s last checkpoint with its final policy as the actor
+/// (the actor its adversary attacked: `sf_sac::checkpoint::warm_start`) when it names one, else
+/// fresh weights.
 fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init_dir: Option<&Path>, st: &JobState) -> Result<bool, LearnerError> {
     let ckpt = dir.join("checkpoint");
     if ckpt.exists() {
@@ -204,8 +207,11 @@ fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init_dir: Option<&Pat
         return Ok(true);
     }
     if let Some(init) = init_dir {
-        checkpoint::warm_start(sac, init).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: init.to_path_buf(), source })?;
-        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's final state");
+        let policy = init.join("policy.bpk");
+        let kept = std::fs::read(&policy).map_err(|source| LearnerError::Io { action: "reading", path: policy.clone(), source })?;
+        let ckpt = init.join("checkpoint");
+        checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source })?;
+        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's critic and final policy");
     }
     Ok(false)
 }

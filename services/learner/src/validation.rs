@@ -1,8 +1,9 @@
 //! Policy selection by a held-out evaluation during training (a job's `[validation]`).
 //!
 //! Owns: the job's validation cases (generated once from the section's seed, like the
-//! training episodes), scoring a training actor on them with its mean action in the job's own
-//! setting (an ego among IDM or its frozen flow, a flow driving every vehicle), and which
+//! training episodes), scoring a training actor on them in the job's own setting (an ego with
+//! its mean action among IDM or its frozen flow; a flow driving every vehicle with sampled
+//! actions, as flows act in evaluations), and which
 //! point is best ([`ValidationPoint::better_than`], [`BestPolicy`]). Must not: write files
 //! or touch the SAC state (the trainer does both), nor pick cases the final evaluation uses.
 
@@ -113,7 +114,7 @@ impl Validator {
             .enumerate()
             .map(|(k, map)| {
                 let mut rng = ChaCha8Rng::seed_from_u64(section.seed ^ ((k as u64) << 32));
-                let cases = (0..section.episodes).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, vehicles, cfg.env.conflict_share)).collect();
+                let cases = (0..section.episodes).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, vehicles, cfg.case_draw())).collect();
                 (Arc::clone(map), cases)
             })
             .collect();

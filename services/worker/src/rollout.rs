@@ -173,9 +173,16 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         WarmupPolicy::Idm if kind.drives() => Actor::Demo { noise: job.sac.warmup_noise, action: net.action },
         _ => Actor::Random { dim: act_dim },
     };
-    // Braking segments overlay the warm-up actions of the `alive` rows: the job's own only
-    // where it drives them (not FailMaker's background).
-    let mut brakes = (job.sac.warmup_brake_prob > 0.0 && kind.drives() && kind != JobKind::Failmaker).then(|| drive::BrakeSegments::new(job.sac.warmup_brake_prob, &venvs));
+    // Braking and lane-change segments overlay the warm-up actions of the rows the job drives.
+    let mut brakes = ((job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0) && kind.drives()).then(|| {
+        let segments = drive::WarmupSegments::new(job.sac.warmup_brake_prob, job.sac.warmup_lane_change_prob, &venvs);
+        // FailMaker drives the background: its own vehicles brake and change lanes.
+        if kind == JobKind::Failmaker {
+            segments.on_background()
+        } else {
+            segments
+        }
+    });
     let mut runner: Option<PolicyRunner> = None;
     let nstep = nstep::NStep::new(job.sac.n_step, job.sac.gamma);
     let mut writer = TransitionWriter::new(TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim), nstep, job.worker.batch_transitions, Arc::clone(&control), credits, tx, metrics.clone());
@@ -200,8 +207,13 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
-        // The job's own policy plays its role; frozen policies the others.
-        let own = acting.map_or(warm_actor, Actor::sampled);
+        // The job's own policy plays its role (in the warm-up too with `warmup_policy =
+        // "policy"`); frozen policies the others.
+        let own = match (acting, &runner) {
+            (Some(r), _) => Actor::sampled(r),
+            (None, Some(r)) if job.sac.warmup_policy == WarmupPolicy::Policy => Actor::sampled(r),
+            _ => warm_actor,
+        };
         let (f_bg, f_ego, f_adv) = (frozen.background.as_ref().map(Actor::sampled), frozen.ego.as_ref().map(Actor::sampled), frozen.adversary.as_ref().map(Actor::sampled));
         let drivers = seat.drivers(own, f_bg, f_ego, f_adv);
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
@@ -245,6 +257,9 @@ fn envs(spec: &RolloutSpec, sim: &Arc<SimConfig>, mode: Mode) -> Vec<VecEnv> {
         .collect();
     if let Some(share) = job.env.conflict_share {
         venvs = venvs.into_iter().map(|v| v.with_conflicts(share)).collect();
+    }
+    if let Some(slow) = job.env.slow_leader {
+        venvs = venvs.into_iter().map(|v| v.with_slow_leader(slow)).collect();
     }
     for (v, g) in venvs.iter_mut().zip(&spec.svo_gaussians) {
         v.set_svo_gaussian(*g);
