@@ -140,6 +140,43 @@ fn train_runs_a_job_embedded_and_writes_its_artifacts() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `train` on a data directory that fills up mid-job (a tmpfs): it exits non-zero naming the
+/// cause and the checkpoint its job's `state.json` records (never one it did not write), and
+/// the same command resumes the job once space is freed.
+#[test]
+fn train_stops_on_a_full_disk_with_the_cause_and_resumes_after() {
+    let dir = socialflow_e2e::scratch("train-full");
+    let data = dir.join("data");
+    let Some(_mount) = socialflow_e2e::Tmpfs::mount(&data, 48) else {
+        eprintln!("SKIPPED, cannot mount a tmpfs (needs root; tests/run.sh requires it when run as root): train on a full disk");
+        return;
+    };
+    let cfg = dir.join("tiny.toml");
+    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-full", 2500)).expect("config");
+    let args: Vec<String> = ["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &data.display().to_string(), "--quiet"].map(String::from).to_vec();
+    let run = {
+        let args = args.clone();
+        std::thread::spawn(move || socialflow(&args.iter().map(String::as_str).collect::<Vec<_>>(), 4 * T))
+    };
+    let state = data.join("jobs/1-tiny-full/state.json");
+    let read_state = || serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&state).ok()?).ok();
+    socialflow_e2e::wait_for("a checkpoint", 4 * T, || read_state().filter(|v| v["counters"]["env_steps"].as_u64().is_some_and(|n| n > 400)));
+    socialflow_e2e::fill_disk(&data, "filler");
+    let out = run.join().expect("the train thread");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "train must fail on a full disk: {err}");
+    assert!(err.contains("refuses writes") && err.contains("No space left on device"), "{err}");
+    let steps = read_state().and_then(|v| v["counters"]["env_steps"].as_u64()).expect("state.json");
+    assert!(err.contains(&format!("is checkpointed at {steps} environment steps")), "the checkpoint on disk is at {steps} steps: {err}");
+    std::fs::remove_file(data.join("filler")).expect("freeing space");
+    let again = socialflow(&args.iter().map(String::as_str).collect::<Vec<_>>(), 4 * T);
+    assert!(String::from_utf8_lossy(&again.stderr).contains("resuming job 1 (tiny-full)"), "{}", String::from_utf8_lossy(&again.stderr));
+    let v = json_of(&again);
+    assert_eq!((v["state"].as_str(), v["progress"]["env_steps"].as_u64()), (Some("succeeded"), Some(2500)), "{v}");
+    drop(_mount);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn train_with_validation_keeps_the_best_validated_actor() {
     let dir = socialflow_e2e::scratch("validation");
@@ -163,6 +200,12 @@ fn train_with_validation_keeps_the_best_validated_actor() {
     assert_eq!(meta["selected_by"], "validation", "{meta}");
     assert_eq!(meta["updates"].as_u64(), Some(best[0] as u64), "{meta} vs {csv}");
     assert_eq!(std::fs::read(art.join("policy.bpk")).expect("policy"), std::fs::read(art.join("best_policy.bpk")).expect("best"));
+    // `train` ends with the policy's and the IDM driver's scores on the same held-out episodes.
+    assert_eq!(meta["idm"]["episodes"], 6, "{meta}");
+    assert_eq!(v["held_out"]["episodes"], 6, "{v}");
+    assert_eq!(v["held_out"]["policy"]["success"], meta["validation"]["success"], "{v}");
+    assert_eq!(v["held_out"]["idm"]["collision"], meta["idm"]["collision"], "{v}");
+    assert!(v["held_out"]["idm"]["success"].as_f64().is_some_and(|s| (0.0..=1.0).contains(&s)), "{v}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -331,7 +374,7 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
 /// environment steps among that flow (`tests/python/flow_ego_equality.py`).
 fn python_ego_equals_cli(flow: &str, what: &str) {
     let Ok(py) = std::env::var("SOCIALFLOW_PKG_PYTHON") else {
-        eprintln!("SOCIALFLOW_PKG_PYTHON not set: the Python package's run among {what} is skipped");
+        eprintln!("SKIPPED, SOCIALFLOW_PKG_PYTHON not set (tests/run.sh sets it): the Python package's run among {what} is skipped");
         return;
     };
     let cli = socialflow(&["eval-flow", "--policy", flow, "--ego", "idm", "--scenario", "merge", "--cases", "6", "--seeds", "2", "--json"], T);
@@ -417,27 +460,18 @@ fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
 
     // The evaluation grid on these jobs: reproducible, resumable, and a report builds from it.
     let eval_cfg = |out: &str| {
-        format!(
-            r#"kind = "eval"
-runs = "{data}"
-out = "{out}"
-scenarios = ["merge"]
-cases = 2
-seeds = 2
-envs = 4
-ours = "RARL/SCA"
-flows = [{{ name = "IDM", job = "idm" }}, {{ name = "SocialComm", job = "flow-sc" }}, {{ name = "SocialCommAdv", job = "adv-1" }}, {{ name = "FailMaker", job = "fm-1" }}]
-egos = [{{ name = "RL/IDM", job = "ego-idm", trained_in = "IDM" }}, {{ name = "RL/SocialComm", job = "ego-sc", trained_in = "SocialComm" }}, {{ name = "RARL/FailMaker", job = "ego-fm-1", trained_in = "FailMaker" }}, {{ name = "RARL/SCA", job = "ego-adv-1", trained_in = "SocialCommAdv" }}]
+        eval_toml(&data, &dir.join(out), 2, 4)
+            + r#"ours = "RARL/SCA"
+flows = [{ name = "IDM", job = "idm" }, { name = "SocialComm", job = "flow-sc" }, { name = "SocialCommAdv", job = "adv-1" }, { name = "FailMaker", job = "fm-1" }]
+egos = [{ name = "RL/IDM", job = "ego-idm", trained_in = "IDM" }, { name = "RL/SocialComm", job = "ego-sc", trained_in = "SocialComm" }, { name = "RARL/FailMaker", job = "ego-fm-1", trained_in = "FailMaker" }, { name = "RARL/SCA", job = "ego-adv-1", trained_in = "SocialCommAdv" }]
 [experiments]
 flow_quality = ["IDM", "SocialComm"]
 cross_validation = ["IDM", "SocialComm"]
-svo_sweep = {{ flows = ["SocialComm"], values = 2, scenarios = ["merge"] }}
-density = {{ scenario = "merge", flows = ["SocialComm"], vehicles = [2, 3] }}
-adversary = {{ egos = ["RL/IDM", "RL/SocialComm"], flows = ["SocialComm", "SocialCommAdv", "FailMaker"] }}
-gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenarios = ["merge"] }}
-"#,
-            out = dir.join(out).display()
-        )
+svo_sweep = { flows = ["SocialComm"], values = 2, scenarios = ["merge"] }
+density = { scenario = "merge", flows = ["SocialComm"], vehicles = [2, 3] }
+adversary = { egos = ["RL/IDM", "RL/SocialComm"], flows = ["SocialComm", "SocialCommAdv", "FailMaker"] }
+gifs = { ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenarios = ["merge"] }
+"#
     };
     for out in ["eval-a", "eval-b"] {
         std::fs::write(dir.join(format!("{out}.toml")), eval_cfg(out)).expect("eval config");
@@ -482,23 +516,14 @@ gifs = {{ ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenar
     let probe = dir.join("probe.toml");
     std::fs::write(
         &probe,
-        format!(
-            r#"kind = "eval"
-runs = "{data}"
-out = "{out}"
-scenarios = ["merge"]
-cases = 2
-seeds = 1
-envs = 3
-flows = [{{ name = "SocialComm", job = "flow-sc" }}, {{ name = "SC told0", job = "flow-sc", messages = {{ told_ego_deg = 0.0 }} }}]
-egos = [{{ name = "RL/SocialComm", job = "ego-sc" }}, {{ name = "SC actor", job = "flow-sc", flow_actor = true }}]
+        eval_toml(&data, &dir.join("probe"), 1, 3)
+            + r#"flows = [{ name = "SocialComm", job = "flow-sc" }, { name = "SC told0", job = "flow-sc", messages = { told_ego_deg = 0.0 } }]
+egos = [{ name = "RL/SocialComm", job = "ego-sc" }, { name = "SC actor", job = "flow-sc", flow_actor = true }]
 [sizes]
-adversary = {{ cases = 3 }}
+adversary = { cases = 3 }
 [experiments]
-adversary = {{ egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC told0"] }}
+adversary = { egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC told0"] }
 "#,
-            out = dir.join("probe").display()
-        ),
     )
     .expect("probe config");
     let o = socialflow(&["eval", &probe.display().to_string()], 4 * T);
@@ -543,4 +568,10 @@ adversary = {{ egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC 
     assert_eq!(lines.last().and_then(|v| v["experiments"].as_array()).map(Vec::len), Some(5), "the report's findings come last");
     assert!(report2.join("report.html").exists() && report2.join("gif-merge.gif").exists());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The head of an evaluation grid over data directory `data` in merge, 2 cases per cell, its
+/// results in `out`.
+fn eval_toml(data: &str, out: &std::path::Path, seeds: u32, envs: u32) -> String {
+    format!("kind = \"eval\"\nruns = \"{data}\"\nout = \"{}\"\nscenarios = [\"merge\"]\ncases = 2\nseeds = {seeds}\nenvs = {envs}\n", out.display())
 }

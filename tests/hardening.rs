@@ -17,7 +17,7 @@ const CANCELLED: i32 = pb::JobState::Cancelled as i32;
 const FAILED: i32 = pb::JobState::Failed as i32;
 const RUNNING: i32 = pb::JobState::Running as i32;
 
-/// `promtool` from `$PROMTOOL` or the PATH. CI sets `SOCIALFLOW_REQUIRE_PROMTOOL=1` (and fetches
+/// `promtool` from `$PROMTOOL` or the PATH. `tests/run.sh` sets `SOCIALFLOW_REQUIRE_PROMTOOL=1` (and fetches
 /// Debian's prometheus package), so there a missing promtool fails instead of skipping.
 fn promtool() -> Option<PathBuf> {
     let p = std::env::var_os("PROMTOOL").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("promtool"));
@@ -119,7 +119,7 @@ fn health_and_reflection_answer_without_a_token_and_metrics_pass_promtool() {
         assert!(!body.contains("# EOF") && !body.contains("nanoseconds"), "{what}");
         match promtool() {
             Some(p) => promtool_clean(&p, what, body),
-            None => eprintln!("promtool not found: skipping its check of the {what}'s metrics (set PROMTOOL)"),
+            None => eprintln!("SKIPPED, promtool not found (tests/run.sh fetches it): its check of the {what}'s metrics"),
         }
     }
     rt.block_on(c.cancel_job(pb::CancelJobRequest { job_id: job.job_id })).expect("cancel");

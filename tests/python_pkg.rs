@@ -3,14 +3,14 @@
 //! IDM driver as a Python policy scoring exactly what `socialflow eval-flow --ego idm` scores,
 //! and bad arguments raising errors that name them. Runs with the interpreter in
 //! `SOCIALFLOW_PKG_PYTHON`, where the package must be installed from this tree first
-//! (`.ci/run` does: `pip install ./python`); skipped without it.
+//! (`tests/run.sh` does: `pip install ./python`); skipped without it, saying so.
 
 use socialflow_e2e::{bin, repo};
 
 #[test]
 fn python_package_tests_pass() {
     let Ok(py) = std::env::var("SOCIALFLOW_PKG_PYTHON") else {
-        eprintln!("SOCIALFLOW_PKG_PYTHON not set: the Python package's tests are skipped");
+        eprintln!("SKIPPED, SOCIALFLOW_PKG_PYTHON not set (tests/run.sh sets it): the Python package's tests are skipped");
         return;
     };
     let out = std::process::Command::new(&py)

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use sf_proto::pb;
 use socialflow_e2e::grpc::{exp, get, jobs, metric, progress, push_one, rt, submit, wait_final, SUCCEEDED};
-use socialflow_e2e::{bin, http_get, restart, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, TOKEN, TWO_MAPS};
+use socialflow_e2e::{bin, fill_disk, http_get, move_data_dir, restart, scratch, socialflow_env, start_learner, start_learner_with, start_worker, tiny_job, wait_for, Proc, Tmpfs, TOKEN, TWO_MAPS};
 use tonic::Code;
 
 #[test]
@@ -93,7 +93,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
             let out = std::process::Command::new(py).arg(socialflow_e2e::repo().join("tests/python/read_tensorboard.py")).arg(&tb).arg("10").output().expect("python");
             assert!(out.status.success(), "tensorboard could not read the events: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
         }
-        Err(_) => eprintln!("SOCIALFLOW_TB_PYTHON not set: the tensorboard package's read is skipped"),
+        Err(_) => eprintln!("SKIPPED, SOCIALFLOW_TB_PYTHON not set (tests/run.sh sets it): the tensorboard package's read is skipped"),
     }
     // ONNX export of the final actor; onnxruntime (CI: SOCIALFLOW_ONNX_PYTHON, a venv with it)
     // must give burn's actions on the 100 stored observations of the check file within 1e-4.
@@ -108,7 +108,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
             let out = std::process::Command::new(py).arg(socialflow_e2e::repo().join("tests/python/check_onnx.py")).arg(&onnx).arg("1e-4").output().expect("python");
             assert!(out.status.success(), "onnxruntime disagrees with burn: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
         }
-        Err(_) => eprintln!("SOCIALFLOW_ONNX_PYTHON not set: the onnxruntime comparison is skipped"),
+        Err(_) => eprintln!("SKIPPED, SOCIALFLOW_ONNX_PYTHON not set (tests/run.sh sets it): the onnxruntime comparison is skipped"),
     }
     let m = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(metric(&m, "socialflow_learner_updates_total") >= p.updates as f64);
@@ -142,6 +142,8 @@ fn a_job_completes_after_a_worker_is_killed() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Killed mid-job, its data directory moved elsewhere (a restored backup, a volume mounted at
+/// another path), the learner resumes from the moved checkpoint and replay.
 #[test]
 fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     let dir = scratch("killlearner");
@@ -162,11 +164,13 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     let version_before = mid["policy_version"].as_u64().expect("version");
     l.proc.kill9();
     drop(c);
+    move_data_dir(&l, &dir, "moved-data");
     restart(&mut l);
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
     let j = get(&rt, &mut c, job.job_id);
     assert_eq!(j.state, pb::JobState::Running as i32, "the job is still running after the restart");
     assert_eq!(j.name, "resume");
+    assert!(Path::new(&j.artifact_dir).starts_with(dir.join("moved-data")), "artifact directory {} is not under the moved data directory", j.artifact_dir);
     assert_eq!(get(&rt, &mut c, queued.job_id).state, SUCCEEDED, "the finished job kept its state");
     let done = wait_final(&rt, &mut c, job.job_id, "the resumed job to finish");
     assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
@@ -178,6 +182,59 @@ fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     // The replay came back with the checkpoint (segments in the job's replay/ directory).
     let restored = log.lines().filter(|l| l.contains("replay restored")).find_map(|l| l.split_whitespace().find_map(|w| w.strip_prefix("transitions=")?.parse::<u64>().ok()));
     assert!(restored.is_some_and(|n| n >= 600), "the replay was not restored: {restored:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A data directory that fills up mid-job (a tmpfs): the learner stops starting work, keeps
+/// answering reads, withholds readiness, logs the cause a bounded number of times and shows it
+/// as a metric; the running job stays RUNNING at its last checkpoint (not failed) and, once
+/// space is freed, resumes from it by itself and finishes.
+#[test]
+fn a_full_disk_pauses_the_job_and_it_resumes_when_space_returns() {
+    let dir = scratch("fulldisk");
+    let Some(_mount) = Tmpfs::mount(&dir.join("data"), 48) else {
+        eprintln!("SKIPPED, cannot mount a tmpfs (needs root; tests/run.sh requires it when run as root): the full-disk test");
+        return;
+    };
+    let l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let job = submit(&rt, &mut c, tiny_job(TWO_MAPS, "fills-the-disk", 3000));
+    let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    let art = PathBuf::from(get(&rt, &mut c, job.job_id).artifact_dir);
+    wait_for("a checkpoint", Duration::from_secs(600), || {
+        let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(art.join("state.json")).ok()?).ok()?;
+        (v["counters"]["env_steps"].as_u64()? > 600).then_some(())
+    });
+    fill_disk(&dir.join("data"), "filler");
+    let not_ready = || http_get(&l.admin, "/readyz").is_none();
+    wait_for("readiness to go false", Duration::from_secs(120), || not_ready().then_some(()));
+    let m = http_get(&l.admin, "/metrics").expect("metrics are served during the fault");
+    assert_eq!(metric(&m, "socialflow_learner_storage_ok"), 0.0);
+    assert!(metric(&m, "socialflow_learner_storage_faults_total") >= 1.0);
+    // Reads answer; the job is paused, not failed; nothing new is accepted.
+    let j = get(&rt, &mut c, job.job_id);
+    assert_eq!(j.state, pb::JobState::Running as i32, "the job must not fail on a full disk: {}", j.message);
+    let e = rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: tiny_job(TWO_MAPS, "refused", 300) })).expect_err("no job is accepted while the disk is full");
+    assert_eq!(e.code(), Code::Unavailable, "{}", e.message());
+    assert!(e.message().contains("refuses writes"), "{}", e.message());
+    std::thread::sleep(Duration::from_secs(5));
+    let log = std::fs::read_to_string(&l.log).unwrap_or_default();
+    let errors = log.lines().filter(|l| l.contains("ERROR")).count();
+    assert!(errors <= 5, "{errors} ERROR lines during the fault:\n{}", log.lines().filter(|l| l.contains("ERROR")).take(20).collect::<Vec<_>>().join("\n"));
+    assert!(log.contains("refuses writes"), "the cause is logged");
+    // Space returns: readiness, then the job resumes from its checkpoint and finishes.
+    std::fs::remove_file(dir.join("data/filler")).expect("freeing space");
+    wait_for("readiness after space returns", Duration::from_secs(60), || (!not_ready()).then_some(()));
+    let done = wait_final(&rt, &mut c, job.job_id, "the resumed job to finish");
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, 3000);
+    let log = std::fs::read_to_string(&l.log).unwrap_or_default();
+    assert!(log.contains("takes writes again") && log.contains("resumed from checkpoint"), "no resume after the fault in the log");
+    assert_eq!(metric(&http_get(&l.admin, "/metrics").expect("metrics"), "socialflow_learner_storage_ok"), 1.0);
+    drop(_w);
+    drop(l);
+    drop(_mount);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -1,7 +1,7 @@
 //! Helpers for end-to-end tests: locating the built binaries and running them with a deadline.
 //!
-//! `cargo test --workspace` does not build other packages' binaries; `.ci/run` builds them
-//! first. Children are killed when their deadline passes or when the handle drops.
+//! `cargo test --workspace` does not build other packages' binaries; `tests/run.sh` builds
+//! them first. Children are killed when their deadline passes or when the handle drops.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -220,6 +220,47 @@ pub fn restart(l: &mut Learner) {
     let log = l.log.clone();
     l.proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &l.cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
     wait_for("learner readiness after restart", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+}
+
+/// A size-limited tmpfs mounted at a directory for a test, unmounted when dropped. Needs root:
+/// `None` (the caller skips, saying so) where mounting is refused, unless
+/// `SOCIALFLOW_REQUIRE_TMPFS` is set (`tests/run.sh` sets it when run as root).
+pub struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    pub fn mount(at: &Path, size_mb: u32) -> Option<Self> {
+        std::fs::create_dir_all(at).expect("mount point");
+        let ok = std::process::Command::new("mount").args(["-t", "tmpfs", "-o", &format!("size={size_mb}m"), "tmpfs"]).arg(at).status().is_ok_and(|s| s.success());
+        assert!(ok || std::env::var_os("SOCIALFLOW_REQUIRE_TMPFS").is_none(), "SOCIALFLOW_REQUIRE_TMPFS is set but mounting a tmpfs at {} failed", at.display());
+        ok.then(|| Self(at.to_path_buf()))
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg("-l").arg(&self.0).status();
+    }
+}
+
+/// Fills the file system of `dir` with `dir/<name>` until a write fails with "no space" (1 MiB
+/// writes, then 4 KiB ones for the rest).
+pub fn fill_disk(dir: &Path, name: &str) {
+    use std::io::Write;
+    let mut f = std::fs::File::create(dir.join(name)).expect("filler file");
+    for chunk in [1 << 20, 4096] {
+        let buf = vec![0xA5u8; chunk];
+        while f.write_all(&buf).and_then(|()| f.flush()).is_ok() {}
+    }
+    let _ = f.sync_all();
+}
+
+/// Moves the (stopped) learner's data directory `dir/data` to `dir/<to>`, as a restored backup or
+/// a volume mounted elsewhere would, and points its config there.
+pub fn move_data_dir(l: &Learner, dir: &Path, to: &str) {
+    let (from, to) = (dir.join("data"), dir.join(to));
+    std::fs::rename(&from, &to).expect("moving the data directory");
+    let cfg = std::fs::read_to_string(&l.cfg).expect("learner config");
+    std::fs::write(&l.cfg, cfg.replace(&format!("data_dir = \"{}\"", from.display()), &format!("data_dir = \"{}\"", to.display()))).expect("learner config");
 }
 
 pub fn start_worker(l: &Learner, dir: &Path, k: usize) -> Proc {

@@ -4,7 +4,7 @@
 //! set-up the service benchmarks use.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
@@ -125,22 +125,81 @@ pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
             }
             None => remote::submit(&mut c, text.clone()).await?,
         };
+        let inner = std::sync::Arc::clone(&emb.learner.inner);
         let watched = tokio::select! {
-            r = remote::watch(&mut c, job.id, a.quiet) => Some(r),
-            _ = sf_service::signal::terminate() => None,
+            r = remote::watch(&mut c, job.id, a.quiet) => Watched::Ended(r),
+            _ = sf_service::signal::terminate() => Watched::Interrupted,
+            cause = storage_fault(&inner) => Watched::StorageFault(cause),
         };
         emb.stop().await?;
-        let Some(r) = watched else {
-            eprintln!("interrupted: job {} is checkpointed; run the same command to resume", job.id);
-            return Ok(());
+        let checkpoint = checkpoint_line(Path::new(&job.artifact_dir));
+        let r = match watched {
+            Watched::Ended(r) => r,
+            Watched::Interrupted => {
+                eprintln!("interrupted: job {} {checkpoint}; run the same command to resume", job.id);
+                return Ok(());
+            }
+            Watched::StorageFault(cause) => {
+                bail!("job {} stopped: the data directory {} refuses writes ({cause}); job {} {checkpoint}; free space and run the same command to resume", job.id, a.data_dir.display(), job.id)
+            }
         };
         let (state, p) = r?;
-        println!("{}", json!({"job_id": job.id, "name": job.name, "state": state.as_str(), "artifact_dir": job.artifact_dir, "progress": p}));
+        let held_out = held_out(Path::new(&job.artifact_dir));
+        if let Some(h) = &held_out {
+            eprintln!("{}", held_out_table(h));
+        }
+        println!("{}", json!({"job_id": job.id, "name": job.name, "state": state.as_str(), "artifact_dir": job.artifact_dir, "progress": p, "held_out": held_out}));
         if state != JobState::Succeeded {
             bail!("job {} ended {}", job.id, state.as_str());
         }
         Ok(())
     })
+}
+
+/// How watching an embedded job ended.
+enum Watched {
+    Ended(Result<(JobState, sf_job::Progress)>),
+    Interrupted,
+    StorageFault(String),
+}
+
+/// Resolves with the cause once the embedded learner's data directory refuses writes.
+async fn storage_fault(inner: &sf_learner::Inner) -> String {
+    loop {
+        if let Some(cause) = inner.storage_fault() {
+            return cause;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}
+
+/// What a job's directory holds to resume from, as its `state.json` (written with each
+/// checkpoint) says: never a checkpoint that was not written.
+fn checkpoint_line(artifact_dir: &Path) -> String {
+    let state = std::fs::read_to_string(artifact_dir.join("state.json")).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
+    match state.as_ref().and_then(|v| Some((v["counters"]["env_steps"].as_u64()?, v["policy_version"].as_u64()?))) {
+        Some((steps, version)) if artifact_dir.join("checkpoint").exists() => format!("is checkpointed at {steps} environment steps (policy version {version})"),
+        _ => "has no checkpoint yet (it starts from the beginning)".to_string(),
+    }
+}
+
+/// The final policy's and the IDM driver's scores on the job's held-out validation cases (its
+/// `policy.json`, when the job has `[validation]`).
+fn held_out(artifact_dir: &Path) -> Option<serde_json::Value> {
+    let text = std::fs::read_to_string(artifact_dir.join("policy.json")).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let scores = |p: &serde_json::Value| json!({"success": p["success"], "collision": p["collision"], "speed": p["speed"]});
+    (v["validation"].is_object() && v["idm"].is_object()).then(|| json!({"episodes": v["validation"]["episodes"], "policy": scores(&v["validation"]), "idm": scores(&v["idm"])}))
+}
+
+/// [`held_out`] as a table for the terminal.
+fn held_out_table(h: &serde_json::Value) -> String {
+    let row = |name: &str, p: &serde_json::Value| {
+        let f = |k: &str| p[k].as_f64().map_or_else(|| "-".to_string(), |x| format!("{x:.3}"));
+        format!("  {name:<16} {:>8} {:>10} {:>7}", f("success"), f("collision"), f("speed"))
+    };
+    let head = format!("  {:<16} {:>8} {:>10} {:>7}", "", "success", "collision", "speed");
+    format!("the same {} held-out episodes (validation cases):\n{head}\n{}\n{}", h["episodes"], row("learned policy", &h["policy"]), row("IDM driver", &h["idm"]))
 }
 
 pub fn learner(a: sf_learner::cmd::LearnerArgs) -> Result<()> {

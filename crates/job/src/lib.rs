@@ -96,6 +96,23 @@ pub struct JobRecord {
     pub artifact_dir: String,
 }
 
+impl JobRecord {
+    /// The one way a job's state changes: to `to` (with `message`, where given) unless the job
+    /// is already in a final state, which never changes again, so a cancel that a job's end
+    /// races (or an end that a cancel races) keeps whichever was recorded first. Returns whether
+    /// the state changed.
+    pub fn advance(&mut self, to: JobState, message: Option<&str>) -> bool {
+        if self.state.is_final() {
+            return false;
+        }
+        self.state = to;
+        if let Some(m) = message {
+            self.message = m.to_string();
+        }
+        true
+    }
+}
+
 /// What a worker is told to do.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Assignment {
@@ -167,5 +184,31 @@ mod tests {
         let again: serde_json::Value = serde_json::to_value(p).expect("serialises");
         let old: serde_json::Value = serde_json::from_str(old).expect("json");
         assert_eq!(again, old, "the written layout is the old flat one");
+    }
+
+    /// A final state never changes; every other state moves to any state asked for.
+    #[test]
+    fn a_final_state_never_changes() {
+        use JobState::*;
+        let all = [Queued, Running, Succeeded, Failed, Cancelled];
+        for from in all {
+            for to in all {
+                let mut r = JobRecord {
+                    id: 1,
+                    name: "j".into(),
+                    state: from,
+                    config_toml: String::new(),
+                    message: "before".into(),
+                    created_unix_ms: 0,
+                    updated_unix_ms: 0,
+                    progress: Progress::default(),
+                    artifact_dir: String::new(),
+                };
+                let moved = r.advance(to, Some("after"));
+                assert_eq!(moved, !from.is_final(), "{from:?} -> {to:?}");
+                assert_eq!(r.state, if from.is_final() { from } else { to }, "{from:?} -> {to:?}");
+                assert_eq!(r.message, if from.is_final() { "before" } else { "after" }, "{from:?} -> {to:?}");
+            }
+        }
     }
 }

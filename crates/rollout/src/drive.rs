@@ -242,6 +242,7 @@ pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
         let mut acts = vec![Action::default(); v.alive().len()];
         for (rows, a, kind) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_action), (&d.background_rows[k], &d.background_actions[k], d.background_action)] {
             let dim = kind.dim();
+            assert_eq!(a.len(), rows.len() * dim, "{} action floats for {} rows of {kind:?} (alive {:?}, background {:?})", a.len(), rows.len(), d.alive_action, d.background_action);
             for (j, &r) in rows.iter().enumerate() {
                 // The IDM driver's action only where the kind adds to it.
                 let demo = kind.needs_demo().then(|| v.demo_action(r));
@@ -265,14 +266,35 @@ pub struct WarmupSegments {
     brake_prob: f32,
     lane_change_prob: f32,
     background: bool,
-    /// Per batch, per row: steps left and the value held, for braking and for lane changes.
-    brake: Vec<Vec<(u32, f32)>>,
-    lateral: Vec<Vec<(u32, f32)>>,
+    /// Per batch, per row: the braking and the lane-change segment.
+    brake: Vec<Vec<Held>>,
+    lateral: Vec<Vec<Held>>,
+}
+
+/// One row's warm-up segment: a value held for a number of steps.
+#[derive(Clone, Copy, Debug, Default)]
+struct Held {
+    left: u32,
+    value: f32,
+}
+
+impl Held {
+    /// Starts a segment with probability `prob` when none runs (`start` draws its length and
+    /// value) and returns the value held this step, if any.
+    fn step<R: Rng + ?Sized>(&mut self, prob: f32, rng: &mut R, start: impl FnOnce(&mut R) -> (u32, f32)) -> Option<f32> {
+        if self.left == 0 && prob > 0.0 && rng.random::<f32>() < prob {
+            (self.left, self.value) = start(rng);
+        }
+        (self.left > 0).then(|| {
+            self.left -= 1;
+            self.value
+        })
+    }
 }
 
 impl WarmupSegments {
     pub fn new(brake_prob: f32, lane_change_prob: f32, venvs: &[VecEnv]) -> Self {
-        let rows = || venvs.iter().map(|v| vec![(0, 0.0); v.alive().len()]).collect();
+        let rows = || venvs.iter().map(|v| vec![Held::default(); v.alive().len()]).collect();
         Self { brake_prob, lane_change_prob, background: false, brake: rows(), lateral: rows() }
     }
 
@@ -283,33 +305,22 @@ impl WarmupSegments {
     }
 
     /// Overrides the decided `alive` actions of rows in a segment (call between [`decide`]
-    /// and [`apply`]; the recorded action is then the one applied).
+    /// and [`apply`]; the recorded action is then the one applied): braking holds the first
+    /// action number at -1..-0.2 for 4-12 steps, a lane change the lateral one at +-1 for 8-20.
     pub fn overlay(&mut self, d: &mut Decision, rng: &mut impl Rng) {
         let (all_rows, all_actions, kind) = if self.background { (&d.background_rows, &mut d.background_actions, d.background_action) } else { (&d.alive_rows, &mut d.alive_actions, d.alive_action) };
         let dim = kind.dim();
-        let lateral = kind == sf_sim::DriveAction::IdmResidualLateral && self.lane_change_prob > 0.0;
+        let lateral = kind == sf_sim::DriveAction::IdmResidualLateral;
         for (k, (rows, actions)) in all_rows.iter().zip(all_actions.iter_mut()).enumerate() {
             for (j, &r) in rows.iter().enumerate() {
-                let (left, value) = &mut self.brake[k][r];
-                if *left == 0 && self.brake_prob > 0.0 && rng.random::<f32>() < self.brake_prob {
-                    *left = rng.random_range(4..=12);
-                    *value = rng.random_range(-1.0..-0.2);
-                }
-                if *left > 0 {
-                    *left -= 1;
-                    actions[j * dim] = *value;
+                if let Some(v) = self.brake[k][r].step(self.brake_prob, rng, |g| (g.random_range(4..=12), g.random_range(-1.0..-0.2))) {
+                    actions[j * dim] = v;
                 }
                 if !lateral {
                     continue;
                 }
-                let (left, value) = &mut self.lateral[k][r];
-                if *left == 0 && rng.random::<f32>() < self.lane_change_prob {
-                    *left = rng.random_range(8..=20);
-                    *value = if rng.random::<bool>() { 1.0 } else { -1.0 };
-                }
-                if *left > 0 {
-                    *left -= 1;
-                    actions[j * dim + 1] = *value;
+                if let Some(v) = self.lateral[k][r].step(self.lane_change_prob, rng, |g| (g.random_range(8..=20), if g.random::<bool>() { 1.0 } else { -1.0 })) {
+                    actions[j * dim + 1] = v;
                 }
             }
         }
@@ -320,8 +331,8 @@ impl WarmupSegments {
         for (k, v) in venvs.iter().enumerate() {
             for (r, st) in v.row_steps().iter().enumerate() {
                 if st.ended.is_some() {
-                    self.brake[k][r] = (0, 0.0);
-                    self.lateral[k][r] = (0, 0.0);
+                    self.brake[k][r] = Held::default();
+                    self.lateral[k][r] = Held::default();
                 }
             }
         }

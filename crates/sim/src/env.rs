@@ -136,12 +136,11 @@ pub struct Agent {
     /// where it is now (rate-limited, updated every sub-step). Zero for everyone else.
     lateral_target_m: f32,
     lateral_offset_m: f32,
-    /// The largest |lateral_m| seen at a decision step (a lane left: [`AgentOutcome::left_lane`]).
-    max_abs_lateral_m: f32,
+    /// Whether |lateral_m| has exceeded half its route's lane width at a decision step: it left
+    /// its lane ([`AgentOutcome::left_lane`]).
+    left_lane: bool,
     /// The case's speed cap for this vehicle (`CaseVehicle::max_speed_mps`), else the vehicle's.
     max_speed_mps: f32,
-    /// Its route's lane width.
-    lane_width_m: f32,
     collided: bool,
     /// IDM: bumper gap and leader speed along the route, updated every sub-step.
     leader: Option<(f32, f32)>,
@@ -175,7 +174,7 @@ impl Agent {
             termination: self.termination,
             speed_ratio: if self.steps > 0 { self.speed_ratio_sum / self.steps as f32 } else { 0.0 },
             steps: self.steps,
-            left_lane: self.max_abs_lateral_m > 0.5 * self.lane_width_m,
+            left_lane: self.left_lane,
         }
     }
 }
@@ -301,9 +300,8 @@ impl Env {
                 idm_accel_residual: None,
                 lateral_target_m: 0.0,
                 lateral_offset_m: 0.0,
-                max_abs_lateral_m: 0.0,
+                left_lane: false,
                 max_speed_mps: cv.max_speed_mps.map_or(self.cfg.vehicle.max_speed_mps, |v| v.min(self.cfg.vehicle.max_speed_mps)),
-                lane_width_m: route.width_m,
                 collided: false,
                 leader: None,
                 hist: vec![[state.x_m, state.y_m, state.theta_rad, 0.0]; h],
@@ -584,7 +582,7 @@ impl Env {
             a.seg = pr.seg;
             a.s_m = pr.s_m;
             a.lateral_m = pr.lateral_m;
-            a.max_abs_lateral_m = a.max_abs_lateral_m.max(pr.lateral_m.abs());
+            a.left_lane |= pr.lateral_m.abs() > 0.5 * route.width_m;
             let pos = a.state.pos();
             let in_zone = geom::point_in_polygon(pos, &map.zone);
             if in_zone {

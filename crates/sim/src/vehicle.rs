@@ -109,7 +109,7 @@ pub enum DriveAction {
     #[default]
     Direct,
     /// `[reference speed, steer]` added to the IDM driver's normalised action and clipped
-    /// (session 5's lever: cannot stop when IDM sees no leader, see the learning issue).
+    /// (tried 2026-11-22: it cannot stop when IDM sees no leader).
     IdmResidual,
     /// One number: a residual on the IDM driver's acceleration, moving it linearly to full
     /// braking at -1 and full acceleration at +1, with IDM's pure-pursuit steering. Zero is IDM

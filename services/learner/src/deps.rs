@@ -24,9 +24,15 @@ pub(crate) struct JobDeps {
     pub frozen: Vec<Frozen>,
     /// `frozen`'s final weights, in order, when the job validates (`[validation]`); else empty.
     pub frozen_weights: Vec<Arc<Vec<u8>>>,
-    /// `train.init_job`'s artifact directory: a continuation starts from its checkpoint's
-    /// critic and its final policy (`sf_sac::checkpoint::warm_start`).
-    pub init_dir: Option<PathBuf>,
+    /// `train.init_job`: a continuation starts from its checkpoint's critic and its final
+    /// policy (`sf_sac::checkpoint::warm_start`).
+    pub init: Option<InitDep>,
+}
+
+/// The finished job a continuation starts from: its id and artifact directory.
+pub(crate) struct InitDep {
+    pub job_id: u64,
+    pub dir: PathBuf,
 }
 
 impl crate::Inner {
@@ -36,14 +42,14 @@ impl crate::Inner {
         let mut frozen = Vec::new();
         // Each frozen policy's artifact directory, for validation's weights.
         let mut dirs: HashMap<u64, PathBuf> = HashMap::new();
-        let mut init_dir = None;
+        let mut init = None;
         for (role, dep) in cfg.deps() {
             let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup { dep, field: role.field(), source })?;
             if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
                 return Err(LearnerError::NoFinalPolicy { dep, field: role.field(), state: d.state.as_str() });
             }
             match role {
-                DepRole::Init => init_dir = Some(PathBuf::from(&d.artifact_dir)),
+                DepRole::Init => init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) }),
                 DepRole::Ego => {
                     dirs.insert(dep, PathBuf::from(&d.artifact_dir));
                     frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
@@ -75,7 +81,7 @@ impl crate::Inner {
                 frozen_weights.push(Arc::new(bytes?));
             }
         }
-        Ok(JobDeps { frozen, frozen_weights, init_dir })
+        Ok(JobDeps { frozen, frozen_weights, init })
     }
 }
 

@@ -127,6 +127,10 @@ pub enum LearnerError {
     Json(#[from] serde_json::Error),
     #[error(transparent)]
     Store(#[from] crate::store::StoreError),
+    /// The data directory refuses writes (`storage::StorageHealth`): nothing new is accepted
+    /// until it takes writes again.
+    #[error("the learner's data directory refuses writes ({cause}); try again when it has space")]
+    StorageFault { cause: String },
     /// A call into the learner's own handlers (job records) failed.
     #[error(transparent)]
     Service(#[from] ServiceError),
@@ -186,7 +190,7 @@ impl LearnerError {
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
             L::UnresolvedName { .. } | L::DeviceField(_) | L::ProbeInService { .. } => S::InvalidArgument,
-            L::ShuttingDown => S::Unavailable,
+            L::ShuttingDown | L::StorageFault { .. } | L::Store(crate::store::StoreError::Storage { .. }) => S::Unavailable,
             L::JobNotFound { .. } | L::WorkerNotRegistered { .. } | L::NoPolicyVersion { .. } | L::VersionGone { .. } => S::NotFound,
             L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => S::FailedPrecondition,
             L::NoCell { .. } => S::NotFound,

@@ -398,11 +398,10 @@ impl crate::Inner {
         })
         .await?;
         let store = Arc::clone(&self.store);
-        let root = self.cfg.data_dir.join("jobs");
         let name = cfg.name.clone();
         let target = cfg.episodes();
         let resolved = cfg.to_toml();
-        let rec = crate::blocking(move || store.create(&name, &resolved, target, |id| root.join(format!("{id}-{name}")).display().to_string())).await?;
+        let rec = crate::blocking(move || store.create(&name, &resolved, target)).await?;
         tracing::info!(job_id = rec.id, name = %rec.name, cells = cfg.cells().len(), "evaluation queued");
         self.keep_spec(rec.id, sf_job::JobSpec::Eval(cfg));
         self.wake.notify_one();
@@ -421,9 +420,7 @@ impl crate::Inner {
         self.slot.fill(crate::slot::Running::Eval(Arc::clone(&job)));
         let started = tokio::task::spawn_blocking(move || {
             store.update(id, |r| {
-                if !r.state.is_final() {
-                    r.state = JobState::Running
-                }
+                r.advance(JobState::Running, None);
             })
         })
         .await
@@ -494,7 +491,15 @@ impl crate::Inner {
                 return Err(LearnerError::NotEvaluating { job_id, state: rec.state.as_str() }.into());
             }
         };
-        Ok(tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(LearnerError::from)??)
+        match tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(LearnerError::from)? {
+            Ok(stored) => Ok(stored),
+            // The cell stays unstored (the worker sends it again); jobs wait for the disk.
+            Err(e) if crate::storage::is_storage_fault(&e) => {
+                self.storage.fault(&format!("storing cell {cell_id} of evaluation {job_id}: {e}"));
+                Err(LearnerError::StorageFault { cause: e.to_string() }.into())
+            }
+            Err(e) => Err(e.into()),
+        }
     }
 }
 

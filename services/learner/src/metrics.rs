@@ -45,6 +45,8 @@ pub struct LearnerMetrics {
     pub eval_episodes: Counter,
     pub eval_cells_pending: Gauge,
     pub eval_cells_reassigned: Counter,
+    pub storage_ok: Gauge,
+    pub storage_faults: Counter,
 }
 
 impl LearnerMetrics {
@@ -71,7 +73,11 @@ impl LearnerMetrics {
             eval_episodes: Counter::default(),
             eval_cells_pending: Gauge::default(),
             eval_cells_reassigned: Counter::default(),
+            storage_ok: Gauge::default(),
+            storage_faults: Counter::default(),
         };
+        reg.register("socialflow_learner_storage_ok", "1 while the data directory takes writes, 0 while it refuses them (full, read-only, failing)", m.storage_ok.clone());
+        reg.register("socialflow_learner_storage_faults", "Writes to the data directory refused by the disk (each attempt)", m.storage_faults.clone());
         reg.register("socialflow_learner_transitions_received", "Learner transitions accepted into replay", m.transitions_received.clone());
         reg.register("socialflow_learner_transitions_dropped", "Transitions dropped, by reason (stale: over the policy lag)", m.transitions_dropped.clone());
         reg.register("socialflow_learner_env_steps", "Vehicle decision steps simulated by workers", m.env_steps.clone());

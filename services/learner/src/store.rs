@@ -1,14 +1,23 @@
 //! The job store: an embedded redb database that survives restarts.
 //!
-//! Owns: [`Store`] (jobs by id as JSON records, the id counter). Every write is one committed
-//! transaction, so a crash leaves either the old or the new record. Calls block on disk IO:
-//! async code calls them through `spawn_blocking`. Must not: hold training state (checkpoints
-//! live in each job's artifact directory).
+//! Owns: [`Store`] (jobs by id as JSON records, the id counter) and where a job's artifact
+//! directory is: always `<data dir>/jobs/<id>-<name>`, stored relative to the data directory and
+//! read back against the directory the store is opened in, so a data directory that was moved or
+//! restored elsewhere keeps its jobs (stores written with absolute paths read the same way).
+//! Every write is one committed transaction, so a crash leaves either the old or the new record.
+//! Reads are served from the records this store has read or written (it is the file's only
+//! writer), so they keep working while the disk refuses writes; an I/O error that poisons the
+//! database is a [`StoreError::Storage`], and [`Store::reopen`] opens the file again once the
+//! disk takes writes. Calls block on disk IO: async code calls them through `spawn_blocking`.
+//! Must not: hold training state (checkpoints live in each job's artifact directory).
 
-use std::path::Path;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, RwLock};
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use sf_job::{now_unix_ms, JobRecord, JobState, Progress};
+use sf_service::sync::{lock, read, write};
 
 const JOBS: TableDefinition<u64, &[u8]> = TableDefinition::new("jobs");
 const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
@@ -17,37 +26,103 @@ const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 pub enum StoreError {
     #[error("job store {path}: {reason}")]
     Db { path: String, reason: String },
+    /// The disk refused a read or write (full, read-only, failing): nothing was changed, and
+    /// the database must be reopened ([`Store::reopen`]) once the disk takes writes again.
+    #[error("job store {path}: storage: {reason}")]
+    Storage { path: String, reason: String },
     #[error("job store record {id} is corrupt: {reason}")]
     Corrupt { id: u64, reason: String },
 }
 
 pub struct Store {
-    db: Database,
-    path: String,
+    /// `None` between a failed reopen and the next one.
+    db: RwLock<Option<Database>>,
+    path: PathBuf,
+    /// The data directory the artifact directories are read against.
+    data_dir: PathBuf,
+    /// Every record, as last committed.
+    records: Mutex<BTreeMap<u64, JobRecord>>,
+}
+
+/// Where job `id` (`name`) keeps its artifacts, relative to the data directory.
+fn relative_artifact_dir(id: u64, name: &str) -> PathBuf {
+    Path::new("jobs").join(format!("{id}-{name}"))
 }
 
 impl Store {
-    /// Opens (or creates) the database file.
-    pub fn open(path: &Path) -> Result<Self, StoreError> {
-        let p = path.display().to_string();
-        let db = Database::create(path).map_err(|e| StoreError::Db { path: p.clone(), reason: e.to_string() })?;
-        let s = Self { db, path: p };
-        let w = s.db.begin_write().map_err(|e| s.err(e))?;
-        {
-            w.open_table(JOBS).map_err(|e| s.err(e))?;
-            w.open_table(META).map_err(|e| s.err(e))?;
-        }
-        w.commit().map_err(|e| s.err(e))?;
+    /// Opens (or creates) the database file `path` of data directory `data_dir` and reads every
+    /// record.
+    pub fn open(path: &Path, data_dir: &Path) -> Result<Self, StoreError> {
+        let s = Self { db: RwLock::new(None), path: path.to_path_buf(), data_dir: data_dir.to_path_buf(), records: Mutex::new(BTreeMap::new()) };
+        s.reopen()?;
         Ok(s)
     }
 
-    fn err(&self, e: impl std::fmt::Display) -> StoreError {
-        StoreError::Db { path: self.path.clone(), reason: e.to_string() }
+    /// Opens the database file again (after a [`StoreError::Storage`]) and reads every record
+    /// back. On error the store stays closed: writes fail, reads keep answering.
+    pub fn reopen(&self) -> Result<(), StoreError> {
+        // Locks in the writers' order: the records, then the database.
+        let mut records = lock(&self.records);
+        let mut db = write(&self.db);
+        // The file is locked while open: the old handle goes first.
+        *db = None;
+        let fresh = Database::create(&self.path).map_err(|e| self.err(e))?;
+        let w = fresh.begin_write().map_err(|e| self.err(e))?;
+        {
+            w.open_table(JOBS).map_err(|e| self.err(e))?;
+            w.open_table(META).map_err(|e| self.err(e))?;
+        }
+        w.commit().map_err(|e| self.err(e))?;
+        let mut read_back = BTreeMap::new();
+        {
+            let r = fresh.begin_read().map_err(|e| self.err(e))?;
+            let t = r.open_table(JOBS).map_err(|e| self.err(e))?;
+            for item in t.iter().map_err(|e| self.err(e))? {
+                let (k, v) = item.map_err(|e| self.err(e))?;
+                read_back.insert(k.value(), self.decode(k.value(), v.value())?);
+            }
+        }
+        *records = read_back;
+        *db = Some(fresh);
+        Ok(())
     }
 
-    /// Creates a queued job with the next id; `artifact_dir(id)` names its directory.
-    pub fn create(&self, name: &str, config_toml: &str, target_env_steps: u64, artifact_dir: impl Fn(u64) -> String) -> Result<JobRecord, StoreError> {
-        let w = self.db.begin_write().map_err(|e| self.err(e))?;
+    fn err(&self, e: impl Into<redb::Error>) -> StoreError {
+        let (path, e) = (self.path.display().to_string(), e.into());
+        match e {
+            redb::Error::Io(_) | redb::Error::PreviousIo | redb::Error::DatabaseClosed => StoreError::Storage { path, reason: e.to_string() },
+            _ => StoreError::Db { path, reason: e.to_string() },
+        }
+    }
+
+    /// A write transaction on the open database.
+    fn begin_write(&self) -> Result<redb::WriteTransaction, StoreError> {
+        match &*read(&self.db) {
+            Some(db) => db.begin_write().map_err(|e| self.err(e)),
+            None => Err(StoreError::Storage { path: self.path.display().to_string(), reason: "closed after a storage error; it reopens when the disk takes writes".into() }),
+        }
+    }
+
+    /// A stored record with its artifact directory under this store's data directory, whatever
+    /// the record says (a relative path, or an absolute one from where the data lived before).
+    fn decode(&self, id: u64, bytes: &[u8]) -> Result<JobRecord, StoreError> {
+        let mut rec: JobRecord = serde_json::from_slice(bytes).map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?;
+        rec.artifact_dir = self.data_dir.join(relative_artifact_dir(rec.id, &rec.name)).display().to_string();
+        Ok(rec)
+    }
+
+    /// The bytes stored for `rec`: its artifact directory relative to the data directory.
+    fn encode(rec: &JobRecord) -> Vec<u8> {
+        let stored = JobRecord { artifact_dir: relative_artifact_dir(rec.id, &rec.name).display().to_string(), ..rec.clone() };
+        serde_json::to_vec(&stored).expect("job records serialise")
+    }
+
+    /// Creates a queued job with the next id, its artifact directory `<data dir>/jobs/<id>-<name>`.
+    pub fn create(&self, name: &str, config_toml: &str, target_env_steps: u64) -> Result<JobRecord, StoreError> {
+        // The records' lock is held across the transaction: writes happen one at a time and
+        // the kept records are always the committed ones.
+        let mut records = lock(&self.records);
+        let w = self.begin_write()?;
         let rec;
         {
             let mut meta = w.open_table(META).map_err(|e| self.err(e))?;
@@ -63,59 +138,40 @@ impl Store {
                 created_unix_ms: now,
                 updated_unix_ms: now,
                 progress: Progress { target_env_steps, ..Progress::default() },
-                artifact_dir: artifact_dir(id),
+                artifact_dir: self.data_dir.join(relative_artifact_dir(id, name)).display().to_string(),
             };
-            let bytes = serde_json::to_vec(&rec).expect("job records serialise");
+            let bytes = Self::encode(&rec);
             w.open_table(JOBS).map_err(|e| self.err(e))?.insert(id, bytes.as_slice()).map_err(|e| self.err(e))?;
         }
         w.commit().map_err(|e| self.err(e))?;
+        records.insert(rec.id, rec.clone());
         Ok(rec)
     }
 
     pub fn get(&self, id: u64) -> Result<Option<JobRecord>, StoreError> {
-        let r = self.db.begin_read().map_err(|e| self.err(e))?;
-        let t = r.open_table(JOBS).map_err(|e| self.err(e))?;
-        match t.get(id).map_err(|e| self.err(e))? {
-            None => Ok(None),
-            Some(g) => serde_json::from_slice(g.value()).map(Some).map_err(|e| StoreError::Corrupt { id, reason: e.to_string() }),
-        }
+        Ok(lock(&self.records).get(&id).cloned())
     }
 
     /// Every job, oldest first.
     pub fn list(&self) -> Result<Vec<JobRecord>, StoreError> {
-        let r = self.db.begin_read().map_err(|e| self.err(e))?;
-        let t = r.open_table(JOBS).map_err(|e| self.err(e))?;
-        let mut out = Vec::new();
-        for item in t.iter().map_err(|e| self.err(e))? {
-            let (k, v) = item.map_err(|e| self.err(e))?;
-            let id = k.value();
-            out.push(serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?);
-        }
-        Ok(out)
+        Ok(lock(&self.records).values().cloned().collect())
     }
 
     /// Applies `f` to the stored record in one transaction and returns the result; `None` if
-    /// the job does not exist. `updated_unix_ms` is set.
+    /// the job does not exist. `updated_unix_ms` is set. On error nothing changed.
     pub fn update(&self, id: u64, f: impl FnOnce(&mut JobRecord)) -> Result<Option<JobRecord>, StoreError> {
-        let w = self.db.begin_write().map_err(|e| self.err(e))?;
-        let out;
-        {
-            let mut t = w.open_table(JOBS).map_err(|e| self.err(e))?;
-            let cur: Option<JobRecord> = match t.get(id).map_err(|e| self.err(e))? {
-                None => None,
-                Some(g) => Some(serde_json::from_slice(g.value()).map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?),
-            };
-            let Some(mut rec) = cur else {
-                return Ok(None);
-            };
-            f(&mut rec);
-            rec.updated_unix_ms = now_unix_ms();
-            let bytes = serde_json::to_vec(&rec).expect("job records serialise");
-            t.insert(id, bytes.as_slice()).map_err(|e| self.err(e))?;
-            out = rec;
-        }
+        let mut records = lock(&self.records);
+        let Some(mut rec) = records.get(&id).cloned() else {
+            return Ok(None);
+        };
+        let w = self.begin_write()?;
+        f(&mut rec);
+        rec.updated_unix_ms = now_unix_ms();
+        let bytes = Self::encode(&rec);
+        w.open_table(JOBS).map_err(|e| self.err(e))?.insert(id, bytes.as_slice()).map_err(|e| self.err(e))?;
         w.commit().map_err(|e| self.err(e))?;
-        Ok(Some(out))
+        records.insert(id, rec.clone());
+        Ok(Some(rec))
     }
 }
 
@@ -130,10 +186,11 @@ mod tests {
         std::fs::create_dir_all(&dir).expect("tmp");
         let path = dir.join("jobs.redb");
         {
-            let s = Store::open(&path).expect("open");
-            let a = s.create("a", "cfg-a", 10, |id| format!("jobs/{id}")).expect("create");
-            let b = s.create("b", "cfg-b", 20, |id| format!("jobs/{id}")).expect("create");
+            let s = Store::open(&path, &dir).expect("open");
+            let a = s.create("a", "cfg-a", 10).expect("create");
+            let b = s.create("b", "cfg-b", 20).expect("create");
             assert_eq!((a.id, b.id), (1, 2));
+            assert_eq!(Path::new(&b.artifact_dir), dir.join("jobs/2-b"));
             s.update(1, |r| {
                 r.state = JobState::Running;
                 r.progress.learning.updates = 5;
@@ -141,13 +198,44 @@ mod tests {
             .expect("update");
             assert!(s.update(99, |_| {}).expect("update").is_none());
         }
-        let s = Store::open(&path).expect("reopen");
+        let s = Store::open(&path, &dir).expect("reopen");
         let all = s.list().expect("list");
         assert_eq!(all.len(), 2);
         assert_eq!(all[0].state, JobState::Running);
         assert_eq!(all[0].progress.learning.updates, 5);
         assert_eq!(all[1].config_toml, "cfg-b");
-        assert_eq!(s.create("c", "x", 1, |id| id.to_string()).expect("create").id, 3);
+        assert_eq!(s.create("c", "x", 1).expect("create").id, 3);
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A data directory moved elsewhere keeps its jobs' artifact directories, including a store
+    /// written before paths were relative (an absolute path to where the data used to be).
+    #[test]
+    fn a_moved_data_directory_finds_its_artifacts_where_it_is_now() {
+        let base = std::env::temp_dir().join(format!("sf-store-moved-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let (old, new) = (base.join("old"), base.join("new"));
+        std::fs::create_dir_all(&old).expect("tmp");
+        {
+            let s = Store::open(&old.join("jobs.redb"), &old).expect("open");
+            s.create("kept", "cfg", 10).expect("create");
+            // A record as stores wrote it before: the absolute path of the old directory.
+            let legacy = JobRecord { artifact_dir: old.join("jobs/2-legacy").display().to_string(), ..s.create("legacy", "cfg", 10).expect("create") };
+            let w = s.begin_write().expect("write");
+            w.open_table(JOBS).expect("table").insert(2, serde_json::to_vec(&legacy).expect("json").as_slice()).expect("insert");
+            w.commit().expect("commit");
+        }
+        std::fs::rename(&old, &new).expect("move the data directory");
+        let s = Store::open(&new.join("jobs.redb"), &new).expect("open the moved store");
+        let dirs: Vec<PathBuf> = s.list().expect("list").iter().map(|r| PathBuf::from(&r.artifact_dir)).collect();
+        assert_eq!(dirs, vec![new.join("jobs/1-kept"), new.join("jobs/2-legacy")]);
+        let updated = s.update(2, |r| r.message = "touched".into()).expect("update").expect("job 2");
+        assert_eq!(Path::new(&updated.artifact_dir), new.join("jobs/2-legacy"));
+        // What is stored now is relative to the data directory.
+        let db = read(&s.db);
+        let r = db.as_ref().expect("open").begin_read().expect("read");
+        let raw: JobRecord = serde_json::from_slice(r.open_table(JOBS).expect("table").get(2).expect("get").expect("job 2").value()).expect("json");
+        assert_eq!(raw.artifact_dir, "jobs/2-legacy");
+        let _ = std::fs::remove_dir_all(&base);
     }
 }

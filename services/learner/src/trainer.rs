@@ -34,6 +34,7 @@ use sf_sac::{checkpoint, Batch, Losses, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
 
+use crate::deps::InitDep;
 use crate::error::LearnerError;
 use crate::job::{ActiveJob, Counters, StopReason};
 use crate::validation::{BestPolicy, ValidationPoint, Validator};
@@ -46,6 +47,9 @@ pub enum Outcome {
     Cancelled,
     /// Learner shutdown: checkpoint written, the job stays RUNNING and resumes on next start.
     Shutdown,
+    /// The disk refused a write (`storage::is_storage_fault`): the job stays RUNNING at its last
+    /// good checkpoint and resumes from it when the disk takes writes again.
+    Paused(String),
     Failed(String),
 }
 
@@ -87,9 +91,9 @@ pub struct TrainerInput {
     pub segs: Vec<Arc<MapSegments>>,
     pub dir: PathBuf,
     pub resume: Option<JobState>,
-    /// `train.init_job`'s artifact directory: its checkpoint and final policy are the SAC
-    /// state a fresh job starts from.
-    pub init_dir: Option<PathBuf>,
+    /// `train.init_job`: its checkpoint and final policy are the SAC state a fresh job starts
+    /// from.
+    pub(crate) init: Option<InitDep>,
     /// With `[validation]`: the final weights of the job's frozen policies (`job.frozen`, in
     /// order), which validation episodes run with. Empty otherwise.
     pub frozen_weights: Vec<Arc<Vec<u8>>>,
@@ -99,18 +103,19 @@ pub struct TrainerInput {
 pub fn run(input: TrainerInput) -> Outcome {
     match train(input) {
         Ok(o) => o,
+        Err(e) if crate::storage::is_storage_fault(&e) => Outcome::Paused(e.to_string()),
         Err(e) => Outcome::Failed(e.to_string()),
     }
 }
 
 fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
-    let TrainerInput { job, maps, segs, dir, resume, init_dir, frozen_weights } = input;
+    let TrainerInput { job, maps, segs, dir, resume, init, frozen_weights } = input;
     let cfg = &job.cfg;
     let resolved = setup::resolve(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
     let mut sac = Sac::new(resolved.sac.clone(), resolved.net.clone(), resolved.obs.clone(), resolved.sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
     let mut st = resume.unwrap_or_default();
-    let resumed = start_state(&job, &mut sac, &dir, init_dir.as_deref(), &st)?;
+    let resumed = start_state(&job, &mut sac, &dir, init.as_ref(), &st)?;
     std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
     // The replay comes back before the first policy is published, i.e. before any worker
@@ -187,7 +192,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     }
     save(&job, &sac, &dir, &mut st, publisher.version, &mut persist)?;
     if outcome == Outcome::Succeeded {
-        let weights = write_final_policy(&job, &sac, validator.as_ref().map(|(_, best)| best), &dir)?;
+        let weights = write_final_policy(&job, &sac, validator.as_mut(), &dir)?;
         if let Some(c) = cfg.coordinator() {
             fit_coordinator(&job, &maps, &segs, &resolved, &c, &weights, &dir)?;
         }
@@ -199,16 +204,15 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
 /// returns true), else `train.init_job`'s last checkpoint with its final policy as the actor
 /// (the actor its adversary attacked: `sf_sac::checkpoint::warm_start`) when it names one, else
 /// fresh weights.
-fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init_dir: Option<&Path>, st: &JobState) -> Result<bool, LearnerError> {
+fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init: Option<&InitDep>, st: &JobState) -> Result<bool, LearnerError> {
     let ckpt = dir.join("checkpoint");
     if ckpt.exists() {
         checkpoint::restore(sac, &ckpt).map_err(|source| LearnerError::Checkpoint { action: "restoring", path: ckpt.clone(), source })?;
         tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
         return Ok(true);
     }
-    if let Some(init) = init_dir {
-        let policy = init.join("policy.bpk");
-        let kept = std::fs::read(&policy).map_err(|source| LearnerError::Io { action: "reading", path: policy.clone(), source })?;
+    if let Some(InitDep { job_id, dir: init }) = init {
+        let kept = crate::deps::read_final(init, *job_id, "policy.bpk")?;
         let ckpt = init.join("checkpoint");
         checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source })?;
         tracing::info!(job_id = job.id, from = %init.display(), "started from another job's critic and final policy");
@@ -358,15 +362,20 @@ impl CurveRecorder {
 }
 
 /// Writes the job's final policy (`policy.bpk`, `policy.json`) and returns its weights: the
-/// best validated actor with `[validation]`, else the averaged actor with
+/// best validated actor with `[validation]` (`policy.json` then has its validation point and,
+/// as `idm`, the IDM driver's on the same held-out cases), else the averaged actor with
 /// `sac.actor_average_tau`, else the version just published. `policy.json`'s `version` names
 /// the job's final policy either way.
-fn write_final_policy(job: &ActiveJob, sac: &Sac, best: Option<&BestPolicy>, dir: &Path) -> Result<Vec<u8>, LearnerError> {
+fn write_final_policy(job: &ActiveJob, sac: &Sac, validator: Option<&mut (Validator, BestPolicy)>, dir: &Path) -> Result<Vec<u8>, LearnerError> {
     let last = job.latest().ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: PolicyRequest::Latest })?;
-    let (weights, meta) = match best.map(BestPolicy::take).transpose()?.flatten() {
-        Some((bytes, p)) => {
-            tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, last_updates = sac.updates, "final policy: the best validated actor");
-            (bytes, serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p}))
+    let validated = match validator {
+        Some((v, best)) => best.take()?.map(|kept| Ok::<_, LearnerError>((kept, v.score_idm()?))).transpose()?,
+        None => None,
+    };
+    let (weights, meta) = match validated {
+        Some(((bytes, p), idm)) => {
+            tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, idm_success = idm.scores.success, last_updates = sac.updates, "final policy: the best validated actor");
+            (bytes, serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p, "idm": idm}))
         }
         None if sac.actor_avg.is_some() => {
             let bytes = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the averaged actor", source })?;

@@ -124,17 +124,31 @@ impl Validator {
 
     /// Scores the actor `weights` (mean action) on every scenario's cases.
     pub fn score(&mut self, weights: &[u8], updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
-        let t = std::time::Instant::now();
         let policy = Policy { key: format!("validation@{updates}"), cfg: self.cfg.clone(), weights: Arc::new(weights.to_vec()), svo_gaussians: Vec::new() };
-        let ego = EgoDef::Learned(policy.clone());
+        let (flow, ego) = match &self.flow {
+            Some(flow) => (flow.clone(), Some(EgoDef::Learned(policy.clone()))),
+            None => (FlowDef::learned(policy.clone(), None), None),
+        };
+        let point = self.run(&flow, ego.as_ref(), updates, env_steps);
+        self.runners.forget(&policy.key);
+        point
+    }
+
+    /// The IDM driver in the job's seat on the same cases, the score a learned policy is read
+    /// against: an ego job's IDM ego among its flow, a flow job's all-IDM flow.
+    pub fn score_idm(&mut self) -> Result<ValidationPoint, LearnerError> {
+        let (flow, ego) = match &self.flow {
+            Some(flow) => (flow.clone(), Some(EgoDef::Idm)),
+            None => (FlowDef::Idm, None),
+        };
+        self.run(&flow, ego.as_ref(), 0, 0)
+    }
+
+    fn run(&mut self, flow: &FlowDef, ego: Option<&EgoDef>, updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
+        let t = std::time::Instant::now();
         let mut rows = Vec::new();
         for (map, cases) in &self.cases {
-            let run = match &self.flow {
-                Some(flow) => evaluate::run_cases(map, cases, 1, self.section.envs, flow, Some(&ego), &mut self.runners),
-                None => evaluate::run_cases(map, cases, 1, self.section.envs, &FlowDef::learned(policy.clone(), None), None, &mut self.runners),
-            };
-            self.runners.forget(&policy.key);
-            rows.extend(run?);
+            rows.extend(evaluate::run_cases(map, cases, 1, self.section.envs, flow, ego, &mut self.runners)?);
         }
         let n = rows.len().max(1) as f32;
         let mean = |f: fn(&sf_job::eval::EvalEpisode) -> f32| rows.iter().map(f).sum::<f32>() / n;

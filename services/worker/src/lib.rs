@@ -1,4 +1,4 @@
-//! A stateless rollout worker.
+//! A rollout worker that keeps no training state.
 //!
 //! Owns: the worker's session loop ([`run`]): connect, register, take an assignment, fetch the
 //! policy, stream transitions, follow new policy versions, and start over with bounded backoff
@@ -9,7 +9,9 @@
 //! adder) and `stream` (`PushTransitions` and its acknowledgements); an evaluation job's cells
 //! ([`evalcell`]), one per assignment. Simulation and inference run on a dedicated rollout
 //! thread or a blocking task (evaluation); the async side only moves bytes. Every unary call
-//! has a deadline. Must not: keep state across sessions (everything comes from the learner).
+//! has a deadline. What outlives one job: its config and name, metrics and its registration
+//! (worker id, heartbeat interval), dropped after an error. Must not: keep a job, a policy or
+//! transitions across sessions, or write to disk (everything comes from the learner).
 
 mod assignment;
 pub mod cmd;

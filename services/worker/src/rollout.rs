@@ -16,7 +16,7 @@ pub use writer::Credits;
 use writer::TransitionWriter;
 
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use rand::SeedableRng;
@@ -203,17 +203,17 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
             (Some(r), false) => Some(r),
             _ => None,
         };
+        // The job's own policy plays its role (in the warm-up too with `warmup_policy =
+        // "policy"`); frozen policies the others.
+        let Some(own) = own_actor(job.sac.warmup_policy, acting, runner.as_ref(), warm_actor) else {
+            // A continuation's warm-up waits for its policy rather than act otherwise.
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        };
         let acted_by = acting.map_or(ActedBy::Warmup, |r| sf_proto::acted_by_from_wire(r.version));
         if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
-        // The job's own policy plays its role (in the warm-up too with `warmup_policy =
-        // "policy"`); frozen policies the others.
-        let own = match (acting, &runner) {
-            (Some(r), _) => Actor::sampled(r),
-            (None, Some(r)) if job.sac.warmup_policy == WarmupPolicy::Policy => Actor::sampled(r),
-            _ => warm_actor,
-        };
         let (f_bg, f_ego, f_adv) = (frozen.background.as_ref().map(Actor::sampled), frozen.ego.as_ref().map(Actor::sampled), frozen.adversary.as_ref().map(Actor::sampled));
         let drivers = seat.drivers(own, f_bg, f_ego, f_adv);
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
@@ -267,6 +267,18 @@ fn envs(spec: &RolloutSpec, sim: &Arc<SimConfig>, mode: Mode) -> Vec<VecEnv> {
     venvs
 }
 
+/// Who plays the job's own role this step: its policy once the warm-up is over (`acting`); in
+/// the warm-up `warm` (the IDM demonstrator, or random actions), or with `warmup_policy =
+/// "policy"` the policy itself, and `None` (wait) while that policy has not arrived: its
+/// warm-up must not fall back to actions of another kind.
+fn own_actor<'a>(warmup_policy: WarmupPolicy, acting: Option<&'a PolicyRunner>, runner: Option<&'a PolicyRunner>, warm: Actor<'a>) -> Option<Actor<'a>> {
+    match (acting, runner, warmup_policy) {
+        (Some(r), _, _) | (None, Some(r), WarmupPolicy::Policy) => Some(Actor::sampled(r)),
+        (None, None, WarmupPolicy::Policy) => None,
+        _ => Some(warm),
+    }
+}
+
 /// The frozen policies' actors, by role.
 struct FrozenRunners {
     background: Option<PolicyRunner>,
@@ -289,5 +301,21 @@ impl FrozenRunners {
             } = Some(runner);
         }
         Ok(runners)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A continuation warming up with its policy waits for that policy: before it arrives
+    /// nothing else may act in its place (a random actor is the paper's direct action, which
+    /// a one-number residual job cannot record). Other warm-ups act with their warm actor.
+    #[test]
+    fn a_policy_warm_up_waits_for_its_policy() {
+        let demo = Actor::Demo { noise: 0.1, action: sf_sim::DriveAction::IdmAccelResidual };
+        assert!(own_actor(WarmupPolicy::Policy, None, None, demo).is_none());
+        assert!(matches!(own_actor(WarmupPolicy::Idm, None, None, demo), Some(Actor::Demo { .. })));
+        assert!(matches!(own_actor(WarmupPolicy::Random, None, None, Actor::Random { dim: 2 }), Some(Actor::Random { dim: 2 })));
     }
 }
