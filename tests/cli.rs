@@ -13,7 +13,22 @@ fn json_of(out: &std::process::Output) -> serde_json::Value {
 
 #[test]
 fn bench_sim_prints_the_contract_fields() {
-    let v = json_of(&socialflow(&["bench", "sim", "--scenario", "roundabout", "--vehicles", "12", "--seconds", "0.5", "--threads", "1", "--json"], T));
+    let v = json_of(&socialflow(
+        &[
+            "bench",
+            "sim",
+            "--scenario",
+            "roundabout",
+            "--vehicles",
+            "12",
+            "--seconds",
+            "0.5",
+            "--threads",
+            "1",
+            "--json",
+        ],
+        T,
+    ));
     for k in ["scenario", "vehicles", "threads", "agent_steps_per_s", "env_steps_per_s"] {
         assert!(v.get(k).is_some(), "missing {k} in {v}");
     }
@@ -24,14 +39,31 @@ fn bench_sim_prints_the_contract_fields() {
 
 #[test]
 fn eval_flow_reports_metrics_with_intervals() {
-    let v = json_of(&socialflow(&["eval-flow", "--flow", "idm", "--scenario", "merge", "--cases", "6", "--seeds", "2", "--json"], T));
+    let v = json_of(&socialflow(
+        &[
+            "eval-flow",
+            "--flow",
+            "idm",
+            "--scenario",
+            "merge",
+            "--cases",
+            "6",
+            "--seeds",
+            "2",
+            "--json",
+        ],
+        T,
+    ));
     assert_eq!(v["episodes"], 12);
     for k in ["success", "safety", "speed"] {
         let m = v[k]["mean"].as_f64().expect("mean");
         let ci = v[k]["ci95"].as_f64().expect("ci95");
         assert!((0.0..=1.0).contains(&m) && ci >= 0.0, "{k}: {m} +- {ci}");
     }
-    assert!(v["safety"]["mean"].as_f64() >= v["success"]["mean"].as_f64(), "success implies safety");
+    assert!(
+        v["safety"]["mean"].as_f64() >= v["success"]["mean"].as_f64(),
+        "success implies safety"
+    );
 }
 
 #[test]
@@ -42,10 +74,42 @@ fn render_writes_gif_and_png() {
     let png = dir.join("frame.png");
     let g = gif.to_string_lossy().to_string();
     let p = png.to_string_lossy().to_string();
-    let out = socialflow(&["render", "--scenario", "intersection", "--flow", "idm", "--case", "3", "--seed", "0", "--out", &g, "--size", "200"], T);
+    let out = socialflow(
+        &[
+            "render",
+            "--scenario",
+            "intersection",
+            "--flow",
+            "idm",
+            "--case",
+            "3",
+            "--seed",
+            "0",
+            "--out",
+            &g,
+            "--size",
+            "200",
+        ],
+        T,
+    );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(std::fs::read(&gif).expect("gif").starts_with(b"GIF89a"));
-    let out = socialflow(&["render", "--scenario", "merge", "--case", "1", "--step", "5", "--out", &p, "--size", "200"], T);
+    let out = socialflow(
+        &[
+            "render",
+            "--scenario",
+            "merge",
+            "--case",
+            "1",
+            "--step",
+            "5",
+            "--out",
+            &p,
+            "--size",
+            "200",
+        ],
+        T,
+    );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(std::fs::read(&png).expect("png").starts_with(b"\x89PNG"));
     let _ = std::fs::remove_dir_all(&dir);
@@ -53,7 +117,10 @@ fn render_writes_gif_and_png() {
 
 #[test]
 fn bad_inputs_fail_with_a_message_naming_the_problem() {
-    let out = socialflow(&["eval-flow", "--flow", "idm", "--scenario", "highway", "--cases", "1", "--seeds", "1"], T);
+    let out = socialflow(
+        &["eval-flow", "--flow", "idm", "--scenario", "highway", "--cases", "1", "--seeds", "1"],
+        T,
+    );
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("unknown scenario `highway`") && err.contains("roundabout"), "{err}");
@@ -61,17 +128,39 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
     // A scenario directory whose merge file has a broken route.
     let dir = std::env::temp_dir().join(format!("sf-e2e-bad-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("tmp");
-    let good = std::fs::read_to_string(socialflow_e2e::repo().join("configs/scenarios/merge.json")).expect("merge");
+    let good = std::fs::read_to_string(socialflow_e2e::repo().join("configs/scenarios/merge.json"))
+        .expect("merge");
     let mut v: serde_json::Value = serde_json::from_str(&good).expect("json");
     v["routes"][1]["lanes"][0] = serde_json::json!(4242);
     std::fs::write(dir.join("merge.json"), v.to_string()).expect("write");
     let d = dir.to_string_lossy().to_string();
-    let out = socialflow(&["--scenarios", &d, "eval-flow", "--flow", "idm", "--scenario", "merge", "--cases", "1", "--seeds", "1"], T);
+    let out = socialflow(
+        &[
+            "--scenarios",
+            &d,
+            "eval-flow",
+            "--flow",
+            "idm",
+            "--scenario",
+            "merge",
+            "--cases",
+            "1",
+            "--seeds",
+            "1",
+        ],
+        T,
+    );
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("merge.json") && err.contains("routes[1].lanes[0]") && err.contains("4242"), "{err}");
+    assert!(
+        err.contains("merge.json") && err.contains("routes[1].lanes[0]") && err.contains("4242"),
+        "{err}"
+    );
 
-    let out = socialflow(&["eval-flow", "--flow", "macad", "--scenario", "merge", "--cases", "1", "--seeds", "1"], T);
+    let out = socialflow(
+        &["eval-flow", "--flow", "macad", "--scenario", "merge", "--cases", "1", "--seeds", "1"],
+        T,
+    );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("needs a trained policy"));
     let _ = std::fs::remove_dir_all(&dir);
@@ -79,7 +168,10 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
 
 #[test]
 fn bench_sac_prints_the_contract_fields() {
-    let v = json_of(&socialflow(&["bench", "sac", "--size", "default", "--seconds", "0.5", "--batch", "32", "--json"], T));
+    let v = json_of(&socialflow(
+        &["bench", "sac", "--size", "default", "--seconds", "0.5", "--batch", "32", "--json"],
+        T,
+    ));
     for k in ["size", "batch", "updates_per_s", "inference_obs_per_s"] {
         assert!(v.get(k).is_some(), "missing {k} in {v}");
     }
@@ -96,7 +188,8 @@ fn plot_curves_overlays_runs_and_names_a_missing_column() {
     std::fs::write(&a, "env_steps,updates,success\n0,0,0.2\n100,10,0.5\n").expect("a");
     std::fs::write(&b, "env_steps,updates,success\n0,0,0.1\n100,10,0.9\n").expect("b");
     let png = dir.join("out.png");
-    let (ra, rb, o) = (format!("a={}", a.display()), format!("b={}", b.display()), png.display().to_string());
+    let (ra, rb, o) =
+        (format!("a={}", a.display()), format!("b={}", b.display()), png.display().to_string());
     let out = socialflow(&["plot-curves", &ra, &rb, "--out", &o], T);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(std::fs::read(&png).expect("png").starts_with(b"\x89PNG"));
@@ -109,7 +202,11 @@ fn plot_curves_overlays_runs_and_names_a_missing_column() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("must be NAME=PATH"));
     // A validation.csv (updates first) by updates; a curve without the x column is named.
     let v = dir.join("validation.csv");
-    std::fs::write(&v, "updates,env_steps,episodes,success\n1000,19000,200,0.6\n2000,23000,200,0.8\n").expect("v");
+    std::fs::write(
+        &v,
+        "updates,env_steps,episodes,success\n1000,19000,200,0.6\n2000,23000,200,0.8\n",
+    )
+    .expect("v");
     let rv = format!("v={}", v.display());
     let _ = std::fs::remove_file(&png);
     let out = socialflow(&["plot-curves", &rv, "--x", "updates", "--out", &o], T);
@@ -127,9 +224,21 @@ fn plot_curves_overlays_runs_and_names_a_missing_column() {
 fn train_runs_a_job_embedded_and_writes_its_artifacts() {
     let dir = socialflow_e2e::scratch("train");
     let cfg = dir.join("tiny.toml");
-    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny", 1000)).expect("config");
+    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny", 1000))
+        .expect("config");
     let data = dir.join("data");
-    let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &data.display().to_string(), "--quiet"], T));
+    let v = json_of(&socialflow(
+        &[
+            "train",
+            &cfg.display().to_string(),
+            "--workers",
+            "2",
+            "--data-dir",
+            &data.display().to_string(),
+            "--quiet",
+        ],
+        T,
+    ));
     assert_eq!(v["state"], "succeeded");
     assert_eq!(v["progress"]["env_steps"], 1000);
     assert!(v["progress"]["updates"].as_u64().unwrap_or(0) > 20, "{v}");
@@ -152,27 +261,54 @@ fn train_stops_on_a_full_disk_with_the_cause_and_resumes_after() {
         return;
     };
     let cfg = dir.join("tiny.toml");
-    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-full", 2500)).expect("config");
-    let args: Vec<String> = ["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &data.display().to_string(), "--quiet"].map(String::from).to_vec();
+    std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-full", 2500))
+        .expect("config");
+    let args: Vec<String> = [
+        "train",
+        &cfg.display().to_string(),
+        "--workers",
+        "2",
+        "--data-dir",
+        &data.display().to_string(),
+        "--quiet",
+    ]
+    .map(String::from)
+    .to_vec();
     let run = {
         let args = args.clone();
-        std::thread::spawn(move || socialflow(&args.iter().map(String::as_str).collect::<Vec<_>>(), 4 * T))
+        std::thread::spawn(move || {
+            socialflow(&args.iter().map(String::as_str).collect::<Vec<_>>(), 4 * T)
+        })
     };
     let state = data.join("jobs/1-tiny-full/state.json");
-    let read_state = || serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&state).ok()?).ok();
-    socialflow_e2e::wait_for("a checkpoint", 4 * T, || read_state().filter(|v| v["counters"]["env_steps"].as_u64().is_some_and(|n| n > 400)));
+    let read_state =
+        || serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&state).ok()?).ok();
+    socialflow_e2e::wait_for("a checkpoint", 4 * T, || {
+        read_state().filter(|v| v["counters"]["env_steps"].as_u64().is_some_and(|n| n > 400))
+    });
     socialflow_e2e::fill_disk(&data, "filler");
     let out = run.join().expect("the train thread");
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "train must fail on a full disk: {err}");
     assert!(err.contains("refuses writes") && err.contains("No space left on device"), "{err}");
     let steps = read_state().and_then(|v| v["counters"]["env_steps"].as_u64()).expect("state.json");
-    assert!(err.contains(&format!("is checkpointed at {steps} environment steps")), "the checkpoint on disk is at {steps} steps: {err}");
+    assert!(
+        err.contains(&format!("is checkpointed at {steps} environment steps")),
+        "the checkpoint on disk is at {steps} steps: {err}"
+    );
     std::fs::remove_file(data.join("filler")).expect("freeing space");
     let again = socialflow(&args.iter().map(String::as_str).collect::<Vec<_>>(), 4 * T);
-    assert!(String::from_utf8_lossy(&again.stderr).contains("resuming job 1 (tiny-full)"), "{}", String::from_utf8_lossy(&again.stderr));
+    assert!(
+        String::from_utf8_lossy(&again.stderr).contains("resuming job 1 (tiny-full)"),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
     let v = json_of(&again);
-    assert_eq!((v["state"].as_str(), v["progress"]["env_steps"].as_u64()), (Some("succeeded"), Some(2500)), "{v}");
+    assert_eq!(
+        (v["state"].as_str(), v["progress"]["env_steps"].as_u64()),
+        (Some("succeeded"), Some(2500)),
+        "{v}"
+    );
     drop(_mount);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -181,45 +317,102 @@ fn train_stops_on_a_full_disk_with_the_cause_and_resumes_after() {
 fn train_with_validation_keeps_the_best_validated_actor() {
     let dir = socialflow_e2e::scratch("validation");
     let cfg = dir.join("tiny.toml");
-    let job = socialflow_e2e::tiny_job(r#""roundabout", "merge""#, "tiny-val", 1000) + "[validation]\nevery_updates = 20\nepisodes = 3\nenvs = 3\n";
+    let job = socialflow_e2e::tiny_job(r#""roundabout", "merge""#, "tiny-val", 1000)
+        + "[validation]\nevery_updates = 20\nepisodes = 3\nenvs = 3\n";
     std::fs::write(&cfg, job).expect("config");
-    let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "2", "--data-dir", &dir.join("data").display().to_string(), "--quiet"], T));
+    let v = json_of(&socialflow(
+        &[
+            "train",
+            &cfg.display().to_string(),
+            "--workers",
+            "2",
+            "--data-dir",
+            &dir.join("data").display().to_string(),
+            "--quiet",
+        ],
+        T,
+    ));
     assert_eq!(v["state"], "succeeded", "{v}");
     let updates = v["progress"]["updates"].as_u64().expect("updates");
     let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
     // One point every 20 updates and one for the last actor, each over 3 cases of 2 scenarios.
     let csv = std::fs::read_to_string(art.join("validation.csv")).expect("validation.csv");
-    let rows: Vec<Vec<f64>> = csv.lines().skip(1).map(|l| l.split(',').map(|x| x.parse().expect("number")).collect()).collect();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
+        .collect();
     assert!(csv.starts_with("updates,env_steps,episodes,success,safety"), "{csv}");
     assert_eq!(rows.len() as u64, updates / 20 + u64::from(!updates.is_multiple_of(20)), "{csv}");
     assert!(rows.iter().all(|r| r[2] == 6.0 && (0.0..=1.0).contains(&r[3])), "{csv}");
     assert_eq!(rows.last().map(|r| r[0] as u64), Some(updates));
     // The final policy is the best point's actor, with the point in policy.json.
-    let best = rows.iter().fold(&rows[0], |b, r| if r[3] > b[3] || (r[3] == b[3] && r[4] > b[4]) { r } else { b });
-    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json")).expect("json");
+    let best = rows.iter().fold(&rows[0], |b, r| {
+        if r[3] > b[3] || (r[3] == b[3] && r[4] > b[4]) {
+            r
+        } else {
+            b
+        }
+    });
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json"))
+            .expect("json");
     assert_eq!(meta["selected_by"], "validation", "{meta}");
     assert_eq!(meta["updates"].as_u64(), Some(best[0] as u64), "{meta} vs {csv}");
-    assert_eq!(std::fs::read(art.join("policy.bpk")).expect("policy"), std::fs::read(art.join("best_policy.bpk")).expect("best"));
+    assert_eq!(
+        std::fs::read(art.join("policy.bpk")).expect("policy"),
+        std::fs::read(art.join("best_policy.bpk")).expect("best")
+    );
     // `train` ends with the policy's and the IDM driver's scores on the same held-out episodes.
     assert_eq!(meta["idm"]["episodes"], 6, "{meta}");
     assert_eq!(v["held_out"]["episodes"], 6, "{v}");
     assert_eq!(v["held_out"]["policy"]["success"], meta["validation"]["success"], "{v}");
     assert_eq!(v["held_out"]["idm"]["collision"], meta["idm"]["collision"], "{v}");
-    assert!(v["held_out"]["idm"]["success"].as_f64().is_some_and(|s| (0.0..=1.0).contains(&s)), "{v}");
+    assert!(
+        v["held_out"]["idm"]["success"].as_f64().is_some_and(|s| (0.0..=1.0).contains(&s)),
+        "{v}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
     let dir = socialflow_e2e::scratch("ladder");
-    std::fs::write(dir.join("job.toml"), format!("kind = \"ego\"\n{}", socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-rung", 600))).expect("job");
+    std::fs::write(
+        dir.join("job.toml"),
+        format!(
+            "kind = \"ego\"\n{}",
+            socialflow_e2e::tiny_job(r#""roundabout""#, "tiny-rung", 600)
+        ),
+    )
+    .expect("job");
     let rung = "rung = \"L-test\"\nname = \"tiny\"\njob = \"job.toml\"\nseeds = [0]\n[eval]\nscenarios = [\"roundabout\"]\ncases = 3\nseeds = 2\nenvs = 3\n[gate]\nmin_success = 0.0\nmax_other_failures = 1.0\n";
     std::fs::write(dir.join("rung.toml"), rung).expect("rung");
     let (data, out) = (dir.join("data").display().to_string(), dir.join("out"));
     let ladder = |seed: &str| {
-        let o = socialflow(&["ladder", &dir.join("rung.toml").display().to_string(), "--seeds", seed, "--data-dir", &data, "--out", &out.display().to_string(), "--workers", "1"], T);
-        assert!(o.status.success(), "ladder --seeds {seed}: {}", String::from_utf8_lossy(&o.stderr));
-        let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("json");
+        let o = socialflow(
+            &[
+                "ladder",
+                &dir.join("rung.toml").display().to_string(),
+                "--seeds",
+                seed,
+                "--data-dir",
+                &data,
+                "--out",
+                &out.display().to_string(),
+                "--workers",
+                "1",
+            ],
+            T,
+        );
+        assert!(
+            o.status.success(),
+            "ladder --seeds {seed}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json"))
+                .expect("json");
         let episodes = std::fs::read_to_string(out.join("episodes.csv")).expect("episodes.csv");
         (summary, episodes)
     };
@@ -230,26 +423,63 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
     // The policy's 3 cases x 2 seeds and the IDM ego's on the same ones.
     let lines: Vec<&str> = episodes.lines().collect();
     assert!(lines[0].starts_with("train_seed,driver,scenario,case,seed"), "{episodes}");
-    let drivers = |s: &str| lines[1..].iter().filter(|l| l.starts_with(&format!("0,{s},roundabout,"))).count();
+    let drivers = |s: &str| {
+        lines[1..].iter().filter(|l| l.starts_with(&format!("0,{s},roundabout,"))).count()
+    };
     assert_eq!((lines.len() - 1, drivers("policy"), drivers("idm")), (12, 6, 6), "{episodes}");
     assert!(out.join("seed-0/curve.csv").exists() && out.join("success.png").exists());
     // A second seed run into the same directory keeps the first one's summary and episodes.
     let (summary, episodes) = ladder("1");
-    let seeds: Vec<u64> = summary["seeds"].as_array().expect("seeds").iter().filter_map(|s| s["train_seed"].as_u64()).collect();
+    let seeds: Vec<u64> = summary["seeds"]
+        .as_array()
+        .expect("seeds")
+        .iter()
+        .filter_map(|s| s["train_seed"].as_u64())
+        .collect();
     assert_eq!(seeds, vec![0, 1], "{summary}");
     assert_eq!(episodes.lines().count() - 1, 24, "{episodes}");
     assert_eq!(episodes.lines().filter(|l| l.starts_with("1,")).count(), 12);
     // `eval.sampled`: the same finished policy re-evaluated (`--eval-only`) with its sampled
     // actions; the IDM driver's episodes are the same, the policy's are not.
-    std::fs::write(dir.join("rung-sampled.toml"), rung.replace("envs = 3\n", "envs = 3\nsampled = true\n")).expect("rung");
+    std::fs::write(
+        dir.join("rung-sampled.toml"),
+        rung.replace("envs = 3\n", "envs = 3\nsampled = true\n"),
+    )
+    .expect("rung");
     let out2 = dir.join("out-sampled");
-    let o = socialflow(&["ladder", &dir.join("rung-sampled.toml").display().to_string(), "--seeds", "0", "--eval-only", "--data-dir", &data, "--out", &out2.display().to_string()], T);
-    assert!(o.status.success(), "ladder --eval-only (sampled): {}", String::from_utf8_lossy(&o.stderr));
+    let o = socialflow(
+        &[
+            "ladder",
+            &dir.join("rung-sampled.toml").display().to_string(),
+            "--seeds",
+            "0",
+            "--eval-only",
+            "--data-dir",
+            &data,
+            "--out",
+            &out2.display().to_string(),
+        ],
+        T,
+    );
+    assert!(
+        o.status.success(),
+        "ladder --eval-only (sampled): {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let sampled = std::fs::read_to_string(out2.join("episodes.csv")).expect("episodes.csv");
-    let rows = |text: &str, driver: &str| -> Vec<String> { text.lines().filter(|l| l.starts_with(&format!("0,{driver},"))).map(str::to_string).collect() };
+    let rows = |text: &str, driver: &str| -> Vec<String> {
+        text.lines()
+            .filter(|l| l.starts_with(&format!("0,{driver},")))
+            .map(str::to_string)
+            .collect()
+    };
     assert_eq!(rows(&sampled, "idm"), rows(&episodes, "idm"));
     assert_eq!(rows(&sampled, "policy").len(), 6, "{sampled}");
-    assert_ne!(rows(&sampled, "policy"), rows(&episodes, "policy"), "sampled actions drive other episodes than the mean action");
+    assert_ne!(
+        rows(&sampled, "policy"),
+        rows(&episodes, "policy"),
+        "sampled actions drive other episodes than the mean action"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -257,14 +487,23 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
 fn invalid_configs_are_refused_with_the_field_named() {
     let dir = socialflow_e2e::scratch("badcfg");
     let job = dir.join("bad.toml");
-    std::fs::write(&job, socialflow_e2e::tiny_job(r#""roundabout""#, "bad", 1000).replace("samples_per_insert = 0.1", "samples_per_insert = -1.0")).expect("config");
-    let out = socialflow(&["train", &job.display().to_string(), "--data-dir", &dir.join("d").display().to_string()], T);
+    std::fs::write(
+        &job,
+        socialflow_e2e::tiny_job(r#""roundabout""#, "bad", 1000)
+            .replace("samples_per_insert = 0.1", "samples_per_insert = -1.0"),
+    )
+    .expect("config");
+    let out = socialflow(
+        &["train", &job.display().to_string(), "--data-dir", &dir.join("d").display().to_string()],
+        T,
+    );
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("train.samples_per_insert"), "{err}");
     assert!(!dir.join("d").exists(), "nothing may be created for an invalid config");
     let learner = dir.join("learner.toml");
-    std::fs::write(&learner, "grpc_addr = \"127.0.0.1:0\"\nmax_message_bytes = 10\n").expect("config");
+    std::fs::write(&learner, "grpc_addr = \"127.0.0.1:0\"\nmax_message_bytes = 10\n")
+        .expect("config");
     let out = socialflow(&["learner", "--config", &learner.display().to_string()], T);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
@@ -280,20 +519,54 @@ fn stage_one_flows_train_through_the_service() {
     for kind in ["macad", "copo", "socialcomm"] {
         let dir = socialflow_e2e::scratch(&format!("flow-{kind}"));
         let cfg = dir.join("flow.toml");
-        let mut text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen('\n', &format!("\nkind = \"{kind}\"\n"), 1);
+        let mut text = socialflow_e2e::tiny_job(r#""merge""#, kind, 1200).replacen(
+            '\n',
+            &format!("\nkind = \"{kind}\"\n"),
+            1,
+        );
         if kind == "copo" {
             text.push_str("[coordinator]\niterations = 2\npopulation = 4\nenvs = 4\n");
         }
         std::fs::write(&cfg, text).expect("config");
-        let v = json_of(&socialflow(&["train", &cfg.display().to_string(), "--workers", "1", "--data-dir", &dir.join("data").display().to_string(), "--quiet"], T));
+        let v = json_of(&socialflow(
+            &[
+                "train",
+                &cfg.display().to_string(),
+                "--workers",
+                "1",
+                "--data-dir",
+                &dir.join("data").display().to_string(),
+                "--quiet",
+            ],
+            T,
+        ));
         assert_eq!(v["state"], "succeeded", "{kind}");
         assert_eq!(v["progress"]["env_steps"], 1200);
         assert!(v["progress"]["episodes"].as_u64().unwrap_or(0) > 0, "{kind}: {v}");
-        let resolved = std::fs::read_to_string(std::path::Path::new(v["artifact_dir"].as_str().expect("dir")).join("config.toml")).expect("resolved config");
+        let resolved = std::fs::read_to_string(
+            std::path::Path::new(v["artifact_dir"].as_str().expect("dir")).join("config.toml"),
+        )
+        .expect("resolved config");
         assert!(resolved.contains(&format!("kind = \"{kind}\"")), "{resolved}");
         // The learned flow drives every vehicle of stored cases; same seeds, same numbers.
         let art = v["artifact_dir"].as_str().expect("dir").to_string();
-        let eval = || json_of(&socialflow(&["eval-flow", "--policy", &art, "--scenario", "merge", "--cases", "2", "--seeds", "2", "--json"], T));
+        let eval = || {
+            json_of(&socialflow(
+                &[
+                    "eval-flow",
+                    "--policy",
+                    &art,
+                    "--scenario",
+                    "merge",
+                    "--cases",
+                    "2",
+                    "--seeds",
+                    "2",
+                    "--json",
+                ],
+                T,
+            ))
+        };
         let e = eval();
         assert_eq!(e["flow"], kind);
         assert_eq!(e["episodes"], 4);
@@ -301,21 +574,59 @@ fn stage_one_flows_train_through_the_service() {
             let m = e[k]["mean"].as_f64().expect("mean");
             assert!((0.0..=1.0).contains(&m), "{k} {m}");
         }
-        assert_eq!(eval(), e, "an evaluation with the same policy, cases and seeds is reproducible");
+        assert_eq!(
+            eval(),
+            e,
+            "an evaluation with the same policy, cases and seeds is reproducible"
+        );
         if kind == "copo" {
             // CoPO Stage 2: the job fitted its coordinator on its frozen Stage-1 policy by itself
             // (a Gaussian over SVO per scenario, two CEM iterations as configured).
-            let text = std::fs::read_to_string(std::path::Path::new(&art).join("coordinator.json")).expect("the copo job wrote coordinator.json");
+            let text = std::fs::read_to_string(std::path::Path::new(&art).join("coordinator.json"))
+                .expect("the copo job wrote coordinator.json");
             let c: serde_json::Value = serde_json::from_str(&text).expect("json");
             let merge = &c["scenarios"][0];
             assert_eq!(merge["scenario"], "merge", "{c}");
             let m = merge["gaussian"]["mean_deg"].as_f64().expect("mean");
-            assert!((0.0..=90.0).contains(&m) && merge["history"].as_array().map(Vec::len) == Some(2), "{c}");
+            assert!(
+                (0.0..=90.0).contains(&m) && merge["history"].as_array().map(Vec::len) == Some(2),
+                "{c}"
+            );
             // The same on demand, to another file; a Stage-2 evaluation differs from Stage 1's.
             let other = dir.join("coord.json").display().to_string();
-            let c = json_of(&socialflow(&["copo-coordinator", "--policy", &art, "--iterations", "1", "--population", "3", "--envs", "3", "--out", &other], T));
+            let c = json_of(&socialflow(
+                &[
+                    "copo-coordinator",
+                    "--policy",
+                    &art,
+                    "--iterations",
+                    "1",
+                    "--population",
+                    "3",
+                    "--envs",
+                    "3",
+                    "--out",
+                    &other,
+                ],
+                T,
+            ));
             assert_eq!(c["scenarios"][0]["history"].as_array().map(Vec::len), Some(1), "{c}");
-            let stage1 = json_of(&socialflow(&["eval-flow", "--policy", &art, "--scenario", "merge", "--cases", "2", "--seeds", "2", "--json", "--stage1"], T));
+            let stage1 = json_of(&socialflow(
+                &[
+                    "eval-flow",
+                    "--policy",
+                    &art,
+                    "--scenario",
+                    "merge",
+                    "--cases",
+                    "2",
+                    "--seeds",
+                    "2",
+                    "--json",
+                    "--stage1",
+                ],
+                T,
+            ));
             assert_eq!(stage1["episodes"], 4);
             // An ego among the CoPO flow from Python: Stage 2's SVO draws included.
             python_ego_equals_cli(&art, "the CoPO flow");
@@ -333,26 +644,47 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     let graph = dir.join("graph");
     std::fs::create_dir_all(&graph).expect("dir");
     let job = |name: &str, extra_top: &str, extra_env: &str, steps: u64| {
-        socialflow_e2e::tiny_job(r#""merge""#, name, steps).replacen('\n', &format!("\n{extra_top}"), 1).replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\n{extra_env}"), 1)
+        socialflow_e2e::tiny_job(r#""merge""#, name, steps)
+            .replacen('\n', &format!("\n{extra_top}"), 1)
+            .replacen("vehicles_max = 3\n", &format!("vehicles_max = 3\n{extra_env}"), 1)
     };
     // Both validate: the ego among the flow's frozen policy, the flow driving every vehicle.
-    let validation = |every: u32| format!("[validation]\nevery_updates = {every}\nepisodes = 3\nenvs = 3\n");
-    std::fs::write(graph.join("a-ego.toml"), job("ego-in-flow", "", "background_from = \"flow\"\n", 600) + &validation(10)).expect("config");
-    std::fs::write(graph.join("b-flow.toml"), job("flow", "kind = \"macad\"\n", "", 900) + &validation(20)).expect("config");
+    let validation =
+        |every: u32| format!("[validation]\nevery_updates = {every}\nepisodes = 3\nenvs = 3\n");
+    std::fs::write(
+        graph.join("a-ego.toml"),
+        job("ego-in-flow", "", "background_from = \"flow\"\n", 600) + &validation(10),
+    )
+    .expect("config");
+    std::fs::write(
+        graph.join("b-flow.toml"),
+        job("flow", "kind = \"macad\"\n", "", 900) + &validation(20),
+    )
+    .expect("config");
     let data = dir.join("data").display().to_string();
     let args = ["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data];
     let out = socialflow(&args, T);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
     assert_eq!(lines.len(), 2);
     assert!(lines.iter().all(|v| v["state"] == "succeeded"), "{lines:?}");
-    let id = |n: &str| lines.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("job id");
-    assert!(id("flow") < id("ego-in-flow"), "the flow is submitted first although its file sorts last");
+    let id = |n: &str| {
+        lines.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("job id")
+    };
+    assert!(
+        id("flow") < id("ego-in-flow"),
+        "the flow is submitted first although its file sorts last"
+    );
     for v in &lines {
         let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
         let csv = std::fs::read_to_string(art.join("validation.csv")).expect("validation.csv");
         assert!(csv.lines().count() >= 3, "{}: {csv}", v["name"]);
-        let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json")).expect("json");
+        let meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json"))
+                .expect("json");
         assert_eq!(meta["selected_by"], "validation", "{}: {meta}", v["name"]);
     }
     // Rerun: nothing new is submitted.
@@ -361,7 +693,11 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     let err = String::from_utf8_lossy(&again.stderr);
     assert_eq!(err.matches("already on the learner").count(), 2, "{err}");
     // A dangling reference is refused before anything starts.
-    std::fs::write(graph.join("c-bad.toml"), job("bad", "", "background_from = \"nowhere\"\n", 100)).expect("config");
+    std::fs::write(
+        graph.join("c-bad.toml"),
+        job("bad", "", "background_from = \"nowhere\"\n", 100),
+    )
+    .expect("config");
     let bad = socialflow(&args, T);
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere"));
@@ -377,13 +713,34 @@ fn python_ego_equals_cli(flow: &str, what: &str) {
         eprintln!("SKIPPED, SOCIALFLOW_PKG_PYTHON not set (tests/run.sh sets it): the Python package's run among {what} is skipped");
         return;
     };
-    let cli = socialflow(&["eval-flow", "--policy", flow, "--ego", "idm", "--scenario", "merge", "--cases", "6", "--seeds", "2", "--json"], T);
+    let cli = socialflow(
+        &[
+            "eval-flow",
+            "--policy",
+            flow,
+            "--ego",
+            "idm",
+            "--scenario",
+            "merge",
+            "--cases",
+            "6",
+            "--seeds",
+            "2",
+            "--json",
+        ],
+        T,
+    );
     assert!(cli.status.success(), "{what}: {}", String::from_utf8_lossy(&cli.stderr));
     let cli: serde_json::Value = serde_json::from_slice(&cli.stdout).expect("JSON");
-    let out = std::process::Command::new(&py).arg(socialflow_e2e::repo().join("tests/python/flow_ego_equality.py")).args([flow, "merge", "6", "2"]).output().expect("python");
+    let out = std::process::Command::new(&py)
+        .arg(socialflow_e2e::repo().join("tests/python/flow_ego_equality.py"))
+        .args([flow, "merge", "6", "2"])
+        .output()
+        .expect("python");
     assert!(out.status.success(), "{what}: {}", String::from_utf8_lossy(&out.stderr));
     let py: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
-    let (a, b) = (cli["episodes"].as_array().expect("rows"), py["episodes"].as_array().expect("rows"));
+    let (a, b) =
+        (cli["episodes"].as_array().expect("rows"), py["episodes"].as_array().expect("rows"));
     assert_eq!(a.len(), 12, "{what}");
     assert_eq!(a.len(), b.len(), "{what}");
     for (x, y) in a.iter().zip(b) {
@@ -397,7 +754,9 @@ fn python_ego_equals_cli(flow: &str, what: &str) {
 /// FNV-1a (64-bit) checksum of a file's bytes: enough to see any change.
 fn checksum(p: &std::path::Path) -> u64 {
     let bytes = std::fs::read(p).unwrap_or_else(|e| panic!("reading {}: {e}", p.display()));
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+    bytes
+        .iter()
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
 }
 
 /// The paper's two RARL pipelines at a tiny budget, on top of a Stage-1 flow: FailMaker
@@ -424,25 +783,67 @@ fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
     let run = || {
         let out = socialflow(&args, 4 * T);
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str::<serde_json::Value>(l).expect("JSON line")).collect::<Vec<_>>()
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).expect("JSON line"))
+            .collect::<Vec<_>>()
     };
     let first = run();
-    let art = |lines: &[serde_json::Value], n: &str| std::path::PathBuf::from(lines.iter().find(|v| v["name"] == n).and_then(|v| v["artifact_dir"].as_str()).unwrap_or_else(|| panic!("{n} missing")));
+    let art = |lines: &[serde_json::Value], n: &str| {
+        std::path::PathBuf::from(
+            lines
+                .iter()
+                .find(|v| v["name"] == n)
+                .and_then(|v| v["artifact_dir"].as_str())
+                .unwrap_or_else(|| panic!("{n} missing")),
+        )
+    };
     let frozen = ["flow-sc", "ego-idm", "ego-sc"];
-    let sums: Vec<u64> = frozen.iter().map(|n| checksum(&art(&first, n).join("policy.bpk"))).collect();
+    let sums: Vec<u64> =
+        frozen.iter().map(|n| checksum(&art(&first, n).join("policy.bpk"))).collect();
     // Round 1 of each RARL pipeline, added to the same graph: the finished jobs are reused.
     job("fm-1.toml", "fm-1", "failmaker", "ego_from = \"ego-idm\"\n", "", 600);
-    job("ego-fm-1.toml", "ego-fm-1", "ego", "background_from = \"fm-1\"\n", "init_from = \"ego-idm\"\n", 600);
-    job("adv-1.toml", "adv-1", "socialcomm-adv", "background_from = \"flow-sc\"\nego_from = \"ego-sc\"\n", "", 600);
-    job("ego-adv-1.toml", "ego-adv-1", "ego", "background_from = \"adv-1\"\n", "init_from = \"ego-sc\"\n", 600);
+    job(
+        "ego-fm-1.toml",
+        "ego-fm-1",
+        "ego",
+        "background_from = \"fm-1\"\n",
+        "init_from = \"ego-idm\"\n",
+        600,
+    );
+    job(
+        "adv-1.toml",
+        "adv-1",
+        "socialcomm-adv",
+        "background_from = \"flow-sc\"\nego_from = \"ego-sc\"\n",
+        "",
+        600,
+    );
+    job(
+        "ego-adv-1.toml",
+        "ego-adv-1",
+        "ego",
+        "background_from = \"adv-1\"\n",
+        "init_from = \"ego-sc\"\n",
+        600,
+    );
     let second = run();
     assert_eq!(second.len(), 7);
     assert!(second.iter().all(|v| v["state"] == "succeeded"), "{second:?}");
     for (n, s) in frozen.iter().zip(&sums) {
-        assert_eq!(checksum(&art(&second, n).join("policy.bpk")), *s, "{n}'s policy changed while others trained against it");
+        assert_eq!(
+            checksum(&art(&second, n).join("policy.bpk")),
+            *s,
+            "{n}'s policy changed while others trained against it"
+        );
     }
-    let id = |n: &str| second.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("id");
-    assert!(id("ego-sc") < id("adv-1") && id("adv-1") < id("ego-adv-1") && id("fm-1") < id("ego-fm-1"), "dependencies first: {second:?}");
+    let id = |n: &str| {
+        second.iter().find(|v| v["name"] == n).and_then(|v| v["job_id"].as_u64()).expect("id")
+    };
+    assert!(
+        id("ego-sc") < id("adv-1") && id("adv-1") < id("ego-adv-1") && id("fm-1") < id("ego-fm-1"),
+        "dependencies first: {second:?}"
+    );
     for n in ["fm-1", "adv-1", "ego-fm-1", "ego-adv-1"] {
         let v = second.iter().find(|v| v["name"] == n).expect("job");
         assert_eq!(v["progress"]["env_steps"], 600, "{n}");
@@ -455,8 +856,13 @@ fn the_rarl_pipelines_run_end_to_end_and_leave_frozen_policies_untouched() {
     }
 
     // The resolved configs carry the ids the names became.
-    let cfg = std::fs::read_to_string(art(&second, "ego-adv-1").join("config.toml")).expect("config");
-    assert!(cfg.contains(&format!("background_job = {}", id("adv-1"))) && cfg.contains(&format!("init_job = {}", id("ego-sc"))), "{cfg}");
+    let cfg =
+        std::fs::read_to_string(art(&second, "ego-adv-1").join("config.toml")).expect("config");
+    assert!(
+        cfg.contains(&format!("background_job = {}", id("adv-1")))
+            && cfg.contains(&format!("init_job = {}", id("ego-sc"))),
+        "{cfg}"
+    );
 
     // The evaluation grid on these jobs: reproducible, resumable, and a report builds from it.
     let eval_cfg = |out: &str| {
@@ -475,27 +881,52 @@ gifs = { ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenari
     };
     for out in ["eval-a", "eval-b"] {
         std::fs::write(dir.join(format!("{out}.toml")), eval_cfg(out)).expect("eval config");
-        let o = socialflow(&["eval", &dir.join(format!("{out}.toml")).display().to_string()], 4 * T);
+        let o =
+            socialflow(&["eval", &dir.join(format!("{out}.toml")).display().to_string()], 4 * T);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let a = std::fs::read_to_string(dir.join("eval-a/episodes.csv")).expect("results");
     assert_eq!(a.lines().count(), 1 + (2 + 8 + 2 + 2 + 6) * 4, "one line per episode of each cell");
-    assert_eq!(a, std::fs::read_to_string(dir.join("eval-b/episodes.csv")).expect("results"), "same policies, cases and seeds: same numbers");
+    assert_eq!(
+        a,
+        std::fs::read_to_string(dir.join("eval-b/episodes.csv")).expect("results"),
+        "same policies, cases and seeds: same numbers"
+    );
     let again = socialflow(&["eval", &dir.join("eval-a.toml").display().to_string()], 4 * T);
-    assert!(String::from_utf8_lossy(&again.stderr).contains("0 cells to run"), "{}", String::from_utf8_lossy(&again.stderr));
-    assert_eq!(std::fs::read_to_string(dir.join("eval-a/episodes.csv")).expect("results"), a, "a rerun keeps what is stored");
+    assert!(
+        String::from_utf8_lossy(&again.stderr).contains("0 cells to run"),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    assert_eq!(
+        std::fs::read_to_string(dir.join("eval-a/episodes.csv")).expect("results"),
+        a,
+        "a rerun keeps what is stored"
+    );
     let report = dir.join("report");
-    let r = json_of(&socialflow(&["report", &dir.join("eval-a").display().to_string(), "--out", &report.display().to_string()], T));
+    let r = json_of(&socialflow(
+        &[
+            "report",
+            &dir.join("eval-a").display().to_string(),
+            "--out",
+            &report.display().to_string(),
+        ],
+        T,
+    ));
     assert_eq!(r["experiments"].as_array().map(Vec::len), Some(5), "{r}");
     assert!(report.join("report.html").exists() && report.join("cross-success-merge.png").exists());
-    let gif = std::fs::read(report.join("gif-merge.gif")).expect("the side-by-side GIF is in the report");
+    let gif =
+        std::fs::read(report.join("gif-merge.gif")).expect("the side-by-side GIF is in the report");
     assert!(gif.starts_with(b"GIF89a") && gif.len() > 10_000, "{} bytes", gif.len());
-    assert!(std::fs::read_to_string(report.join("report.html")).expect("html").contains("data:image/gif;base64,"));
+    assert!(std::fs::read_to_string(report.join("report.html"))
+        .expect("html")
+        .contains("data:image/gif;base64,"));
 
     // Two result sets as replicates of one graph: each its own report, the pooled one beside;
     // a result set of another grid is refused by name before anything is written.
     let both = dir.join("report-replicates");
-    let (ea, eb) = (dir.join("eval-a").display().to_string(), dir.join("eval-b").display().to_string());
+    let (ea, eb) =
+        (dir.join("eval-a").display().to_string(), dir.join("eval-b").display().to_string());
     let r = json_of(&socialflow(&["report", &ea, &eb, "--out", &both.display().to_string()], T));
     assert_eq!(r["replicates"].as_array().map(Vec::len), Some(2), "{r}");
     assert_eq!(r["episodes"].as_u64(), Some(2 * (a.lines().count() as u64 - 1)), "{r}");
@@ -503,12 +934,26 @@ gifs = { ego = "RL/SocialComm", flows = ["SocialComm", "SocialCommAdv"], scenari
     let other = dir.join("eval-other");
     std::fs::create_dir_all(&other).expect("dir");
     std::fs::copy(dir.join("eval-a/episodes.csv"), other.join("episodes.csv")).expect("copy");
-    let mut meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("eval-a/meta.json")).expect("meta")).expect("meta JSON");
+    let mut meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("eval-a/meta.json")).expect("meta"))
+            .expect("meta JSON");
     meta["cases"] = serde_json::json!(3);
     std::fs::write(other.join("meta.json"), meta.to_string()).expect("meta");
-    let bad = socialflow(&["report", &ea, &other.display().to_string(), "--out", &dir.join("report-bad").display().to_string()], T);
+    let bad = socialflow(
+        &[
+            "report",
+            &ea,
+            &other.display().to_string(),
+            "--out",
+            &dir.join("report-bad").display().to_string(),
+        ],
+        T,
+    );
     let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(!bad.status.success() && err.contains("eval-other") && err.contains("same grid"), "{err}");
+    assert!(
+        !bad.status.success() && err.contains("eval-other") && err.contains("same grid"),
+        "{err}"
+    );
     assert!(!dir.join("report-bad").exists(), "nothing written");
 
     // The probes: a constant message told of the ego, a flow's actor in the ego's seat, and an
@@ -535,23 +980,45 @@ adversary = { egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC t
     // The same file submitted to a learner on that data directory: its cells shared by two
     // worker processes, the same episodes and the same GIF.
     let l = socialflow_e2e::start_learner(&dir, 64 << 20);
-    let _w: Vec<socialflow_e2e::Proc> = (0..2).map(|k| socialflow_e2e::start_worker(&l, &dir, k)).collect();
+    let _w: Vec<socialflow_e2e::Proc> =
+        (0..2).map(|k| socialflow_e2e::start_worker(&l, &dir, k)).collect();
     // A probe only `socialflow eval` runs: the learner refuses it, naming the entry.
-    let refused = socialflow_env(&["submit", &probe.display().to_string(), "--learner", &l.url], &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)], T);
+    let refused = socialflow_env(
+        &["submit", &probe.display().to_string(), "--learner", &l.url],
+        &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)],
+        T,
+    );
     let err = String::from_utf8_lossy(&refused.stderr);
-    assert!(!refused.status.success() && err.contains("SC told0") && err.contains("`socialflow eval` only"), "{err}");
-    let sub = socialflow_env(&["submit", &dir.join("eval-a.toml").display().to_string(), "--learner", &l.url, "--watch"], &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)], 4 * T);
+    assert!(
+        !refused.status.success()
+            && err.contains("SC told0")
+            && err.contains("`socialflow eval` only"),
+        "{err}"
+    );
+    let sub = socialflow_env(
+        &["submit", &dir.join("eval-a.toml").display().to_string(), "--learner", &l.url, "--watch"],
+        &[("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)],
+        4 * T,
+    );
     assert!(sub.status.success(), "{}", String::from_utf8_lossy(&sub.stderr));
-    let job: serde_json::Value = String::from_utf8_lossy(&sub.stdout).lines().next().and_then(|l| serde_json::from_str(l).ok()).expect("the job as JSON");
+    let job: serde_json::Value = String::from_utf8_lossy(&sub.stdout)
+        .lines()
+        .next()
+        .and_then(|l| serde_json::from_str(l).ok())
+        .expect("the job as JSON");
     let art = std::path::PathBuf::from(job["artifact_dir"].as_str().expect("artifact dir"));
     let sorted = |text: &str| {
         let mut rows: Vec<&str> = text.lines().collect();
         rows.sort();
         rows.join("\n")
     };
-    let shared = std::fs::read_to_string(art.join("episodes.csv")).expect("the evaluation job's results");
+    let shared =
+        std::fs::read_to_string(art.join("episodes.csv")).expect("the evaluation job's results");
     assert_eq!(sorted(&shared), sorted(&a), "embedded and shared by workers: the same episodes");
-    assert_eq!(std::fs::read(art.join("gif-merge.gif")).expect("GIF"), std::fs::read(dir.join("eval-a/gif-merge.gif")).expect("GIF"));
+    assert_eq!(
+        std::fs::read(art.join("gif-merge.gif")).expect("GIF"),
+        std::fs::read(dir.join("eval-a/gif-merge.gif")).expect("GIF")
+    );
 
     // The whole graph, its evaluation and the report from one command: everything is reused
     // from the runs above, and the report is built from the evaluation job's results.
@@ -559,13 +1026,34 @@ adversary = { egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC t
     assert!(l.proc.terminate(Duration::from_secs(30)), "the learner stops on SIGTERM");
     let report2 = dir.join("report2");
     let o = socialflow(
-        &["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data, "--eval", &dir.join("eval-a.toml").display().to_string(), "--report", &report2.display().to_string()],
+        &[
+            "pipeline",
+            &graph.display().to_string(),
+            "--embedded",
+            "1",
+            "--data-dir",
+            &data,
+            "--eval",
+            &dir.join("eval-a.toml").display().to_string(),
+            "--report",
+            &report2.display().to_string(),
+        ],
         4 * T,
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
-    assert!(lines.iter().any(|v| v["job_id"] == job["job_id"] && v["state"] == "succeeded"), "the evaluation job is reused: {lines:?}");
-    assert_eq!(lines.last().and_then(|v| v["experiments"].as_array()).map(Vec::len), Some(5), "the report's findings come last");
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    assert!(
+        lines.iter().any(|v| v["job_id"] == job["job_id"] && v["state"] == "succeeded"),
+        "the evaluation job is reused: {lines:?}"
+    );
+    assert_eq!(
+        lines.last().and_then(|v| v["experiments"].as_array()).map(Vec::len),
+        Some(5),
+        "the report's findings come last"
+    );
     assert!(report2.join("report.html").exists() && report2.join("gif-merge.gif").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }

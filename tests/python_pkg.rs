@@ -19,7 +19,15 @@ fn python_package_tests_pass() {
         .env("SOCIALFLOW_BIN", bin("socialflow"))
         .output()
         .expect("running pytest");
-    assert!(out.status.success(), "pytest failed:\n{}\n{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "pytest failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(stdout.contains(" passed") && !stdout.contains("skipped"), "every Python test must run: {stdout}");
+    assert!(
+        stdout.contains(" passed") && !stdout.contains("skipped"),
+        "every Python test must run: {stdout}"
+    );
 }

@@ -65,11 +65,16 @@ pub fn socialflow(args: &[&str], deadline: Duration) -> Output {
 /// [`socialflow`] with extra environment variables.
 pub fn socialflow_env(args: &[&str], envs: &[(&str, &str)], deadline: Duration) -> Output {
     let mut c = Command::new(bin("socialflow"));
-    c.args(args).current_dir(repo()).env("RUST_LOG", "warn").stdout(Stdio::piped()).stderr(Stdio::piped());
+    c.args(args)
+        .current_dir(repo())
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
     for (k, v) in envs {
         c.env(k, v);
     }
-    Proc::new(c.spawn().expect("spawn socialflow")).output(&format!("socialflow {args:?}"), deadline)
+    Proc::new(c.spawn().expect("spawn socialflow"))
+        .output(&format!("socialflow {args:?}"), deadline)
 }
 
 /// A free TCP port for a test's server (bound on all interfaces and released). Taken below the
@@ -109,7 +114,11 @@ impl Proc {
         let f = std::fs::OpenOptions::new().create(true).append(true).open(log).expect("log file");
         let f2 = f.try_clone().expect("log file");
         let mut c = Command::new(bin);
-        c.args(args).current_dir(repo()).env("RUST_LOG", "info").stdout(Stdio::from(f)).stderr(Stdio::from(f2));
+        c.args(args)
+            .current_dir(repo())
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::from(f))
+            .stderr(Stdio::from(f2));
         for (k, v) in envs {
             c.env(k, v);
         }
@@ -210,16 +219,36 @@ pub fn start_learner_with(dir: &Path, max_message_bytes: usize, extra: &str) -> 
     )
     .expect("learner config");
     let log = dir.join("learner.log");
-    let proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
-    let l = Learner { proc, url: format!("http://127.0.0.1:{g}"), admin: format!("127.0.0.1:{a}"), cfg, log };
-    wait_for("learner readiness", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+    let proc = Proc::spawn_logged(
+        &bin("socialflow-learner"),
+        &["--config", &cfg.display().to_string()],
+        &[("SOCIALFLOW_TOKEN", TOKEN)],
+        &log,
+    );
+    let l = Learner {
+        proc,
+        url: format!("http://127.0.0.1:{g}"),
+        admin: format!("127.0.0.1:{a}"),
+        cfg,
+        log,
+    };
+    wait_for("learner readiness", Duration::from_secs(60), || {
+        http_get(&l.admin, "/readyz").filter(|b| b.contains("ready"))
+    });
     l
 }
 
 pub fn restart(l: &mut Learner) {
     let log = l.log.clone();
-    l.proc = Proc::spawn_logged(&bin("socialflow-learner"), &["--config", &l.cfg.display().to_string()], &[("SOCIALFLOW_TOKEN", TOKEN)], &log);
-    wait_for("learner readiness after restart", Duration::from_secs(60), || http_get(&l.admin, "/readyz").filter(|b| b.contains("ready")));
+    l.proc = Proc::spawn_logged(
+        &bin("socialflow-learner"),
+        &["--config", &l.cfg.display().to_string()],
+        &[("SOCIALFLOW_TOKEN", TOKEN)],
+        &log,
+    );
+    wait_for("learner readiness after restart", Duration::from_secs(60), || {
+        http_get(&l.admin, "/readyz").filter(|b| b.contains("ready"))
+    });
 }
 
 /// A size-limited tmpfs mounted at a directory for a test, unmounted when dropped. Needs root:
@@ -230,8 +259,16 @@ pub struct Tmpfs(PathBuf);
 impl Tmpfs {
     pub fn mount(at: &Path, size_mb: u32) -> Option<Self> {
         std::fs::create_dir_all(at).expect("mount point");
-        let ok = std::process::Command::new("mount").args(["-t", "tmpfs", "-o", &format!("size={size_mb}m"), "tmpfs"]).arg(at).status().is_ok_and(|s| s.success());
-        assert!(ok || std::env::var_os("SOCIALFLOW_REQUIRE_TMPFS").is_none(), "SOCIALFLOW_REQUIRE_TMPFS is set but mounting a tmpfs at {} failed", at.display());
+        let ok = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size_mb}m"), "tmpfs"])
+            .arg(at)
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(
+            ok || std::env::var_os("SOCIALFLOW_REQUIRE_TMPFS").is_none(),
+            "SOCIALFLOW_REQUIRE_TMPFS is set but mounting a tmpfs at {} failed",
+            at.display()
+        );
         ok.then(|| Self(at.to_path_buf()))
     }
 }
@@ -260,11 +297,23 @@ pub fn move_data_dir(l: &Learner, dir: &Path, to: &str) {
     let (from, to) = (dir.join("data"), dir.join(to));
     std::fs::rename(&from, &to).expect("moving the data directory");
     let cfg = std::fs::read_to_string(&l.cfg).expect("learner config");
-    std::fs::write(&l.cfg, cfg.replace(&format!("data_dir = \"{}\"", from.display()), &format!("data_dir = \"{}\"", to.display()))).expect("learner config");
+    std::fs::write(
+        &l.cfg,
+        cfg.replace(
+            &format!("data_dir = \"{}\"", from.display()),
+            &format!("data_dir = \"{}\"", to.display()),
+        ),
+    )
+    .expect("learner config");
 }
 
 pub fn start_worker(l: &Learner, dir: &Path, k: usize) -> Proc {
-    Proc::spawn_logged(&bin("socialflow-worker"), &["--learner", &l.url, "--name", &format!("w{k}"), "--max-backoff-s", "1"], &[("SOCIALFLOW_TOKEN", TOKEN)], &dir.join(format!("worker{k}.log")))
+    Proc::spawn_logged(
+        &bin("socialflow-worker"),
+        &["--learner", &l.url, "--name", &format!("w{k}"), "--max-backoff-s", "1"],
+        &[("SOCIALFLOW_TOKEN", TOKEN)],
+        &dir.join(format!("worker{k}.log")),
+    )
 }
 
 /// A plain HTTP/1.0 GET on the admin port; `None` on any failure.
@@ -292,7 +341,10 @@ pub mod grpc {
     use super::{wait_for, TOKEN};
 
     pub fn metric(body: &str, name: &str) -> f64 {
-        body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
+        body.lines()
+            .filter(|l| l.starts_with(name))
+            .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+            .sum()
     }
 
     pub fn rt() -> tokio::runtime::Runtime {
@@ -303,20 +355,30 @@ pub mod grpc {
     pub type Exp = ExperienceServiceClient<InterceptedService<Channel, AttachToken>>;
 
     pub fn channel(rt: &tokio::runtime::Runtime, url: &str) -> Channel {
-        rt.block_on(async { tonic::transport::Endpoint::from_shared(url.to_string()).expect("url").connect().await }).expect("connect to the learner")
+        rt.block_on(async {
+            tonic::transport::Endpoint::from_shared(url.to_string()).expect("url").connect().await
+        })
+        .expect("connect to the learner")
     }
 
     pub fn jobs(rt: &tokio::runtime::Runtime, url: &str, token: Option<&str>) -> Jobs {
         let t = token.map(|t| Token::new(t, "test").expect("token"));
-        JobServiceClient::with_interceptor(channel(rt, url), AttachToken::new(t)).max_encoding_message_size(usize::MAX)
+        JobServiceClient::with_interceptor(channel(rt, url), AttachToken::new(t))
+            .max_encoding_message_size(usize::MAX)
     }
 
     pub fn exp(rt: &tokio::runtime::Runtime, url: &str) -> Exp {
-        ExperienceServiceClient::with_interceptor(channel(rt, url), AttachToken::new(Some(Token::new(TOKEN, "test").expect("token")))).max_encoding_message_size(usize::MAX)
+        ExperienceServiceClient::with_interceptor(
+            channel(rt, url),
+            AttachToken::new(Some(Token::new(TOKEN, "test").expect("token"))),
+        )
+        .max_encoding_message_size(usize::MAX)
     }
 
     pub fn submit(rt: &tokio::runtime::Runtime, c: &mut Jobs, toml: String) -> pb::Job {
-        rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: toml })).expect("submit").into_inner()
+        rt.block_on(c.submit_job(pb::SubmitJobRequest { config_toml: toml }))
+            .expect("submit")
+            .into_inner()
     }
 
     pub fn get(rt: &tokio::runtime::Runtime, c: &mut Jobs, id: u64) -> pb::Job {
@@ -338,7 +400,11 @@ pub mod grpc {
     }
 
     /// Pushes one batch on a fresh stream; the status that ended it (OK if it was accepted).
-    pub fn push_one(rt: &tokio::runtime::Runtime, e: &mut Exp, b: pb::TransitionBatch) -> tonic::Status {
+    pub fn push_one(
+        rt: &tokio::runtime::Runtime,
+        e: &mut Exp,
+        b: pb::TransitionBatch,
+    ) -> tonic::Status {
         rt.block_on(async {
             let mut acks = e.push_transitions(tokio_stream::iter(vec![b])).await?.into_inner();
             while acks.message().await?.is_some() {}

@@ -11,7 +11,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let file = root.join("socialflow/v1/socialflow.proto");
     println!("cargo:rerun-if-changed={}", file.display());
     // The descriptor set serves gRPC reflection (`grpcurl list` against a learner).
-    let descriptors = std::path::PathBuf::from(std::env::var("OUT_DIR")?).join("socialflow_descriptor.bin");
-    tonic_prost_build::configure().build_client(true).build_server(true).file_descriptor_set_path(descriptors).compile_protos(&[file], &[root])?;
+    let descriptors =
+        std::path::PathBuf::from(std::env::var("OUT_DIR")?).join("socialflow_descriptor.bin");
+    tonic_prost_build::configure()
+        .build_client(true)
+        .build_server(true)
+        .file_descriptor_set_path(descriptors)
+        .compile_protos(&[file], &[root])?;
     Ok(())
 }

@@ -14,7 +14,9 @@
 use std::cell::RefCell;
 use std::sync::Arc;
 
-use numpy::{PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -35,7 +37,14 @@ const CASES: [(&str, &str); 4] = [
 ];
 
 /// Terminations in the order of the codes `step` returns (-1: still driving).
-const TERMINATIONS: [Termination; 6] = [Termination::Collision, Termination::OffRoad, Termination::OffRoute, Termination::WrongLane, Termination::Destination, Termination::Timeout];
+const TERMINATIONS: [Termination; 6] = [
+    Termination::Collision,
+    Termination::OffRoad,
+    Termination::OffRoute,
+    Termination::WrongLane,
+    Termination::Destination,
+    Termination::Timeout,
+];
 
 fn bad(arg: &str, msg: impl std::fmt::Display) -> PyErr {
     PyValueError::new_err(format!("{arg}: {msg}"))
@@ -43,10 +52,23 @@ fn bad(arg: &str, msg: impl std::fmt::Display) -> PyErr {
 
 /// A built-in scenario's map and stored cases.
 fn scenario(name: &str) -> PyResult<(Arc<Map>, CaseFile)> {
-    let file = sf_sim::scenarios::build(name).ok_or_else(|| bad("scenario", format!("unknown scenario `{name}` (expected one of {})", sf_sim::scenarios::SCENARIOS.join(", "))))?;
+    let file = sf_sim::scenarios::build(name).ok_or_else(|| {
+        bad(
+            "scenario",
+            format!(
+                "unknown scenario `{name}` (expected one of {})",
+                sf_sim::scenarios::SCENARIOS.join(", ")
+            ),
+        )
+    })?;
     let map = Map::from_file(&file, name).map_err(|e| bad("scenario", e))?;
-    let text = CASES.iter().find(|(n, _)| *n == name).map(|(_, t)| *t).ok_or_else(|| bad("scenario", format!("no stored cases for `{name}`")))?;
-    let cases = CaseFile::from_json(text, &format!("{name}.v1.json (built in)"), &map).map_err(|e| bad("scenario", e))?;
+    let text = CASES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| *t)
+        .ok_or_else(|| bad("scenario", format!("no stored cases for `{name}`")))?;
+    let cases = CaseFile::from_json(text, &format!("{name}.v1.json (built in)"), &map)
+        .map_err(|e| bad("scenario", e))?;
     Ok((Arc::new(map), cases))
 }
 
@@ -125,7 +147,10 @@ impl Core {
         let rows = self.rows();
         let mut obs = vec![0f32; rows.len() * len];
         for (j, &r) in rows.iter().enumerate() {
-            self.copy_row(&self.venv.observations()[r * len..(r + 1) * len], &mut obs[j * len..(j + 1) * len]);
+            self.copy_row(
+                &self.venv.observations()[r * len..(r + 1) * len],
+                &mut obs[j * len..(j + 1) * len],
+            );
         }
         let alive: Vec<bool> = rows.iter().map(|&r| self.venv.alive()[r] == 1.0).collect();
         Ok((PyArray1::from_vec(py, obs).reshape([rows.len(), len])?, PyArray1::from_vec(py, alive)))
@@ -172,10 +197,23 @@ impl Core {
         let action = DriveAction::parse(action).map_err(|e| bad("action", e))?;
         let layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
         if vehicles.0 == 0 || vehicles.0 > vehicles.1 {
-            return Err(bad("vehicles", format!("({}, {}) is not a range of at least one vehicle (min <= max)", vehicles.0, vehicles.1)));
+            return Err(bad(
+                "vehicles",
+                format!(
+                    "({}, {}) is not a range of at least one vehicle (min <= max)",
+                    vehicles.0, vehicles.1
+                ),
+            ));
         }
         if vehicles.1 as usize > map.spawns.len() {
-            return Err(bad("vehicles", format!("{} exceeds the {} spawn points of {scenario_name}", vehicles.1, map.spawns.len())));
+            return Err(bad(
+                "vehicles",
+                format!(
+                    "{} exceeds the {} spawn points of {scenario_name}",
+                    vehicles.1,
+                    map.spawns.len()
+                ),
+            ));
         }
         if !(1..=4096).contains(&num_envs) {
             return Err(bad("num_envs", format!("{num_envs} is not in 1..=4096")));
@@ -186,24 +224,38 @@ impl Core {
         let reward = match reward {
             "individual" => Reward::Individual,
             "composed" => Reward::Composed,
-            other => return Err(bad("reward", format!("unknown reward `{other}` (expected `individual` or `composed`)"))),
+            other => {
+                return Err(bad(
+                    "reward",
+                    format!("unknown reward `{other}` (expected `individual` or `composed`)"),
+                ))
+            }
         };
         let def = flow_def(flow)?;
-        let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| PyOSError::new_err(e.to_string()))?);
-        let mut setup = FlowSetup::new(&def, &map, layout, &mut runners).map_err(|e| bad("flow", e))?;
+        let mut runners = Runners::new(
+            sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)
+                .map_err(|e| PyOSError::new_err(e.to_string()))?,
+        );
+        let mut setup =
+            FlowSetup::new(&def, &map, layout, &mut runners).map_err(|e| bad("flow", e))?;
         if multi_agent {
             if !matches!(def, FlowDef::Idm) {
                 return Err(bad("flow", "a multi-agent environment drives every vehicle from Python: leave the flow out"));
             }
             let mut sim = (*setup.sim).clone();
             // Every agent sees the others' SVOs when they are rewarded for them.
-            sim.obs.svo = if reward == Reward::Composed { SvoVisibility::All } else { SvoVisibility::None };
+            sim.obs.svo =
+                if reward == Reward::Composed { SvoVisibility::All } else { SvoVisibility::None };
             setup.sim = Arc::new(sim);
             setup.mode = Mode::MultiAgent;
         }
         let hide_svo = !multi_agent && !matches!(def, FlowDef::Idm);
         let segments = MapSegments::build(&map, setup.sim.obs.segment_points).len();
-        let venv = VecEnv::new(Arc::clone(&map), Arc::clone(&setup.sim), VecEnvConfig { n_envs: num_envs, mode: setup.mode, vehicles, seed });
+        let venv = VecEnv::new(
+            Arc::clone(&map),
+            Arc::clone(&setup.sim),
+            VecEnvConfig { n_envs: num_envs, mode: setup.mode, vehicles, seed },
+        );
         Ok(Self {
             map,
             cases,
@@ -277,10 +329,16 @@ impl Core {
     /// when `None`), or stored `cases` (one index per simulator; each runs once, then the
     /// simulator idles until the next reset). Returns `(obs [rows, len], alive [rows])`.
     #[pyo3(signature = (seed=None, cases=None))]
-    fn reset<'py>(&mut self, py: Python<'py>, seed: Option<u64>, cases: Option<Vec<usize>>) -> PyResult<Observation<'py>> {
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seed: Option<u64>,
+        cases: Option<Vec<usize>>,
+    ) -> PyResult<Observation<'py>> {
         let seed = seed.unwrap_or(self.next_seed);
         self.next_seed = seed.wrapping_add(1);
-        let (map, sim, mode, n) = (Arc::clone(&self.map), Arc::clone(&self.flow.sim), self.flow.mode, self.n_envs);
+        let (map, sim, mode, n) =
+            (Arc::clone(&self.map), Arc::clone(&self.flow.sim), self.flow.mode, self.n_envs);
         let venv = match cases {
             None => {
                 let (vehicles, share) = (self.vehicles, self.conflict_share);
@@ -295,14 +353,32 @@ impl Core {
             }
             Some(idx) => {
                 if idx.len() != n {
-                    return Err(bad("cases", format!("{} case indices for {n} simulators (one each)", idx.len())));
+                    return Err(bad(
+                        "cases",
+                        format!("{} case indices for {n} simulators (one each)", idx.len()),
+                    ));
                 }
                 let mut eps = Vec::with_capacity(n);
                 for (k, &c) in idx.iter().enumerate() {
-                    let case = self.cases.cases.get(c).ok_or_else(|| bad("case", format!("{c} is not a stored case of {} (0..{})", self.map.name, self.cases.cases.len())))?;
-                    eps.push(EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: seed << 32 | k as u64 });
+                    let case = self.cases.cases.get(c).ok_or_else(|| {
+                        bad(
+                            "case",
+                            format!(
+                                "{c} is not a stored case of {} (0..{})",
+                                self.map.name,
+                                self.cases.cases.len()
+                            ),
+                        )
+                    })?;
+                    eps.push(EpisodeSpec {
+                        case: case.clone(),
+                        vehicles: None,
+                        svo_deg: None,
+                        tag: seed << 32 | k as u64,
+                    });
                 }
-                py.detach(move || VecEnv::from_episodes(map, sim, mode, n, eps)).map_err(|e| bad("cases", e))
+                py.detach(move || VecEnv::from_episodes(map, sim, mode, n, eps))
+                    .map_err(|e| bad("cases", e))
             }
         }?;
         self.venv = venv;
@@ -319,11 +395,18 @@ impl Core {
     /// `TERMINATIONS`, -1 while driving), and for the rows that ended their last observation
     /// (`final_obs[i]` belongs to row `final_rows[i]`; `obs` already holds the next episode's
     /// first observation for simulators that reset).
-    fn step<'py>(&mut self, py: Python<'py>, actions: PyReadonlyArray2<'py, f32>) -> PyResult<StepOut<'py>> {
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<StepOut<'py>> {
         let rows = self.rows();
         let dim = self.action.dim();
         if actions.shape() != [rows.len(), dim] {
-            return Err(bad("actions", format!("shape {:?}, expected ({}, {dim})", actions.shape(), rows.len())));
+            return Err(bad(
+                "actions",
+                format!("shape {:?}, expected ({}, {dim})", actions.shape(), rows.len()),
+            ));
         }
         let given = actions.as_slice().map_err(|e| bad("actions", e))?;
         if let Some(x) = given.iter().find(|x| !x.is_finite()) {
@@ -335,7 +418,12 @@ impl Core {
         for (j, &r) in rows.iter().enumerate() {
             by_row[r] = Some(j);
         }
-        let live: Vec<f32> = (0..total).filter(|&r| self.venv.alive()[r] == 1.0).flat_map(|r| by_row[r].map_or(vec![0.0; dim], |j| given[j * dim..(j + 1) * dim].to_vec())).collect();
+        let live: Vec<f32> = (0..total)
+            .filter(|&r| self.venv.alive()[r] == 1.0)
+            .flat_map(|r| {
+                by_row[r].map_or(vec![0.0; dim], |j| given[j * dim..(j + 1) * dim].to_vec())
+            })
+            .collect();
         let (flow, venv, rng, action) = (&self.flow, &mut self.venv, &mut self.rng, self.action);
         py.detach(|| {
             let act = move |_: &[f32], _: usize| live.clone();
@@ -348,7 +436,8 @@ impl Core {
         let len = self.venv.spec.len;
         let steps = self.venv.row_steps();
         let n = rows.len();
-        let (mut reward, mut terminated, mut truncated, mut success, mut code) = (vec![0f32; n], vec![false; n], vec![false; n], vec![false; n], vec![-1i8; n]);
+        let (mut reward, mut terminated, mut truncated, mut success, mut code) =
+            (vec![0f32; n], vec![false; n], vec![false; n], vec![false; n], vec![-1i8; n]);
         let (mut final_rows, mut final_obs) = (Vec::new(), Vec::new());
         for (j, &r) in rows.iter().enumerate() {
             let st = &steps[r];
@@ -411,7 +500,12 @@ impl Core {
 
     /// An RGB frame `[H, W, 3]` of simulator `k` (vehicles coloured by SVO).
     #[pyo3(signature = (k=0, size_px=480))]
-    fn render<'py>(&mut self, py: Python<'py>, k: usize, size_px: u32) -> PyResult<Bound<'py, PyArray3<u8>>> {
+    fn render<'py>(
+        &mut self,
+        py: Python<'py>,
+        k: usize,
+        size_px: u32,
+    ) -> PyResult<Bound<'py, PyArray3<u8>>> {
         if k >= self.n_envs {
             return Err(bad("k", format!("{k} is not a simulator index (0..{})", self.n_envs)));
         }
@@ -419,7 +513,10 @@ impl Core {
             return Err(bad("size_px", format!("{size_px} is not in 32..=4096")));
         }
         if self.renderer.as_ref().is_none_or(|r| r.size().0.max(r.size().1) != size_px) {
-            self.renderer = Some(sf_sim::render::Renderer::new(&self.map, size_px, sf_sim::render::ColourBy::Svo).map_err(|e| bad("render", e))?);
+            self.renderer = Some(
+                sf_sim::render::Renderer::new(&self.map, size_px, sf_sim::render::ColourBy::Svo)
+                    .map_err(|e| bad("render", e))?,
+            );
         }
         let Some(r) = self.renderer.as_ref() else { return Err(bad("render", "no renderer")) };
         let pm = r.frame(self.venv.env(k));
@@ -456,16 +553,28 @@ fn evaluate(
     let action = DriveAction::parse(action).map_err(|e| bad("action", e))?;
     let layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
     if cases == 0 || cases > stored.cases.len() {
-        return Err(bad("cases", format!("{cases} is not in 1..={} (the stored cases of {scenario_name})", stored.cases.len())));
+        return Err(bad(
+            "cases",
+            format!(
+                "{cases} is not in 1..={} (the stored cases of {scenario_name})",
+                stored.cases.len()
+            ),
+        ));
     }
     if seeds == 0 || !(1..=4096).contains(&envs) {
-        return Err(bad("seeds/envs", format!("seeds {seeds} and envs {envs} must be positive (envs at most 4096)")));
+        return Err(bad(
+            "seeds/envs",
+            format!("seeds {seeds} and envs {envs} must be positive (envs at most 4096)"),
+        ));
     }
     if let Some(s) = svo_deg.filter(|s| !(0.0..=90.0).contains(s)) {
         return Err(bad("svo_deg", format!("{s} is not in [0, 90]")));
     }
     let def = flow_def(flow)?;
-    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| PyOSError::new_err(e.to_string()))?);
+    let mut runners = Runners::new(
+        sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)
+            .map_err(|e| PyOSError::new_err(e.to_string()))?,
+    );
     let setup = FlowSetup::new(&def, &map, layout, &mut runners).map_err(|e| bad("flow", e))?;
     let spec = ObsSpec::new(&setup.sim.obs);
     let (len, dim, hide) = (spec.len, action.dim(), !matches!(def, FlowDef::Idm));
@@ -481,9 +590,14 @@ fn evaluate(
         let call = || -> PyResult<Vec<f32>> {
             let arr = PyArray1::from_vec(py, rows).reshape([n, len])?;
             let out = policy.call1((arr,))?;
-            let out: PyReadonlyArray2<f32> = out.extract().map_err(|_| bad("policy", format!("must return a float32 array of shape ({n}, {dim})")))?;
+            let out: PyReadonlyArray2<f32> = out.extract().map_err(|_| {
+                bad("policy", format!("must return a float32 array of shape ({n}, {dim})"))
+            })?;
             if out.shape() != [n, dim] {
-                return Err(bad("policy", format!("returned shape {:?}, expected ({n}, {dim})", out.shape())));
+                return Err(bad(
+                    "policy",
+                    format!("returned shape {:?}, expected ({n}, {dim})", out.shape()),
+                ));
             }
             Ok(out.as_slice().map_err(|e| bad("policy", e))?.to_vec())
         };
@@ -494,11 +608,22 @@ fn evaluate(
     };
     let drivers = setup.drivers(Actor::External { act: &act, action });
     let episodes = Episodes { cases: &stored.cases[..cases], seeds, envs, vehicles, svo_deg };
-    let rows = sf_rollout::evaluate::run_stored(&map, &setup.sim, setup.mode, setup.svo_gaussian, &episodes, &drivers).map_err(|e| bad("evaluate", e))?;
+    let rows = sf_rollout::evaluate::run_stored(
+        &map,
+        &setup.sim,
+        setup.mode,
+        setup.svo_gaussian,
+        &episodes,
+        &drivers,
+    )
+    .map_err(|e| bad("evaluate", e))?;
     if let Some(e) = failed.into_inner() {
         return Err(e);
     }
-    Ok(rows.into_iter().map(|r| (r.case, r.seed, r.scores.success, r.scores.safety, r.scores.speed, r.collision)).collect())
+    Ok(rows
+        .into_iter()
+        .map(|r| (r.case, r.seed, r.scores.success, r.scores.safety, r.scores.speed, r.collision))
+        .collect())
 }
 
 /// The built-in scenarios.

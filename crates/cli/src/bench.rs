@@ -66,11 +66,23 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
     let mut cfg = SimConfig::default();
     cfg.obs.layout = a.layout;
     let cfg = Arc::new(cfg);
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(a.threads.max(1)).build().context("building the thread pool")?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads.max(1))
+        .build()
+        .context("building the thread pool")?;
     let n_envs = a.envs.unwrap_or(8 * a.threads.max(1));
     let vehicles = a.vehicles.min(map.spawns.len() as u32);
     let result = pool.install(|| {
-        let mut venv = VecEnv::new(map.clone(), cfg.clone(), VecEnvConfig { n_envs, mode: Mode::MultiAgent, vehicles: (vehicles, vehicles), seed: 7 });
+        let mut venv = VecEnv::new(
+            map.clone(),
+            cfg.clone(),
+            VecEnvConfig {
+                n_envs,
+                mode: Mode::MultiAgent,
+                vehicles: (vehicles, vehicles),
+                seed: 7,
+            },
+        );
         let rows = venv.alive().len();
         let mut actions = vec![Action::default(); rows];
         let spec = venv.spec.clone();
@@ -81,7 +93,13 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
                 let obs = venv.observations();
                 for (r, act) in actions.iter_mut().enumerate() {
                     if venv.alive()[r] != 0.0 {
-                        *act = route_follower(&spec, &obs[r * spec.len..(r + 1) * spec.len], &cfg.vehicle, 2, 1.0);
+                        *act = route_follower(
+                            &spec,
+                            &obs[r * spec.len..(r + 1) * spec.len],
+                            &cfg.vehicle,
+                            2,
+                            1.0,
+                        );
                     }
                 }
                 venv.step(&actions);
@@ -91,7 +109,8 @@ fn sim(ctx: &Ctx, a: SimArgs) -> Result<()> {
         let secs = start.elapsed().as_secs_f64();
         let (env_steps, agent_steps) = venv.counters();
         let finished = venv.take_finished();
-        let success = finished.iter().map(|m| m.scores.success as f64).sum::<f64>() / finished.len().max(1) as f64;
+        let success = finished.iter().map(|m| m.scores.success as f64).sum::<f64>()
+            / finished.len().max(1) as f64;
         (secs, steps, env_steps, agent_steps, finished.len(), success, spec)
     });
     let (secs, _steps, env_steps, agent_steps, episodes, success, spec) = result;

@@ -48,7 +48,13 @@ fn fill(venv: &mut VecEnv, cfg: &SimConfig, r: &mut Replay, n: usize) -> Result<
         let alive = venv.alive().to_vec();
         for (k, act) in actions.iter_mut().enumerate() {
             if alive[k] != 0.0 {
-                *act = route_follower(&spec, &obs[k * spec.len..(k + 1) * spec.len], &cfg.vehicle, 2, 1.0);
+                *act = route_follower(
+                    &spec,
+                    &obs[k * spec.len..(k + 1) * spec.len],
+                    &cfg.vehicle,
+                    2,
+                    1.0,
+                );
             }
         }
         venv.step(&actions);
@@ -58,8 +64,16 @@ fn fill(venv: &mut VecEnv, cfg: &SimConfig, r: &mut Replay, n: usize) -> Result<
             }
             let a = [actions[k].ref_speed, actions[k].steer];
             let next = venv.next_observation(k);
-            r.push(Transition { obs: &obs[k * spec.len..(k + 1) * spec.len], action: &a, reward: 0.0, next_obs: next, terminal: step.terminal(), steps: 1, map_id: 0 })
-                .context("pushing a simulator transition")?;
+            r.push(Transition {
+                obs: &obs[k * spec.len..(k + 1) * spec.len],
+                action: &a,
+                reward: 0.0,
+                next_obs: next,
+                terminal: step.terminal(),
+                steps: 1,
+                map_id: 0,
+            })
+            .context("pushing a simulator transition")?;
             pushed += 1;
         }
     }
@@ -70,10 +84,25 @@ pub fn run(ctx: &Ctx, a: ReplayArgs) -> Result<()> {
     let map = ctx.map(&a.scenario)?;
     let cfg = Arc::new(SimConfig::default());
     let vehicles = a.vehicles.min(map.spawns.len() as u32);
-    let root = a.dir.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("socialflow-bench-replay-{}", std::process::id())));
+    let root = a.dir.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("socialflow-bench-replay-{}", std::process::id()))
+    });
     for &n in &a.transitions {
-        anyhow::ensure!(n > a.increment, "--transitions {n} must exceed --increment {}", a.increment);
-        let mut venv = VecEnv::new(map.clone(), cfg.clone(), VecEnvConfig { n_envs: 8, mode: Mode::MultiAgent, vehicles: (vehicles, vehicles), seed: 11 });
+        anyhow::ensure!(
+            n > a.increment,
+            "--transitions {n} must exceed --increment {}",
+            a.increment
+        );
+        let mut venv = VecEnv::new(
+            map.clone(),
+            cfg.clone(),
+            VecEnvConfig {
+                n_envs: 8,
+                mode: Mode::MultiAgent,
+                vehicles: (vehicles, vehicles),
+                seed: 11,
+            },
+        );
         let obs_len = venv.spec.len;
         let mut r = Replay::new(n, obs_len, 2);
         fill(&mut venv, &cfg, &mut r, n)?;
@@ -101,7 +130,10 @@ pub fn run(ctx: &Ctx, a: ReplayArgs) -> Result<()> {
         let t = Instant::now();
         let (back, _) = store.restore(n, obs_len, 2, r.inserted()).context("restoring")?;
         let restore_s = t.elapsed().as_secs_f64();
-        anyhow::ensure!(back.len() == r.len() && back.get(r.inserted() - 1) == r.get(r.inserted() - 1), "the restored replay differs");
+        anyhow::ensure!(
+            back.len() == r.len() && back.get(r.inserted() - 1) == r.get(r.inserted() - 1),
+            "the restored replay differs"
+        );
         drop(back);
         let out = json!({
             "transitions": n,

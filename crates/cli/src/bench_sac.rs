@@ -114,7 +114,8 @@ fn sac_device(d: DeviceArg) -> sf_job::config::Device {
 pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let job = match &a.job {
         Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             Some(sf_job::JobConfig::from_toml(&text).with_context(|| p.display().to_string())?)
         }
         None => None,
@@ -128,7 +129,11 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     };
     let sim = Arc::new(sim);
     let map = ctx.map("intersection")?;
-    let mut venv = VecEnv::new(map.clone(), sim.clone(), VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (20, 20), seed: 1 });
+    let mut venv = VecEnv::new(
+        map.clone(),
+        sim.clone(),
+        VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (20, 20), seed: 1 },
+    );
     let spec = venv.spec.clone();
     let replay = fill_replay(&mut venv, &sim, net.action_dim, 4 * a.batch)?;
     let segs = MapSegments::build(&map, sim.obs.segment_points);
@@ -138,13 +143,28 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     // critic-only updates: full updates).
     let (bc_updates, critic_pretrain_updates) = a.phase.schedule();
     let cfg = match &job {
-        Some(j) => SacConfig { batch_size: a.batch, device: sac_device(a.device), bc_updates, critic_pretrain_updates, ..j.sac.clone() },
-        None => SacConfig { batch_size: a.batch, reuse_critic_features: reuse, device: sac_device(a.device), reward_scale: 1.0, bc_updates, critic_pretrain_updates, ..SacConfig::default() },
+        Some(j) => SacConfig {
+            batch_size: a.batch,
+            device: sac_device(a.device),
+            bc_updates,
+            critic_pretrain_updates,
+            ..j.sac.clone()
+        },
+        None => SacConfig {
+            batch_size: a.batch,
+            reuse_critic_features: reuse,
+            device: sac_device(a.device),
+            reward_scale: 1.0,
+            bc_updates,
+            critic_pretrain_updates,
+            ..SacConfig::default()
+        },
     };
     let reuse = cfg.reuse_critic_features;
     let mut sac = Sac::new(cfg, net.clone(), spec.clone(), sim.dt_s, &[&segs])?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batches: Vec<_> = (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
+    let batches: Vec<_> =
+        (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
     let mut times = time_updates(&mut sac, &batches, a.seconds);
     let updates_timed = times.len();
     // The first and the last tenth of the timed updates: an update that slows as training goes
@@ -162,9 +182,13 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let (actor, _) = sac.policy();
     let device = sf_nn::device::device(sf_sac::device_kind(sac_device(a.device)))?;
     let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], 0, &device);
-    let live: Vec<usize> = (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
+    let live: Vec<usize> =
+        (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
     anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());
-    let rows: Vec<f32> = live.iter().flat_map(|&r| venv.observations()[r * spec.len..(r + 1) * spec.len].iter().copied()).collect();
+    let rows: Vec<f32> = live
+        .iter()
+        .flat_map(|&r| venv.observations()[r * spec.len..(r + 1) * spec.len].iter().copied())
+        .collect();
     let (infer_median, unshared_median, encoded) = time_inference(&runner, &rows, a.seconds / 6.0);
     let out = json!({
         "size": match &a.job { Some(p) => p.display().to_string(), None => format!("{:?}", a.size).to_lowercase() },
@@ -198,7 +222,12 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
 }
 
 /// A replay of at least `rows` real transitions: every agent of `venv` follows its route.
-fn fill_replay(venv: &mut VecEnv, sim: &SimConfig, action_dim: usize, rows: usize) -> Result<Replay> {
+fn fill_replay(
+    venv: &mut VecEnv,
+    sim: &SimConfig,
+    action_dim: usize,
+    rows: usize,
+) -> Result<Replay> {
     let spec = venv.spec.clone();
     let mut replay = Replay::new(100_000, spec.len, action_dim);
     let mut actions = vec![Action::default(); venv.alive().len()];
@@ -206,7 +235,13 @@ fn fill_replay(venv: &mut VecEnv, sim: &SimConfig, action_dim: usize, rows: usiz
         let before = venv.observations().to_vec();
         let alive = venv.alive().to_vec();
         for (i, act) in actions.iter_mut().enumerate() {
-            *act = route_follower(&spec, &before[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.8);
+            *act = route_follower(
+                &spec,
+                &before[i * spec.len..(i + 1) * spec.len],
+                &sim.vehicle,
+                2,
+                0.8,
+            );
         }
         venv.step(&actions);
         for i in (0..alive.len()).filter(|&i| alive[i] == 1.0) {
@@ -251,7 +286,8 @@ fn time_inference(runner: &PolicyRunner, rows: &[f32], seconds: f64) -> (f64, f6
         let start = Instant::now();
         while start.elapsed().as_secs_f64() < seconds || inf.len() < 20 {
             let t = Instant::now();
-            let obs = if shared { runner.batch(rows, &ids) } else { runner.batch_unshared(rows, &ids) };
+            let obs =
+                if shared { runner.batch(rows, &ids) } else { runner.batch_unshared(rows, &ids) };
             let _ = runner.mean_of(&obs);
             inf.push(t.elapsed().as_secs_f64());
         }

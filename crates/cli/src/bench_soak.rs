@@ -64,7 +64,9 @@ pub struct SoakArgs {
     json: bool,
 }
 
-type Exp = ExperienceServiceClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, AttachToken>>;
+type Exp = ExperienceServiceClient<
+    tonic::service::interceptor::InterceptedService<tonic::transport::Channel, AttachToken>,
+>;
 
 /// What one stream saw.
 #[derive(Default)]
@@ -78,7 +80,16 @@ struct StreamStats {
 fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
     let map = ctx.map(&cfg.env.scenarios[0])?;
     let sim = Arc::new(setup::resolve(cfg, None).sim);
-    let mut venv = VecEnv::new(map, sim, VecEnvConfig { n_envs: 4, mode: Mode::MultiAgent, vehicles: (cfg.env.vehicles_min, cfg.env.vehicles_max), seed: 5 });
+    let mut venv = VecEnv::new(
+        map,
+        sim,
+        VecEnvConfig {
+            n_envs: 4,
+            mode: Mode::MultiAgent,
+            vehicles: (cfg.env.vehicles_min, cfg.env.vehicles_max),
+            seed: 5,
+        },
+    );
     let len = venv.spec.len;
     let mut pool = Vec::new();
     let actions = vec![Action { ref_speed: 3.0, ..Action::default() }; venv.alive().len()];
@@ -95,12 +106,24 @@ fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
 }
 
 /// One worker stream until `until`: register, take the assignment, push until the end.
-async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: usize, act: usize, until: Instant, st: Arc<StreamStats>) {
-    let note = |st: &StreamStats, code: tonic::Code| *lock(&st.errors).entry(format!("{code:?}")).or_default() += 1;
-    let wid = match exp.register(pb::RegisterRequest { name: "soak".into(), ..Default::default() }).await {
-        Ok(r) => r.into_inner().worker_id,
-        Err(s) => return note(&st, s.code()),
+async fn stream(
+    mut exp: Exp,
+    job_id: u64,
+    pool: Arc<(Vec<f32>, usize)>,
+    batch: usize,
+    act: usize,
+    until: Instant,
+    st: Arc<StreamStats>,
+) {
+    let note = |st: &StreamStats, code: tonic::Code| {
+        *lock(&st.errors).entry(format!("{code:?}")).or_default() += 1
     };
+    let wid =
+        match exp.register(pb::RegisterRequest { name: "soak".into(), ..Default::default() }).await
+        {
+            Ok(r) => r.into_inner().worker_id,
+            Err(s) => return note(&st, s.code()),
+        };
     let mut version = loop {
         match exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await {
             Ok(r) => match r.into_inner().assignment {
@@ -133,7 +156,14 @@ async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: 
                     for k in 0..batch {
                         let (i, j) = (rng.random_range(0..n_rows), rng.random_range(0..n_rows));
                         let a: Vec<f32> = (0..act).map(|_| rng.random_range(-1.0..1.0)).collect();
-                        b.push(&rows[i * len..(i + 1) * len], &a, 0.1, &rows[j * len..(j + 1) * len], k % 97 == 0, 0);
+                        b.push(
+                            &rows[i * len..(i + 1) * len],
+                            &a,
+                            0.1,
+                            &rows[j * len..(j + 1) * len],
+                            k % 97 == 0,
+                            0,
+                        );
                     }
                 }
                 b.acted_by = sf_proto::acted_by_from_wire(latest2.load(Ordering::Relaxed));
@@ -162,12 +192,21 @@ async fn stream(mut exp: Exp, job_id: u64, pool: Arc<(Vec<f32>, usize)>, batch: 
 
 fn rss_mb(pid: u32) -> Option<f64> {
     let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let kb: f64 = s.lines().find_map(|l| l.strip_prefix("VmRSS:"))?.split_whitespace().next()?.parse().ok()?;
+    let kb: f64 = s
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
     Some(kb / 1024.0)
 }
 
 fn counter(body: &str, name: &str) -> f64 {
-    body.lines().filter(|l| l.starts_with(name)).filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok()).sum()
+    body.lines()
+        .filter(|l| l.starts_with(name))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
 }
 
 pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
@@ -180,9 +219,11 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
 
     let dir = std::env::temp_dir().join(format!("socialflow-soak-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let free = || -> Result<u16> { Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port()) };
+    let free =
+        || -> Result<u16> { Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port()) };
     let (g, adm) = (free()?, free()?);
-    let secret: String = (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
+    let secret: String =
+        (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
     let token = Token::new(&secret, "soak").context("token")?;
     let mut learner = spawn_learner(ctx, &dir, g, adm, &secret)?;
     let pid = learner.id();
@@ -197,7 +238,10 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
     } else {
         println!("{}", serde_json::to_string_pretty(&out)?);
     }
-    let failed: Vec<&String> = out["checks"].as_object().map(|m| m.iter().filter(|(_, v)| v != &&json!(true)).map(|(k, _)| k).collect()).unwrap_or_default();
+    let failed: Vec<&String> = out["checks"]
+        .as_object()
+        .map(|m| m.iter().filter(|(_, v)| v != &&json!(true)).map(|(k, _)| k).collect())
+        .unwrap_or_default();
     if !failed.is_empty() {
         bail!("soak checks failed: {failed:?}");
     }
@@ -207,7 +251,8 @@ pub fn run(ctx: &Ctx, a: SoakArgs) -> Result<()> {
 /// `--config` with the soak's overrides: an endless budget, the soak's replay ratio and
 /// capacity, no staleness limit, a warm-up within the replay.
 fn soak_config(a: &SoakArgs) -> Result<JobConfig> {
-    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
+    let text = std::fs::read_to_string(&a.config)
+        .with_context(|| format!("reading {}", a.config.display()))?;
     let mut cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
     cfg.name = "soak".into();
     cfg.train.env_steps = 1 << 40;
@@ -221,9 +266,22 @@ fn soak_config(a: &SoakArgs) -> Result<JobConfig> {
 
 /// `socialflow learner` (this executable) on loopback with the soak's token, its log in the
 /// temporary directory.
-fn spawn_learner(ctx: &Ctx, dir: &std::path::Path, grpc_port: u16, admin_port: u16, secret: &str) -> Result<std::process::Child> {
+fn spawn_learner(
+    ctx: &Ctx,
+    dir: &std::path::Path,
+    grpc_port: u16,
+    admin_port: u16,
+    secret: &str,
+) -> Result<std::process::Child> {
     std::process::Command::new(std::env::current_exe().context("this executable")?)
-        .args(["learner", "--grpc-addr", &format!("127.0.0.1:{grpc_port}"), "--admin-addr", &format!("127.0.0.1:{admin_port}"), "--data-dir"])
+        .args([
+            "learner",
+            "--grpc-addr",
+            &format!("127.0.0.1:{grpc_port}"),
+            "--admin-addr",
+            &format!("127.0.0.1:{admin_port}"),
+            "--data-dir",
+        ])
         .arg(dir)
         .arg("--scenarios-dir")
         .arg(&ctx.scenarios)
@@ -232,14 +290,27 @@ fn spawn_learner(ctx: &Ctx, dir: &std::path::Path, grpc_port: u16, admin_port: u
         .env("SOCIALFLOW_TOKEN", secret)
         .env("RUST_LOG", "warn")
         .stdout(std::process::Stdio::null())
-        .stderr(std::fs::File::create(std::env::temp_dir().join(format!("socialflow-soak-{}.log", std::process::id()))).context("learner log")?)
+        .stderr(
+            std::fs::File::create(
+                std::env::temp_dir().join(format!("socialflow-soak-{}.log", std::process::id())),
+            )
+            .context("learner log")?,
+        )
         .spawn()
         .context("starting the learner")
 }
 
 /// Submits the job, runs the streams for `--seconds` (killing and replacing one every
 /// `--kill-every-s`), samples the learner's memory, and returns the soak's JSON with its checks.
-async fn soak(a: &SoakArgs, cfg: &JobConfig, pool: Arc<(Vec<f32>, usize)>, act: usize, urls: &(String, String), token: Token, pid: u32) -> Result<serde_json::Value> {
+async fn soak(
+    a: &SoakArgs,
+    cfg: &JobConfig,
+    pool: Arc<(Vec<f32>, usize)>,
+    act: usize,
+    urls: &(String, String),
+    token: Token,
+    pid: u32,
+) -> Result<serde_json::Value> {
     let (url, admin) = urls;
     let ep = sf_service::tls::endpoint(url, &Default::default())?;
     let start_wait = Instant::now();
@@ -252,19 +323,29 @@ async fn soak(a: &SoakArgs, cfg: &JobConfig, pool: Arc<(Vec<f32>, usize)>, act: 
     };
     let job = remote::submit(&mut c, cfg.to_toml()).await?;
     let ch = ep.connect().await?;
-    let exp: Exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
+    let exp: Exp =
+        ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone())))
+            .max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
     let t0 = Instant::now();
     let until = t0 + Duration::from_secs_f64(a.seconds);
-    let spawn = |st: Arc<StreamStats>| tokio::spawn(stream(exp.clone(), job.id, Arc::clone(&pool), a.batch, act, until, st));
-    let mut live: Vec<(Arc<StreamStats>, tokio::task::JoinHandle<()>)> = (0..a.streams).map(|_| Arc::new(StreamStats::default())).map(|s| (Arc::clone(&s), spawn(s))).collect();
+    let spawn = |st: Arc<StreamStats>| {
+        tokio::spawn(stream(exp.clone(), job.id, Arc::clone(&pool), a.batch, act, until, st))
+    };
+    let mut live: Vec<(Arc<StreamStats>, tokio::task::JoinHandle<()>)> = (0..a.streams)
+        .map(|_| Arc::new(StreamStats::default()))
+        .map(|s| (Arc::clone(&s), spawn(s)))
+        .collect();
     let mut killed: Vec<Arc<StreamStats>> = Vec::new();
     let mut in_flight_killed = 0u64;
     let mut rss = Vec::new();
-    let (mut next_sample, mut next_kill) = (0.0, if a.kill_every_s > 0.0 { a.kill_every_s } else { f64::INFINITY });
+    let (mut next_sample, mut next_kill) =
+        (0.0, if a.kill_every_s > 0.0 { a.kill_every_s } else { f64::INFINITY });
     while Instant::now() < until {
         let t = t0.elapsed().as_secs_f64();
         if t >= next_sample {
-            let replay = http_get(admin).ok().map(|m| counter(&m, "socialflow_learner_replay_size_transitions"));
+            let replay = http_get(admin)
+                .ok()
+                .map(|m| counter(&m, "socialflow_learner_replay_size_transitions"));
             rss.push(json!([t.round(), rss_mb(pid), replay]));
             next_sample += a.sample_every_s;
         }
@@ -273,7 +354,8 @@ async fn soak(a: &SoakArgs, cfg: &JobConfig, pool: Arc<(Vec<f32>, usize)>, act: 
             let (st, h) = live.swap_remove(k);
             h.abort();
             let _ = h.await;
-            in_flight_killed += st.sent.load(Ordering::Relaxed).saturating_sub(st.acked.load(Ordering::Relaxed));
+            in_flight_killed +=
+                st.sent.load(Ordering::Relaxed).saturating_sub(st.acked.load(Ordering::Relaxed));
             killed.push(st);
             let fresh = Arc::new(StreamStats::default());
             live.push((Arc::clone(&fresh), spawn(fresh)));
@@ -292,8 +374,17 @@ async fn soak(a: &SoakArgs, cfg: &JobConfig, pool: Arc<(Vec<f32>, usize)>, act: 
 
 /// The soak's JSON: what the streams sent and saw acked against what the learner counted, the
 /// memory curve, and the checks.
-fn summary(a: &SoakArgs, metrics: &str, survivors: &[Arc<StreamStats>], killed: &[Arc<StreamStats>], in_flight_killed: u64, rss: Vec<serde_json::Value>, seconds: f64) -> serde_json::Value {
-    let counted = counter(metrics, "socialflow_learner_transitions_received_total") + counter(metrics, "socialflow_learner_transitions_dropped_total");
+fn summary(
+    a: &SoakArgs,
+    metrics: &str,
+    survivors: &[Arc<StreamStats>],
+    killed: &[Arc<StreamStats>],
+    in_flight_killed: u64,
+    rss: Vec<serde_json::Value>,
+    seconds: f64,
+) -> serde_json::Value {
+    let counted = counter(metrics, "socialflow_learner_transitions_received_total")
+        + counter(metrics, "socialflow_learner_transitions_dropped_total");
     let updates = counter(metrics, "socialflow_learner_updates_total");
     let all = || survivors.iter().chain(killed);
     let sent: u64 = all().map(|s| s.sent.load(Ordering::Relaxed)).sum();
@@ -307,7 +398,11 @@ fn summary(a: &SoakArgs, metrics: &str, survivors: &[Arc<StreamStats>], killed: 
     let lost = sent as f64 - counted;
     // Memory once the replay is full (it grows with the replay until then).
     let full = a.replay_capacity as f64;
-    let steady: Vec<f64> = rss.iter().skip_while(|p| p[2].as_f64().is_none_or(|n| n < full)).filter_map(|p| p[1].as_f64()).collect();
+    let steady: Vec<f64> = rss
+        .iter()
+        .skip_while(|p| p[2].as_f64().is_none_or(|n| n < full))
+        .filter_map(|p| p[1].as_f64())
+        .collect();
     let growth = match (steady.first(), steady.last()) {
         (Some(f), Some(l)) if *f > 0.0 && steady.len() >= 2 => l / f - 1.0,
         _ => f64::NAN,
@@ -331,8 +426,10 @@ fn summary(a: &SoakArgs, metrics: &str, survivors: &[Arc<StreamStats>], killed: 
 fn http_get(url: &str) -> Result<String> {
     use std::io::{Read, Write};
     let rest = url.strip_prefix("http://").context("http url")?;
-    let (host, path) = rest.split_once('/').map(|(h, p)| (h, format!("/{p}"))).unwrap_or((rest, "/".into()));
-    let mut s = std::net::TcpStream::connect(host).with_context(|| format!("connecting to {host}"))?;
+    let (host, path) =
+        rest.split_once('/').map(|(h, p)| (h, format!("/{p}"))).unwrap_or((rest, "/".into()));
+    let mut s =
+        std::net::TcpStream::connect(host).with_context(|| format!("connecting to {host}"))?;
     s.set_read_timeout(Some(Duration::from_secs(10)))?;
     write!(s, "GET {path} HTTP/1.0\r\nHost: {host}\r\n\r\n")?;
     let mut out = String::new();

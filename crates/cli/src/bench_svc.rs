@@ -71,10 +71,19 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         let mut c = emb.client().await?;
         let job = remote::submit(&mut c, INGEST_JOB.to_string()).await?;
         let ch = tonic::transport::Endpoint::from_shared(emb.url.clone())?.connect().await?;
-        let mut exp = ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(emb.token.clone()))).max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
-        let wid = exp.register(pb::RegisterRequest { name: "bench".into(), ..Default::default() }).await?.into_inner().worker_id;
+        let mut exp = ExperienceServiceClient::with_interceptor(
+            ch,
+            AttachToken::new(Some(emb.token.clone())),
+        )
+        .max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES);
+        let wid = exp
+            .register(pb::RegisterRequest { name: "bench".into(), ..Default::default() })
+            .await?
+            .into_inner()
+            .worker_id;
         let asg = loop {
-            let r = exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await?.into_inner();
+            let r =
+                exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await?.into_inner();
             if let Some(asg) = r.assignment {
                 break asg;
             }
@@ -86,7 +95,9 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         for k in 0..a.batch {
             b.push(&row, &[0.1, -0.2], k as f32 * 0.01, &row, k % 50 == 0, 0);
         }
-        b.acted_by = sf_job::ActedBy::Policy(std::num::NonZeroU64::new(asg.policy_version).unwrap_or(std::num::NonZeroU64::MIN));
+        b.acted_by = sf_job::ActedBy::Policy(
+            std::num::NonZeroU64::new(asg.policy_version).unwrap_or(std::num::NonZeroU64::MIN),
+        );
         let msg = sf_proto::batch_to_wire(&b);
         let bytes = prost::Message::encoded_len(&msg);
         let accepted = Arc::new(AtomicU64::new(0));
@@ -97,7 +108,10 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
             let (mut exp, msg, accepted) = (exp.clone(), msg.clone(), Arc::clone(&accepted));
             tasks.push(tokio::spawn(async move {
                 let (tx, rx) = tokio::sync::mpsc::channel(2);
-                let mut acks = exp.push_transitions(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
+                let mut acks = exp
+                    .push_transitions(tokio_stream::wrappers::ReceiverStream::new(rx))
+                    .await?
+                    .into_inner();
                 let sender = tokio::spawn(async move {
                     while Instant::now() < until {
                         if tx.send(msg.clone()).await.is_err() {
@@ -133,7 +147,8 @@ pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     if a.workers == 0 {
         bail!("--workers must be positive");
     }
-    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
+    let text = std::fs::read_to_string(&a.config)
+        .with_context(|| format!("reading {}", a.config.display()))?;
     let mut cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
     cfg.name = "bench-e2e".into();
     cfg.train.env_steps = 1 << 40;
@@ -150,13 +165,23 @@ pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
         let job = remote::submit(&mut c, cfg.to_toml()).await?;
         let get = |c: &mut remote::JobsClient| {
             let mut c = c.clone();
-            async move { anyhow::Ok(sf_proto::job_from_wire(&c.get_job(pb::GetJobRequest { job_id: job.id }).await?.into_inner())?.progress) }
+            async move {
+                anyhow::Ok(
+                    sf_proto::job_from_wire(
+                        &c.get_job(pb::GetJobRequest { job_id: job.id }).await?.into_inner(),
+                    )?
+                    .progress,
+                )
+            }
         };
         // Past the warm-up: the learner trains and workers act with the policy.
         let warm_deadline = Instant::now() + Duration::from_secs(600);
         let p0 = loop {
             let p = get(&mut c).await?;
-            if p.learning.updates > 0 && p.learning.env_steps > cfg.sac.warmup_steps + 2 * cfg.worker.batch_transitions as u64 {
+            if p.learning.updates > 0
+                && p.learning.env_steps
+                    > cfg.sac.warmup_steps + 2 * cfg.worker.batch_transitions as u64
+            {
                 break p;
             }
             if Instant::now() > warm_deadline {

@@ -38,7 +38,8 @@ pub struct EvalArgs {
 
 /// Reads and validates an evaluation config file.
 pub fn load(path: &Path) -> Result<EvalConfig> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     EvalConfig::from_toml(&text).with_context(|| path.display().to_string())
 }
 
@@ -46,9 +47,14 @@ pub fn load(path: &Path) -> Result<EvalConfig> {
 fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
     let jobs = runs.join("jobs");
     let mut out = Vec::new();
-    for e in std::fs::read_dir(&jobs).with_context(|| format!("reading {}", jobs.display()))?.flatten() {
+    for e in
+        std::fs::read_dir(&jobs).with_context(|| format!("reading {}", jobs.display()))?.flatten()
+    {
         let file = e.file_name().to_string_lossy().to_string();
-        if let Some((id, name)) = file.split_once('-').and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name.to_string()))) {
+        if let Some((id, name)) = file
+            .split_once('-')
+            .and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name.to_string())))
+        {
             out.push((id, name, e.path()));
         }
     }
@@ -60,10 +66,19 @@ fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
 pub(crate) fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
     let dirs = job_dirs(runs)?;
     let dir = match id {
-        Some(id) => dirs.into_iter().find(|(i, _, _)| *i == id).map(|(_, _, d)| d).with_context(|| format!("job {id} has no directory under {}", runs.join("jobs").display()))?,
+        Some(id) => {
+            dirs.into_iter().find(|(i, _, _)| *i == id).map(|(_, _, d)| d).with_context(|| {
+                format!("job {id} has no directory under {}", runs.join("jobs").display())
+            })?
+        }
         None => {
-            let best = dirs.into_iter().filter(|(_, n, dir)| n == name && dir.join("policy.bpk").exists()).max_by_key(|(id, _, _)| *id);
-            best.map(|(_, _, d)| d).with_context(|| format!("no finished job named `{name}` under {}", runs.join("jobs").display()))?
+            let best = dirs
+                .into_iter()
+                .filter(|(_, n, dir)| n == name && dir.join("policy.bpk").exists())
+                .max_by_key(|(id, _, _)| *id);
+            best.map(|(_, _, d)| d).with_context(|| {
+                format!("no finished job named `{name}` under {}", runs.join("jobs").display())
+            })?
         }
     };
     load_job(&dir)
@@ -82,7 +97,11 @@ fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {
     match t.cfg.kind {
         JobKind::Ego => bail!("`{}` ({}) is an ego job, not a flow", f.job, t.key),
         JobKind::SocialcommAdv => {
-            let bg_id = t.cfg.env.background_job.with_context(|| format!("{}: a socialcomm-adv job without its flow", t.key))?;
+            let bg_id = t
+                .cfg
+                .env
+                .background_job
+                .with_context(|| format!("{}: a socialcomm-adv job without its flow", t.key))?;
             let bg = find_job(runs, "", Some(bg_id))?;
             Ok(FlowDef::Learned { background: bg, adversary: Some(t), messages })
         }
@@ -91,7 +110,10 @@ fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {
 }
 
 /// Loads the map and stored cases of every scenario the grid runs in.
-pub fn load_maps(ctx: &Ctx, cfg: &EvalConfig) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>> {
+pub fn load_maps(
+    ctx: &Ctx,
+    cfg: &EvalConfig,
+) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>> {
     let mut maps = BTreeMap::new();
     for s in cfg.all_scenarios() {
         let m = ctx.map(&s)?;
@@ -104,11 +126,16 @@ pub fn load_maps(ctx: &Ctx, cfg: &EvalConfig) -> Result<BTreeMap<String, (Arc<sf
 pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let cfg = load(&a.config)?;
     let runs = a.runs.or(cfg.runs.clone()).with_context(|| format!("{}: field `runs` (or --runs: the data directory of the trained jobs) is needed to evaluate here", a.config.display()))?;
-    let out = a.out.or(cfg.out.clone()).with_context(|| format!("{}: field `out` (or --out) is needed to evaluate here", a.config.display()))?;
+    let out = a.out.or(cfg.out.clone()).with_context(|| {
+        format!("{}: field `out` (or --out) is needed to evaluate here", a.config.display())
+    })?;
     // Everything named must exist, and every cell's ego and flow fit, before anything runs.
     let mut grid = evaluate::Resolved::default();
     for f in &cfg.flows {
-        grid.flows.insert(f.name.clone(), flow_def(&runs, f).with_context(|| format!("flow `{}`", f.name))?);
+        grid.flows.insert(
+            f.name.clone(),
+            flow_def(&runs, f).with_context(|| format!("flow `{}`", f.name))?,
+        );
     }
     for e in &cfg.egos {
         if e.is_idm() {
@@ -117,7 +144,8 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         }
         let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
         // A probe places a Stage-1 flow's actor in the ego's seat, zero-shot.
-        let stage1_flow = matches!(t.cfg.kind, JobKind::Macad | JobKind::Copo | JobKind::Socialcomm);
+        let stage1_flow =
+            matches!(t.cfg.kind, JobKind::Macad | JobKind::Copo | JobKind::Socialcomm);
         match (e.flow_actor, t.cfg.kind) {
             (false, JobKind::Ego) => {}
             (true, _) if stage1_flow => {}
@@ -129,13 +157,16 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let all = cfg.cells();
     grid.check(&all).map_err(anyhow::Error::msg)?;
     let maps = load_maps(ctx, &cfg)?;
-    cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c)| c.cases.len())).with_context(|| a.config.display().to_string())?;
+    cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c)| c.cases.len()))
+        .with_context(|| a.config.display().to_string())?;
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let meta_path = out.join("meta.json");
-    std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?).with_context(|| format!("writing {}", meta_path.display()))?;
+    std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?)
+        .with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
-    let stored = sf_report::episodes::read_episodes(&path).with_context(|| format!("reading {}", path.display()))?;
+    let stored = sf_report::episodes::read_episodes(&path)
+        .with_context(|| format!("reading {}", path.display()))?;
     let mut have: BTreeMap<Cell, u64> = BTreeMap::new();
     for r in &stored {
         *have.entry(r.cell()).or_default() += 1;
@@ -154,7 +185,10 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     let per_cell: BTreeSet<u64> = todo.iter().map(|c| cfg.episodes_of(c)).collect();
     let each = match (per_cell.first(), per_cell.last()) {
         (Some(lo), Some(hi)) if lo == hi => format!("{lo} episodes each"),
-        (Some(lo), Some(hi)) => format!("{} episodes ({lo} to {hi} per cell)", todo.iter().map(|c| cfg.episodes_of(c)).sum::<u64>()),
+        (Some(lo), Some(hi)) => format!(
+            "{} episodes ({lo} to {hi} per cell)",
+            todo.iter().map(|c| cfg.episodes_of(c)).sum::<u64>()
+        ),
         _ => "no episodes".to_string(),
     };
     eprintln!("{} cells to run ({} stored), {each}", todo.len(), have.len());
@@ -165,11 +199,21 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         let (map, cases) = maps.get(&cell.scenario).context("scenario loaded")?;
         let t = std::time::Instant::now();
         let (flow, ego) = grid.cell(cell).map_err(anyhow::Error::msg)?;
-        let eps = evaluate::run_cell(cell, size, map, cases, flow, ego, &mut runners).map_err(anyhow::Error::msg).with_context(|| format!("cell {}", cell.key()))?;
+        let eps = evaluate::run_cell(cell, size, map, cases, flow, ego, &mut runners)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("cell {}", cell.key()))?;
         let rows: Vec<EpisodeRow> = eps.iter().map(|e| EpisodeRow::new(cell, e)).collect();
         file.append(&rows)?;
-        let s = rows.iter().map(|r| r.ep.scores.success as f64).sum::<f64>() / rows.len().max(1) as f64;
-        eprintln!("[{}/{}] {:<64} success {:5.1}%  ({:.1} s)", k + 1, todo.len(), cell.key(), 100.0 * s, t.elapsed().as_secs_f64());
+        let s =
+            rows.iter().map(|r| r.ep.scores.success as f64).sum::<f64>() / rows.len().max(1) as f64;
+        eprintln!(
+            "[{}/{}] {:<64} success {:5.1}%  ({:.1} s)",
+            k + 1,
+            todo.len(),
+            cell.key(),
+            100.0 * s,
+            t.elapsed().as_secs_f64()
+        );
     }
     eprintln!("wrote {}", path.display());
     if let Some(g) = &cfg.experiments.gifs {
@@ -199,7 +243,10 @@ pub fn report(a: ReportArgs) -> Result<()> {
     for dir in &a.results {
         let rows = sf_report::episodes::read_episodes(&dir.join("episodes.csv"))?;
         if rows.is_empty() {
-            bail!("{} holds no evaluated episodes (run `socialflow eval` first)", dir.join("episodes.csv").display());
+            bail!(
+                "{} holds no evaluated episodes (run `socialflow eval` first)",
+                dir.join("episodes.csv").display()
+            );
         }
         let m = sf_report::episodes::read_meta(&dir.join("meta.json"))?;
         match &meta {
@@ -212,10 +259,14 @@ pub fn report(a: ReportArgs) -> Result<()> {
     let Some((_, meta)) = meta else { bail!("no results directory given") };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     // Episode GIFs of the first replicate.
-    for e in std::fs::read_dir(&a.results[0]).with_context(|| format!("reading {}", a.results[0].display()))?.flatten() {
+    for e in std::fs::read_dir(&a.results[0])
+        .with_context(|| format!("reading {}", a.results[0].display()))?
+        .flatten()
+    {
         let name = e.file_name().to_string_lossy().to_string();
         if name.starts_with("gif-") && name.ends_with(".gif") {
-            std::fs::copy(e.path(), a.out.join(&name)).with_context(|| format!("copying {name}"))?;
+            std::fs::copy(e.path(), a.out.join(&name))
+                .with_context(|| format!("copying {name}"))?;
         }
     }
     let f = sf_report::report::build_replicates(&sets, &meta, &a.out)?;
@@ -234,28 +285,41 @@ mod tests {
         let c = load(&p).expect("valid");
         let cells = c.cells();
         let count = |e: &str| cells.iter().filter(|c| c.experiment == e).count();
-        assert_eq!(count("cross"), 7 * 4 * 4, "6 trained egos and the IDM driver x 4 flows x 4 scenarios");
+        assert_eq!(
+            count("cross"),
+            7 * 4 * 4,
+            "6 trained egos and the IDM driver x 4 flows x 4 scenarios"
+        );
         assert_eq!(count("svo_sweep"), 2 * 4 * 10);
         assert_eq!(count("density"), 4 * 6);
         let keys: BTreeSet<String> = cells.iter().map(Cell::key).collect();
         assert_eq!(keys.len(), cells.len(), "cells are distinct");
         let svos: BTreeSet<u32> = cells.iter().filter_map(|c| c.svo_deg).collect();
-        assert_eq!(svos.into_iter().collect::<Vec<_>>(), vec![0, 10, 20, 30, 40, 50, 60, 70, 80, 90]);
+        assert_eq!(
+            svos.into_iter().collect::<Vec<_>>(),
+            vec![0, 10, 20, 30, 40, 50, 60, 70, 80, 90]
+        );
         // The flows-only grid: the same flow cells, no ego.
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper-small-flows.toml");
+        let p =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper-small-flows.toml");
         let flows = load(&p).expect("valid").cells();
         assert!(flows.iter().all(|c| c.ego.is_empty()), "no ego cells");
         let flow_keys: BTreeSet<String> = flows.iter().map(Cell::key).collect();
-        let full_flow_keys: BTreeSet<String> = cells.iter().filter(|c| c.ego.is_empty()).map(Cell::key).collect();
+        let full_flow_keys: BTreeSet<String> =
+            cells.iter().filter(|c| c.ego.is_empty()).map(Cell::key).collect();
         assert_eq!(flow_keys, full_flow_keys, "the flows-only grid is the full grid's flow cells");
         // The paper's grid: 200 cases x 10 seeds, the same experiments.
         let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper.toml");
         let paper = load(&p).expect("valid");
         assert_eq!((paper.cases, paper.seeds), (200, 10));
         assert_eq!(paper.cells(), cells, "the paper grid has the paper-small grid's cells");
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/eval/paper-small-flow-quality-200x10.toml");
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../configs/eval/paper-small-flow-quality-200x10.toml");
         let fq = load(&p).expect("valid");
         assert_eq!((fq.cases, fq.seeds), (200, 10));
-        assert_eq!(fq.cells(), cells.iter().filter(|c| c.experiment == "flow_quality").cloned().collect::<Vec<_>>());
+        assert_eq!(
+            fq.cells(),
+            cells.iter().filter(|c| c.experiment == "flow_quality").cloned().collect::<Vec<_>>()
+        );
     }
 }

@@ -85,7 +85,8 @@ impl LearnedFlow {
     /// The config of a flow job's artifact directory (refused if it is not a flow).
     fn config(dir: &std::path::Path) -> Result<sf_job::JobConfig> {
         let cfg = dir.join("config.toml");
-        let text = std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
+        let text =
+            std::fs::read_to_string(&cfg).with_context(|| format!("reading {}", cfg.display()))?;
         let job = sf_job::JobConfig::from_toml(&text).with_context(|| cfg.display().to_string())?;
         if !job.kind.multi_agent() {
             bail!("{} is a `{}` job, not a Stage-1 traffic flow", dir.display(), job.kind.as_str());
@@ -95,12 +96,22 @@ impl LearnedFlow {
 
     fn load(dir: &std::path::Path, job: &sf_job::JobConfig, map: &sf_sim::Map) -> Result<Self> {
         let p = dir.join("policy.bpk");
-        let weights = std::fs::read(&p).with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
+        let weights = std::fs::read(&p)
+            .with_context(|| format!("reading {} (did the job succeed?)", p.display()))?;
         let r = sf_rollout::setup::resolve(job, None);
         let sim = std::sync::Arc::new(r.sim);
         let segments = sf_sim::obs::MapSegments::build(map, sim.obs.segment_points);
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-        let runner = sf_rollout::inference::PolicyRunner::from_bytes(&r.net, &r.obs, sim.dt_s, &[&segments], &weights, 0, &device).with_context(|| format!("loading {}", p.display()))?;
+        let runner = sf_rollout::inference::PolicyRunner::from_bytes(
+            &r.net,
+            &r.obs,
+            sim.dt_s,
+            &[&segments],
+            &weights,
+            0,
+            &device,
+        )
+        .with_context(|| format!("loading {}", p.display()))?;
         let coordinator = CoordinatorFile::load(dir).map_err(anyhow::Error::msg)?;
         Ok(Self { sim, runner, coordinator })
     }
@@ -142,12 +153,22 @@ pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
     use sf_rollout::coordinator::{fit_scenario, FitSettings, ScenarioFit};
     let job = LearnedFlow::config(&a.policy)?;
     if job.kind != sf_job::config::JobKind::Copo {
-        bail!("{} is a `{}` job; the coordinator is fitted on a CoPO Stage-1 flow", a.policy.display(), job.kind.as_str());
+        bail!(
+            "{} is a `{}` job; the coordinator is fitted on a CoPO Stage-1 flow",
+            a.policy.display(),
+            job.kind.as_str()
+        );
     }
-    if a.population == 0 || a.iterations == 0 || a.episodes == 0 || a.envs == 0 || !(a.elite > 0.0 && a.elite <= 1.0) {
+    if a.population == 0
+        || a.iterations == 0
+        || a.episodes == 0
+        || a.envs == 0
+        || !(a.elite > 0.0 && a.elite <= 1.0)
+    {
         bail!("--population, --iterations, --episodes and --envs must be positive and --elite in (0, 1]");
     }
-    let scenarios = if a.scenario.is_empty() { job.env.scenarios.clone() } else { a.scenario.clone() };
+    let scenarios =
+        if a.scenario.is_empty() { job.env.scenarios.clone() } else { a.scenario.clone() };
     let mut fits = Vec::new();
     for (k, scenario) in scenarios.iter().enumerate() {
         let map = ctx.map(scenario)?;
@@ -162,7 +183,10 @@ pub fn coordinator(ctx: &Ctx, a: CoordinatorArgs) -> Result<()> {
             seed: a.seed ^ k as u64,
         };
         let (coord, history) = fit_scenario(&map, &flow.sim, &flow.runner, &settings, |l| {
-            eprintln!("{scenario} iteration {}: mean {:.1} deg, std {:.1} deg, mean reward {:.4}", l.iteration, l.mean_deg, l.std_deg, l.mean_reward);
+            eprintln!(
+                "{scenario} iteration {}: mean {:.1} deg, std {:.1} deg, mean reward {:.4}",
+                l.iteration, l.mean_deg, l.std_deg, l.mean_reward
+            );
         })
         .map_err(anyhow::Error::msg)?;
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
@@ -179,7 +203,11 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
     if a.ego.is_some() {
         return run_ego_seat(ctx, &a);
     }
-    let learned = a.policy.as_deref().map(|dir| LearnedFlow::config(dir).map(|job| (dir, job))).transpose()?;
+    let learned = a
+        .policy
+        .as_deref()
+        .map(|dir| LearnedFlow::config(dir).map(|job| (dir, job)))
+        .transpose()?;
     let flow_name = match (&learned, a.flow) {
         (Some((_, job)), _) => format!("{:?}", job.kind).to_lowercase(),
         (None, Some(f)) => format!("{f:?}").to_lowercase(),
@@ -193,10 +221,16 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
     let map = ctx.map(&a.scenario)?;
     let cases = ctx.cases(&map)?;
     if a.cases as usize > cases.cases.len() {
-        bail!("--cases {} exceeds the {} stored cases of {}", a.cases, cases.cases.len(), a.scenario);
+        bail!(
+            "--cases {} exceeds the {} stored cases of {}",
+            a.cases,
+            cases.cases.len(),
+            a.scenario
+        );
     }
     let cfg = std::sync::Arc::new(SimConfig::default());
-    let jobs: Vec<(usize, u32)> = (0..a.cases as usize).flat_map(|c| (0..a.seeds).map(move |s| (c, s))).collect();
+    let jobs: Vec<(usize, u32)> =
+        (0..a.cases as usize).flat_map(|c| (0..a.seeds).map(move |s| (c, s))).collect();
     let results: Vec<EpisodeMetrics> = match learned {
         None => jobs
             .par_iter()
@@ -211,24 +245,45 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         Some((dir, job)) => {
             // Every vehicle driven by the flow; one sampling stream per seed, as in `eval`.
             let flow = LearnedFlow::load(dir, &job, &map)?;
-            let gaussian = if a.stage1 { None } else { flow.coordinator.as_ref().and_then(|c| c.gaussian(&a.scenario)) };
-            let actor = if a.deterministic { Actor::mean(&flow.runner) } else { Actor::sampled(&flow.runner) };
+            let gaussian = if a.stage1 {
+                None
+            } else {
+                flow.coordinator.as_ref().and_then(|c| c.gaussian(&a.scenario))
+            };
+            let actor = if a.deterministic {
+                Actor::mean(&flow.runner)
+            } else {
+                Actor::sampled(&flow.runner)
+            };
             let drivers = Drivers { alive: actor, background: None, adversary: None };
             let mut out = Vec::with_capacity(jobs.len());
             for seed in 0..a.seeds {
-                let eps = (0..a.cases as usize).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: a.vehicles, svo_deg: None, tag: (seed as u64) << 32 | c as u64 }).collect();
-                let mut v = VecEnv::from_episodes(map.clone(), flow.sim.clone(), Mode::MultiAgent, 16, eps).map_err(anyhow::Error::msg)?;
+                let eps = (0..a.cases as usize)
+                    .map(|c| EpisodeSpec {
+                        case: cases.cases[c].clone(),
+                        vehicles: a.vehicles,
+                        svo_deg: None,
+                        tag: (seed as u64) << 32 | c as u64,
+                    })
+                    .collect();
+                let mut v =
+                    VecEnv::from_episodes(map.clone(), flow.sim.clone(), Mode::MultiAgent, 16, eps)
+                        .map_err(anyhow::Error::msg)?;
                 v.set_svo_gaussian(gaussian);
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed as u64);
-                let mut done = sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
+                let mut done =
+                    sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
                 done.sort_by_key(|(tag, _)| *tag);
                 out.extend(done.into_iter().map(|(_, m)| m));
             }
             out
         }
     };
-    let col = |f: fn(&EpisodeMetrics) -> f32| Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>());
-    let (success, safety, speed) = (col(|m| m.scores.success), col(|m| m.scores.safety), col(|m| m.scores.speed));
+    let col = |f: fn(&EpisodeMetrics) -> f32| {
+        Summary::of(&results.iter().map(|m| f(m) as f64).collect::<Vec<_>>())
+    };
+    let (success, safety, speed) =
+        (col(|m| m.scores.success), col(|m| m.scores.safety), col(|m| m.scores.speed));
     let failures = json!({
         "collision": col(|m| m.collision).mean,
         "off_road": col(|m| m.off_road).mean,
@@ -268,22 +323,46 @@ fn run_ego_seat(ctx: &Ctx, a: &EvalFlowArgs) -> Result<()> {
     let flow = match (&a.policy, a.flow) {
         (Some(dir), _) => FlowDef::load(dir).map_err(anyhow::Error::msg)?,
         (None, Some(Flow::Idm)) => FlowDef::Idm,
-        (None, Some(other)) => bail!("flow `{other:?}` needs a trained policy: give its job directory with --policy"),
+        (None, Some(other)) => {
+            bail!("flow `{other:?}` needs a trained policy: give its job directory with --policy")
+        }
         (None, None) => bail!("give --flow or --policy"),
     };
     let map = ctx.map(&a.scenario)?;
     let cases = ctx.cases(&map)?;
     if a.cases as usize > cases.cases.len() {
-        bail!("--cases {} exceeds the {} stored cases of {}", a.cases, cases.cases.len(), a.scenario);
+        bail!(
+            "--cases {} exceeds the {} stored cases of {}",
+            a.cases,
+            cases.cases.len(),
+            a.scenario
+        );
     }
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
     let setup = FlowSetup::new(&flow, &map, None, &mut runners).map_err(anyhow::Error::msg)?;
     let gaussian = if a.stage1 { None } else { setup.svo_gaussian };
-    let drivers = setup.drivers(Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual });
-    let episodes = Episodes { cases: &cases.cases[..a.cases as usize], seeds: a.seeds, envs: a.envs, vehicles: a.vehicles, svo_deg: None };
-    let rows = sf_rollout::evaluate::run_stored(&map, &setup.sim, setup.mode, gaussian, &episodes, &drivers).map_err(anyhow::Error::msg)?;
-    let col = |f: fn(&sf_job::eval::EvalEpisode) -> f32| Summary::of(&rows.iter().map(|r| f(r) as f64).collect::<Vec<_>>());
-    let (success, safety, speed, collision) = (col(|r| r.scores.success), col(|r| r.scores.safety), col(|r| r.scores.speed), col(|r| r.collision));
+    let drivers =
+        setup.drivers(Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual });
+    let episodes = Episodes {
+        cases: &cases.cases[..a.cases as usize],
+        seeds: a.seeds,
+        envs: a.envs,
+        vehicles: a.vehicles,
+        svo_deg: None,
+    };
+    let rows = sf_rollout::evaluate::run_stored(
+        &map, &setup.sim, setup.mode, gaussian, &episodes, &drivers,
+    )
+    .map_err(anyhow::Error::msg)?;
+    let col = |f: fn(&sf_job::eval::EvalEpisode) -> f32| {
+        Summary::of(&rows.iter().map(|r| f(r) as f64).collect::<Vec<_>>())
+    };
+    let (success, safety, speed, collision) = (
+        col(|r| r.scores.success),
+        col(|r| r.scores.safety),
+        col(|r| r.scores.speed),
+        col(|r| r.collision),
+    );
     let flow_name = flow.kind().map_or("idm", |k| k.as_str());
     if a.json {
         let s = |x: Summary| json!({"mean": x.mean, "ci95": x.ci95});
@@ -306,8 +385,18 @@ fn run_ego_seat(ctx: &Ctx, a: &EvalFlowArgs) -> Result<()> {
         println!("{out}");
     } else {
         let p = |x: Summary| format!("{:5.1}% +- {:.1}", 100.0 * x.mean, 100.0 * x.ci95);
-        println!("IDM ego among the {flow_name} flow in {} over {} episodes", a.scenario, rows.len());
-        println!("  success {}\n  safety  {}\n  speed   {}\n  collision {}", p(success), p(safety), p(speed), p(collision));
+        println!(
+            "IDM ego among the {flow_name} flow in {} over {} episodes",
+            a.scenario,
+            rows.len()
+        );
+        println!(
+            "  success {}\n  safety  {}\n  speed   {}\n  collision {}",
+            p(success),
+            p(safety),
+            p(speed),
+            p(collision)
+        );
     }
     Ok(())
 }

@@ -150,19 +150,27 @@ pub struct Gate {
 
 impl Rung {
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
         let r: Rung = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
         if r.seeds.is_empty() {
             bail!("{}: `seeds` is empty", path.display());
         }
-        if r.eval.scenarios.is_empty() || r.eval.cases == 0 || r.eval.seeds == 0 || r.eval.envs == 0 {
+        if r.eval.scenarios.is_empty() || r.eval.cases == 0 || r.eval.seeds == 0 || r.eval.envs == 0
+        {
             bail!("{}: `eval` needs scenarios and positive cases, seeds and envs", path.display());
         }
         if let Some(g) = &r.eval.generate {
-            if g.vehicles[0] == 0 || g.vehicles[0] > g.vehicles[1] || !(0.0..=1.0).contains(&g.conflict_share) {
+            if g.vehicles[0] == 0
+                || g.vehicles[0] > g.vehicles[1]
+                || !(0.0..=1.0).contains(&g.conflict_share)
+            {
                 bail!("{}: `eval.generate` needs 1 <= vehicles[0] <= vehicles[1] and conflict_share in [0, 1]", path.display());
             }
-            if let Some(Err(why)) = g.slow_leader.map(|s| s.check(sf_sim::vehicle::VehicleParams::default().max_speed_mps)) {
+            if let Some(Err(why)) = g
+                .slow_leader
+                .map(|s| s.check(sf_sim::vehicle::VehicleParams::default().max_speed_mps))
+            {
                 bail!("{}: `eval.generate.slow_leader.{why}", path.display());
             }
         }
@@ -196,7 +204,18 @@ impl Row {
     fn csv(&self) -> String {
         format!(
             "{},{},{},{},{},{},{},{},{},{},{},{}",
-            self.train_seed, self.driver, self.scenario, self.case, self.seed, self.vehicles, self.success, self.collision, self.other_failure, self.timeout, self.speed, self.lane_change
+            self.train_seed,
+            self.driver,
+            self.scenario,
+            self.case,
+            self.seed,
+            self.vehicles,
+            self.success,
+            self.collision,
+            self.other_failure,
+            self.timeout,
+            self.speed,
+            self.lane_change
         )
     }
 }
@@ -232,7 +251,8 @@ struct SeedSummary {
 pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let rung = Rung::load(&a.rung)?;
     let job_path = a.rung.parent().unwrap_or(Path::new(".")).join(&rung.job);
-    let text = std::fs::read_to_string(&job_path).with_context(|| format!("reading {}", job_path.display()))?;
+    let text = std::fs::read_to_string(&job_path)
+        .with_context(|| format!("reading {}", job_path.display()))?;
     let base = JobConfig::from_toml(&text).with_context(|| job_path.display().to_string())?;
     if base.kind != sf_job::config::JobKind::Ego {
         bail!("{}: a rung trains an ego job, not a {} job", job_path.display(), base.kind.as_str());
@@ -254,7 +274,9 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     // 2. Evaluate each against the IDM ego on the same episodes.
     let mut rows = Vec::new();
     let mut summaries = Vec::new();
-    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(anyhow::Error::msg)?);
+    let mut runners = Runners::new(
+        sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(anyhow::Error::msg)?,
+    );
     let mut curves = Vec::new();
     // The IDM ego does not depend on the training seed: its episodes run once.
     let mut idm = Vec::new();
@@ -265,7 +287,8 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         render_gifs(&rung.eval, map, cases, None, &mut runners, &out)?;
     }
     for (seed, policy) in &jobs {
-        let (summary, curve, mine) = evaluate_seed(&rung, *seed, policy, &maps, &idm, &mut runners, &out)?;
+        let (summary, curve, mine) =
+            evaluate_seed(&rung, *seed, policy, &maps, &idm, &mut runners, &out)?;
         summaries.push(summary);
         curves.push((*seed, curve));
         rows.extend(mine);
@@ -276,13 +299,17 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let ran: BTreeSet<u64> = summaries.iter().map(|s| s.train_seed).collect();
     let (kept, kept_rows) = earlier_seeds(&out, &rung, &ran)?;
     for s in kept {
-        curves.push((s.train_seed, read_curve(&out.join(format!("seed-{}", s.train_seed)).join("curve.csv"))?));
+        curves.push((
+            s.train_seed,
+            read_curve(&out.join(format!("seed-{}", s.train_seed)).join("curve.csv"))?,
+        ));
         summaries.push(s);
     }
     summaries.sort_by_key(|s| s.train_seed);
     curves.sort_by_key(|c| c.0);
     let lines = kept_rows.into_iter().chain(rows.iter().map(Row::csv));
-    let csv: String = std::iter::once(Row::HEADER.to_string()).chain(lines).map(|l| l + "\n").collect();
+    let csv: String =
+        std::iter::once(Row::HEADER.to_string()).chain(lines).map(|l| l + "\n").collect();
     std::fs::write(out.join("episodes.csv"), csv)?;
     let passed = summaries.iter().all(|s| s.passed);
     let json = serde_json::json!({"rung": rung.rung, "name": rung.name, "gate": rung.gate, "eval": rung.eval, "passed": passed, "seeds": summaries});
@@ -290,7 +317,10 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     std::fs::write(out.join("summary.md"), summary_md(&rung, &summaries, passed))?;
     plot_curves(&out, &rung, &curves)?;
     plot_validation(&out, &rung, &summaries)?;
-    println!("{}", serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()}));
+    println!(
+        "{}",
+        serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()})
+    );
     print!("{}", summary_md(&rung, &summaries, passed));
     Ok(())
 }
@@ -298,12 +328,31 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
 /// The rung's scenarios with the cases it evaluates on: the stored ones, or with
 /// `eval.generate` cases drawn from its seed (the same for every scenario's generator).
 fn rung_cases(dirs: &Ctx, rung: &Rung) -> Result<Vec<(Arc<Map>, CaseFile)>> {
-    let mut maps: Vec<_> = rung.eval.scenarios.iter().map(|s| sf_rollout::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    let mut maps: Vec<_> = rung
+        .eval
+        .scenarios
+        .iter()
+        .map(|s| {
+            sf_rollout::evaluate::load_scenario(&dirs.scenarios, &dirs.cases, s)
+                .map_err(anyhow::Error::msg)
+        })
+        .collect::<Result<_>>()?;
     if let Some(g) = &rung.eval.generate {
         let sim = Arc::new(SimConfig::default());
         for (map, cases) in &mut maps {
             let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
-            cases.cases = (0..rung.eval.cases).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, (g.vehicles[0], g.vehicles[1]), g.draw())).collect();
+            cases.cases = (0..rung.eval.cases)
+                .map(|id| {
+                    sf_sim::vec_env::draw_case(
+                        map,
+                        &sim,
+                        &mut rng,
+                        id,
+                        (g.vehicles[0], g.vehicles[1]),
+                        g.draw(),
+                    )
+                })
+                .collect();
         }
     }
     Ok(maps)
@@ -312,13 +361,22 @@ fn rung_cases(dirs: &Ctx, rung: &Rung) -> Result<Vec<(Arc<Map>, CaseFile)>> {
 /// One training seed's job: its curve files copied into `out/seed-N`, its episodes (with the
 /// IDM ego's, relabelled to this seed) and its summary against the gate.
 #[allow(clippy::too_many_arguments)]
-fn evaluate_seed(rung: &Rung, seed: u64, policy: &Policy, maps: &[(Arc<Map>, CaseFile)], idm: &[Row], runners: &mut Runners, out: &Path) -> Result<(SeedSummary, Vec<CurvePt>, Vec<Row>)> {
+fn evaluate_seed(
+    rung: &Rung,
+    seed: u64,
+    policy: &Policy,
+    maps: &[(Arc<Map>, CaseFile)],
+    idm: &[Row],
+    runners: &mut Runners,
+    out: &Path,
+) -> Result<(SeedSummary, Vec<CurvePt>, Vec<Row>)> {
     let dir = &PathBuf::from(&policy.key);
     let seed_out = out.join(format!("seed-{seed}"));
     std::fs::create_dir_all(&seed_out)?;
     for f in ["curve.csv", "curve.png", "config.toml", "validation.csv"] {
         if dir.join(f).exists() {
-            std::fs::copy(dir.join(f), seed_out.join(f)).with_context(|| format!("copying {f} of {}", dir.display()))?;
+            std::fs::copy(dir.join(f), seed_out.join(f))
+                .with_context(|| format!("copying {f} of {}", dir.display()))?;
         }
     }
     let curve = read_curve(&dir.join("curve.csv"))?;
@@ -339,17 +397,29 @@ fn evaluate_seed(rung: &Rung, seed: u64, policy: &Policy, maps: &[(Arc<Map>, Cas
 
 /// The seed summaries and episode lines already in `out` from earlier runs of the same rung,
 /// except the seeds in `ran` (nothing when `out` holds no summary yet).
-fn earlier_seeds(out: &Path, rung: &Rung, ran: &BTreeSet<u64>) -> Result<(Vec<SeedSummary>, Vec<String>)> {
+fn earlier_seeds(
+    out: &Path,
+    rung: &Rung,
+    ran: &BTreeSet<u64>,
+) -> Result<(Vec<SeedSummary>, Vec<String>)> {
     let path = out.join("summary.json");
     if !path.exists() {
         return Ok((Vec::new(), Vec::new()));
     }
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}", path.display()))?;
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}", path.display()))?;
     if v["name"] != rung.name.as_str() {
-        bail!("{} belongs to rung `{}`, not `{}`: give another --out", path.display(), v["name"], rung.name);
+        bail!(
+            "{} belongs to rung `{}`, not `{}`: give another --out",
+            path.display(),
+            v["name"],
+            rung.name
+        );
     }
-    let all: Vec<SeedSummary> = serde_json::from_value(v["seeds"].clone()).with_context(|| format!("{}: field `seeds`", path.display()))?;
+    let all: Vec<SeedSummary> = serde_json::from_value(v["seeds"].clone())
+        .with_context(|| format!("{}: field `seeds`", path.display()))?;
     let kept: Vec<SeedSummary> = all.into_iter().filter(|s| !ran.contains(&s.train_seed)).collect();
     let keep: BTreeSet<u64> = kept.iter().map(|s| s.train_seed).collect();
     let episodes = out.join("episodes.csv");
@@ -358,8 +428,17 @@ fn earlier_seeds(out: &Path, rung: &Rung, ran: &BTreeSet<u64>) -> Result<(Vec<Se
         Ok(t) => t
             .lines()
             .skip(1)
-            .filter(|l| l.split(',').next().and_then(|f| f.parse::<u64>().ok()).is_some_and(|s| keep.contains(&s)))
-            .map(|l| l.to_string() + &",".repeat(Row::HEADER.split(',').count().saturating_sub(l.split(',').count())))
+            .filter(|l| {
+                l.split(',')
+                    .next()
+                    .and_then(|f| f.parse::<u64>().ok())
+                    .is_some_and(|s| keep.contains(&s))
+            })
+            .map(|l| {
+                l.to_string()
+                    + &","
+                        .repeat(Row::HEADER.split(',').count().saturating_sub(l.split(',').count()))
+            })
             .collect(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
         Err(e) => return Err(e).with_context(|| format!("reading {}", episodes.display())),
@@ -386,14 +465,23 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers.max(1)).await?;
         let mut c = emb.client().await?;
         let result = async {
-            let running = remote::list(&mut c).await?.into_iter().find(|j| j.name == cfg.name && !j.state.is_final());
+            let running = remote::list(&mut c)
+                .await?
+                .into_iter()
+                .find(|j| j.name == cfg.name && !j.state.is_final());
             let job = match running {
                 Some(j) => j,
                 None => remote::submit(&mut c, text).await?,
             };
             eprintln!("training {} (job {})", cfg.name, job.id);
             let (state, _) = remote::watch(&mut c, job.id, true).await?;
-            anyhow::ensure!(state == JobState::Succeeded, "job {} ({}) ended {}", job.id, cfg.name, state.as_str());
+            anyhow::ensure!(
+                state == JobState::Succeeded,
+                "job {} ({}) ended {}",
+                job.id,
+                cfg.name,
+                state.as_str()
+            );
             Ok(PathBuf::from(&job.artifact_dir))
         }
         .await;
@@ -405,7 +493,14 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
 /// The evaluation episodes of one scenario: the policy's mean action (sampled actions with
 /// `eval.sampled`) in the ego's seat, or (`policy = None`) the IDM driver there (an
 /// acceleration residual of zero: IDM exactly).
-fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, policy: Option<&Policy>, runners: &mut Runners) -> Result<Vec<Row>> {
+fn evaluate(
+    e: &RungEval,
+    train_seed: u64,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    policy: Option<&Policy>,
+    runners: &mut Runners,
+) -> Result<Vec<Row>> {
     let n = e.cases as usize;
     if n > cases.cases.len() {
         bail!("eval.cases: {n} exceeds the {} stored cases of {}", cases.cases.len(), map.name);
@@ -414,7 +509,8 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
         Some(p) => setup::resolve(&p.cfg, None).sim,
         None => SimConfig::default(),
     });
-    let runner = policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;
+    let runner =
+        policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;
     let drivers = Drivers {
         alive: match &runner {
             Some(r) if e.sampled => Actor::sampled(r),
@@ -424,11 +520,31 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
         background: None,
         adversary: None,
     };
-    let vehicles = |c: usize| if e.vehicles.is_empty() { None } else { Some(e.vehicles[c % e.vehicles.len()]) };
+    let vehicles = |c: usize| {
+        if e.vehicles.is_empty() {
+            None
+        } else {
+            Some(e.vehicles[c % e.vehicles.len()])
+        }
+    };
     let mut rows = Vec::new();
     for seed in 0..e.seeds {
-        let eps: Vec<EpisodeSpec> = (0..n).map(|c| EpisodeSpec { case: cases.cases[c].clone(), vehicles: vehicles(c), svo_deg: None, tag: (seed as u64) << 32 | c as u64 }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), Mode::Ego { background: Controller::Idm }, e.envs, eps).map_err(anyhow::Error::msg)?;
+        let eps: Vec<EpisodeSpec> = (0..n)
+            .map(|c| EpisodeSpec {
+                case: cases.cases[c].clone(),
+                vehicles: vehicles(c),
+                svo_deg: None,
+                tag: (seed as u64) << 32 | c as u64,
+            })
+            .collect();
+        let mut v = VecEnv::from_episodes(
+            Arc::clone(map),
+            Arc::clone(&sim),
+            Mode::Ego { background: Controller::Idm },
+            e.envs,
+            eps,
+        )
+        .map_err(anyhow::Error::msg)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<EpisodeMetrics>> = vec![None; n];
         for (tag, m) in drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {}) {
@@ -442,7 +558,9 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
                 scenario: map.name.clone(),
                 case: cases.cases[c].id,
                 seed,
-                vehicles: vehicles(c).unwrap_or(cases.cases[c].vehicles.len()).min(cases.cases[c].vehicles.len()),
+                vehicles: vehicles(c)
+                    .unwrap_or(cases.cases[c].vehicles.len())
+                    .min(cases.cases[c].vehicles.len()),
                 success: m.scores.success,
                 collision: m.collision,
                 other_failure: m.off_road + m.off_route + m.wrong_lane,
@@ -457,7 +575,14 @@ fn evaluate(e: &RungEval, train_seed: u64, map: &Arc<Map>, cases: &CaseFile, pol
 
 /// `eval.gifs` episodes of `map`'s first cases with `policy` (or the IDM driver) in the ego's
 /// seat among IDM cars, one GIF each into `dir`.
-fn render_gifs(e: &RungEval, map: &Arc<Map>, cases: &CaseFile, policy: Option<&Policy>, runners: &mut Runners, dir: &Path) -> Result<()> {
+fn render_gifs(
+    e: &RungEval,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    policy: Option<&Policy>,
+    runners: &mut Runners,
+    dir: &Path,
+) -> Result<()> {
     let ego = match policy {
         Some(p) => EgoDef::Learned(p.clone()),
         None => EgoDef::Idm,
@@ -465,9 +590,17 @@ fn render_gifs(e: &RungEval, map: &Arc<Map>, cases: &CaseFile, policy: Option<&P
     for c in 0..e.gifs.min(cases.cases.len() as u32) {
         let suffix = if policy.is_some() { "" } else { "-idm" };
         let path = dir.join(format!("gif-{}-case-{c}{suffix}.gif", map.name));
-        sf_rollout::evaluate::render_gif(("ego", &ego), &[("IDM", &FlowDef::Idm)], c, map, cases, runners, &path)
-            .map_err(anyhow::Error::msg)
-            .with_context(|| format!("rendering {}", path.display()))?;
+        sf_rollout::evaluate::render_gif(
+            ("ego", &ego),
+            &[("IDM", &FlowDef::Idm)],
+            c,
+            map,
+            cases,
+            runners,
+            &path,
+        )
+        .map_err(anyhow::Error::msg)
+        .with_context(|| format!("rendering {}", path.display()))?;
     }
     Ok(())
 }
@@ -481,7 +614,14 @@ fn mean(xs: impl Iterator<Item = f32>) -> f64 {
     }
 }
 
-fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, wall_s: f64) -> Result<SeedSummary> {
+fn summarise(
+    train_seed: u64,
+    dir: &Path,
+    rows: &[Row],
+    g: &Gate,
+    updates: u64,
+    wall_s: f64,
+) -> Result<SeedSummary> {
     let pol: Vec<&Row> = rows.iter().filter(|r| r.driver == "policy").collect();
     let idm: Vec<&Row> = rows.iter().filter(|r| r.driver == "idm").collect();
     // Rows are paired: the same (scenario, case, seed) in the same order.
@@ -527,20 +667,41 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
         fail(s.success >= v, format!("success {:.3} < {v}", s.success));
     }
     if let Some(v) = g.min_success_gain {
-        fail(s.success - s.idm_success >= v, format!("success gain over IDM {:+.3} < {v}", s.success - s.idm_success));
+        fail(
+            s.success - s.idm_success >= v,
+            format!("success gain over IDM {:+.3} < {v}", s.success - s.idm_success),
+        );
     }
     if let Some(v) = g.min_collision_drop {
-        fail(s.idm_collision - s.collision >= v, format!("collision drop {:+.3} < {v}", s.idm_collision - s.collision));
+        fail(
+            s.idm_collision - s.collision >= v,
+            format!("collision drop {:+.3} < {v}", s.idm_collision - s.collision),
+        );
     }
     if let Some(v) = g.max_other_failures {
         fail(s.other_failures <= v, format!("other failures {:.3} > {v}", s.other_failures));
     }
     if let Some(v) = g.max_p {
-        fail(s.p_value <= v && s.success > s.idm_success, format!("p = {:.3e} (policy {:.3} vs IDM {:.3}), need p <= {v} in the policy's favour", s.p_value, s.success, s.idm_success));
+        fail(
+            s.p_value <= v && s.success > s.idm_success,
+            format!(
+                "p = {:.3e} (policy {:.3} vs IDM {:.3}), need p <= {v} in the policy's favour",
+                s.p_value, s.success, s.idm_success
+            ),
+        );
     }
     if let Some(v) = g.min_speed_gain {
         let gain = if s.idm_speed > 0.0 { s.speed / s.idm_speed - 1.0 } else { f64::INFINITY };
-        fail(gain >= v, format!("speed {:.3} is {:+.1} % of the IDM ego's {:.3}, need {:+.0} %", s.speed, 100.0 * gain, s.idm_speed, 100.0 * v));
+        fail(
+            gain >= v,
+            format!(
+                "speed {:.3} is {:+.1} % of the IDM ego's {:.3}, need {:+.0} %",
+                s.speed,
+                100.0 * gain,
+                s.idm_speed,
+                100.0 * v
+            ),
+        );
     }
     if let Some(v) = g.min_lane_change {
         fail(s.lane_change >= v, format!("lane change in {:.3} of episodes < {v}", s.lane_change));
@@ -553,24 +714,36 @@ fn summarise(train_seed: u64, dir: &Path, rows: &[Row], g: &Gate, updates: u64, 
 /// `None` when the final policy is the last actor.
 fn selected_updates(dir: &Path) -> Result<Option<u64>> {
     let path = dir.join("policy.json");
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| path.display().to_string())?;
-    Ok(v.get("selected_by").and_then(|b| (b == "validation").then(|| v.get("updates")?.as_u64())).flatten())
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| path.display().to_string())?;
+    Ok(v.get("selected_by")
+        .and_then(|b| (b == "validation").then(|| v.get("updates")?.as_u64()))
+        .flatten())
 }
 
 /// The gate's checks on the training curve.
 fn check_curve(s: &mut SeedSummary, g: &Gate, curve: &[CurvePt], window: usize) {
     let learner: Vec<&CurvePt> = learner_points(curve, window).collect();
     if let Some(v) = g.curve_min_success {
-        let after: Vec<f64> = learner.iter().filter(|p| p[0] >= g.curve_from_updates as f64).map(|p| p[1]).collect();
+        let after: Vec<f64> =
+            learner.iter().filter(|p| p[0] >= g.curve_from_updates as f64).map(|p| p[1]).collect();
         let low = after.iter().copied().fold(f64::INFINITY, f64::min);
         if after.is_empty() || low < v {
-            s.failed_checks.push(format!("curve success from {} updates on: min {:.3} < {v}", g.curve_from_updates, if after.is_empty() { 0.0 } else { low }));
+            s.failed_checks.push(format!(
+                "curve success from {} updates on: min {:.3} < {v}",
+                g.curve_from_updates,
+                if after.is_empty() { 0.0 } else { low }
+            ));
         }
     }
     if let Some(v) = g.curve_reach_success {
         if !learner.iter().any(|p| p[0] <= g.curve_reach_updates as f64 && p[1] >= v) {
-            s.failed_checks.push(format!("curve success never reached {v} within {} updates", g.curve_reach_updates));
+            s.failed_checks.push(format!(
+                "curve success never reached {v} within {} updates",
+                g.curve_reach_updates
+            ));
         }
     }
     s.passed = s.failed_checks.is_empty();
@@ -587,9 +760,18 @@ fn learner_points(curve: &[CurvePt], window: usize) -> impl Iterator<Item = &Cur
 
 fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     let mut m = String::new();
-    let _ = writeln!(m, "## {} `{}`: {}\n", r.rung, r.name, if passed { "PASSED" } else { "NOT PASSED" });
+    let _ = writeln!(
+        m,
+        "## {} `{}`: {}\n",
+        r.rung,
+        r.name,
+        if passed { "PASSED" } else { "NOT PASSED" }
+    );
     if r.eval.sampled {
-        let _ = writeln!(m, "The policies drove their sampled actions (`eval.sampled`), not their mean action.\n");
+        let _ = writeln!(
+            m,
+            "The policies drove their sampled actions (`eval.sampled`), not their mean action.\n"
+        );
     }
     let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | lane change | p (paired) | gate |");
     let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|---|");
@@ -614,7 +796,8 @@ fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> String {
     }
     let _ = writeln!(m, "\nPer scenario, success policy / IDM ego:\n");
     for s in seeds {
-        let per: Vec<String> = s.per_scenario.iter().map(|(k, [p, i])| format!("{k} {p:.3} / {i:.3}")).collect();
+        let per: Vec<String> =
+            s.per_scenario.iter().map(|(k, [p, i])| format!("{k} {p:.3} / {i:.3}")).collect();
         let _ = writeln!(m, "- seed {}: {}", s.train_seed, per.join(", "));
     }
     m
@@ -625,17 +808,26 @@ type CurvePt = [f64; 4];
 
 /// A job's `curve.csv`, read by column name.
 fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{}: no column `{name}`", path.display()))
+    };
     let idx = [col("updates")?, col("success")?, col("wall_s")?, col("episodes")?];
     let mut out = Vec::new();
     for (i, l) in lines.enumerate() {
         let f: Vec<&str> = l.split(',').collect();
         let mut p = [0.0; 4];
         for (k, &c) in idx.iter().enumerate() {
-            p[k] = f.get(c).and_then(|v| v.parse().ok()).with_context(|| format!("{} line {}: column {c}", path.display(), i + 2))?;
+            p[k] = f
+                .get(c)
+                .and_then(|v| v.parse().ok())
+                .with_context(|| format!("{} line {}: column {c}", path.display(), i + 2))?;
         }
         out.push(p);
     }
@@ -652,15 +844,25 @@ fn plot_validation(out: &Path, r: &Rung, seeds: &[SeedSummary]) -> Result<()> {
         if !path.exists() {
             continue;
         }
-        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
         let mut lines = text.lines();
         let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-        let col = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{}: no column `{name}`", path.display()));
+        let col = |name: &str| {
+            header
+                .iter()
+                .position(|h| *h == name)
+                .with_context(|| format!("{}: no column `{name}`", path.display()))
+        };
         let (u, v) = (col("updates")?, col("success")?);
         let points = lines
             .map(|l| {
                 let f: Vec<&str> = l.split(',').collect();
-                let num = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).with_context(|| format!("{}: bad row `{l}`", path.display()));
+                let num = |i: usize| {
+                    f.get(i)
+                        .and_then(|x| x.parse::<f64>().ok())
+                        .with_context(|| format!("{}: bad row `{l}`", path.display()))
+                };
                 Ok((num(u)?, num(v)?))
             })
             .collect::<Result<Vec<_>>>()?;
@@ -669,16 +871,37 @@ fn plot_validation(out: &Path, r: &Rung, seeds: &[SeedSummary]) -> Result<()> {
     if series.is_empty() {
         return Ok(());
     }
-    let series: Vec<Series> = series.iter().map(|(name, points)| Series { name, points: points.clone() }).collect();
-    line_chart(&out.join("validation.png"), &format!("{} {}: held-out success (mean action)", r.rung, r.name), "updates", "validation success", &series, Some((0.0, 1.0)), (800, 500))
-        .map_err(|e| anyhow::anyhow!("drawing validation.png: {e}"))
+    let series: Vec<Series> =
+        series.iter().map(|(name, points)| Series { name, points: points.clone() }).collect();
+    line_chart(
+        &out.join("validation.png"),
+        &format!("{} {}: held-out success (mean action)", r.rung, r.name),
+        "updates",
+        "validation success",
+        &series,
+        Some((0.0, 1.0)),
+        (800, 500),
+    )
+    .map_err(|e| anyhow::anyhow!("drawing validation.png: {e}"))
 }
 
 fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<()> {
     let names: Vec<String> = curves.iter().map(|(s, _)| format!("seed {s}")).collect();
-    let series: Vec<Series> = curves.iter().zip(&names).map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() }).collect();
-    line_chart(&out.join("success.png"), &format!("{} {}: rolling success", r.rung, r.name), "updates", "rolling success", &series, Some((0.0, 1.0)), (800, 500))
-        .map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
+    let series: Vec<Series> = curves
+        .iter()
+        .zip(&names)
+        .map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() })
+        .collect();
+    line_chart(
+        &out.join("success.png"),
+        &format!("{} {}: rolling success", r.rung, r.name),
+        "updates",
+        "rolling success",
+        &series,
+        Some((0.0, 1.0)),
+        (800, 500),
+    )
+    .map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
 }
 
 #[cfg(test)]
@@ -713,7 +936,13 @@ mod tests {
     /// first `window` episodes after the warm-up still hold the demonstrator's.
     #[test]
     fn curve_checks_ignore_the_warmup_episodes() {
-        let gate = Gate { curve_reach_success: Some(0.9), curve_reach_updates: 10_000, curve_min_success: Some(0.8), curve_from_updates: 2_000, ..Default::default() };
+        let gate = Gate {
+            curve_reach_success: Some(0.9),
+            curve_reach_updates: 10_000,
+            curve_min_success: Some(0.8),
+            curve_from_updates: 2_000,
+            ..Default::default()
+        };
         // [updates, success, wall_s, episodes]: warm-up to 150 episodes, then the policy.
         let warmup = [[0.0, 0.95, 1.0, 50.0], [0.0, 0.95, 2.0, 150.0]];
         let check = |tail: &[CurvePt]| {
@@ -722,11 +951,27 @@ mod tests {
             check_curve(&mut s, &gate, &curve, 100);
             s
         };
-        let poor = check(&[[500.0, 0.93, 3.0, 200.0], [3_000.0, 0.5, 4.0, 400.0], [6_000.0, 0.5, 5.0, 700.0]]);
+        let poor = check(&[
+            [500.0, 0.93, 3.0, 200.0],
+            [3_000.0, 0.5, 4.0, 400.0],
+            [6_000.0, 0.5, 5.0, 700.0],
+        ]);
         assert!(!poor.passed, "0.93 at 200 episodes is the warm-up's window");
-        assert!(poor.failed_checks.iter().any(|c| c.contains("never reached 0.9")), "{:?}", poor.failed_checks);
-        assert!(poor.failed_checks.iter().any(|c| c.contains("min 0.500")), "{:?}", poor.failed_checks);
-        let good = check(&[[500.0, 0.6, 3.0, 200.0], [3_000.0, 0.92, 4.0, 400.0], [6_000.0, 0.91, 5.0, 700.0]]);
+        assert!(
+            poor.failed_checks.iter().any(|c| c.contains("never reached 0.9")),
+            "{:?}",
+            poor.failed_checks
+        );
+        assert!(
+            poor.failed_checks.iter().any(|c| c.contains("min 0.500")),
+            "{:?}",
+            poor.failed_checks
+        );
+        let good = check(&[
+            [500.0, 0.6, 3.0, 200.0],
+            [3_000.0, 0.92, 4.0, 400.0],
+            [6_000.0, 0.91, 5.0, 700.0],
+        ]);
         assert!(good.passed, "{:?}", good.failed_checks);
         let none = check(&[]);
         assert_eq!(none.failed_checks.len(), 2, "{:?}", none.failed_checks);
@@ -736,7 +981,12 @@ mod tests {
     /// with a lane change, and failures even when the IDM ego's success is 0.
     #[test]
     fn speed_gain_and_lane_change_are_gated() {
-        let row = |driver: &'static str, case: u32, success: f32, speed: f32, lane_change: f32, other_failure: f32| Row {
+        let row = |driver: &'static str,
+                   case: u32,
+                   success: f32,
+                   speed: f32,
+                   lane_change: f32,
+                   other_failure: f32| Row {
             train_seed: 0,
             driver,
             scenario: "bottleneck".into(),
@@ -750,15 +1000,48 @@ mod tests {
             speed,
             lane_change,
         };
-        let gate = Gate { min_success_gain: Some(0.0), min_speed_gain: Some(0.2), min_lane_change: Some(0.5), max_other_failures: Some(0.05), min_collision_drop: Some(-0.1), ..Default::default() };
+        let gate = Gate {
+            min_success_gain: Some(0.0),
+            min_speed_gain: Some(0.2),
+            min_lane_change: Some(0.5),
+            max_other_failures: Some(0.05),
+            min_collision_drop: Some(-0.1),
+            ..Default::default()
+        };
         let idm: Vec<Row> = (0..4).map(|c| row("idm", c, 0.0, 0.3, 0.0, 0.0)).collect();
-        let run = |pol: Vec<Row>| summarise(0, Path::new("."), &pol.into_iter().chain(idm.clone()).collect::<Vec<_>>(), &gate, 0, 0.0).expect("summary");
+        let run = |pol: Vec<Row>| {
+            summarise(
+                0,
+                Path::new("."),
+                &pol.into_iter().chain(idm.clone()).collect::<Vec<_>>(),
+                &gate,
+                0,
+                0.0,
+            )
+            .expect("summary")
+        };
         let good = run((0..4).map(|c| row("policy", c, 1.0, 0.9, 1.0, 0.0)).collect());
         assert!(good.passed && (good.lane_change - 1.0).abs() < 1e-9, "{:?}", good.failed_checks);
-        let slow = run((0..4).map(|c| row("policy", c, 0.0, 0.33, if c < 1 { 1.0 } else { 0.0 }, 0.0)).collect());
-        assert!(slow.failed_checks.iter().any(|c| c.contains("need +20 %")), "{:?}", slow.failed_checks);
-        assert!(slow.failed_checks.iter().any(|c| c.contains("lane change in 0.250")), "{:?}", slow.failed_checks);
-        let reckless = run((0..4).map(|c| row("policy", c, 0.25, 0.9, 1.0, if c > 0 { 1.0 } else { 0.0 })).collect());
-        assert!(reckless.failed_checks.iter().any(|c| c.contains("other failures 0.750")), "success above IDM's 0 is not enough: {:?}", reckless.failed_checks);
+        let slow = run((0..4)
+            .map(|c| row("policy", c, 0.0, 0.33, if c < 1 { 1.0 } else { 0.0 }, 0.0))
+            .collect());
+        assert!(
+            slow.failed_checks.iter().any(|c| c.contains("need +20 %")),
+            "{:?}",
+            slow.failed_checks
+        );
+        assert!(
+            slow.failed_checks.iter().any(|c| c.contains("lane change in 0.250")),
+            "{:?}",
+            slow.failed_checks
+        );
+        let reckless = run((0..4)
+            .map(|c| row("policy", c, 0.25, 0.9, 1.0, if c > 0 { 1.0 } else { 0.0 }))
+            .collect());
+        assert!(
+            reckless.failed_checks.iter().any(|c| c.contains("other failures 0.750")),
+            "success above IDM's 0 is not enough: {:?}",
+            reckless.failed_checks
+        );
     }
 }

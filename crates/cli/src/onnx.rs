@@ -39,10 +39,19 @@ pub fn run(ctx: &Ctx, a: ExportOnnxArgs) -> Result<()> {
     let setup::ResolvedJob { net, obs: spec, sim, .. } = setup::resolve(cfg, None);
     let sim = Arc::new(sim);
     let maps = cfg.env.scenarios.iter().map(|s| ctx.map(s)).collect::<Result<Vec<_>>>()?;
-    let segments: Vec<MapSegments> = maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
+    let segments: Vec<MapSegments> =
+        maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-    let runner =
-        PolicyRunner::from_bytes(&net, &spec, sim.dt_s, &segments.iter().collect::<Vec<_>>(), &policy.weights, 0, &device).with_context(|| format!("loading {}/policy.bpk", a.job.display()))?;
+    let runner = PolicyRunner::from_bytes(
+        &net,
+        &spec,
+        sim.dt_s,
+        &segments.iter().collect::<Vec<_>>(),
+        &policy.weights,
+        0,
+        &device,
+    )
+    .with_context(|| format!("loading {}/policy.bpk", a.job.display()))?;
     let doc = format!(
         "socialflow {} job `{}`: deterministic action tanh(mean), action `{}` ({} floats), layout {}; map_id indexes env.scenarios = {:?}",
         cfg.kind.as_str(),
@@ -62,16 +71,20 @@ pub fn run(ctx: &Ctx, a: ExportOnnxArgs) -> Result<()> {
         let mut inputs = serde_json::Map::new();
         let b = map_ids.len();
         for (name, r, shape) in spec.blocks() {
-            let data: Vec<f32> = rows.chunks_exact(spec.len).flat_map(|row| row[r.clone()].to_vec()).collect();
+            let data: Vec<f32> =
+                rows.chunks_exact(spec.len).flat_map(|row| row[r.clone()].to_vec()).collect();
             let mut dims = vec![b];
             dims.extend(shape);
             inputs.insert(name.into(), json!({"shape": dims, "data": data}));
         }
         if spec.layout == sf_sim::Layout::QueryCentric {
-            inputs.insert("map_id".into(), json!({"shape": [b], "data": map_ids, "dtype": "int64"}));
+            inputs
+                .insert("map_id".into(), json!({"shape": [b], "data": map_ids, "dtype": "int64"}));
         }
-        let check = json!({"inputs": inputs, "action": {"shape": [b, net.action_dim], "data": actions}});
-        std::fs::write(&path, serde_json::to_string(&check)?).with_context(|| format!("writing {}", path.display()))?;
+        let check =
+            json!({"inputs": inputs, "action": {"shape": [b, net.action_dim], "data": actions}});
+        std::fs::write(&path, serde_json::to_string(&check)?)
+            .with_context(|| format!("writing {}", path.display()))?;
         out["check"] = json!(path);
         out["observations"] = json!(b);
     }
@@ -82,20 +95,42 @@ pub fn run(ctx: &Ctx, a: ExportOnnxArgs) -> Result<()> {
 /// `n` observation rows spread over the job's scenarios: stored cases with every vehicle a
 /// learner driven by the IDM demonstrator, a live row every fifth step. Returns the rows and
 /// each row's map index (its scenario's position in `env.scenarios`).
-fn observations(ctx: &Ctx, cfg: &sf_job::JobConfig, sim: &Arc<sf_sim::SimConfig>, n: usize) -> Result<(Vec<f32>, Vec<u32>)> {
+fn observations(
+    ctx: &Ctx,
+    cfg: &sf_job::JobConfig,
+    sim: &Arc<sf_sim::SimConfig>,
+    n: usize,
+) -> Result<(Vec<f32>, Vec<u32>)> {
     let scenarios = &cfg.env.scenarios;
     if scenarios.is_empty() {
         bail!("the job lists no scenarios");
     }
     let per = n.div_ceil(scenarios.len());
     let (mut rows, mut ids) = (Vec::new(), Vec::new());
-    let drivers = Drivers { alive: Actor::Demo { noise: 0.0, action: DriveAction::Direct }, background: None, adversary: None };
+    let drivers = Drivers {
+        alive: Actor::Demo { noise: 0.0, action: DriveAction::Direct },
+        background: None,
+        adversary: None,
+    };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     for (k, s) in scenarios.iter().enumerate() {
         let map = ctx.map(s)?;
         let cases = ctx.cases(&map)?;
-        let eps = cases.cases.iter().take(8).enumerate().map(|(i, c)| EpisodeSpec { case: c.clone(), vehicles: None, svo_deg: None, tag: i as u64 }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(&map), Arc::clone(sim), Mode::MultiAgent, 4, eps).map_err(anyhow::Error::msg)?;
+        let eps = cases
+            .cases
+            .iter()
+            .take(8)
+            .enumerate()
+            .map(|(i, c)| EpisodeSpec {
+                case: c.clone(),
+                vehicles: None,
+                svo_deg: None,
+                tag: i as u64,
+            })
+            .collect();
+        let mut v =
+            VecEnv::from_episodes(Arc::clone(&map), Arc::clone(sim), Mode::MultiAgent, 4, eps)
+                .map_err(anyhow::Error::msg)?;
         let (mut taken, mut step) = (0, 0);
         while taken < per && !v.is_finished() && rows.len() < n * v.spec.len {
             if step % 5 == 0 {

@@ -64,7 +64,8 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
     }
     let mut jobs: BTreeMap<String, (PathBuf, JobConfig, String)> = BTreeMap::new();
     for f in files {
-        let text = std::fs::read_to_string(&f).with_context(|| format!("reading {}", f.display()))?;
+        let text =
+            std::fs::read_to_string(&f).with_context(|| format!("reading {}", f.display()))?;
         let cfg = JobConfig::from_toml(&text).with_context(|| f.display().to_string())?;
         if let Some((other, _, _)) = jobs.get(&cfg.name) {
             bail!("{} and {} both name their job `{}`", other.display(), f.display(), cfg.name);
@@ -74,7 +75,12 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
     for (path, cfg, _) in jobs.values() {
         for (role, dep) in cfg.deps_by_name() {
             let Some((_, d, _)) = jobs.get(dep) else {
-                bail!("{}: {} names `{dep}`, which no config in {} defines", path.display(), role.field(), dir.display());
+                bail!(
+                    "{}: {} names `{dep}`, which no config in {} defines",
+                    path.display(),
+                    role.field(),
+                    dir.display()
+                );
             };
             if let Err(why) = role.accepts(cfg.kind, d.kind) {
                 bail!("{}: {} names `{dep}`, which {why}", path.display(), role.field());
@@ -85,7 +91,13 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
     let mut order = Vec::with_capacity(jobs.len());
     let mut placed = std::collections::BTreeSet::new();
     while order.len() < jobs.len() {
-        let ready: Vec<String> = jobs.iter().filter(|(n, (_, c, _))| !placed.contains(*n) && c.deps_by_name().iter().all(|(_, d)| placed.contains(*d))).map(|(n, _)| n.clone()).collect();
+        let ready: Vec<String> = jobs
+            .iter()
+            .filter(|(n, (_, c, _))| {
+                !placed.contains(*n) && c.deps_by_name().iter().all(|(_, d)| placed.contains(*d))
+            })
+            .map(|(n, _)| n.clone())
+            .collect();
         if ready.is_empty() {
             let left: Vec<&String> = jobs.keys().filter(|n| !placed.contains(*n)).collect();
             bail!("{}: the jobs {left:?} depend on each other in a cycle", dir.display());
@@ -99,21 +111,37 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
 }
 
 /// Submits what the learner does not have yet; returns (name, job id) in submission order.
-async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -> Result<Vec<(String, u64)>> {
+async fn submit_all(
+    c: &mut JobsClient,
+    jobs: &[(PathBuf, JobConfig, String)],
+) -> Result<Vec<(String, u64)>> {
     let existing = remote::list(c).await?;
     let mut ids: BTreeMap<String, u64> = BTreeMap::new();
     let mut out = Vec::new();
     for (path, cfg, _) in jobs {
-        let reuse = existing.iter().filter(|j| j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)).max_by_key(|j| j.id);
+        let reuse = existing
+            .iter()
+            .filter(|j| {
+                j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)
+            })
+            .max_by_key(|j| j.id);
         let id = match reuse {
             Some(j) => {
-                eprintln!("{}: job {} ({}) already on the learner", cfg.name, j.id, j.state.as_str());
+                eprintln!(
+                    "{}: job {} ({}) already on the learner",
+                    cfg.name,
+                    j.id,
+                    j.state.as_str()
+                );
                 j.id
             }
             None => {
                 let mut cfg = cfg.clone();
-                cfg.resolve_names(|n| ids.get(n).copied()).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-                let j = remote::submit(c, cfg.to_toml()).await.with_context(|| path.display().to_string())?;
+                cfg.resolve_names(|n| ids.get(n).copied())
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+                let j = remote::submit(c, cfg.to_toml())
+                    .await
+                    .with_context(|| path.display().to_string())?;
                 eprintln!("{}: submitted as job {}", cfg.name, j.id);
                 j.id
             }
@@ -126,11 +154,17 @@ async fn submit_all(c: &mut JobsClient, jobs: &[(PathBuf, JobConfig, String)]) -
 
 /// After the graph, if there is a grid: submits it (or reuses the learner's evaluation job of
 /// its name), follows it and builds the report.
-async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String)>, report: Option<&Path>) -> Result<()> {
+async fn evaluate(
+    c: &mut JobsClient,
+    grid: Option<&(PathBuf, EvalConfig, String)>,
+    report: Option<&Path>,
+) -> Result<()> {
     let Some((path, cfg, text)) = grid else { return Ok(()) };
     let mut existing = None;
     // Newest first: the first of its name that is an evaluation.
-    for j in remote::list(c).await?.into_iter().filter(|j| j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)) {
+    for j in remote::list(c).await?.into_iter().filter(|j| {
+        j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)
+    }) {
         let full = remote::get(c, j.id).await?;
         if sf_job::JobSpec::from_toml(&full.config_toml).is_ok_and(|s| s.is_eval()) {
             existing = Some(full);
@@ -139,23 +173,42 @@ async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String
     }
     let id = match existing {
         Some(j) => {
-            eprintln!("{}: evaluation job {} ({}) already on the learner", cfg.name, j.id, j.state.as_str());
+            eprintln!(
+                "{}: evaluation job {} ({}) already on the learner",
+                cfg.name,
+                j.id,
+                j.state.as_str()
+            );
             j.id
         }
         None => {
-            let j = remote::submit(c, text.clone()).await.with_context(|| path.display().to_string())?;
-            eprintln!("{}: submitted as evaluation job {} ({} cells)", cfg.name, j.id, cfg.cells().len());
+            let j = remote::submit(c, text.clone())
+                .await
+                .with_context(|| path.display().to_string())?;
+            eprintln!(
+                "{}: submitted as evaluation job {} ({} cells)",
+                cfg.name,
+                j.id,
+                cfg.cells().len()
+            );
             j.id
         }
     };
     follow(c, &[(cfg.name.clone(), id)]).await?;
     if let Some(out) = report {
-        let j = remote::list(c).await?.into_iter().find(|j| j.id == id).with_context(|| format!("evaluation job {id} is gone"))?;
+        let j = remote::list(c)
+            .await?
+            .into_iter()
+            .find(|j| j.id == id)
+            .with_context(|| format!("evaluation job {id} is gone"))?;
         let results = PathBuf::from(&j.artifact_dir);
         if !results.join("episodes.csv").exists() {
             bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", results.display());
         }
-        crate::eval::report(crate::eval::ReportArgs { results: vec![results], out: out.to_path_buf() })?;
+        crate::eval::report(crate::eval::ReportArgs {
+            results: vec![results],
+            out: out.to_path_buf(),
+        })?;
     }
     Ok(())
 }
@@ -164,11 +217,15 @@ async fn evaluate(c: &mut JobsClient, grid: Option<&(PathBuf, EvalConfig, String
 async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
     loop {
         let all = remote::list(c).await?;
-        let mine: Vec<_> = ids.iter().filter_map(|(_, id)| all.iter().find(|j| j.id == *id)).collect();
+        let mine: Vec<_> =
+            ids.iter().filter_map(|(_, id)| all.iter().find(|j| j.id == *id)).collect();
         if mine.len() == ids.len() && mine.iter().all(|j| j.state.is_final()) {
             let mut bad = Vec::new();
             for j in &mine {
-                println!("{}", json!({"name": j.name, "job_id": j.id, "state": j.state.as_str(), "message": j.message, "artifact_dir": j.artifact_dir, "progress": j.progress}));
+                println!(
+                    "{}",
+                    json!({"name": j.name, "job_id": j.id, "state": j.state.as_str(), "message": j.message, "artifact_dir": j.artifact_dir, "progress": j.progress})
+                );
                 if j.state != JobState::Succeeded {
                     bad.push(format!("{} ({})", j.name, j.state.as_str()));
                 }
@@ -197,7 +254,8 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
     // The grid is checked before anything is submitted.
     let grid = match &a.eval {
         Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             let cfg = EvalConfig::from_toml(&text).with_context(|| p.display().to_string())?;
             Some((p.clone(), cfg, text))
         }
@@ -248,43 +306,93 @@ mod tests {
     fn the_paper_small_graph_submits_flows_before_the_egos_that_need_them() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper-small");
         let jobs = load(&dir).expect("a valid pipeline");
-        let pos = |n: &str| jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"));
+        let pos = |n: &str| {
+            jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"))
+        };
         for k in ["macad", "copo", "socialcomm"] {
             assert!(pos(&format!("flow-{k}")) < pos(&format!("ego-{k}")), "{k}");
-            assert_eq!(jobs[pos(&format!("ego-{k}"))].1.env.background_from.as_deref(), Some(format!("flow-{k}").as_str()));
+            assert_eq!(
+                jobs[pos(&format!("ego-{k}"))].1.env.background_from.as_deref(),
+                Some(format!("flow-{k}").as_str())
+            );
         }
         assert!(jobs[pos("ego-idm")].1.env.background_from.is_none());
         // RARL, three rounds per arm, both arms from `ego-idm`: each phase after the frozen side it
         // acts against and after the phase it continues (`train.init_from`).
         let arms = [
-            ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "flow-failmaker", "ego-failmaker"],
-            ["ego-idm", "socialcomm-adv-1", "ego-socialcomm-adv-1", "socialcomm-adv-2", "ego-socialcomm-adv-2", "flow-socialcomm-adv", "ego-socialcomm-adv"],
+            [
+                "ego-idm",
+                "failmaker-1",
+                "ego-failmaker-1",
+                "failmaker-2",
+                "ego-failmaker-2",
+                "flow-failmaker",
+                "ego-failmaker",
+            ],
+            [
+                "ego-idm",
+                "socialcomm-adv-1",
+                "ego-socialcomm-adv-1",
+                "socialcomm-adv-2",
+                "ego-socialcomm-adv-2",
+                "flow-socialcomm-adv",
+                "ego-socialcomm-adv",
+            ],
         ];
         for chain in &arms {
             for w in chain.windows(2) {
                 assert!(pos(w[0]) < pos(w[1]), "{} before {}", w[0], w[1]);
             }
             for round in 0..3 {
-                let (ego_before, adv, ego) = (chain[2 * round], chain[2 * round + 1], chain[2 * round + 2]);
+                let (ego_before, adv, ego) =
+                    (chain[2 * round], chain[2 * round + 1], chain[2 * round + 2]);
                 let (a, e) = (&jobs[pos(adv)].1, &jobs[pos(ego)].1);
-                assert_eq!(a.env.ego_from.as_deref(), Some(ego_before), "{adv} acts against the previous ego");
-                assert_eq!(e.env.background_from.as_deref(), Some(adv), "{ego} drives among this round's adversary");
-                assert_eq!(e.train.init_from.as_deref(), Some(ego_before), "{ego} continues the previous ego");
+                assert_eq!(
+                    a.env.ego_from.as_deref(),
+                    Some(ego_before),
+                    "{adv} acts against the previous ego"
+                );
+                assert_eq!(
+                    e.env.background_from.as_deref(),
+                    Some(adv),
+                    "{ego} drives among this round's adversary"
+                );
+                assert_eq!(
+                    e.train.init_from.as_deref(),
+                    Some(ego_before),
+                    "{ego} continues the previous ego"
+                );
                 let prev_adv = (round > 0).then(|| chain[2 * round - 1]);
-                assert_eq!(a.train.init_from.as_deref(), prev_adv, "{adv} continues its arm's previous adversary");
-                assert_eq!(e.sac.warmup_policy, sf_job::config::WarmupPolicy::Policy, "{ego} warms up with the policy it continues");
+                assert_eq!(
+                    a.train.init_from.as_deref(),
+                    prev_adv,
+                    "{adv} continues its arm's previous adversary"
+                );
+                assert_eq!(
+                    e.sac.warmup_policy,
+                    sf_job::config::WarmupPolicy::Policy,
+                    "{ego} warms up with the policy it continues"
+                );
             }
         }
         // The SocialCommAdv adversary acts in the frozen SocialComm flow in every round.
         for adv in ["socialcomm-adv-1", "socialcomm-adv-2", "flow-socialcomm-adv"] {
-            assert_eq!(jobs[pos(adv)].1.env.background_from.as_deref(), Some("flow-socialcomm"), "{adv}");
+            assert_eq!(
+                jobs[pos(adv)].1.env.background_from.as_deref(),
+                Some("flow-socialcomm"),
+                "{adv}"
+            );
             assert!(pos("flow-socialcomm") < pos(adv), "flow-socialcomm before {adv}");
         }
         assert_eq!(jobs[pos("socialcomm-adv-1")].1.env.ego_from.as_deref(), Some("ego-idm"));
         assert_eq!(jobs[pos("ego-socialcomm-adv-1")].1.train.init_from.as_deref(), Some("ego-idm"));
         assert_eq!(jobs[pos("ego-failmaker-1")].1.train.init_from.as_deref(), Some("ego-idm"));
         // No other ego continues a job: the six above are all of Stage 2's ego phases.
-        let rarl_egos: Vec<&JobConfig> = jobs.iter().map(|(_, c, _)| c).filter(|c| c.kind == sf_job::config::JobKind::Ego && c.train.init_from.is_some()).collect();
+        let rarl_egos: Vec<&JobConfig> = jobs
+            .iter()
+            .map(|(_, c, _)| c)
+            .filter(|c| c.kind == sf_job::config::JobKind::Ego && c.train.init_from.is_some())
+            .collect();
         assert_eq!(rarl_egos.len(), 6, "three ego phases per arm");
         for c in rarl_egos {
             assert_eq!(c.sac.warmup_policy, sf_job::config::WarmupPolicy::Policy, "{}", c.name);
@@ -296,9 +404,22 @@ mod tests {
     fn the_paper_graph_alternates_rarl_phases_in_order() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper");
         let jobs = load(&dir).expect("a valid pipeline");
-        let pos = |n: &str| jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"));
-        let chain =
-            ["ego-idm", "failmaker-1", "ego-failmaker-1", "failmaker-2", "ego-failmaker-2", "failmaker-3", "ego-failmaker-3", "failmaker-4", "ego-failmaker-4", "flow-failmaker", "ego-failmaker"];
+        let pos = |n: &str| {
+            jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"))
+        };
+        let chain = [
+            "ego-idm",
+            "failmaker-1",
+            "ego-failmaker-1",
+            "failmaker-2",
+            "ego-failmaker-2",
+            "failmaker-3",
+            "ego-failmaker-3",
+            "failmaker-4",
+            "ego-failmaker-4",
+            "flow-failmaker",
+            "ego-failmaker",
+        ];
         for w in chain.windows(2) {
             assert!(pos(w[0]) < pos(w[1]), "{} before {}", w[0], w[1]);
         }
@@ -315,10 +436,19 @@ mod tests {
         reseed(&mut after, 7);
         assert_eq!(before.len(), after.len());
         for ((_, b, _), (_, a, _)) in before.iter().zip(&after) {
-            assert_ne!(b.sac.seed, 7, "{}: the configs must not already use the test's seed", b.name);
+            assert_ne!(
+                b.sac.seed, 7,
+                "{}: the configs must not already use the test's seed",
+                b.name
+            );
             assert_eq!(a.sac.seed, 7, "{}", a.name);
             // What is submitted (`to_toml`) carries the seed.
-            assert_eq!(JobConfig::from_toml(&a.to_toml()).expect("parses").sac.seed, 7, "{}", a.name);
+            assert_eq!(
+                JobConfig::from_toml(&a.to_toml()).expect("parses").sac.seed,
+                7,
+                "{}",
+                a.name
+            );
             let mut a = a.clone();
             a.sac.seed = b.sac.seed;
             assert_eq!(a.to_toml(), b.to_toml(), "{}: only the seed changes", b.name);
@@ -329,7 +459,9 @@ mod tests {
     fn a_dependency_cycle_is_refused() {
         let dir = std::env::temp_dir().join(format!("sf-cycle-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
-        let job = |name: &str, init: &str| format!("name = \"{name}\"\n[env]\nscenarios = [\"merge\"]\n[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\ninit_from = \"{init}\"\n");
+        let job = |name: &str, init: &str| {
+            format!("name = \"{name}\"\n[env]\nscenarios = [\"merge\"]\n[sac]\nwarmup_steps = 10\n[train]\nenv_steps = 100\ninit_from = \"{init}\"\n")
+        };
         std::fs::write(dir.join("a.toml"), job("a", "b")).expect("write");
         std::fs::write(dir.join("b.toml"), job("b", "a")).expect("write");
         let e = load(&dir).expect_err("a cycle");

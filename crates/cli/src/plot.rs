@@ -31,22 +31,42 @@ pub fn plot_curves(a: PlotArgs) -> Result<()> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {path}"))?;
         let mut lines = text.lines();
         let header: Vec<&str> = lines.next().context("empty curve file")?.split(',').collect();
-        let find = |name: &str| header.iter().position(|h| *h == name).with_context(|| format!("{path} has no column `{name}`"));
+        let find = |name: &str| {
+            header
+                .iter()
+                .position(|h| *h == name)
+                .with_context(|| format!("{path} has no column `{name}`"))
+        };
         let (xcol, col) = (find(&a.x)?, find(&a.column)?);
         let mut pts = Vec::new();
         for (k, l) in lines.enumerate() {
             let f: Vec<&str> = l.split(',').collect();
-            let x: f64 = f.get(xcol).and_then(|v| v.parse().ok()).with_context(|| format!("{path} line {}: bad {}", k + 2, a.x))?;
-            let y: f64 = f.get(col).and_then(|v| v.parse().ok()).with_context(|| format!("{path} line {}: bad {}", k + 2, a.column))?;
+            let x: f64 = f
+                .get(xcol)
+                .and_then(|v| v.parse().ok())
+                .with_context(|| format!("{path} line {}: bad {}", k + 2, a.x))?;
+            let y: f64 = f
+                .get(col)
+                .and_then(|v| v.parse().ok())
+                .with_context(|| format!("{path} line {}: bad {}", k + 2, a.column))?;
             pts.push((x, y));
         }
         names.push(name.to_string());
         series.push(pts);
     }
-    let s: Vec<Series> = names.iter().zip(series).map(|(n, p)| Series { name: n, points: p }).collect();
+    let s: Vec<Series> =
+        names.iter().zip(series).map(|(n, p)| Series { name: n, points: p }).collect();
     let unit = matches!(a.column.as_str(), "success" | "safety" | "speed");
     let x_label = if a.x == "env_steps" { "learner transitions" } else { a.x.as_str() };
-    line_chart(&a.out, a.title.as_deref().unwrap_or(&a.column), x_label, &a.column, &s, unit.then_some((0.0, 1.0)), (800, 500))?;
+    line_chart(
+        &a.out,
+        a.title.as_deref().unwrap_or(&a.column),
+        x_label,
+        &a.column,
+        &s,
+        unit.then_some((0.0, 1.0)),
+        (800, 500),
+    )?;
     eprintln!("wrote {}", a.out.display());
     Ok(())
 }

@@ -29,16 +29,25 @@ pub struct ProbeArgs {
 }
 
 pub fn run(dirs: &Ctx, a: ProbeArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&a.job).with_context(|| format!("reading {}", a.job.display()))?;
+    let text =
+        std::fs::read_to_string(&a.job).with_context(|| format!("reading {}", a.job.display()))?;
     let job = JobConfig::from_toml(&text).with_context(|| a.job.display().to_string())?;
-    anyhow::ensure!(a.transitions >= 1000 && a.horizon >= 1, "--transitions must be at least 1000 and --horizon at least 1");
+    anyhow::ensure!(
+        a.transitions >= 1000 && a.horizon >= 1,
+        "--transitions must be at least 1000 and --horizon at least 1"
+    );
     let maps = job.env.scenarios.iter().map(|s| dirs.map(s)).collect::<Result<Vec<_>>>()?;
-    let data = probe::collect(&job, &maps, a.transitions, a.horizon, a.seed).map_err(anyhow::Error::msg)?;
+    let data = probe::collect(&job, &maps, a.transitions, a.horizon, a.seed)
+        .map_err(anyhow::Error::msg)?;
     let segs = probe::segments(&maps, &job);
     let seg_refs: Vec<_> = segs.iter().collect();
     let r = setup::resolve(&job, None);
     let mut sac = Sac::new(r.sac, r.net, r.obs, r.sim.dt_s, &seg_refs)?;
-    let score = probe::train_and_score(&mut sac, &data, a.updates, a.seed).map_err(anyhow::Error::msg)?;
-    println!("{}", serde_json::json!({"job": a.job.display().to_string(), "horizon": a.horizon, "score": score}));
+    let score =
+        probe::train_and_score(&mut sac, &data, a.updates, a.seed).map_err(anyhow::Error::msg)?;
+    println!(
+        "{}",
+        serde_json::json!({"job": a.job.display().to_string(), "horizon": a.horizon, "score": score})
+    );
     Ok(())
 }

@@ -58,9 +58,15 @@ pub async fn connect(conn: &Conn) -> Result<JobsClient> {
     jobs_client(conn.endpoint()?, &conn.learner, Some(conn.token()?)).await
 }
 
-pub async fn jobs_client(endpoint: tonic::transport::Endpoint, url: &str, token: Option<Token>) -> Result<JobsClient> {
-    let ch = endpoint.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
-    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token)).max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES))
+pub async fn jobs_client(
+    endpoint: tonic::transport::Endpoint,
+    url: &str,
+    token: Option<Token>,
+) -> Result<JobsClient> {
+    let ch =
+        endpoint.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
+    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token))
+        .max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES))
 }
 
 fn deadline<T>(msg: T) -> tonic::Request<T> {
@@ -74,19 +80,34 @@ fn status_err(s: tonic::Status) -> anyhow::Error {
 }
 
 pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord> {
-    let j = c.submit_job(deadline(pb::SubmitJobRequest { config_toml })).await.map_err(status_err).context("submitting the job")?.into_inner();
+    let j = c
+        .submit_job(deadline(pb::SubmitJobRequest { config_toml }))
+        .await
+        .map_err(status_err)
+        .context("submitting the job")?
+        .into_inner();
     Ok(sf_proto::job_from_wire(&j)?)
 }
 
 /// One job with its config.
 pub async fn get(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
-    let j = c.get_job(deadline(pb::GetJobRequest { job_id })).await.map_err(status_err).with_context(|| format!("getting job {job_id}"))?.into_inner();
+    let j = c
+        .get_job(deadline(pb::GetJobRequest { job_id }))
+        .await
+        .map_err(status_err)
+        .with_context(|| format!("getting job {job_id}"))?
+        .into_inner();
     Ok(sf_proto::job_from_wire(&j)?)
 }
 
 /// Every job, newest first, without configs (`get` has them).
 pub async fn list(c: &mut JobsClient) -> Result<Vec<JobRecord>> {
-    let r = c.list_jobs(deadline(pb::ListJobsRequest {})).await.map_err(status_err).context("listing jobs")?.into_inner();
+    let r = c
+        .list_jobs(deadline(pb::ListJobsRequest {}))
+        .await
+        .map_err(status_err)
+        .context("listing jobs")?
+        .into_inner();
     r.jobs.iter().map(|j| sf_proto::job_from_wire(j).map_err(Into::into)).collect()
 }
 
@@ -100,7 +121,11 @@ pub fn job_json(j: &JobRecord) -> serde_json::Value {
 /// A progress bar over learner transitions.
 pub fn bar(target: u64) -> ProgressBar {
     let pb = ProgressBar::new(target);
-    pb.set_style(ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}").map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar()));
+    pb.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}")
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
     pb
 }
 
@@ -123,10 +148,20 @@ pub fn show(pb: &ProgressBar, state: JobState, progress: &Progress) {
 
 /// Follows a job until it reaches a final state; returns that state and the last progress.
 pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobState, Progress)> {
-    let mut stream = c.watch_job(pb::WatchJobRequest { job_id }).await.map_err(status_err).with_context(|| format!("watching job {job_id}"))?.into_inner();
+    let mut stream = c
+        .watch_job(pb::WatchJobRequest { job_id })
+        .await
+        .map_err(status_err)
+        .with_context(|| format!("watching job {job_id}"))?
+        .into_inner();
     let pb = if quiet { ProgressBar::hidden() } else { bar(1) };
     let mut last = None;
-    while let Some(m) = stream.message().await.map_err(status_err).with_context(|| format!("watching job {job_id}"))? {
+    while let Some(m) = stream
+        .message()
+        .await
+        .map_err(status_err)
+        .with_context(|| format!("watching job {job_id}"))?
+    {
         let (state, p) = sf_proto::progress_from_wire(&m)?;
         show(&pb, state, &p);
         last = Some((state, p));
@@ -139,11 +174,16 @@ pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobS
 }
 
 pub fn run(cmd: RemoteCmd) -> Result<()> {
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting the async runtime")?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
     rt.block_on(async move {
         match cmd {
             RemoteCmd::Submit { config, conn, watch: w } => {
-                let text = std::fs::read_to_string(&config).with_context(|| format!("reading {}", config.display()))?;
+                let text = std::fs::read_to_string(&config)
+                    .with_context(|| format!("reading {}", config.display()))?;
                 // Checked here first, so a bad file is named before any connection.
                 sf_job::JobSpec::from_toml(&text).with_context(|| config.display().to_string())?;
                 let mut c = connect(&conn).await?;
@@ -191,7 +231,11 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
             }
             RemoteCmd::Cancel { job_id, conn } => {
                 let mut c = connect(&conn).await?;
-                let j = c.cancel_job(deadline(pb::CancelJobRequest { job_id })).await.map_err(status_err)?.into_inner();
+                let j = c
+                    .cancel_job(deadline(pb::CancelJobRequest { job_id }))
+                    .await
+                    .map_err(status_err)?
+                    .into_inner();
                 println!("{}", job_json(&sf_proto::job_from_wire(&j)?));
                 Ok(())
             }

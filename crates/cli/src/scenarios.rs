@@ -33,7 +33,8 @@ pub fn gen_scenarios(out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     for name in SCENARIOS {
         let file = scenarios::build(name).expect("every listed scenario has a builder");
-        Map::from_file(&file, name).with_context(|| format!("built scenario {name} does not validate"))?;
+        Map::from_file(&file, name)
+            .with_context(|| format!("built scenario {name} does not validate"))?;
         let path = out.join(format!("{name}.json"));
         file.write(&path).with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());

@@ -49,7 +49,8 @@ impl Embedded {
     /// Starts a learner on loopback ports chosen by the OS and `n` workers connected to it.
     pub async fn start(data_dir: PathBuf, dirs: &Ctx, n: usize) -> Result<Self> {
         let (scenarios_dir, cases_dir) = (dirs.scenarios.clone(), dirs.cases.clone());
-        let secret: String = (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
+        let secret: String =
+            (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
         let token = Token::new(&secret, "embedded").context("embedded token")?;
         let cfg = LearnerConfig {
             grpc_addr: SocketAddr::from(([127, 0, 0, 1], 0)),
@@ -82,7 +83,12 @@ impl Embedded {
     }
 
     pub async fn client(&self) -> Result<remote::JobsClient> {
-        remote::jobs_client(sf_service::tls::endpoint(&self.url, &Default::default())?, &self.url, Some(self.token.clone())).await
+        remote::jobs_client(
+            sf_service::tls::endpoint(&self.url, &Default::default())?,
+            &self.url,
+            Some(self.token.clone()),
+        )
+        .await
     }
 
     /// Stops the workers, then the learner (checkpointing a running job).
@@ -96,17 +102,23 @@ impl Embedded {
 }
 
 pub fn runtime() -> Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting the async runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
 }
 
 pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
+    let text = std::fs::read_to_string(&a.config)
+        .with_context(|| format!("reading {}", a.config.display()))?;
     let cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
     if a.workers == 0 {
         bail!("--workers must be at least 1");
     }
     // The device before any port: a cuda job on a machine without a GPU stops here.
-    sf_nn::device::device(sf_sac::device_kind(cfg.sac.device)).with_context(|| format!("{}: field `sac.device`", a.config.display()))?;
+    sf_nn::device::device(sf_sac::device_kind(cfg.sac.device))
+        .with_context(|| format!("{}: field `sac.device`", a.config.display()))?;
     runtime()?.block_on(async move {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
@@ -176,9 +188,16 @@ async fn storage_fault(inner: &sf_learner::Inner) -> String {
 /// What a job's directory holds to resume from, as its `state.json` (written with each
 /// checkpoint) says: never a checkpoint that was not written.
 fn checkpoint_line(artifact_dir: &Path) -> String {
-    let state = std::fs::read_to_string(artifact_dir.join("state.json")).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
-    match state.as_ref().and_then(|v| Some((v["counters"]["env_steps"].as_u64()?, v["policy_version"].as_u64()?))) {
-        Some((steps, version)) if artifact_dir.join("checkpoint").exists() => format!("is checkpointed at {steps} environment steps (policy version {version})"),
+    let state = std::fs::read_to_string(artifact_dir.join("state.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
+    match state
+        .as_ref()
+        .and_then(|v| Some((v["counters"]["env_steps"].as_u64()?, v["policy_version"].as_u64()?)))
+    {
+        Some((steps, version)) if artifact_dir.join("checkpoint").exists() => {
+            format!("is checkpointed at {steps} environment steps (policy version {version})")
+        }
         _ => "has no checkpoint yet (it starts from the beginning)".to_string(),
     }
 }
@@ -199,7 +218,12 @@ fn held_out_table(h: &serde_json::Value) -> String {
         format!("  {name:<16} {:>8} {:>10} {:>7}", f("success"), f("collision"), f("speed"))
     };
     let head = format!("  {:<16} {:>8} {:>10} {:>7}", "", "success", "collision", "speed");
-    format!("the same {} held-out episodes (validation cases):\n{head}\n{}\n{}", h["episodes"], row("learned policy", &h["policy"]), row("IDM driver", &h["idm"]))
+    format!(
+        "the same {} held-out episodes (validation cases):\n{head}\n{}\n{}",
+        h["episodes"],
+        row("learned policy", &h["policy"]),
+        row("IDM driver", &h["idm"])
+    )
 }
 
 pub fn learner(a: sf_learner::cmd::LearnerArgs) -> Result<()> {

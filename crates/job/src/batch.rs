@@ -80,7 +80,8 @@ pub struct Ends {
 }
 
 impl Ends {
-    pub const FIELDS: [&'static str; 5] = ["collision", "off_road", "off_route", "wrong_lane", "timeout"];
+    pub const FIELDS: [&'static str; 5] =
+        ["collision", "off_road", "off_route", "wrong_lane", "timeout"];
 
     pub fn values(&self) -> [f32; 5] {
         [self.collision, self.off_road, self.off_route, self.wrong_lane, self.timeout]
@@ -151,8 +152,24 @@ impl TransitionBatch {
     }
 
     /// Appends one one-step transition.
-    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], terminal: bool, map_id: u32) {
-        self.push_transition(Transition { obs, action, reward, next_obs, terminal, steps: 1, map_id });
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        next_obs: &[f32],
+        terminal: bool,
+        map_id: u32,
+    ) {
+        self.push_transition(Transition {
+            obs,
+            action,
+            reward,
+            next_obs,
+            terminal,
+            steps: 1,
+            map_id,
+        });
     }
 
     /// Appends one transition spanning `t.steps` decision steps.
@@ -185,16 +202,34 @@ impl TransitionBatch {
     pub fn validate(&self) -> Result<(), BatchError> {
         let n = self.count;
         if n == 0 {
-            return Err(BatchError::Invalid { field: "count", reason: "a batch holds at least one transition".into() });
+            return Err(BatchError::Invalid {
+                field: "count",
+                reason: "a batch holds at least one transition".into(),
+            });
         }
         if self.obs_len == 0 {
-            return Err(BatchError::Invalid { field: "obs_len", reason: "must be positive".into() });
+            return Err(BatchError::Invalid {
+                field: "obs_len",
+                reason: "must be positive".into(),
+            });
         }
         if self.action_dim == 0 {
-            return Err(BatchError::Invalid { field: "action_dim", reason: "must be positive".into() });
+            return Err(BatchError::Invalid {
+                field: "action_dim",
+                reason: "must be positive".into(),
+            });
         }
-        let shape = |field, got: usize, want: usize| if got == want { Ok(()) } else { Err(BatchError::Shape { field, got, want }) };
-        let want_obs = n.checked_mul(self.obs_len).ok_or(BatchError::Invalid { field: "count", reason: "count x obs_len overflows".into() })?;
+        let shape = |field, got: usize, want: usize| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(BatchError::Shape { field, got, want })
+            }
+        };
+        let want_obs = n.checked_mul(self.obs_len).ok_or(BatchError::Invalid {
+            field: "count",
+            reason: "count x obs_len overflows".into(),
+        })?;
         shape("obs_f16", self.obs.len(), want_obs)?;
         shape("next_obs_f16", self.next_obs.len(), want_obs)?;
         shape("actions", self.actions.len(), n * self.action_dim)?;
@@ -203,7 +238,10 @@ impl TransitionBatch {
         shape("steps", self.steps.len(), n)?;
         shape("map_ids", self.map_ids.len(), n)?;
         if let Some(i) = self.steps.iter().position(|&s| s == 0) {
-            return Err(BatchError::Invalid { field: "steps", reason: format!("transition {i} spans 0 steps (at least 1)") });
+            return Err(BatchError::Invalid {
+                field: "steps",
+                reason: format!("transition {i} spans 0 steps (at least 1)"),
+            });
         }
         let finite16 = |field, v: &[f16]| match v.iter().position(|x| !x.is_finite()) {
             Some(index) => Err(BatchError::NotFinite { field, index }),
@@ -220,7 +258,13 @@ impl TransitionBatch {
         // demonstrators, uniform warm-ups); a value outside it is a misbehaving worker.
         if let Some(i) = self.actions.iter().position(|a| !(-1.0..=1.0).contains(a)) {
             let (t, k) = (i / self.action_dim, i % self.action_dim);
-            return Err(BatchError::Invalid { field: "actions", reason: format!("transition {t}, component {k}: {} is outside the action space [-1, 1]", self.actions[i]) });
+            return Err(BatchError::Invalid {
+                field: "actions",
+                reason: format!(
+                    "transition {t}, component {k}: {} is outside the action space [-1, 1]",
+                    self.actions[i]
+                ),
+            });
         }
         finite32("rewards", &self.rewards)?;
         for (i, e) in self.episodes.iter().enumerate() {
@@ -236,7 +280,10 @@ impl TransitionBatch {
                 ("episodes.timeout", t),
             ] {
                 if !(v.is_finite() && (0.0..=1.5).contains(&v)) {
-                    return Err(BatchError::Invalid { field, reason: format!("episode {i}: {v} is not a fraction") });
+                    return Err(BatchError::Invalid {
+                        field,
+                        reason: format!("episode {i}: {v} is not a fraction"),
+                    });
                 }
             }
         }
@@ -272,7 +319,11 @@ mod tests {
         assert_eq!(b.validate(), Err(BatchError::NotFinite { field: "actions", index: 1 }));
         let mut b = one();
         b.actions[1] = -1.5;
-        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "actions", ref reason }) if reason.contains("transition 0, component 1")), "{:?}", b.validate());
+        assert!(
+            matches!(b.validate(), Err(BatchError::Invalid { field: "actions", ref reason }) if reason.contains("transition 0, component 1")),
+            "{:?}",
+            b.validate()
+        );
         let mut b = one();
         b.actions = vec![1.0, -1.0];
         assert_eq!(b.validate(), Ok(()), "the bounds themselves are in the action space");
@@ -280,10 +331,16 @@ mod tests {
         b.obs_len = 0;
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
         // An empty batch is a malformed one (workers send only full or flushed batches).
-        assert!(matches!(TransitionBatch::new(1, 2, 3, 2).validate(), Err(BatchError::Invalid { field: "count", .. })));
+        assert!(matches!(
+            TransitionBatch::new(1, 2, 3, 2).validate(),
+            Err(BatchError::Invalid { field: "count", .. })
+        ));
         let mut b = one();
         b.steps[0] = 0;
-        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "steps", .. })), "a transition spans at least one step");
+        assert!(
+            matches!(b.validate(), Err(BatchError::Invalid { field: "steps", .. })),
+            "a transition spans at least one step"
+        );
         let mut b = one();
         b.steps.clear();
         assert_eq!(b.validate(), Err(BatchError::Shape { field: "steps", got: 0, want: 1 }));

@@ -614,7 +614,9 @@ impl DepRole {
     /// learner also compares networks and observation layouts).
     pub fn accepts(self, job: JobKind, dep: JobKind) -> Result<(), DepKindError> {
         match self {
-            Self::Background if job == JobKind::SocialcommAdv && dep != JobKind::Socialcomm => Err(DepKindError::NotSocialcomm { dep }),
+            Self::Background if job == JobKind::SocialcommAdv && dep != JobKind::Socialcomm => {
+                Err(DepKindError::NotSocialcomm { dep })
+            }
             Self::Background if !dep.is_flow() => Err(DepKindError::NotAFlow),
             Self::Ego if dep != JobKind::Ego => Err(DepKindError::NotAnEgo { dep }),
             Self::Init if dep != job => Err(DepKindError::OtherKind { dep }),
@@ -635,7 +637,10 @@ impl JobConfig {
     /// How its training episodes' random cases are drawn (`env.conflict_share`,
     /// `env.slow_leader`); validation draws its held-out cases the same way.
     pub fn case_draw(&self) -> sf_sim::vec_env::CaseDraw {
-        sf_sim::vec_env::CaseDraw { conflict_share: self.env.conflict_share, slow_leader: self.env.slow_leader }
+        sf_sim::vec_env::CaseDraw {
+            conflict_share: self.env.conflict_share,
+            slow_leader: self.env.slow_leader,
+        }
     }
 
     /// Floats in its policy's action: the drive action's for driving kinds, 1 (an SVO) for the
@@ -650,20 +655,37 @@ impl JobConfig {
 
     /// The jobs this one depends on, by id.
     pub fn deps(&self) -> Vec<(DepRole, u64)> {
-        [(DepRole::Background, self.env.background_job), (DepRole::Ego, self.env.ego_job), (DepRole::Init, self.train.init_job)].into_iter().filter_map(|(r, id)| id.map(|id| (r, id))).collect()
+        [
+            (DepRole::Background, self.env.background_job),
+            (DepRole::Ego, self.env.ego_job),
+            (DepRole::Init, self.train.init_job),
+        ]
+        .into_iter()
+        .filter_map(|(r, id)| id.map(|id| (r, id)))
+        .collect()
     }
 
     /// The jobs this one depends on, by name (a pipeline directory).
     pub fn deps_by_name(&self) -> Vec<(DepRole, &str)> {
-        [(DepRole::Background, &self.env.background_from), (DepRole::Ego, &self.env.ego_from), (DepRole::Init, &self.train.init_from)]
-            .into_iter()
-            .filter_map(|(r, n)| n.as_deref().map(|n| (r, n)))
-            .collect()
+        [
+            (DepRole::Background, &self.env.background_from),
+            (DepRole::Ego, &self.env.ego_from),
+            (DepRole::Init, &self.train.init_from),
+        ]
+        .into_iter()
+        .filter_map(|(r, n)| n.as_deref().map(|n| (r, n)))
+        .collect()
     }
 
     /// Replaces the name references by ids (`id_of` answers for a name).
-    pub fn resolve_names(&mut self, mut id_of: impl FnMut(&str) -> Option<u64>) -> Result<(), UnknownJobName> {
-        let mut one = |name: &mut Option<String>, id: &mut Option<u64>, field: &'static str| -> Result<(), UnknownJobName> {
+    pub fn resolve_names(
+        &mut self,
+        mut id_of: impl FnMut(&str) -> Option<u64>,
+    ) -> Result<(), UnknownJobName> {
+        let mut one = |name: &mut Option<String>,
+                       id: &mut Option<u64>,
+                       field: &'static str|
+         -> Result<(), UnknownJobName> {
             if let Some(n) = name.take() {
                 *id = Some(id_of(&n).ok_or(UnknownJobName { field, name: n })?);
             }
@@ -676,7 +698,8 @@ impl JobConfig {
 
     /// Parses and validates.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
-        let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string().trim_end().to_string()))?;
+        let c: Self = toml::from_str(text)
+            .map_err(|e| ConfigError::Parse(e.to_string().trim_end().to_string()))?;
         c.validate()?;
         Ok(c)
     }
@@ -688,7 +711,8 @@ impl JobConfig {
 
     /// CoPO Stage 2's settings: `None` for other kinds and for a copo job that stays at Stage 1.
     pub fn coordinator(&self) -> Option<CoordinatorSection> {
-        let c = (self.kind == JobKind::Copo).then(|| self.coordinator.clone().unwrap_or_default())?;
+        let c =
+            (self.kind == JobKind::Copo).then(|| self.coordinator.clone().unwrap_or_default())?;
         (c.iterations > 0).then_some(c)
     }
 
@@ -698,11 +722,19 @@ impl JobConfig {
 
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        if self.name.trim().is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
-            return bad("name", format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name));
+        if self.name.trim().is_empty()
+            || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+        {
+            return bad(
+                "name",
+                format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name),
+            );
         }
         if self.name == "idm" {
-            return bad("name", "`idm` is reserved: evaluation grids read `job = \"idm\"` as the IDM driver");
+            return bad(
+                "name",
+                "`idm` is reserved: evaluation grids read `job = \"idm\"` as the IDM driver",
+            );
         }
         self.validate_env()?;
         self.validate_net()?;
@@ -723,7 +755,13 @@ impl JobConfig {
             }
         }
         if self.env.vehicles_min == 0 || self.env.vehicles_min > self.env.vehicles_max {
-            return bad("env.vehicles_min", format!("{} must be in 1..=vehicles_max ({})", self.env.vehicles_min, self.env.vehicles_max));
+            return bad(
+                "env.vehicles_min",
+                format!(
+                    "{} must be in 1..=vehicles_max ({})",
+                    self.env.vehicles_min, self.env.vehicles_max
+                ),
+            );
         }
         let frozen_bg = matches!(self.kind, JobKind::Ego | JobKind::SocialcommAdv);
         let e = &self.env;
@@ -731,24 +769,46 @@ impl JobConfig {
             return bad("env.background_job", format!("a {} job trains its background; only ego and socialcomm-adv jobs drive a frozen flow", self.kind.as_str()));
         }
         if e.background_from.is_some() && (!frozen_bg || e.background_job.is_some()) {
-            return bad("env.background_from", "only for ego and socialcomm-adv jobs, and not together with env.background_job");
+            return bad(
+                "env.background_from",
+                "only for ego and socialcomm-adv jobs, and not together with env.background_job",
+            );
         }
-        if self.kind == JobKind::SocialcommAdv && e.background_job.is_none() && e.background_from.is_none() {
+        if self.kind == JobKind::SocialcommAdv
+            && e.background_job.is_none()
+            && e.background_from.is_none()
+        {
             return bad("env.background_job", "a socialcomm-adv job needs the frozen SocialComm flow (env.background_job or env.background_from)");
         }
         if (e.ego_job.is_some() || e.ego_from.is_some()) && !self.kind.needs_ego() {
-            return bad("env.ego_job", format!("only failmaker and socialcomm-adv jobs act against a frozen ego, not {}", self.kind.as_str()));
+            return bad(
+                "env.ego_job",
+                format!(
+                    "only failmaker and socialcomm-adv jobs act against a frozen ego, not {}",
+                    self.kind.as_str()
+                ),
+            );
         }
         if e.ego_job.is_some() && e.ego_from.is_some() {
             return bad("env.ego_from", "not together with env.ego_job");
         }
         if self.kind.needs_ego() && e.ego_job.is_none() && e.ego_from.is_none() {
-            return bad("env.ego_job", format!("a {} job needs the frozen ego it acts against (env.ego_job or env.ego_from)", self.kind.as_str()));
+            return bad(
+                "env.ego_job",
+                format!(
+                    "a {} job needs the frozen ego it acts against (env.ego_job or env.ego_from)",
+                    self.kind.as_str()
+                ),
+            );
         }
         if self.train.init_job.is_some() && self.train.init_from.is_some() {
             return bad("train.init_from", "not together with train.init_job");
         }
-        for (f, v) in [("env.background_job", e.background_job), ("env.ego_job", e.ego_job), ("train.init_job", self.train.init_job)] {
+        for (f, v) in [
+            ("env.background_job", e.background_job),
+            ("env.ego_job", e.ego_job),
+            ("train.init_job", self.train.init_job),
+        ] {
             if v == Some(0) {
                 return bad(f, "job ids start at 1");
             }
@@ -757,13 +817,22 @@ impl JobConfig {
             return bad("env.vehicles_max", format!("{} exceeds 64", self.env.vehicles_max));
         }
         if self.env.action != ActionMode::Direct && !self.kind.drives() {
-            return bad("env.action", format!("a residual action is for driving policies; a {} job's action is an SVO", self.kind.as_str()));
+            return bad(
+                "env.action",
+                format!(
+                    "a residual action is for driving policies; a {} job's action is an SVO",
+                    self.kind.as_str()
+                ),
+            );
         }
         if let Some(p) = self.env.conflict_share {
             if !(p.is_finite() && (0.0..=1.0).contains(&p)) {
                 return bad("env.conflict_share", format!("{p} must be in [0, 1]"));
             }
-            if self.kind != JobKind::Ego || self.env.background_job.is_some() || self.env.background_from.is_some() {
+            if self.kind != JobKind::Ego
+                || self.env.background_job.is_some()
+                || self.env.background_from.is_some()
+            {
                 return bad("env.conflict_share", "conflict cases are chosen by the IDM ego's fate among IDM cars: an ego job with no background job");
             }
         }
@@ -772,10 +841,19 @@ impl JobConfig {
                 return bad("env.slow_leader", why);
             }
             if self.kind != JobKind::Ego {
-                return bad("env.slow_leader", format!("a slow vehicle ahead of the ego is for ego jobs, not a {} job", self.kind.as_str()));
+                return bad(
+                    "env.slow_leader",
+                    format!(
+                        "a slow vehicle ahead of the ego is for ego jobs, not a {} job",
+                        self.kind.as_str()
+                    ),
+                );
             }
         }
-        for (f, v, hi) in [("env.max_neighbours", self.env.max_neighbours, 64), ("env.max_segments", self.env.max_segments, 512)] {
+        for (f, v, hi) in [
+            ("env.max_neighbours", self.env.max_neighbours, 64),
+            ("env.max_segments", self.env.max_segments, 512),
+        ] {
             if let Some(v) = v {
                 if !(1..=hi).contains(&v) {
                     return bad(f, format!("{v} must be in 1..={hi}"));
@@ -789,7 +867,12 @@ impl JobConfig {
     fn validate_net(&self) -> Result<(), ConfigError> {
         if let Some(w) = self.net.width {
             if w == 0 || w % 4 != 0 || w > 1024 {
-                return bad("net.width", format!("{w} must be a positive multiple of 4 (the attention heads) up to 1024"));
+                return bad(
+                    "net.width",
+                    format!(
+                        "{w} must be a positive multiple of 4 (the attention heads) up to 1024"
+                    ),
+                );
             }
         }
         if let Some(m) = self.net.log_std_min {
@@ -814,7 +897,11 @@ impl JobConfig {
         if !(s.tau > 0.0 && s.tau <= 1.0) {
             return bad("sac.tau", format!("{} must be in (0, 1]", s.tau));
         }
-        for (f, v) in [("sac.lr_actor", s.lr_actor), ("sac.lr_critic", s.lr_critic), ("sac.lr_alpha", s.lr_alpha)] {
+        for (f, v) in [
+            ("sac.lr_actor", s.lr_actor),
+            ("sac.lr_critic", s.lr_critic),
+            ("sac.lr_alpha", s.lr_alpha),
+        ] {
             if !(v.is_finite() && v > 0.0 && v < 1.0) {
                 return bad(f, format!("{v} must be in (0, 1)"));
             }
@@ -841,7 +928,13 @@ impl JobConfig {
             return bad("sac.warmup_noise", format!("{} must be in [0, 1]", s.warmup_noise));
         }
         if s.warmup_policy == WarmupPolicy::Idm && !self.kind.drives() {
-            return bad("sac.warmup_policy", format!("\"idm\" drives a vehicle; a {} job's action is an SVO", self.kind.as_str()));
+            return bad(
+                "sac.warmup_policy",
+                format!(
+                    "\"idm\" drives a vehicle; a {} job's action is an SVO",
+                    self.kind.as_str()
+                ),
+            );
         }
         let continues = self.train.init_job.is_some() || self.train.init_from.is_some();
         if s.warmup_policy == WarmupPolicy::Policy && !continues {
@@ -851,32 +944,54 @@ impl JobConfig {
             return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\" (or \"policy\" for a continuation)");
         }
         if !(s.warmup_brake_prob.is_finite() && (0.0..=1.0).contains(&s.warmup_brake_prob)) {
-            return bad("sac.warmup_brake_prob", format!("{} must be in [0, 1]", s.warmup_brake_prob));
+            return bad(
+                "sac.warmup_brake_prob",
+                format!("{} must be in [0, 1]", s.warmup_brake_prob),
+            );
         }
-        if !(s.warmup_lane_change_prob.is_finite() && (0.0..=1.0).contains(&s.warmup_lane_change_prob)) {
-            return bad("sac.warmup_lane_change_prob", format!("{} must be in [0, 1]", s.warmup_lane_change_prob));
+        if !(s.warmup_lane_change_prob.is_finite()
+            && (0.0..=1.0).contains(&s.warmup_lane_change_prob))
+        {
+            return bad(
+                "sac.warmup_lane_change_prob",
+                format!("{} must be in [0, 1]", s.warmup_lane_change_prob),
+            );
         }
-        if s.warmup_lane_change_prob > 0.0 && (self.env.action != ActionMode::IdmResidualLateral || s.warmup_policy != WarmupPolicy::Idm) {
+        if s.warmup_lane_change_prob > 0.0
+            && (self.env.action != ActionMode::IdmResidualLateral
+                || s.warmup_policy != WarmupPolicy::Idm)
+        {
             return bad("sac.warmup_lane_change_prob", "lane-change segments hold the lateral target of an IDM warm-up: set env.action = \"idm-residual-lateral\" and sac.warmup_policy = \"idm\"");
         }
-        if s.warmup_brake_prob > 0.0 && (self.env.action == ActionMode::Direct || s.warmup_policy != WarmupPolicy::Idm) {
+        if s.warmup_brake_prob > 0.0
+            && (self.env.action == ActionMode::Direct || s.warmup_policy != WarmupPolicy::Idm)
+        {
             return bad("sac.warmup_brake_prob", "braking segments hold a residual of an IDM warm-up: set env.action to a residual kind and sac.warmup_policy = \"idm\"");
         }
         if s.bc_target == BcTarget::Zero && self.env.action == ActionMode::Direct {
             return bad("sac.bc_target", "\"zero\" is the IDM driver only for residual actions: set env.action to a residual kind");
         }
         if s.actor_average_tau.is_some_and(|t| !(t > 0.0 && t <= 1.0)) {
-            return bad("sac.actor_average_tau", format!("{:?} must be in (0, 1]", s.actor_average_tau));
+            return bad(
+                "sac.actor_average_tau",
+                format!("{:?} must be in (0, 1]", s.actor_average_tau),
+            );
         }
         if s.act_with_average && s.actor_average_tau.is_none() {
-            return bad("sac.act_with_average", "acts with the averaged actor: set sac.actor_average_tau");
+            return bad(
+                "sac.act_with_average",
+                "acts with the averaged actor: set sac.actor_average_tau",
+            );
         }
         if let Some(l) = s.bc_awac_lambda {
             if !(l.is_finite() && l > 0.0) {
                 return bad("sac.bc_awac_lambda", format!("{l} must be finite and positive"));
             }
             if s.bc_target != BcTarget::Replay {
-                return bad("sac.bc_awac_lambda", "advantage weights rate the replayed actions: set sac.bc_target = \"replay\"");
+                return bad(
+                    "sac.bc_awac_lambda",
+                    "advantage weights rate the replayed actions: set sac.bc_target = \"replay\"",
+                );
             }
             if s.bc_weight <= 0.0 {
                 return bad("sac.bc_awac_lambda", "weights the cloning term that stays after the cloning updates: set sac.bc_weight > 0");
@@ -892,7 +1007,10 @@ impl JobConfig {
             return bad("sac.huber_delta", format!("{} must be positive", s.huber_delta));
         }
         if s.bc_updates > 0 && s.warmup_policy != WarmupPolicy::Idm {
-            return bad("sac.bc_updates", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
+            return bad(
+                "sac.bc_updates",
+                "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"",
+            );
         }
         if s.bc_from_warmup && (s.bc_updates == 0 || s.bc_target != BcTarget::Replay) {
             return bad("sac.bc_from_warmup", "draws the cloning updates' batches from the demonstrator's warm-up: set sac.bc_updates > 0 and sac.bc_target = \"replay\"");
@@ -902,8 +1020,14 @@ impl JobConfig {
         }
         // Cloning towards the zero residual needs no demonstrator's data: zero is IDM.
         let zero_target = s.bc_target == BcTarget::Zero && self.env.action != ActionMode::Direct;
-        if (s.bc_weight > 0.0 || s.bc_decay_updates > 0) && s.warmup_policy != WarmupPolicy::Idm && !zero_target {
-            return bad("sac.bc_weight", "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"");
+        if (s.bc_weight > 0.0 || s.bc_decay_updates > 0)
+            && s.warmup_policy != WarmupPolicy::Idm
+            && !zero_target
+        {
+            return bad(
+                "sac.bc_weight",
+                "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"",
+            );
         }
         if let Some(t) = s.target_entropy {
             if !t.is_finite() {
@@ -919,14 +1043,32 @@ impl JobConfig {
         if t.env_steps == 0 {
             return bad("train.env_steps", "must be positive");
         }
-        if !(t.samples_per_insert.is_finite() && t.samples_per_insert > 0.0 && t.samples_per_insert <= 1024.0) {
-            return bad("train.samples_per_insert", format!("{} must be in (0, 1024]", t.samples_per_insert));
+        if !(t.samples_per_insert.is_finite()
+            && t.samples_per_insert > 0.0
+            && t.samples_per_insert <= 1024.0)
+        {
+            return bad(
+                "train.samples_per_insert",
+                format!("{} must be in (0, 1024]", t.samples_per_insert),
+            );
         }
         if t.replay_capacity < s.batch_size || t.replay_capacity > 50_000_000 {
-            return bad("train.replay_capacity", format!("{} must be in sac.batch_size ({})..=50000000", t.replay_capacity, s.batch_size));
+            return bad(
+                "train.replay_capacity",
+                format!(
+                    "{} must be in sac.batch_size ({})..=50000000",
+                    t.replay_capacity, s.batch_size
+                ),
+            );
         }
         if (s.warmup_steps.max(s.batch_size as u64)) > t.replay_capacity as u64 {
-            return bad("sac.warmup_steps", format!("{} exceeds train.replay_capacity {}: sampling could never start", s.warmup_steps, t.replay_capacity));
+            return bad(
+                "sac.warmup_steps",
+                format!(
+                    "{} exceeds train.replay_capacity {}: sampling could never start",
+                    s.warmup_steps, t.replay_capacity
+                ),
+            );
         }
         if t.publish_every_updates == 0 {
             return bad("train.publish_every_updates", "must be positive");
@@ -944,7 +1086,10 @@ impl JobConfig {
             return bad("worker.envs", format!("{} must be in 1..=256", self.worker.envs));
         }
         if self.worker.batch_transitions == 0 || self.worker.batch_transitions > 8192 {
-            return bad("worker.batch_transitions", format!("{} must be in 1..=8192", self.worker.batch_transitions));
+            return bad(
+                "worker.batch_transitions",
+                format!("{} must be in 1..=8192", self.worker.batch_transitions),
+            );
         }
         Ok(())
     }
@@ -953,18 +1098,29 @@ impl JobConfig {
     fn validate_sections(&self) -> Result<(), ConfigError> {
         if let Some(c) = &self.coordinator {
             if self.kind != JobKind::Copo {
-                return bad("coordinator", format!("only copo jobs fit a Stage-2 coordinator, not {}", self.kind.as_str()));
+                return bad(
+                    "coordinator",
+                    format!("only copo jobs fit a Stage-2 coordinator, not {}", self.kind.as_str()),
+                );
             }
             if c.iterations > 1000 {
-                return bad("coordinator.iterations", format!("{} must be at most 1000", c.iterations));
+                return bad(
+                    "coordinator.iterations",
+                    format!("{} must be at most 1000", c.iterations),
+                );
             }
-            for (f, v) in [("coordinator.population", c.population), ("coordinator.episodes", c.episodes)] {
+            for (f, v) in
+                [("coordinator.population", c.population), ("coordinator.episodes", c.episodes)]
+            {
                 if v == 0 || v > 10_000 {
                     return bad(f, format!("{v} must be in 1..=10000"));
                 }
             }
             if !(c.elite_frac > 0.0 && c.elite_frac <= 1.0) {
-                return bad("coordinator.elite_frac", format!("{} must be in (0, 1]", c.elite_frac));
+                return bad(
+                    "coordinator.elite_frac",
+                    format!("{} must be in (0, 1]", c.elite_frac),
+                );
             }
             if c.envs == 0 || c.envs > 256 {
                 return bad("coordinator.envs", format!("{} must be in 1..=256", c.envs));
@@ -972,7 +1128,13 @@ impl JobConfig {
         }
         if let Some(v) = &self.validation {
             if !(self.kind == JobKind::Ego || self.kind.multi_agent()) {
-                return bad("validation", format!("selects drivers by success: ego and flow jobs only, not {} (an adversary)", self.kind.as_str()));
+                return bad(
+                    "validation",
+                    format!(
+                        "selects drivers by success: ego and flow jobs only, not {} (an adversary)",
+                        self.kind.as_str()
+                    ),
+                );
             }
             if v.every_updates == 0 {
                 return bad("validation.every_updates", "must be positive");
@@ -1012,21 +1174,46 @@ mod tests {
         assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
         let accel = MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]");
         let e = JobConfig::from_toml(&format!("{accel}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_lane_change_prob = 0.05\n")).expect_err("no lateral");
-        assert!(e.to_string().contains("sac.warmup_lane_change_prob") && e.to_string().contains("idm-residual-lateral"), "{e}");
+        assert!(
+            e.to_string().contains("sac.warmup_lane_change_prob")
+                && e.to_string().contains("idm-residual-lateral"),
+            "{e}"
+        );
         let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_lane_change_prob = 1.5\n")).expect_err("range");
         assert!(e.to_string().contains("sac.warmup_lane_change_prob"), "{e}");
-        let slow = |v: &str, kind: &str| JobConfig::from_toml(&format!("{kind}{}[sac]\nwarmup_steps = 100\n", MIN.replace("[train]", &format!("slow_leader = {v}\n[train]"))));
-        assert_eq!(slow("{ share = 1.0, speed_mps = 1.5 }", "").expect("valid").case_draw().slow_leader.map(|s| s.speed_mps), Some(1.5));
+        let slow = |v: &str, kind: &str| {
+            JobConfig::from_toml(&format!(
+                "{kind}{}[sac]\nwarmup_steps = 100\n",
+                MIN.replace("[train]", &format!("slow_leader = {v}\n[train]"))
+            ))
+        };
+        assert_eq!(
+            slow("{ share = 1.0, speed_mps = 1.5 }", "")
+                .expect("valid")
+                .case_draw()
+                .slow_leader
+                .map(|s| s.speed_mps),
+            Some(1.5)
+        );
         let e = slow("{ share = 1.0, speed_mps = 9.0 }", "").expect_err("too fast");
-        assert!(e.to_string().contains("env.slow_leader") && e.to_string().contains("speed_mps"), "{e}");
-        let e = slow("{ share = 1.0, speed_mps = 1.0 }", "kind = \"macad\"\n").expect_err("not an ego job");
+        assert!(
+            e.to_string().contains("env.slow_leader") && e.to_string().contains("speed_mps"),
+            "{e}"
+        );
+        let e = slow("{ share = 1.0, speed_mps = 1.0 }", "kind = \"macad\"\n")
+            .expect_err("not an ego job");
         assert!(e.to_string().contains("env.slow_leader"), "{e}");
         let policy = format!("{lat}[sac]\nwarmup_steps = 100\nwarmup_policy = \"policy\"\nbc_weight = 0.4\nbc_target = \"zero\"\nbc_q_filter = true\n");
         let e = JobConfig::from_toml(&policy).expect_err("not a continuation");
-        assert!(e.to_string().contains("sac.warmup_policy") && e.to_string().contains("init_job"), "{e}");
-        let cont = JobConfig::from_toml(&policy.replace("[train]\n", "[train]\ninit_job = 1\n")).expect("a continuation warms up with its own policy");
+        assert!(
+            e.to_string().contains("sac.warmup_policy") && e.to_string().contains("init_job"),
+            "{e}"
+        );
+        let cont = JobConfig::from_toml(&policy.replace("[train]\n", "[train]\ninit_job = 1\n"))
+            .expect("a continuation warms up with its own policy");
         assert_eq!(cont.sac.warmup_policy, WarmupPolicy::Policy);
-        let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\n")).expect_err("random warm-up");
+        let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\n"))
+            .expect_err("random warm-up");
         assert!(e.to_string().contains("sac.warmup_policy"), "{e}");
     }
 
@@ -1036,30 +1223,53 @@ mod tests {
         assert!(e.to_string().contains("sac.gamma"), "{e}");
         let e = JobConfig::from_toml(&format!("{MIN}[sac]\nbogus = 1\n")).expect_err("unknown");
         assert!(e.to_string().contains("bogus"), "{e}");
-        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 5000\n").replace("env_steps = 1000", "env_steps = 1000\nreplay_capacity = 1000")).expect_err("warm-up");
+        let e = JobConfig::from_toml(
+            &format!("{MIN}[sac]\nwarmup_steps = 5000\n")
+                .replace("env_steps = 1000", "env_steps = 1000\nreplay_capacity = 1000"),
+        )
+        .expect_err("warm-up");
         assert!(e.to_string().contains("sac.warmup_steps"), "{e}");
-        let e = JobConfig::from_toml(&format!("{MIN}[coordinator]\niterations = 2\n")).expect_err("not copo");
+        let e = JobConfig::from_toml(&format!("{MIN}[coordinator]\niterations = 2\n"))
+            .expect_err("not copo");
         assert!(e.to_string().contains("coordinator"), "{e}");
         let copo = format!("kind = \"copo\"\n{MIN}[sac]\nwarmup_steps = 100\n");
-        let e = JobConfig::from_toml(&format!("{copo}[coordinator]\nelite_frac = 0.0\n")).expect_err("elite");
+        let e = JobConfig::from_toml(&format!("{copo}[coordinator]\nelite_frac = 0.0\n"))
+            .expect_err("elite");
         assert!(e.to_string().contains("coordinator.elite_frac"), "{e}");
-        assert_eq!(JobConfig::from_toml(&copo).expect("copo").coordinator(), Some(CoordinatorSection::default()), "copo fits one by default");
-        assert_eq!(JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n")).expect("stage 1 only").coordinator(), None);
+        assert_eq!(
+            JobConfig::from_toml(&copo).expect("copo").coordinator(),
+            Some(CoordinatorSection::default()),
+            "copo fits one by default"
+        );
+        assert_eq!(
+            JobConfig::from_toml(&format!("{copo}[coordinator]\niterations = 0\n"))
+                .expect("stage 1 only")
+                .coordinator(),
+            None
+        );
     }
 
     #[test]
     fn the_name_idm_is_reserved_for_the_idm_driver() {
-        let e = JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm\"")).expect_err("idm");
+        let e =
+            JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm\"")).expect_err("idm");
         assert!(e.to_string().contains("name") && e.to_string().contains("reserved"), "{e}");
     }
 
     #[test]
     fn awac_weights_need_a_positive_lambda_and_the_replayed_actions() {
         let base = format!("{MIN}[sac]\nwarmup_policy = \"idm\"\nbc_weight = 0.4\n");
-        let ok = JobConfig::from_toml(&format!("{base}bc_awac_lambda = 1.0\n")).expect("replay target by default");
+        let ok = JobConfig::from_toml(&format!("{base}bc_awac_lambda = 1.0\n"))
+            .expect("replay target by default");
         assert_eq!(ok.sac.bc_awac_lambda, Some(1.0));
-        assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip").sac.bc_awac_lambda, Some(1.0));
-        assert!(!JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_awac_lambda"), "absent stays absent");
+        assert_eq!(
+            JobConfig::from_toml(&ok.to_toml()).expect("round trip").sac.bc_awac_lambda,
+            Some(1.0)
+        );
+        assert!(
+            !JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_awac_lambda"),
+            "absent stays absent"
+        );
         for (extra, needle) in [
             ("bc_awac_lambda = 0.0", "finite and positive"),
             ("bc_awac_lambda = -1.0", "finite and positive"),
@@ -1067,27 +1277,54 @@ mod tests {
             ("bc_awac_lambda = inf", "finite and positive"),
         ] {
             let e = JobConfig::from_toml(&format!("{base}{extra}\n")).expect_err(extra);
-            assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains(needle), "{extra}: {e}");
+            assert!(
+                e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains(needle),
+                "{extra}: {e}"
+            );
         }
-        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_policy = \"idm\"\nbc_awac_lambda = 1.0\n")).expect_err("no cloning term");
-        assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("bc_weight > 0"), "{e}");
-        let zero = MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]") + "[sac]\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\nbc_awac_lambda = 1.0\n";
+        let e = JobConfig::from_toml(&format!(
+            "{MIN}[sac]\nwarmup_policy = \"idm\"\nbc_awac_lambda = 1.0\n"
+        ))
+        .expect_err("no cloning term");
+        assert!(
+            e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("bc_weight > 0"),
+            "{e}"
+        );
+        let zero = MIN.replace("[train]", "action = \"idm-accel-residual\"\n[train]")
+            + "[sac]\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\nbc_awac_lambda = 1.0\n";
         let e = JobConfig::from_toml(&zero).expect_err("zero target");
-        assert!(e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("replay"), "{e}");
+        assert!(
+            e.to_string().contains("sac.bc_awac_lambda") && e.to_string().contains("replay"),
+            "{e}"
+        );
     }
 
     #[test]
     fn validation_section_is_checked_and_round_trips() {
         let ego = MIN.replace("name = \"t\"\n", "name = \"t\"\nkind = \"ego\"\n");
-        let cfg = JobConfig::from_toml(&format!("{ego}[validation]\nevery_updates = 250\n")).expect("ego with validation");
-        assert_eq!(cfg.validation, Some(ValidationSection { every_updates: 250, ..Default::default() }));
-        assert_eq!(JobConfig::from_toml(&cfg.to_toml()).expect("round trip").validation, cfg.validation);
+        let cfg = JobConfig::from_toml(&format!("{ego}[validation]\nevery_updates = 250\n"))
+            .expect("ego with validation");
+        assert_eq!(
+            cfg.validation,
+            Some(ValidationSection { every_updates: 250, ..Default::default() })
+        );
+        assert_eq!(
+            JobConfig::from_toml(&cfg.to_toml()).expect("round trip").validation,
+            cfg.validation
+        );
         assert_eq!(JobConfig::from_toml(&ego).expect("no section").validation, None);
-        for (body, field) in [("every_updates = 0", "validation.every_updates"), ("episodes = 0", "validation.episodes"), ("envs = 0", "validation.envs"), ("shots = 3", "shots")] {
+        for (body, field) in [
+            ("every_updates = 0", "validation.every_updates"),
+            ("episodes = 0", "validation.episodes"),
+            ("envs = 0", "validation.envs"),
+            ("shots = 3", "shots"),
+        ] {
             let e = JobConfig::from_toml(&format!("{ego}[validation]\n{body}\n")).expect_err(body);
             assert!(e.to_string().contains(field), "{body}: {e}");
         }
-        let fm = MIN.replace("name = \"t\"\n", "name = \"t\"\nkind = \"failmaker\"\n").replace("[train]", "ego_job = 1\n[train]");
+        let fm = MIN
+            .replace("name = \"t\"\n", "name = \"t\"\nkind = \"failmaker\"\n")
+            .replace("[train]", "ego_job = 1\n[train]");
         let e = JobConfig::from_toml(&format!("{fm}[validation]\n")).expect_err("an adversary");
         assert!(e.to_string().contains("validation") && e.to_string().contains("failmaker"), "{e}");
     }
@@ -1095,8 +1332,12 @@ mod tests {
     #[test]
     fn the_idm_warm_up_is_checked() {
         let ok = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 50\ntarget_entropy = -3.0\n")).expect("valid");
-        assert_eq!((ok.sac.warmup_policy, ok.sac.bc_updates, ok.sac.target_entropy), (WarmupPolicy::Idm, 50, Some(-3.0)));
-        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nbc_updates = 50\n")).expect_err("nothing to clone");
+        assert_eq!(
+            (ok.sac.warmup_policy, ok.sac.bc_updates, ok.sac.target_entropy),
+            (WarmupPolicy::Idm, 50, Some(-3.0))
+        );
+        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nbc_updates = 50\n"))
+            .expect_err("nothing to clone");
         assert!(e.to_string().contains("sac.bc_updates"), "{e}");
     }
 
@@ -1104,12 +1345,23 @@ mod tests {
     /// `act_with_average` written only when set.
     #[test]
     fn acting_with_the_averaged_actor_needs_an_average() {
-        let off = JobConfig::from_toml(&format!("{MIN}[sac]\nactor_average_tau = 0.01\n")).expect("valid");
-        assert!(!off.sac.act_with_average && !off.to_toml().contains("act_with_average"), "unset is not written");
-        let on = JobConfig::from_toml(&format!("{MIN}[sac]\nactor_average_tau = 0.01\nact_with_average = true\n")).expect("valid");
+        let off = JobConfig::from_toml(&format!("{MIN}[sac]\nactor_average_tau = 0.01\n"))
+            .expect("valid");
+        assert!(
+            !off.sac.act_with_average && !off.to_toml().contains("act_with_average"),
+            "unset is not written"
+        );
+        let on = JobConfig::from_toml(&format!(
+            "{MIN}[sac]\nactor_average_tau = 0.01\nact_with_average = true\n"
+        ))
+        .expect("valid");
         assert!(on.sac.act_with_average);
         assert_eq!(JobConfig::from_toml(&on.to_toml()).expect("round trip").sac, on.sac);
-        for (body, field) in [("act_with_average = true\n", "sac.act_with_average"), ("actor_average_tau = 0.0\n", "sac.actor_average_tau"), ("actor_average_tau = 1.5\n", "sac.actor_average_tau")] {
+        for (body, field) in [
+            ("act_with_average = true\n", "sac.act_with_average"),
+            ("actor_average_tau = 0.0\n", "sac.actor_average_tau"),
+            ("actor_average_tau = 1.5\n", "sac.actor_average_tau"),
+        ] {
             let e = JobConfig::from_toml(&format!("{MIN}[sac]\n{body}")).expect_err(body);
             assert!(e.to_string().contains(field), "{body}: {e}");
         }
@@ -1123,8 +1375,12 @@ mod tests {
         let off = JobConfig::from_toml(&format!("{MIN}{sac}")).expect("valid");
         assert_eq!((off.sac.sample_before(0), off.sac.sample_before(49)), (None, None));
         assert!(!off.to_toml().contains("bc_from_warmup"), "unset is not written");
-        let on = JobConfig::from_toml(&format!("{MIN}{sac}bc_from_warmup = true\n")).expect("valid");
-        assert_eq!((on.sac.sample_before(0), on.sac.sample_before(49), on.sac.sample_before(50)), (Some(100), Some(100), None));
+        let on =
+            JobConfig::from_toml(&format!("{MIN}{sac}bc_from_warmup = true\n")).expect("valid");
+        assert_eq!(
+            (on.sac.sample_before(0), on.sac.sample_before(49), on.sac.sample_before(50)),
+            (Some(100), Some(100), None)
+        );
         assert_eq!(JobConfig::from_toml(&on.to_toml()).expect("round trip").sac, on.sac);
         for body in
             ["warmup_steps = 100\nwarmup_policy = \"idm\"\nbc_from_warmup = true\n", "warmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 5\nbc_target = \"zero\"\nbc_from_warmup = true\n"]
@@ -1133,12 +1389,22 @@ mod tests {
             let e = JobConfig::from_toml(&format!("{cfg}[sac]\n{body}")).expect_err(body);
             assert!(e.to_string().contains("sac.bc_from_warmup"), "{body}: {e}");
         }
-        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_noise = 2.0\n")).expect_err("noise");
+        let e = JobConfig::from_toml(&format!(
+            "{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nwarmup_noise = 2.0\n"
+        ))
+        .expect_err("noise");
         assert!(e.to_string().contains("sac.warmup_noise"), "{e}");
-        let adv = "kind = \"socialcomm-adv\"\n".to_string() + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\n[train]");
-        let e = JobConfig::from_toml(&format!("{adv}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n")).expect_err("adversary");
+        let adv = "kind = \"socialcomm-adv\"\n".to_string()
+            + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\n[train]");
+        let e = JobConfig::from_toml(&format!(
+            "{adv}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\n"
+        ))
+        .expect_err("adversary");
         assert!(e.to_string().contains("sac.warmup_policy"), "{e}");
-        let e = JobConfig::from_toml(&format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"expert\"\n")).expect_err("unknown policy");
+        let e = JobConfig::from_toml(&format!(
+            "{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"expert\"\n"
+        ))
+        .expect_err("unknown policy");
         assert!(e.to_string().contains("warmup_policy"), "{e}");
     }
 
@@ -1146,12 +1412,18 @@ mod tests {
     /// observation caps: accepted when they fit, refused naming the field otherwise.
     #[test]
     fn the_learning_recipe_is_checked() {
-        let env = MIN.replace("[train]", "action = \"idm-accel-residual\"\nmax_neighbours = 10\nmax_segments = 48\n[train]");
+        let env = MIN.replace(
+            "[train]",
+            "action = \"idm-accel-residual\"\nmax_neighbours = 10\nmax_segments = 48\n[train]",
+        );
         let ok = JobConfig::from_toml(&format!(
             "{env}[net]\npose_layers = 2\nego_skip = true\ncritic_layer_norm = true\n[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\ncritic_loss = \"huber\"\nbc_target = \"zero\"\nbc_q_filter = true\ncritic_pretrain_updates = 10\nshared_encoder = true\n"
         ))
         .expect("valid");
-        assert_eq!((ok.action_dim(), ok.env.max_neighbours, ok.sac.critic_loss, ok.sac.bc_target), (1, Some(10), CriticLoss::Huber, BcTarget::Zero));
+        assert_eq!(
+            (ok.action_dim(), ok.env.max_neighbours, ok.sac.critic_loss, ok.sac.bc_target),
+            (1, Some(10), CriticLoss::Huber, BcTarget::Zero)
+        );
         assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
         for (text, field) in [
             (format!("{env}[sac]\nwarmup_steps = 100\n"), "sac.warmup_policy"),
@@ -1169,8 +1441,13 @@ mod tests {
             let e = JobConfig::from_toml(&text).expect_err(field);
             assert!(e.to_string().contains(field), "{field}: {e}");
         }
-        let adv = "kind = \"socialcomm-adv\"\n".to_string() + &MIN.replace("[train]", "ego_job = 1\nbackground_job = 2\naction = \"idm-accel-residual\"\n[train]");
-        let e = JobConfig::from_toml(&format!("{adv}[sac]\nwarmup_steps = 100\n")).expect_err("adversary");
+        let adv = "kind = \"socialcomm-adv\"\n".to_string()
+            + &MIN.replace(
+                "[train]",
+                "ego_job = 1\nbackground_job = 2\naction = \"idm-accel-residual\"\n[train]",
+            );
+        let e = JobConfig::from_toml(&format!("{adv}[sac]\nwarmup_steps = 100\n"))
+            .expect_err("adversary");
         assert!(e.to_string().contains("env.action"), "{e}");
     }
 
@@ -1179,11 +1456,17 @@ mod tests {
     #[test]
     fn the_actor_learning_rate_decays_after_cloning_and_pretraining() {
         let sac = "[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_updates = 10\ncritic_pretrain_updates = 20\nlr_actor = 1e-4\n";
-        let c = JobConfig::from_toml(&format!("{MIN}{sac}lr_actor_final = 2e-5\nlr_actor_decay_updates = 100\n")).expect("valid");
+        let c = JobConfig::from_toml(&format!(
+            "{MIN}{sac}lr_actor_final = 2e-5\nlr_actor_decay_updates = 100\n"
+        ))
+        .expect("valid");
         let lr = |u| c.sac.actor_lr(u);
         assert_eq!((lr(0), lr(30)), (1e-4, 1e-4), "constant through cloning and pre-training");
         assert!((lr(80) - 6e-5).abs() < 1e-12, "half way: {}", lr(80));
-        assert!((lr(130) - 2e-5).abs() < 1e-12 && (lr(10_000) - 2e-5).abs() < 1e-12, "flat at the end");
+        assert!(
+            (lr(130) - 2e-5).abs() < 1e-12 && (lr(10_000) - 2e-5).abs() < 1e-12,
+            "flat at the end"
+        );
         assert_eq!(JobConfig::from_toml(&c.to_toml()).expect("round trip"), c);
         let plain = JobConfig::from_toml(&format!("{MIN}{sac}")).expect("no decay");
         assert_eq!(plain.sac.actor_lr(5_000), 1e-4);
@@ -1202,8 +1485,16 @@ mod tests {
     fn dependencies_serve_only_in_roles_their_kind_fits() {
         use JobKind::*;
         assert!(DepRole::Background.accepts(Ego, Failmaker).is_ok());
-        assert!(DepRole::Background.accepts(Ego, Ego).expect_err("ego").to_string().contains("not a traffic flow"));
-        assert!(DepRole::Background.accepts(SocialcommAdv, Copo).expect_err("not socialcomm").to_string().contains("SocialComm"));
+        assert!(DepRole::Background
+            .accepts(Ego, Ego)
+            .expect_err("ego")
+            .to_string()
+            .contains("not a traffic flow"));
+        assert!(DepRole::Background
+            .accepts(SocialcommAdv, Copo)
+            .expect_err("not socialcomm")
+            .to_string()
+            .contains("SocialComm"));
         assert!(DepRole::Background.accepts(SocialcommAdv, Socialcomm).is_ok());
         assert!(DepRole::Ego.accepts(Failmaker, Macad).is_err());
         assert!(DepRole::Ego.accepts(Failmaker, Ego).is_ok());

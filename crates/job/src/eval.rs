@@ -191,7 +191,8 @@ fn d_name() -> String {
 
 /// Whether a submitted TOML text is an evaluation grid (`kind = "eval"`) rather than a job.
 pub fn is_eval_toml(text: &str) -> bool {
-    text.parse::<toml::Table>().is_ok_and(|t| t.get("kind").and_then(|k| k.as_str()) == Some("eval"))
+    text.parse::<toml::Table>()
+        .is_ok_and(|t| t.get("kind").and_then(|k| k.as_str()) == Some("eval"))
 }
 
 /// One cell of the grid: `cases x seeds` episodes ([`EvalConfig::size_of`]).
@@ -212,7 +213,15 @@ impl Cell {
     /// The cell's identity in results files and logs.
     pub fn key(&self) -> String {
         let opt = |v: Option<String>| v.unwrap_or_default();
-        format!("{}|{}|{}|{}|{}|{}", self.experiment, self.ego, self.flow, self.scenario, opt(self.svo_deg.map(|v| v.to_string())), opt(self.vehicles.map(|v| v.to_string())))
+        format!(
+            "{}|{}|{}|{}|{}|{}",
+            self.experiment,
+            self.ego,
+            self.flow,
+            self.scenario,
+            opt(self.svo_deg.map(|v| v.to_string())),
+            opt(self.vehicles.map(|v| v.to_string()))
+        )
     }
 }
 
@@ -239,7 +248,12 @@ pub struct EvalEpisode {
 impl EvalEpisode {
     /// Every metric is a fraction in [0, 1].
     pub fn validate(&self) -> Result<(), MetricRangeError> {
-        for (metric, value) in [("success", self.scores.success), ("safety", self.scores.safety), ("speed", self.scores.speed), ("collision", self.collision)] {
+        for (metric, value) in [
+            ("success", self.scores.success),
+            ("safety", self.scores.safety),
+            ("speed", self.scores.speed),
+            ("collision", self.collision),
+        ] {
             if !(0.0..=1.0).contains(&value) {
                 return Err(MetricRangeError { case: self.case, seed: self.seed, metric, value });
             }
@@ -268,7 +282,12 @@ pub struct EvalWork {
 
 impl EvalConfig {
     pub fn from_toml(text: &str) -> Result<Self, EvalConfigError> {
-        let c: Self = toml::from_str(text).map_err(|e| EvalConfigError(format!("eval config is not valid TOML for an evaluation: {}", e.to_string().trim_end())))?;
+        let c: Self = toml::from_str(text).map_err(|e| {
+            EvalConfigError(format!(
+                "eval config is not valid TOML for an evaluation: {}",
+                e.to_string().trim_end()
+            ))
+        })?;
         c.validate()?;
         Ok(c)
     }
@@ -282,7 +301,9 @@ impl EvalConfig {
         if self.kind != "eval" {
             return bad(format!("eval config field `kind`: `{}`, expected \"eval\"", self.kind));
         }
-        if self.name.is_empty() || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_') {
+        if self.name.is_empty()
+            || !self.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
             return bad("eval config field `name`: letters, digits, '-' and '_' only");
         }
         if self.cases == 0 || self.seeds == 0 || self.envs == 0 {
@@ -290,11 +311,16 @@ impl EvalConfig {
         }
         for (experiment, size) in &self.sizes {
             if !EXPERIMENTS.contains(&experiment.as_str()) {
-                return bad(format!("eval config field `sizes.{experiment}`: not an experiment ({})", EXPERIMENTS.join(", ")));
+                return bad(format!(
+                    "eval config field `sizes.{experiment}`: not an experiment ({})",
+                    EXPERIMENTS.join(", ")
+                ));
             }
             for (field, value) in [("cases", size.cases), ("seeds", size.seeds)] {
                 if value == Some(0) {
-                    return bad(format!("eval config field `sizes.{experiment}.{field}` must be positive"));
+                    return bad(format!(
+                        "eval config field `sizes.{experiment}.{field}` must be positive"
+                    ));
                 }
             }
         }
@@ -306,47 +332,73 @@ impl EvalConfig {
         if flows.len() != self.flows.len() || egos.len() != self.egos.len() {
             return bad("eval config fields `flows` / `egos`: names must be unique");
         }
-        for n in self.flows.iter().chain(&self.egos).map(|f| f.name.as_str()).chain(self.scenarios.iter().map(String::as_str)) {
+        for n in self
+            .flows
+            .iter()
+            .chain(&self.egos)
+            .map(|f| f.name.as_str())
+            .chain(self.scenarios.iter().map(String::as_str))
+        {
             if n.is_empty() || n.contains([',', '|', '\n']) {
-                return bad(format!("eval config: name `{n}` must be non-empty without ',' or '|'"));
+                return bad(format!(
+                    "eval config: name `{n}` must be non-empty without ',' or '|'"
+                ));
             }
         }
         // `job = "idm"` as an ego: the IDM driver in the ego's seat, the baseline every trained
         // ego is tested against. It was trained nowhere and is not the proposed method.
         if self.egos.iter().filter(|e| e.is_idm()).count() > 1 {
-            return bad("eval config field `egos`: at most one ego may be the IDM driver (`job = \"idm\"`)");
+            return bad(
+                "eval config field `egos`: at most one ego may be the IDM driver (`job = \"idm\"`)",
+            );
         }
-        if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.job_id.is_some()) {
+        if let Some(n) =
+            self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.job_id.is_some())
+        {
             return bad(format!("eval config field `job_id` of `{}`: `job = \"idm\"` is the IDM driver, not a stored job", n.name));
         }
         if let Some(e) = self.egos.iter().find(|e| e.is_idm() && e.trained_in.is_some()) {
             return bad(format!("eval config field `egos.trained_in` of `{}`: the IDM driver (`job = \"idm\"`) was not trained in a flow", e.name));
         }
         if let Some(n) = self.flows.iter().find(|n| n.flow_actor) {
-            return bad(format!("eval config field `flow_actor` of flow `{}`: only an ego can be a flow's actor", n.name));
+            return bad(format!(
+                "eval config field `flow_actor` of flow `{}`: only an ego can be a flow's actor",
+                n.name
+            ));
         }
         if let Some(n) = self.egos.iter().find(|n| !n.messages.is_off()) {
-            return bad(format!("eval config field `messages` of ego `{}`: message probes belong to a learned flow", n.name));
+            return bad(format!(
+                "eval config field `messages` of ego `{}`: message probes belong to a learned flow",
+                n.name
+            ));
         }
         if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.is_probe()) {
             return bad(format!("eval config entry `{}`: a probe (`messages`, `flow_actor`) needs a learned job, not `job = \"idm\"`", n.name));
         }
-        if let Some((n, (field, v))) = self.flows.iter().find_map(|n| n.messages.out_of_range().map(|o| (n, o))) {
+        if let Some((n, (field, v))) =
+            self.flows.iter().find_map(|n| n.messages.out_of_range().map(|o| (n, o)))
+        {
             return bad(format!("eval config field `messages.{field}` of flow `{}`: {v} is not an SVO in [-90, 90] degrees", n.name));
         }
         if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
             return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
         }
         if let Some(o) = self.ours.as_ref().filter(|o| self.ego(o).is_some_and(Named::is_idm)) {
-            return bad(format!("eval config field `ours`: `{o}` is the IDM driver, not a trained ego"));
+            return bad(format!(
+                "eval config field `ours`: `{o}` is the IDM driver, not a trained ego"
+            ));
         }
         for e in &self.egos {
             if let Some(t) = e.trained_in.as_ref().filter(|t| !flows.contains(t.as_str())) {
-                return bad(format!("eval config field `egos.trained_in` of `{}`: `{t}` is not one of `flows`", e.name));
+                return bad(format!(
+                    "eval config field `egos.trained_in` of `{}`: `{t}` is not one of `flows`",
+                    e.name
+                ));
             }
         }
         let e = &self.experiments;
-        let mut need_flows: Vec<(&str, &String)> = e.flow_quality.iter().map(|f| ("experiments.flow_quality", f)).collect();
+        let mut need_flows: Vec<(&str, &String)> =
+            e.flow_quality.iter().map(|f| ("experiments.flow_quality", f)).collect();
         need_flows.extend(e.cross_validation.iter().map(|f| ("experiments.cross_validation", f)));
         let mut need_egos: Vec<(&str, &String)> = Vec::new();
         if let Some(s) = &e.svo_sweep {
@@ -360,7 +412,9 @@ impl EvalConfig {
         if let Some(d) = &e.density {
             need_flows.extend(d.flows.iter().map(|f| ("experiments.density.flows", f)));
             if d.vehicles.is_empty() || d.vehicles.contains(&0) {
-                return bad("eval config field `experiments.density.vehicles`: positive vehicle counts");
+                return bad(
+                    "eval config field `experiments.density.vehicles`: positive vehicle counts",
+                );
             }
         }
         if let Some(g) = &e.gifs {
@@ -436,7 +490,11 @@ impl EvalConfig {
         for cell in self.cells() {
             let (cases, have) = (self.size_of(&cell).0, stored(&cell.scenario));
             if cases as usize > have {
-                let field = if self.sizes.get(&cell.experiment).is_some_and(|s| s.cases.is_some()) { format!("sizes.{}.cases", cell.experiment) } else { "cases".into() };
+                let field = if self.sizes.get(&cell.experiment).is_some_and(|s| s.cases.is_some()) {
+                    format!("sizes.{}.cases", cell.experiment)
+                } else {
+                    "cases".into()
+                };
                 return Err(TooFewCases { field, cases, stored: have, scenario: cell.scenario });
             }
         }
@@ -445,14 +503,15 @@ impl EvalConfig {
 
     /// The grid's cells in a fixed order (a cell's index is its id in an evaluation job).
     pub fn cells(&self) -> Vec<Cell> {
-        let cell = |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell {
-            experiment: experiment.into(),
-            ego: ego.into(),
-            flow: flow.into(),
-            scenario: scenario.into(),
-            svo_deg,
-            vehicles,
-        };
+        let cell =
+            |experiment: &str, ego: &str, flow: &str, scenario: &str, svo_deg, vehicles| Cell {
+                experiment: experiment.into(),
+                ego: ego.into(),
+                flow: flow.into(),
+                scenario: scenario.into(),
+                svo_deg,
+                vehicles,
+            };
         let e = &self.experiments;
         let mut out = Vec::new();
         for f in &e.flow_quality {
@@ -538,10 +597,17 @@ mod tests {
 
     #[test]
     fn the_idm_driver_is_an_ego_of_the_grid() {
-        let text = BASE.replace("egos = [{ name = \"E\", job = \"ego-a\" }]", "egos = [{ name = \"E\", job = \"ego-a\" }, { name = \"IDM ego\", job = \"idm\" }]");
-        let c = EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\n")).expect("an IDM ego");
-        assert!(c.ego("IDM ego").is_some_and(Named::is_idm) && !c.ego("E").is_some_and(Named::is_idm));
-        let cross: Vec<String> = c.cells().into_iter().filter(|c| c.experiment == "cross").map(|c| c.ego).collect();
+        let text = BASE.replace(
+            "egos = [{ name = \"E\", job = \"ego-a\" }]",
+            "egos = [{ name = \"E\", job = \"ego-a\" }, { name = \"IDM ego\", job = \"idm\" }]",
+        );
+        let c = EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\n"))
+            .expect("an IDM ego");
+        assert!(
+            c.ego("IDM ego").is_some_and(Named::is_idm) && !c.ego("E").is_some_and(Named::is_idm)
+        );
+        let cross: Vec<String> =
+            c.cells().into_iter().filter(|c| c.experiment == "cross").map(|c| c.ego).collect();
         assert_eq!(cross, ["E", "IDM ego"], "one cross cell per ego, the IDM driver's included");
     }
 
@@ -549,8 +615,13 @@ mod tests {
     /// parser and made validation expand the grid until memory ran out.
     #[test]
     fn svo_sweep_values_are_bounded() {
-        let sweep = |values: &str| format!("{BASE}svo_sweep = {{ flows = [\"IDM\"], values = {values}, scenarios = [\"merge\"] }}\n");
-        assert_eq!(EvalConfig::from_toml(&sweep("91")).expect("one value per degree").cells().len(), 92);
+        let sweep = |values: &str| {
+            format!("{BASE}svo_sweep = {{ flows = [\"IDM\"], values = {values}, scenarios = [\"merge\"] }}\n")
+        };
+        assert_eq!(
+            EvalConfig::from_toml(&sweep("91")).expect("one value per degree").cells().len(),
+            92
+        );
         for v in ["1", "92", "9223372036854775807"] {
             let e = EvalConfig::from_toml(&sweep(v)).expect_err(v);
             assert!(e.0.contains("experiments.svo_sweep.values"), "{v}: {e}");
@@ -559,20 +630,34 @@ mod tests {
 
     /// `BASE` with cross-validation and adversary cells, and `[sizes]` appended.
     fn sized(sizes: &str) -> EvalConfig {
-        let text = BASE.replace("flows = [{ name = \"IDM\", job = \"idm\" }]", "flows = [{ name = \"IDM\", job = \"idm\" }, { name = \"Adv\", job = \"flow-adv\" }]");
+        let text = BASE.replace(
+            "flows = [{ name = \"IDM\", job = \"idm\" }]",
+            "flows = [{ name = \"IDM\", job = \"idm\" }, { name = \"Adv\", job = \"flow-adv\" }]",
+        );
         EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\nadversary = {{ egos = [\"E\"], flows = [\"Adv\"] }}\n[sizes]\n{sizes}")).expect(sizes)
     }
 
     #[test]
     fn a_size_override_applies_to_its_experiments_cells_field_by_field() {
         let c = sized("adversary = { cases = 200, seeds = 3 }\ncross = { cases = 50 }\n");
-        let size = |e: &str| c.cells().iter().filter(|c| c.experiment == e).map(|cell| c.size_of(cell)).collect::<BTreeSet<_>>().into_iter().collect::<Vec<_>>();
+        let size = |e: &str| {
+            c.cells()
+                .iter()
+                .filter(|c| c.experiment == e)
+                .map(|cell| c.size_of(cell))
+                .collect::<BTreeSet<_>>()
+                .into_iter()
+                .collect::<Vec<_>>()
+        };
         assert_eq!(size("flow_quality"), [(2, 1)], "no override: the grid-wide size");
         assert_eq!(size("cross"), [(50, 1)], "seeds left out: the grid-wide seeds");
         assert_eq!(size("adversary"), [(200, 3)]);
         let e = c.check_stored_cases(|_| 199).expect_err("the adversary cells need 200");
         assert_eq!((e.field.as_str(), e.cases), ("sizes.adversary.cases", 200), "{e}");
-        assert!(c.check_stored_cases(|_| 200).is_ok(), "200 stored cases are the most any cell uses");
+        assert!(
+            c.check_stored_cases(|_| 200).is_ok(),
+            "200 stored cases are the most any cell uses"
+        );
         assert_eq!(c.episodes(), 2 + 50 + 600, "one cell per experiment");
         let plain = sized("");
         assert!(plain.sizes.is_empty());

@@ -14,7 +14,9 @@ pub mod config;
 pub mod eval;
 pub mod spec;
 
-pub use batch::{ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch};
+pub use batch::{
+    ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch,
+};
 pub use config::{ConfigError, DepRole, JobConfig};
 pub use spec::{JobSpec, SpecError};
 
@@ -164,7 +166,10 @@ impl Frozen {
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).
 pub fn now_unix_ms() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
 }
 
 #[cfg(test)]
@@ -178,9 +183,22 @@ mod tests {
         let old = r#"{"env_steps":120,"target_env_steps":500,"updates":30,"policy_version":4,"episodes":9,"success":0.5,"safety":0.75,"speed":0.25,"critic_loss":1.5,"actor_loss":-2.0,"alpha":0.25,"env_steps_per_s":61.0,"wall_s":12.5,"dropped_stale":3}"#;
         let p: Progress = serde_json::from_str(old).expect("an old record's progress");
         let l = p.learning;
-        assert_eq!((l.env_steps, l.updates, l.episodes, p.target_env_steps, p.policy_version, p.dropped_stale), (120, 30, 9, 500, 4, 3));
+        assert_eq!(
+            (
+                l.env_steps,
+                l.updates,
+                l.episodes,
+                p.target_env_steps,
+                p.policy_version,
+                p.dropped_stale
+            ),
+            (120, 30, 9, 500, 4, 3)
+        );
         assert_eq!((l.scores.success, l.scores.safety, l.scores.speed), (0.5, 0.75, 0.25));
-        assert_eq!((l.critic_loss, l.actor_loss, l.alpha, l.wall_s, p.env_steps_per_s), (1.5, -2.0, 0.25, 12.5, 61.0));
+        assert_eq!(
+            (l.critic_loss, l.actor_loss, l.alpha, l.wall_s, p.env_steps_per_s),
+            (1.5, -2.0, 0.25, 12.5, 61.0)
+        );
         let again: serde_json::Value = serde_json::to_value(p).expect("serialises");
         let old: serde_json::Value = serde_json::from_str(old).expect("json");
         assert_eq!(again, old, "the written layout is the old flat one");
@@ -207,7 +225,11 @@ mod tests {
                 let moved = r.advance(to, Some("after"));
                 assert_eq!(moved, !from.is_final(), "{from:?} -> {to:?}");
                 assert_eq!(r.state, if from.is_final() { from } else { to }, "{from:?} -> {to:?}");
-                assert_eq!(r.message, if from.is_final() { "before" } else { "after" }, "{from:?} -> {to:?}");
+                assert_eq!(
+                    r.message,
+                    if from.is_final() { "before" } else { "after" },
+                    "{from:?} -> {to:?}"
+                );
             }
         }
     }

@@ -83,11 +83,18 @@ mod tests {
         assert_eq!((j.name(), j.is_eval(), j.deps()), ("j", false, vec![(DepRole::Background, 3)]));
         assert_eq!(j.train().map(|c| c.train.env_steps), Some(1000));
         let g = JobSpec::from_toml(GRID).expect("a grid");
-        assert_eq!((g.name(), g.is_eval(), g.deps(), g.train().is_none()), ("g", true, vec![], true));
+        assert_eq!(
+            (g.name(), g.is_eval(), g.deps(), g.train().is_none()),
+            ("g", true, vec![], true)
+        );
         // A grid with a bad field is refused by the grid's parser, not taken for a bad job.
-        let e = JobSpec::from_toml(&GRID.replace("flow_quality = [\"IDM\"]", "flow_quality = [\"Nope\"]")).expect_err("unknown flow");
+        let e = JobSpec::from_toml(
+            &GRID.replace("flow_quality = [\"IDM\"]", "flow_quality = [\"Nope\"]"),
+        )
+        .expect_err("unknown flow");
         assert!(matches!(e, SpecError::Eval(_)) && e.to_string().contains("Nope"), "{e}");
-        let e = JobSpec::from_toml(&JOB.replace("env_steps = 1000", "env_steps = 0")).expect_err("no steps");
+        let e = JobSpec::from_toml(&JOB.replace("env_steps = 1000", "env_steps = 0"))
+            .expect_err("no steps");
         assert!(matches!(e, SpecError::Train(_)) && e.to_string().contains("env_steps"), "{e}");
         assert!(matches!(JobSpec::from_toml("not toml ["), Err(SpecError::Train(_))));
     }

@@ -60,7 +60,10 @@ fn configs_dir() -> PathBuf {
 }
 
 fn collect(dir: &Path, root: &Path, out: &mut Vec<Shipped>) {
-    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir).expect("configs/ is readable").map(|e| e.expect("directory entry").path()).collect();
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+        .expect("configs/ is readable")
+        .map(|e| e.expect("directory entry").path())
+        .collect();
     entries.sort();
     for p in entries {
         if p.is_dir() {
@@ -70,10 +73,12 @@ fn collect(dir: &Path, root: &Path, out: &mut Vec<Shipped>) {
         if p.extension().and_then(|e| e.to_str()) != Some("toml") {
             continue;
         }
-        let name = p.strip_prefix(root).expect("under configs/").to_string_lossy().replace('\\', "/");
+        let name =
+            p.strip_prefix(root).expect("under configs/").to_string_lossy().replace('\\', "/");
         // Learner deployment settings and the ladder's rung files have their own parsers
         // (socialflow-learner, socialflow-cli).
-        if name == "learner.toml" || (name.starts_with("ladder/") && name.matches('/').count() == 1) {
+        if name == "learner.toml" || (name.starts_with("ladder/") && name.matches('/').count() == 1)
+        {
             continue;
         }
         let text = std::fs::read_to_string(&p).expect("config is readable");
@@ -101,8 +106,18 @@ fn parse(kind: Kind, text: &str) -> Result<Option<String>, TestCaseError> {
         Kind::Job => match JobConfig::from_toml(text) {
             Ok(c) => {
                 let again = JobConfig::from_toml(&c.to_toml());
-                prop_assert!(again.as_ref().is_ok_and(|a| *a == c), "resolved TOML of an accepted job config does not round-trip: {:?}", again.err());
-                let _ = (c.deps(), c.deps_by_name(), c.coordinator(), c.curve_every_steps(), c.action_dim());
+                prop_assert!(
+                    again.as_ref().is_ok_and(|a| *a == c),
+                    "resolved TOML of an accepted job config does not round-trip: {:?}",
+                    again.err()
+                );
+                let _ = (
+                    c.deps(),
+                    c.deps_by_name(),
+                    c.coordinator(),
+                    c.curve_every_steps(),
+                    c.action_dim(),
+                );
                 None
             }
             Err(e) => Some(e.to_string()),
@@ -110,7 +125,11 @@ fn parse(kind: Kind, text: &str) -> Result<Option<String>, TestCaseError> {
         Kind::Eval => match EvalConfig::from_toml(text) {
             Ok(c) => {
                 let again = EvalConfig::from_toml(&c.to_toml());
-                prop_assert!(again.as_ref() == Ok(&c), "resolved TOML of an accepted eval config does not round-trip: {:?}", again.err());
+                prop_assert!(
+                    again.as_ref() == Ok(&c),
+                    "resolved TOML of an accepted eval config does not round-trip: {:?}",
+                    again.err()
+                );
                 prop_assert!(!c.cells().is_empty());
                 let _ = c.all_scenarios();
                 None
@@ -146,7 +165,9 @@ fn tokens(text: &str) -> (Vec<Range<usize>>, Vec<Range<usize>>) {
                 strings.push(start..i + 1);
             }
             i += 1;
-        } else if c.is_ascii_digit() || ((c == b'-' || c == b'+') && b.get(i + 1).is_some_and(u8::is_ascii_digit)) {
+        } else if c.is_ascii_digit()
+            || ((c == b'-' || c == b'+') && b.get(i + 1).is_some_and(u8::is_ascii_digit))
+        {
             let start = i;
             i += 1;
             while i < b.len() && (ident(b[i]) || b[i] == b'.' || b[i] == b'+') {
@@ -171,13 +192,25 @@ fn sole_key(text: &str, r: &Range<usize>) -> Option<String> {
     let (key, eq) = text[line_start..r.start].split_once('=')?;
     let key = key.trim();
     let rest = text[r.end..line_end].trim();
-    let simple = !key.is_empty() && key.bytes().all(|c| c.is_ascii_alphanumeric() || c == b'_' || c == b'-');
-    (simple && eq.trim().is_empty() && (rest.is_empty() || rest.starts_with('#'))).then(|| key.to_string())
+    let simple =
+        !key.is_empty() && key.bytes().all(|c| c.is_ascii_alphanumeric() || c == b'_' || c == b'-');
+    (simple && eq.trim().is_empty() && (rest.is_empty() || rest.starts_with('#')))
+        .then(|| key.to_string())
 }
 
 /// Replacement numbers: extremes of every type the configs use. TOML integers are i64, so
 /// u64::MAX is a parse error and i64::MAX is the largest count a config can actually carry.
-const NUMBERS: [&str; 9] = ["-1", "0", "1e308", "-1e308", "nan", "inf", "18446744073709551615", "9223372036854775807", "1.5"];
+const NUMBERS: [&str; 9] = [
+    "-1",
+    "0",
+    "1e308",
+    "-1e308",
+    "nan",
+    "inf",
+    "18446744073709551615",
+    "9223372036854775807",
+    "1.5",
+];
 
 #[derive(Clone, Debug)]
 enum Edit {
@@ -210,7 +243,11 @@ fn apply(text: &mut String, e: &Edit) -> Option<String> {
             if matches!(e, Edit::DropLine(_)) {
                 lines.remove(k);
             } else {
-                let dup = if lines[k].ends_with('\n') { lines[k].to_string() } else { format!("\n{}", lines[k]) };
+                let dup = if lines[k].ends_with('\n') {
+                    lines[k].to_string()
+                } else {
+                    format!("\n{}", lines[k])
+                };
                 *text = format!("{}{}{}", lines[..=k].concat(), dup, lines[k + 1..].concat());
                 return None;
             }
@@ -261,7 +298,11 @@ fn toml_soup() -> impl Strategy<Value = String> {
 fn every_shipped_config_parses() {
     let files = shipped();
     let evals = files.iter().filter(|f| f.kind == Kind::Eval).count();
-    assert!(evals >= 4 && files.len() - evals >= 40, "found {} job and {evals} eval configs under configs/", files.len() - evals);
+    assert!(
+        evals >= 4 && files.len() - evals >= 40,
+        "found {} job and {evals} eval configs under configs/",
+        files.len() - evals
+    );
     for f in files {
         let err = match f.kind {
             Kind::Job => JobConfig::from_toml(&f.text).err().map(|e| e.to_string()),

@@ -42,7 +42,9 @@ impl AgentInput {
     /// Distinct histories the encoder runs its agent DeepSet on.
     pub fn encoded_histories(&self) -> usize {
         match self {
-            Self::PerObservation { ego, agents, .. } => ego.dims()[0] + agents.dims()[0] * agents.dims()[1],
+            Self::PerObservation { ego, agents, .. } => {
+                ego.dims()[0] + agents.dims()[0] * agents.dims()[1]
+            }
             Self::Shared { hist, .. } => hist.dims()[1],
         }
     }
@@ -85,7 +87,16 @@ impl ObsBatch {
     /// `histories`: see [`Histories`]; sharing is exact (histories are compared bit for bit,
     /// time channel and mask included), so it never changes what the network computes.
     #[allow(clippy::too_many_arguments)]
-    pub fn from_rows(rows: &[f32], spec: &ObsSpec, cfg: &NetConfig, frame_dt_s: f32, map_ids: &[u32], map_offsets: &[u32], histories: Histories, device: &Device) -> Self {
+    pub fn from_rows(
+        rows: &[f32],
+        spec: &ObsSpec,
+        cfg: &NetConfig,
+        frame_dt_s: f32,
+        map_ids: &[u32],
+        map_offsets: &[u32],
+        histories: Histories,
+        device: &Device,
+    ) -> Self {
         let b = rows.len() / spec.len;
         assert_eq!(b * spec.len, rows.len(), "rows must be whole observations");
         let mut builder = Builder::new(spec, cfg, frame_dt_s, histories == Histories::Shared, b);
@@ -93,7 +104,9 @@ impl ObsBatch {
             builder.ego(row);
             builder.agents(row);
             builder.route(row);
-            let map_offset = map_ids.get(bi).and_then(|&k| map_offsets.get(k as usize)).copied().unwrap_or(0) as i64;
+            let map_offset =
+                map_ids.get(bi).and_then(|&k| map_offsets.get(k as usize)).copied().unwrap_or(0)
+                    as i64;
             builder.map(row, map_offset);
         }
         builder.finish(device)
@@ -168,7 +181,8 @@ impl<'a> Builder<'a> {
     fn load_history(&mut self, src: &[f32], valid: f32) {
         for k in 0..self.spec.history {
             let t = valid * self.time(k);
-            self.hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS].copy_from_slice(&src[k * AGENT_FEATS..][..AGENT_FEATS]);
+            self.hist[k * AGENT_IN..k * AGENT_IN + AGENT_FEATS]
+                .copy_from_slice(&src[k * AGENT_FEATS..][..AGENT_FEATS]);
             self.hist[k * AGENT_IN + AGENT_FEATS] = t;
         }
     }
@@ -186,7 +200,10 @@ impl<'a> Builder<'a> {
         }
         let ec = &row[spec.ego_ctx.clone()];
         let svo_own = self.cfg.svo != SvoVisibility::None;
-        self.ego_ctx.extend_from_slice(&[if svo_own { ec[0] } else { 0.0 }, if self.cfg.ego_flag { ec[1] } else { 0.0 }]);
+        self.ego_ctx.extend_from_slice(&[
+            if svo_own { ec[0] } else { 0.0 },
+            if self.cfg.ego_flag { ec[1] } else { 0.0 },
+        ]);
         self.pad.push(false);
     }
 
@@ -207,7 +224,14 @@ impl<'a> Builder<'a> {
                 self.agents_vmask.extend_from_slice(&self.hist_mask);
             }
             let c = &row[spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
-            self.agents_ctx.extend_from_slice(&[c[0], c[1], c[2], c[3], if svo_all { c[4] } else { 0.0 }, if self.cfg.ego_flag { c[5] } else { 0.0 }]);
+            self.agents_ctx.extend_from_slice(&[
+                c[0],
+                c[1],
+                c[2],
+                c[3],
+                if svo_all { c[4] } else { 0.0 },
+                if self.cfg.ego_flag { c[5] } else { 0.0 },
+            ]);
             self.pad.push(valid == 0.0);
         }
     }
@@ -242,8 +266,11 @@ impl<'a> Builder<'a> {
             Layout::QueryCentric => {
                 for s in 0..spec.map_pieces {
                     let valid = row[spec.seg_mask.start + s] != 0.0;
-                    self.ids.push(map_offset + if valid { row[spec.seg_id.start + s] as i64 } else { 0 });
-                    self.pose.extend_from_slice(&row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE]);
+                    self.ids.push(
+                        map_offset + if valid { row[spec.seg_id.start + s] as i64 } else { 0 },
+                    );
+                    self.pose
+                        .extend_from_slice(&row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE]);
                     self.pad.push(!valid);
                 }
             }
@@ -252,16 +279,36 @@ impl<'a> Builder<'a> {
 
     fn finish(self, device: &Device) -> ObsBatch {
         let spec = self.spec;
-        let (b, h, n, r, m, p) = (self.batch, spec.history, spec.neighbours, spec.route_points, spec.map_pieces, spec.piece_points);
+        let (b, h, n, r, m, p) = (
+            self.batch,
+            spec.history,
+            spec.neighbours,
+            spec.route_points,
+            spec.map_pieces,
+            spec.piece_points,
+        );
         let map = match spec.layout {
-            Layout::EgoFrame => MapInput::EgoFrame { pts: tensor(self.map_pts, [b, m, p, MAP_FEATS], device), mask: tensor(self.map_mask, [b, m, p], device) },
-            Layout::QueryCentric => MapInput::QueryCentric { ids: Tensor::from_data(TensorData::new(self.ids, [b * m]), device), pose: tensor(self.pose, [b, m, SEG_POSE], device) },
+            Layout::EgoFrame => MapInput::EgoFrame {
+                pts: tensor(self.map_pts, [b, m, p, MAP_FEATS], device),
+                mask: tensor(self.map_mask, [b, m, p], device),
+            },
+            Layout::QueryCentric => MapInput::QueryCentric {
+                ids: Tensor::from_data(TensorData::new(self.ids, [b * m]), device),
+                pose: tensor(self.pose, [b, m, SEG_POSE], device),
+            },
         };
         let histories = if self.shared {
             let table = self.table;
             let u = table.ids.len();
-            let idx = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device);
-            AgentInput::Shared { hist: tensor(table.hist, [1, u, h, AGENT_IN], device), vmask: tensor(table.vmask, [1, u, h], device), ego_idx: idx(table.ego_idx), agent_idx: idx(table.agent_idx) }
+            let idx = |v: Vec<i64>| {
+                Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device)
+            };
+            AgentInput::Shared {
+                hist: tensor(table.hist, [1, u, h, AGENT_IN], device),
+                vmask: tensor(table.vmask, [1, u, h], device),
+                ego_idx: idx(table.ego_idx),
+                agent_idx: idx(table.agent_idx),
+            }
         } else {
             AgentInput::PerObservation {
                 ego: tensor(self.ego, [b, 1, h, AGENT_IN], device),

@@ -101,7 +101,15 @@ impl NetConfig {
 
     /// Our default: query-centric encoder at widths this CPU can train.
     pub fn fast() -> Self {
-        Self { encoder: Layout::QueryCentric, d_model: 64, set_hidden: 64, phi_layers: 1, pose_layers: 1, head_hidden: 128, ..Self::paper() }
+        Self {
+            encoder: Layout::QueryCentric,
+            d_model: 64,
+            set_hidden: 64,
+            phi_layers: 1,
+            pose_layers: 1,
+            head_hidden: 128,
+            ..Self::paper()
+        }
     }
 
     /// Whether weights of a network built from `other` load into one built from `self` and
@@ -126,11 +134,16 @@ impl NetConfig {
                 return Err(NetConfigError::NotPositive { field: f });
             }
         }
-        if !(self.log_std_min.is_finite() && (-10.0..crate::policy::LOG_STD_MAX).contains(&self.log_std_min)) {
+        if !(self.log_std_min.is_finite()
+            && (-10.0..crate::policy::LOG_STD_MAX).contains(&self.log_std_min))
+        {
             return Err(NetConfigError::LogStdMin { log_std_min: self.log_std_min });
         }
         if !(self.log_std_min..=crate::policy::LOG_STD_MAX).contains(&self.init_log_std) {
-            return Err(NetConfigError::InitLogStd { init_log_std: self.init_log_std, log_std_min: self.log_std_min });
+            return Err(NetConfigError::InitLogStd {
+                init_log_std: self.init_log_std,
+                log_std_min: self.log_std_min,
+            });
         }
         if !self.d_model.is_multiple_of(self.heads) {
             return Err(NetConfigError::Heads { d_model: self.d_model, heads: self.heads });
@@ -149,6 +162,10 @@ mod tests {
         let a = NetConfig::fast();
         assert!(a.same_network(&NetConfig { init_log_std: -1.7, ..a.clone() }));
         assert!(!a.same_network(&NetConfig { d_model: 32, ..a.clone() }));
-        assert!(!a.same_network(&NetConfig { action_dim: 2, action: DriveAction::IdmResidualLateral, ..a.clone() }));
+        assert!(!a.same_network(&NetConfig {
+            action_dim: 2,
+            action: DriveAction::IdmResidualLateral,
+            ..a.clone()
+        }));
     }
 }

@@ -52,16 +52,24 @@ fn probe_cuda() -> Result<Device, DeviceError> {
         std::panic::set_hook(Box::new(|_| {}));
         let r = std::panic::catch_unwind(|| {
             let d = Device::cuda(0);
-            let t = burn::tensor::Tensor::<1>::from_data(burn::tensor::TensorData::new(vec![1.0f32, 2.0], [2]), &d);
+            let t = burn::tensor::Tensor::<1>::from_data(
+                burn::tensor::TensorData::new(vec![1.0f32, 2.0], [2]),
+                &d,
+            );
             t.into_data().try_to_vec::<f32>().map(|v| v.len()).unwrap_or(0)
         });
         std::panic::set_hook(quiet);
         match r {
             Ok(2) => Ok(()),
-            Ok(n) => Err(DeviceError::Unavailable(format!("a test tensor came back with {n} values"))),
-            Err(p) => {
-                Err(DeviceError::Unavailable(p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "CUDA initialisation panicked".into())))
+            Ok(n) => {
+                Err(DeviceError::Unavailable(format!("a test tensor came back with {n} values")))
             }
+            Err(p) => Err(DeviceError::Unavailable(
+                p.downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "CUDA initialisation panicked".into()),
+            )),
         }
     });
     r.clone().map(|()| Device::cuda(0))

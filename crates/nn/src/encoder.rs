@@ -67,7 +67,11 @@ impl SegmentInput {
             s += m.len() as u32;
         }
         let s = s as usize;
-        Self { feats: Tensor::from_data(TensorData::new(feats, [1, s, p, MAP_FEATS]), device), mask: Tensor::from_data(TensorData::new(mask, [1, s, p]), device), offsets }
+        Self {
+            feats: Tensor::from_data(TensorData::new(feats, [1, s, p, MAP_FEATS]), device),
+            mask: Tensor::from_data(TensorData::new(mask, [1, s, p]), device),
+            offsets,
+        }
     }
 }
 
@@ -89,7 +93,10 @@ impl Encoder {
             ego_ctx: init.linear(EGO_CTX, d, device),
             agent_ctx: pose(init, AGENT_CTX),
             seg_pose: pose(init, SEG_POSE),
-            type_emb: Param::from_tensor(Tensor::from_data(TensorData::new(type_emb, [TYPES, d]), device)),
+            type_emb: Param::from_tensor(Tensor::from_data(
+                TensorData::new(type_emb, [TYPES, d]),
+                device,
+            )),
             attn: EgoAttention::new(init, d, cfg.heads, device),
             kind: cfg.encoder,
             ego_skip: cfg.ego_skip,
@@ -110,12 +117,18 @@ impl Encoder {
         let (ego_hist, agents_hist) = match &obs.histories {
             AgentInput::PerObservation { ego, agents, vmask } => {
                 let ego_mask = Tensor::<3>::ones([b, 1, ego.dims()[2]], &ego.device());
-                (self.agent_set.forward(ego.clone(), ego_mask).reshape([b, d]), self.agent_set.forward(agents.clone(), vmask.clone()))
+                (
+                    self.agent_set.forward(ego.clone(), ego_mask).reshape([b, d]),
+                    self.agent_set.forward(agents.clone(), vmask.clone()),
+                )
             }
             AgentInput::Shared { hist, vmask, ego_idx, agent_idx } => {
                 let u = hist.dims()[1];
                 let table = self.agent_set.forward(hist.clone(), vmask.clone()).reshape([u, d]);
-                (table.clone().select(0, ego_idx.clone()), table.select(0, agent_idx.clone()).reshape([b, n, d]))
+                (
+                    table.clone().select(0, ego_idx.clone()),
+                    table.select(0, agent_idx.clone()).reshape([b, n, d]),
+                )
             }
         };
         let ego = ego_hist + self.ego_ctx.forward(obs.ego_ctx.clone());
@@ -126,11 +139,13 @@ impl Encoder {
             MapInput::QueryCentric { ids, pose } => {
                 let table = table.expect("a query-centric batch needs its segment table");
                 let [_, s, _] = pose.dims();
-                table.emb.clone().select(0, ids.clone()).reshape([b, s, self.d()]) + self.seg_pose.forward(pose.clone())
+                table.emb.clone().select(0, ids.clone()).reshape([b, s, self.d()])
+                    + self.seg_pose.forward(pose.clone())
             }
         };
         let m = map.dims()[1];
-        let tokens = Tensor::cat(vec![ego.clone().reshape([b, 1, self.d()]), agents, route, map], 1);
+        let tokens =
+            Tensor::cat(vec![ego.clone().reshape([b, 1, self.d()]), agents, route, map], 1);
         let t = tokens.dims()[1];
         let mut types = Vec::with_capacity(t);
         types.push(T_EGO);

@@ -25,7 +25,8 @@ impl Init {
         // `rows` orthonormal vectors of length `cols` (modified Gram-Schmidt).
         let mut v: Vec<Vec<f64>> = Vec::with_capacity(rows);
         while v.len() < rows {
-            let mut x: Vec<f64> = (0..cols).map(|_| self.rng.sample::<f64, _>(StandardNormal)).collect();
+            let mut x: Vec<f64> =
+                (0..cols).map(|_| self.rng.sample::<f64, _>(StandardNormal)).collect();
             for u in &v {
                 let d: f64 = x.iter().zip(u).map(|(a, b)| a * b).sum();
                 x.iter_mut().zip(u).for_each(|(a, b)| *a -= d * b);
@@ -43,8 +44,14 @@ impl Init {
             }
         }
         Linear {
-            weight: Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), device)),
-            bias: Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![0.01f32; d_out], [d_out]), device))),
+            weight: Param::from_tensor(Tensor::from_data(
+                TensorData::new(w, [d_in, d_out]),
+                device,
+            )),
+            bias: Some(Param::from_tensor(Tensor::from_data(
+                TensorData::new(vec![0.01f32; d_out], [d_out]),
+                device,
+            ))),
         }
     }
 
@@ -84,10 +91,20 @@ pub struct DeepSet {
 impl DeepSet {
     /// phi: `d_in -> hidden` then `phi_layers - 1` layers `hidden -> hidden`; rho: 3 layers to `d_out`.
     /// With one phi layer a ReLU follows it before the sum (phi must be non-linear).
-    pub fn new(init: &mut Init, d_in: usize, hidden: usize, d_out: usize, phi_layers: usize, device: &Device) -> Self {
+    pub fn new(
+        init: &mut Init,
+        d_in: usize,
+        hidden: usize,
+        d_out: usize,
+        phi_layers: usize,
+        device: &Device,
+    ) -> Self {
         let mut sizes = vec![d_in];
         sizes.extend(std::iter::repeat_n(hidden, phi_layers.max(1)));
-        Self { phi: init.mlp(&sizes, device), rho: init.mlp(&[hidden, hidden, hidden, d_out], device) }
+        Self {
+            phi: init.mlp(&sizes, device),
+            rho: init.mlp(&[hidden, hidden, hidden, d_out], device),
+        }
     }
 
     /// `x: [B, N, P, F]`, `mask: [B, N, P]` (1 valid, 0 padding) -> `[B, N, D]`.
@@ -117,7 +134,13 @@ pub struct EgoAttention {
 
 impl EgoAttention {
     pub fn new(init: &mut Init, d: usize, heads: usize, device: &Device) -> Self {
-        Self { wq: init.linear(d, d, device), wk: init.linear(d, d, device), wv: init.linear(d, d, device), wo: init.linear(d, d, device), heads }
+        Self {
+            wq: init.linear(d, d, device),
+            wk: init.linear(d, d, device),
+            wv: init.linear(d, d, device),
+            wo: init.linear(d, d, device),
+            heads,
+        }
     }
 
     /// `query: [B, D]`, `keys, values: [B, T, D]`, `pad: [B, T]` (true = padding) -> `[B, D]`.
@@ -126,7 +149,13 @@ impl EgoAttention {
     /// With a single query, scores and the weighted sum are broadcast products summed over the
     /// head width and the tokens, which avoids transposing keys and values into head-major
     /// layout (copies that cost more than the arithmetic here).
-    pub fn forward(&self, query: Tensor<2>, keys: Tensor<3>, values: Tensor<3>, pad: Tensor<2, Bool>) -> Tensor<2> {
+    pub fn forward(
+        &self,
+        query: Tensor<2>,
+        keys: Tensor<3>,
+        values: Tensor<3>,
+        pad: Tensor<2, Bool>,
+    ) -> Tensor<2> {
         let [b, t, d] = keys.dims();
         let h = self.heads;
         let dh = d / h;
@@ -156,7 +185,15 @@ mod tests {
             let (short, long) = (i.min(o), i.max(o));
             for a in 0..short {
                 for c in 0..short {
-                    let dot: f32 = (0..long).map(|k| if i >= o { w[k * o + a] * w[k * o + c] } else { w[a * o + k] * w[c * o + k] }).sum();
+                    let dot: f32 = (0..long)
+                        .map(|k| {
+                            if i >= o {
+                                w[k * o + a] * w[k * o + c]
+                            } else {
+                                w[a * o + k] * w[c * o + k]
+                            }
+                        })
+                        .sum();
                     let want = if a == c { 1.0 } else { 0.0 };
                     assert!((dot - want).abs() < 1e-4, "({a},{c}) = {dot}");
                 }
@@ -168,7 +205,8 @@ mod tests {
 
     fn lin(l: &Linear, x: &[f32]) -> Vec<f32> {
         let w: Vec<f32> = l.weight.val().into_data().try_to_vec().expect("f32");
-        let bias: Vec<f32> = l.bias.as_ref().expect("bias").val().into_data().try_to_vec().expect("f32");
+        let bias: Vec<f32> =
+            l.bias.as_ref().expect("bias").val().into_data().try_to_vec().expect("f32");
         let (i, o) = (x.len(), bias.len());
         (0..o).map(|c| bias[c] + (0..i).map(|r| x[r] * w[r * o + c]).sum::<f32>()).collect()
     }
@@ -201,7 +239,15 @@ mod tests {
         let mut ctx = vec![0f32; d];
         for head in 0..h {
             let r = head * dh..(head + 1) * dh;
-            let sc: Vec<f32> = (0..t).map(|j| if pad[j] { f32::NEG_INFINITY } else { r.clone().map(|c| q[c] * ks[j][c]).sum::<f32>() / (dh as f32).sqrt() }).collect();
+            let sc: Vec<f32> = (0..t)
+                .map(|j| {
+                    if pad[j] {
+                        f32::NEG_INFINITY
+                    } else {
+                        r.clone().map(|c| q[c] * ks[j][c]).sum::<f32>() / (dh as f32).sqrt()
+                    }
+                })
+                .collect();
             let m = sc.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
             let e: Vec<f32> = sc.iter().map(|s| (s - m).exp()).collect();
             let z: f32 = e.iter().sum();
@@ -220,21 +266,42 @@ mod tests {
         let dev = Device::flex();
         let mut init = Init::new(2);
         let ds = DeepSet::new(&mut init, 3, 8, 4, 3, &dev);
-        let x = Tensor::<4>::from_data(TensorData::new((0..24).map(|v| v as f32 * 0.1).collect::<Vec<_>>(), [1, 2, 4, 3]), &dev);
-        let mask = Tensor::<3>::from_data(TensorData::new(vec![1.0f32, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], [1, 2, 4]), &dev);
-        let a: Vec<f32> = ds.forward(x.clone(), mask.clone()).into_data().try_to_vec().expect("f32");
+        let x = Tensor::<4>::from_data(
+            TensorData::new((0..24).map(|v| v as f32 * 0.1).collect::<Vec<_>>(), [1, 2, 4, 3]),
+            &dev,
+        );
+        let mask = Tensor::<3>::from_data(
+            TensorData::new(vec![1.0f32, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], [1, 2, 4]),
+            &dev,
+        );
+        let a: Vec<f32> =
+            ds.forward(x.clone(), mask.clone()).into_data().try_to_vec().expect("f32");
         // Changing padded vectors changes nothing.
-        let x2 = x.clone().slice_assign([0..1, 0..1, 2..4, 0..3], Tensor::ones([1, 1, 2, 3], &dev).mul_scalar(9.0));
+        let x2 = x.clone().slice_assign(
+            [0..1, 0..1, 2..4, 0..3],
+            Tensor::ones([1, 1, 2, 3], &dev).mul_scalar(9.0),
+        );
         let b: Vec<f32> = ds.forward(x2, mask).into_data().try_to_vec().expect("f32");
         assert_eq!(a, b);
 
         let att = EgoAttention::new(&mut init, 8, 2, &dev);
         let q = Tensor::<2>::ones([1, 8], &dev);
-        let keys = Tensor::<3>::from_data(TensorData::new((0..24).map(|v| (v as f32).sin()).collect::<Vec<_>>(), [1, 3, 8]), &dev);
-        let pad = Tensor::<2, Bool>::from_data(TensorData::new(vec![false, false, true], [1, 3]), &dev);
-        let o1: Vec<f32> = att.forward(q.clone(), keys.clone(), keys.clone(), pad.clone()).into_data().try_to_vec().expect("f32");
-        let keys2 = keys.clone().slice_assign([0..1, 2..3, 0..8], Tensor::ones([1, 1, 8], &dev).mul_scalar(5.0));
-        let o2: Vec<f32> = att.forward(q, keys2.clone(), keys2, pad).into_data().try_to_vec().expect("f32");
+        let keys = Tensor::<3>::from_data(
+            TensorData::new((0..24).map(|v| (v as f32).sin()).collect::<Vec<_>>(), [1, 3, 8]),
+            &dev,
+        );
+        let pad =
+            Tensor::<2, Bool>::from_data(TensorData::new(vec![false, false, true], [1, 3]), &dev);
+        let o1: Vec<f32> = att
+            .forward(q.clone(), keys.clone(), keys.clone(), pad.clone())
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
+        let keys2 = keys
+            .clone()
+            .slice_assign([0..1, 2..3, 0..8], Tensor::ones([1, 1, 8], &dev).mul_scalar(5.0));
+        let o2: Vec<f32> =
+            att.forward(q, keys2.clone(), keys2, pad).into_data().try_to_vec().expect("f32");
         for (x, y) in o1.iter().zip(&o2) {
             assert!((x - y).abs() < 1e-6);
         }

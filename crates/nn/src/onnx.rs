@@ -182,20 +182,40 @@ impl Graph {
     }
 
     fn input(&mut self, name: &str, elem: i32, dims: &[i64]) -> String {
-        let dim = std::iter::once(Dimension { dim_value: None, dim_param: Some("batch".into()) }).chain(dims.iter().map(|&d| Dimension { dim_value: Some(d), dim_param: None })).collect();
-        self.inputs.push(ValueInfoProto { name: name.into(), r#type: Some(TypeProto { tensor_type: Some(TensorType { elem_type: elem, shape: Some(TensorShapeProto { dim }) }) }) });
+        let dim = std::iter::once(Dimension { dim_value: None, dim_param: Some("batch".into()) })
+            .chain(dims.iter().map(|&d| Dimension { dim_value: Some(d), dim_param: None }))
+            .collect();
+        self.inputs.push(ValueInfoProto {
+            name: name.into(),
+            r#type: Some(TypeProto {
+                tensor_type: Some(TensorType {
+                    elem_type: elem,
+                    shape: Some(TensorShapeProto { dim }),
+                }),
+            }),
+        });
         name.into()
     }
 
     fn constant(&mut self, what: &str, dims: &[usize], v: &[f32]) -> String {
         let name = self.fresh(what);
-        self.inits.push(TensorProto { dims: dims.iter().map(|&d| d as i64).collect(), data_type: FLOAT, name: name.clone(), raw_data: floats(v) });
+        self.inits.push(TensorProto {
+            dims: dims.iter().map(|&d| d as i64).collect(),
+            data_type: FLOAT,
+            name: name.clone(),
+            raw_data: floats(v),
+        });
         name
     }
 
     fn ints(&mut self, what: &str, v: &[i64]) -> String {
         let name = self.fresh(what);
-        self.inits.push(TensorProto { dims: vec![v.len() as i64], data_type: INT64, name: name.clone(), raw_data: v.iter().flat_map(|x| x.to_le_bytes()).collect() });
+        self.inits.push(TensorProto {
+            dims: vec![v.len() as i64],
+            data_type: INT64,
+            name: name.clone(),
+            raw_data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        });
         name
     }
 
@@ -204,11 +224,21 @@ impl Graph {
         let attribute = attrs
             .into_iter()
             .map(|(name, a)| match a {
-                Attr::Int(i) => AttributeProto { name: name.into(), i, r#type: 2, ..Default::default() },
-                Attr::Ints(ints) => AttributeProto { name: name.into(), ints, r#type: 7, ..Default::default() },
+                Attr::Int(i) => {
+                    AttributeProto { name: name.into(), i, r#type: 2, ..Default::default() }
+                }
+                Attr::Ints(ints) => {
+                    AttributeProto { name: name.into(), ints, r#type: 7, ..Default::default() }
+                }
             })
             .collect();
-        self.nodes.push(NodeProto { input: inputs.iter().map(|s| s.to_string()).collect(), output: vec![out.clone()], name: out.clone(), op_type: op.into(), attribute });
+        self.nodes.push(NodeProto {
+            input: inputs.iter().map(|s| s.to_string()).collect(),
+            output: vec![out.clone()],
+            name: out.clone(),
+            op_type: op.into(),
+            attribute,
+        });
         out
     }
 
@@ -292,26 +322,43 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError>
     let mut g = Graph::default();
     let ego_hist = g.input("ego_hist", FLOAT, &[spec.history as i64, 4]);
     let ego_ctx = g.input("ego_ctx", FLOAT, &[EGO_CTX as i64]);
-    let agents_hist = g.input("agents_hist", FLOAT, &[spec.neighbours as i64, spec.history as i64, 4]);
+    let agents_hist =
+        g.input("agents_hist", FLOAT, &[spec.neighbours as i64, spec.history as i64, 4]);
     let agents_ctx = g.input("agents_ctx", FLOAT, &[spec.neighbours as i64, AGENT_CTX as i64]);
     let agents_mask = g.input("agents_mask", FLOAT, &[spec.neighbours as i64]);
     let route = g.input("route", FLOAT, &[spec.route_points as i64, 4]);
     let route_mask = g.input("route_mask", FLOAT, &[spec.route_points as i64]);
 
     // Time channel of history frame k: (H - 1 - k) dt / 2.5, as `[H, 1]`.
-    let times: Vec<f32> = (0..spec.history).map(|k| (spec.history - 1 - k) as f32 * x.frame_dt_s / TIME_SCALE_S).collect();
-    let (tc, zero, a1) = (g.constant("time", &[spec.history, 1], &times), g.constant("zero", &[], &[0.0]), g.ints("axes", &[1]));
+    let times: Vec<f32> = (0..spec.history)
+        .map(|k| (spec.history - 1 - k) as f32 * x.frame_dt_s / TIME_SCALE_S)
+        .collect();
+    let (tc, zero, a1) = (
+        g.constant("time", &[spec.history, 1], &times),
+        g.constant("zero", &[], &[0.0]),
+        g.ints("axes", &[1]),
+    );
     let c = Shared { tc, zero, a1 };
     let ctx_masks = CtxMasks::of(x.net);
     let ego = ego_token(&mut g, enc, &c, &ctx_masks, &ego_hist, &ego_ctx);
-    let agents = neighbour_tokens(&mut g, enc, spec, &c, &ctx_masks, &agents_hist, &agents_ctx, &agents_mask);
+    let agents = neighbour_tokens(
+        &mut g,
+        enc,
+        spec,
+        &c,
+        &ctx_masks,
+        &agents_hist,
+        &agents_ctx,
+        &agents_mask,
+    );
     let (route_tok, route_any) = route_token(&mut g, enc, &c, &route, &route_mask);
     let (map_tok, map_any) = map_tokens(&mut g, enc, x, &c)?;
 
     // Tokens [B, T, D]: ego, neighbours, route, map; keys add the type embedding.
     let d = enc.d();
     let ego3 = g.op("Unsqueeze", &[&ego, &c.a1], vec![]);
-    let tokens = g.op("Concat", &[&ego3, &agents, &route_tok, &map_tok], vec![("axis", Attr::Int(1))]);
+    let tokens =
+        g.op("Concat", &[&ego3, &agents, &route_tok, &map_tok], vec![("axis", Attr::Int(1))]);
     let t = 1 + spec.neighbours + 1 + spec.map_pieces;
     let type_rows: Vec<f32> = {
         let emb = tensor_vec(enc.type_emb.val());
@@ -331,7 +378,11 @@ pub fn export_actor(actor: &Actor, x: &ExportSpec) -> Result<Vec<u8>, OnnxError>
     let one = g.constant("one", &[], &[1.0]);
     let ego_col = g.op("Mul", &[&ego_col, &c.zero], vec![]);
     let ego_col = g.op("Add", &[&ego_col, &one], vec![]);
-    let present = g.op("Concat", &[&ego_col, &agents_mask, &route_any, &map_any], vec![("axis", Attr::Int(1))]);
+    let present = g.op(
+        "Concat",
+        &[&ego_col, &agents_mask, &route_any, &map_any],
+        vec![("axis", Attr::Int(1))],
+    );
     let pad = g.op("Equal", &[&present, &c.zero], vec![]);
 
     let feat = attention(&mut g, enc, &c, t, &ego, &tokens, &keys, &pad);
@@ -362,13 +413,24 @@ struct CtxMasks {
 impl CtxMasks {
     fn of(net: &NetConfig) -> Self {
         let on = |b: bool| if b { 1.0 } else { 0.0 };
-        Self { svo_own: on(net.svo != SvoVisibility::None), svo_all: on(net.svo == SvoVisibility::All), flag: on(net.ego_flag) }
+        Self {
+            svo_own: on(net.svo != SvoVisibility::None),
+            svo_all: on(net.svo == SvoVisibility::All),
+            flag: on(net.ego_flag),
+        }
     }
 }
 
 /// The ego's token `[B, D]`: its history (every frame valid) through the agent set, plus its
 /// context.
-fn ego_token(g: &mut Graph, enc: &Encoder, c: &Shared, m: &CtxMasks, ego_hist: &str, ego_ctx: &str) -> String {
+fn ego_token(
+    g: &mut Graph,
+    enc: &Encoder,
+    c: &Shared,
+    m: &CtxMasks,
+    ego_hist: &str,
+    ego_ctx: &str,
+) -> String {
     // Own history: [B, H, 4] ++ time -> [B, 1, H, 5].
     let (s0, s1, ax) = (g.ints("starts", &[0]), g.ints("ends", &[1]), g.ints("axes", &[2]));
     let first = g.op("Slice", &[ego_hist, &s0, &s1, &ax], vec![]);
@@ -387,7 +449,16 @@ fn ego_token(g: &mut Graph, enc: &Encoder, c: &Shared, m: &CtxMasks, ego_hist: &
 /// The neighbours' tokens `[B, N, D]`: time channel times validity; padding slots masked out
 /// of the set sum.
 #[allow(clippy::too_many_arguments)]
-fn neighbour_tokens(g: &mut Graph, enc: &Encoder, spec: &ObsSpec, c: &Shared, m: &CtxMasks, agents_hist: &str, agents_ctx: &str, agents_mask: &str) -> String {
+fn neighbour_tokens(
+    g: &mut Graph,
+    enc: &Encoder,
+    spec: &ObsSpec,
+    c: &Shared,
+    m: &CtxMasks,
+    agents_hist: &str,
+    agents_ctx: &str,
+    agents_mask: &str,
+) -> String {
     let a23 = g.ints("axes", &[2, 3]);
     let valid4 = g.op("Unsqueeze", &[agents_mask, &a23], vec![]);
     let vt = g.op("Mul", &[&valid4, &c.tc], vec![]);
@@ -397,7 +468,8 @@ fn neighbour_tokens(g: &mut Graph, enc: &Encoder, spec: &ObsSpec, c: &Shared, m:
     let ones_h = g.constant("ones_h", &[spec.history], &vec![1.0; spec.history]);
     let vmask = g.op("Mul", &[&valid3, &ones_h], vec![]);
     let agents_ds = g.deep_set(&enc.agent_set, &agents_in, Some(&vmask));
-    let ag_sel = g.constant("agents_ctx_mask", &[AGENT_CTX], &[1.0, 1.0, 1.0, 1.0, m.svo_all, m.flag]);
+    let ag_sel =
+        g.constant("agents_ctx_mask", &[AGENT_CTX], &[1.0, 1.0, 1.0, 1.0, m.svo_all, m.flag]);
     let agents_ctx = g.op("Mul", &[agents_ctx, &ag_sel], vec![]);
     let agents_ctx = g.mlp(&enc.agent_ctx, &agents_ctx);
     g.op("Add", &[&agents_ds, &agents_ctx], vec![])
@@ -405,7 +477,13 @@ fn neighbour_tokens(g: &mut Graph, enc: &Encoder, spec: &ObsSpec, c: &Shared, m:
 
 /// The route's token `[B, 1, D]` (`[x, y, theta, 0, k]` per point, one polyline) and whether
 /// it has a valid point `[B, 1]`.
-fn route_token(g: &mut Graph, enc: &Encoder, c: &Shared, route: &str, route_mask: &str) -> (String, String) {
+fn route_token(
+    g: &mut Graph,
+    enc: &Encoder,
+    c: &Shared,
+    route: &str,
+    route_mask: &str,
+) -> (String, String) {
     let pick = g.ints("route_pick", &[0, 1, 2, 0, 3]);
     let route5 = g.op("Gather", &[route, &pick], vec![("axis", Attr::Int(2))]);
     let keep = g.constant("route_keep", &[5], &[1.0, 1.0, 1.0, 0.0, 1.0]);
@@ -413,21 +491,34 @@ fn route_token(g: &mut Graph, enc: &Encoder, c: &Shared, route: &str, route_mask
     let route5 = g.op("Unsqueeze", &[&route5, &c.a1], vec![]);
     let rmask = g.op("Unsqueeze", &[route_mask, &c.a1], vec![]);
     let tok = g.deep_set(&enc.static_set, &route5, Some(&rmask));
-    let any = g.op("ReduceMax", &[route_mask], vec![("axes", Attr::Ints(vec![1])), ("keepdims", Attr::Int(1))]);
+    let any = g.op(
+        "ReduceMax",
+        &[route_mask],
+        vec![("axes", Attr::Ints(vec![1])), ("keepdims", Attr::Int(1))],
+    );
     (tok, any)
 }
 
 /// The map's tokens `[B, M, D]` and their validity `[B, M]`, with the layout's own inputs:
 /// ego-frame polylines through the static set, or query-centric segment ids looked up in the
 /// maps' segment table (a constant of the graph) plus their embedded poses.
-fn map_tokens(g: &mut Graph, enc: &Encoder, x: &ExportSpec, c: &Shared) -> Result<(String, String), OnnxError> {
+fn map_tokens(
+    g: &mut Graph,
+    enc: &Encoder,
+    x: &ExportSpec,
+    c: &Shared,
+) -> Result<(String, String), OnnxError> {
     let (m, p) = (x.spec.map_pieces as i64, x.spec.piece_points as i64);
     Ok(match x.spec.layout {
         Layout::EgoFrame => {
             let map = g.input("map", FLOAT, &[m, p, 5]);
             let map_mask = g.input("map_mask", FLOAT, &[m, p]);
             let tok = g.deep_set(&enc.static_set, &map, Some(&map_mask));
-            let any = g.op("ReduceMax", &[&map_mask], vec![("axes", Attr::Ints(vec![2])), ("keepdims", Attr::Int(0))]);
+            let any = g.op(
+                "ReduceMax",
+                &[&map_mask],
+                vec![("axes", Attr::Ints(vec![2])), ("keepdims", Attr::Int(0))],
+            );
             (tok, any)
         }
         Layout::QueryCentric => {
@@ -437,7 +528,8 @@ fn map_tokens(g: &mut Graph, enc: &Encoder, x: &ExportSpec, c: &Shared) -> Resul
             let seg_mask = g.input("seg_mask", FLOAT, &[m]);
             let map_id = g.input("map_id", INT64, &[]);
             let [s_total, _] = table.emb.dims();
-            let emb = g.constant("segment_table", &[s_total, enc.d()], &tensor_vec(table.emb.clone()));
+            let emb =
+                g.constant("segment_table", &[s_total, enc.d()], &tensor_vec(table.emb.clone()));
             let offsets: Vec<i64> = table.offsets.iter().map(|&o| o as i64).collect();
             let offsets = g.ints("map_offsets", &offsets);
             let local = g.op("Mul", &[&seg_id, &seg_mask], vec![]);
@@ -455,7 +547,16 @@ fn map_tokens(g: &mut Graph, enc: &Encoder, x: &ExportSpec, c: &Shared) -> Resul
 /// The ego's one-query attention over the `t` tokens (`EgoAttention::forward`), padding
 /// masked, then the output projection and the ego skip connection: the features `[B, D]`.
 #[allow(clippy::too_many_arguments)]
-fn attention(g: &mut Graph, enc: &Encoder, c: &Shared, t: usize, ego: &str, tokens: &str, keys: &str, pad: &str) -> String {
+fn attention(
+    g: &mut Graph,
+    enc: &Encoder,
+    c: &Shared,
+    t: usize,
+    ego: &str,
+    tokens: &str,
+    keys: &str,
+    pad: &str,
+) -> String {
     let d = enc.d();
     let heads = enc.attn.heads;
     let dh = d / heads;
@@ -498,12 +599,29 @@ fn model(g: Graph, action: String, out_dim: i64, x: &ExportSpec) -> Vec<u8> {
         r#type: Some(TypeProto {
             tensor_type: Some(TensorType {
                 elem_type: FLOAT,
-                shape: Some(TensorShapeProto { dim: vec![Dimension { dim_value: None, dim_param: Some("batch".into()) }, Dimension { dim_value: Some(out_dim), dim_param: None }] }),
+                shape: Some(TensorShapeProto {
+                    dim: vec![
+                        Dimension { dim_value: None, dim_param: Some("batch".into()) },
+                        Dimension { dim_value: Some(out_dim), dim_param: None },
+                    ],
+                }),
             }),
         }),
     };
-    let mut graph = GraphProto { node: g.nodes, name: "socialflow_actor".into(), initializer: g.inits, input: g.inputs, output: vec![] };
-    graph.node.push(NodeProto { input: vec![output.name.clone()], output: vec!["action".into()], name: "action".into(), op_type: "Identity".into(), attribute: vec![] });
+    let mut graph = GraphProto {
+        node: g.nodes,
+        name: "socialflow_actor".into(),
+        initializer: g.inits,
+        input: g.inputs,
+        output: vec![],
+    };
+    graph.node.push(NodeProto {
+        input: vec![output.name.clone()],
+        output: vec!["action".into()],
+        name: "action".into(),
+        op_type: "Identity".into(),
+        attribute: vec![],
+    });
     graph.output.push(ValueInfoProto { name: "action".into(), ..output });
     let model = ModelProto {
         ir_version: IR_VERSION,
@@ -528,33 +646,65 @@ mod tests {
     #[test]
     fn exported_graphs_are_well_formed() {
         let dev = Device::flex();
-        let map = sf_sim::Map::from_file(&sf_sim::scenarios::build("merge").expect("merge"), "merge").expect("map");
+        let map =
+            sf_sim::Map::from_file(&sf_sim::scenarios::build("merge").expect("merge"), "merge")
+                .expect("map");
         for layout in [Layout::EgoFrame, Layout::QueryCentric] {
             let mut sim = sf_sim::SimConfig::default();
             sim.obs.layout = layout;
             let spec = ObsSpec::new(&sim.obs);
-            let net = NetConfig { encoder: layout, d_model: 16, set_hidden: 16, head_hidden: 32, heads: 2, action_dim: 2, ..NetConfig::fast() };
+            let net = NetConfig {
+                encoder: layout,
+                d_model: 16,
+                set_hidden: 16,
+                head_hidden: 32,
+                heads: 2,
+                action_dim: 2,
+                ..NetConfig::fast()
+            };
             let actor = Actor::new(&net, 3, &dev);
             let segs = MapSegments::build(&map, sim.obs.segment_points);
-            let table = (layout == Layout::QueryCentric).then(|| actor.enc.segment_table(&SegmentInput::new(&[&segs], &dev)));
-            let x = ExportSpec { spec: &spec, net: &net, frame_dt_s: sim.dt_s, table: table.as_ref(), producer_version: "test", doc: "" };
+            let table = (layout == Layout::QueryCentric)
+                .then(|| actor.enc.segment_table(&SegmentInput::new(&[&segs], &dev)));
+            let x = ExportSpec {
+                spec: &spec,
+                net: &net,
+                frame_dt_s: sim.dt_s,
+                table: table.as_ref(),
+                producer_version: "test",
+                doc: "",
+            };
             let bytes = export_actor(&actor, &x).expect("export");
             let model = ModelProto::decode(bytes.as_slice()).expect("decodes");
             assert_eq!(model.opset_import[0].version, OPSET);
             let g = model.graph.expect("graph");
             let inputs: Vec<&str> = g.input.iter().map(|i| i.name.as_str()).collect();
             assert_eq!(inputs, input_names(&spec));
-            let mut defined: std::collections::HashSet<&str> = inputs.iter().copied().chain(g.initializer.iter().map(|t| t.name.as_str())).collect();
+            let mut defined: std::collections::HashSet<&str> = inputs
+                .iter()
+                .copied()
+                .chain(g.initializer.iter().map(|t| t.name.as_str()))
+                .collect();
             for n in &g.node {
                 for i in &n.input {
-                    assert!(defined.contains(i.as_str()), "{} reads {i} before it is defined", n.name);
+                    assert!(
+                        defined.contains(i.as_str()),
+                        "{} reads {i} before it is defined",
+                        n.name
+                    );
                 }
                 defined.extend(n.output.iter().map(String::as_str));
             }
             assert_eq!(g.output.len(), 1);
             assert_eq!(g.output[0].name, "action");
             assert!(defined.contains("action"));
-            let dims = &g.output[0].r#type.as_ref().and_then(|t| t.tensor_type.as_ref()).and_then(|t| t.shape.as_ref()).expect("shape").dim;
+            let dims = &g.output[0]
+                .r#type
+                .as_ref()
+                .and_then(|t| t.tensor_type.as_ref())
+                .and_then(|t| t.shape.as_ref())
+                .expect("shape")
+                .dim;
             assert_eq!(dims[1].dim_value, Some(2));
             for t in &g.initializer {
                 let n: i64 = t.dims.iter().product();

@@ -72,7 +72,11 @@ pub fn tanh_gaussian_log_prob(eps: Tensor<2>, log_std: Tensor<2>, a: Tensor<2>) 
 
 /// `a = tanh(mean + exp(log_std) * eps)` and its log-probability: `[B, A]` each in,
 /// `(a [B, A], logp [B, 1])` out.
-pub fn tanh_gaussian_sample(mean: Tensor<2>, log_std: Tensor<2>, eps: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+pub fn tanh_gaussian_sample(
+    mean: Tensor<2>,
+    log_std: Tensor<2>,
+    eps: Tensor<2>,
+) -> (Tensor<2>, Tensor<2>) {
     let a = (mean + log_std.clone().exp() * eps.clone()).tanh();
     let logp = tanh_gaussian_log_prob(eps, log_std, a.clone());
     (a, logp)
@@ -87,10 +91,17 @@ impl Actor {
         let mut log_std = init.mlp(&[d, h, h, a], device);
         // The first policy's spread: the log-std head's output bias.
         if let Some(last) = log_std.layers.last_mut() {
-            let b = TensorData::new(vec![unsquash_log_std(cfg.init_log_std, cfg.log_std_min); a], [a]);
+            let b =
+                TensorData::new(vec![unsquash_log_std(cfg.init_log_std, cfg.log_std_min); a], [a]);
             last.bias = Some(Param::from_tensor(Tensor::from_data(b, device)));
         }
-        Self { enc, mean, log_std, squash_mean_twice: cfg.squash_mean_twice, log_std_min: cfg.log_std_min }
+        Self {
+            enc,
+            mean,
+            log_std,
+            squash_mean_twice: cfg.squash_mean_twice,
+            log_std_min: cfg.log_std_min,
+        }
     }
 
     /// `obs -> (mean [B, A] before the sample's tanh, log_std [B, A])`. The mean is unbounded,
@@ -107,7 +118,12 @@ impl Actor {
     }
 
     /// Reparameterised sample with standard-normal noise `eps: [B, A]` -> `(a [B, A], logp [B, 1])`.
-    pub fn sample(&self, obs: &ObsBatch, table: Option<&SegmentTable>, eps: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+    pub fn sample(
+        &self,
+        obs: &ObsBatch,
+        table: Option<&SegmentTable>,
+        eps: Tensor<2>,
+    ) -> (Tensor<2>, Tensor<2>) {
         let (mean, log_std) = self.dist(obs, table);
         tanh_gaussian_sample(mean, log_std, eps)
     }
@@ -124,7 +140,14 @@ impl Critic {
         let (d, h, a) = (cfg.d_model, cfg.head_hidden, cfg.action_dim);
         let enc = Encoder::new(cfg, &mut init, device);
         let (q1, q2) = (init.mlp(&[d + a, h, h, 1], device), init.mlp(&[d + a, h, h, 1], device));
-        let norms = if cfg.critic_layer_norm { std::iter::once(d).chain(std::iter::repeat_n(h, 4)).map(|w| LayerNormConfig::new(w).init(device)).collect() } else { Vec::new() };
+        let norms = if cfg.critic_layer_norm {
+            std::iter::once(d)
+                .chain(std::iter::repeat_n(h, 4))
+                .map(|w| LayerNormConfig::new(w).init(device))
+                .collect()
+        } else {
+            Vec::new()
+        };
         Self { enc, q1, q2, norms }
     }
 
@@ -151,11 +174,20 @@ impl Critic {
         };
         let x = Tensor::cat(vec![f, a], 1);
         let hidden = self.q1.layers.len().saturating_sub(1);
-        let (n1, n2) = if self.norms.is_empty() { (&[][..], &[][..]) } else { self.norms[1..].split_at(hidden) };
+        let (n1, n2) = if self.norms.is_empty() {
+            (&[][..], &[][..])
+        } else {
+            self.norms[1..].split_at(hidden)
+        };
         (Self::head(&self.q1, n1, x.clone()), Self::head(&self.q2, n2, x))
     }
 
-    pub fn forward(&self, obs: &ObsBatch, table: Option<&SegmentTable>, a: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+    pub fn forward(
+        &self,
+        obs: &ObsBatch,
+        table: Option<&SegmentTable>,
+        a: Tensor<2>,
+    ) -> (Tensor<2>, Tensor<2>) {
         self.heads(self.enc.forward(obs, table), a)
     }
 }

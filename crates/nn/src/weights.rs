@@ -14,12 +14,14 @@ pub enum WeightsError {
 
 /// Serialises a module's parameters.
 pub fn to_bytes<M: Module + Clone>(m: &M) -> Result<Vec<u8>, WeightsError> {
-    let bytes = m.clone().into_record().into_bytes().map_err(|e| WeightsError::Encode(format!("{e:?}")))?;
+    let bytes =
+        m.clone().into_record().into_bytes().map_err(|e| WeightsError::Encode(format!("{e:?}")))?;
     Ok(bytes.to_vec())
 }
 
 /// Loads parameters into a module of the same architecture.
 pub fn from_bytes<M: Module>(m: M, bytes: &[u8]) -> Result<M, WeightsError> {
-    let rec = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes.to_vec())).map_err(|e| WeightsError::Decode(format!("{e:?}")))?;
+    let rec = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes.to_vec()))
+        .map_err(|e| WeightsError::Decode(format!("{e:?}")))?;
     m.try_load_record(rec).map_err(|e| WeightsError::Decode(format!("{e:?}")))
 }

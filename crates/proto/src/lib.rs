@@ -10,7 +10,10 @@
 
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};
-use sf_job::{ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Learning, PolicyRequest, Progress, Scores, TransitionBatch};
+use sf_job::{
+    ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Learning,
+    PolicyRequest, Progress, Scores, TransitionBatch,
+};
 
 #[allow(clippy::all, missing_docs)]
 pub mod pb {
@@ -152,7 +155,15 @@ fn frozen_to_wire(f: &Frozen) -> pb::FrozenPolicy {
         } as i32,
         job_id: f.job_id,
         config_toml: f.config_toml.clone(),
-        svo_gaussians: f.svo_gaussians.iter().map(|(s, g)| pb::ScenarioSvo { scenario: s.clone(), mean_deg: g.mean_deg, std_deg: g.std_deg }).collect(),
+        svo_gaussians: f
+            .svo_gaussians
+            .iter()
+            .map(|(s, g)| pb::ScenarioSvo {
+                scenario: s.clone(),
+                mean_deg: g.mean_deg,
+                std_deg: g.std_deg,
+            })
+            .collect(),
     }
 }
 
@@ -161,7 +172,12 @@ fn frozen_from_wire(f: &pb::FrozenPolicy) -> Result<Frozen, WireError> {
         Ok(pb::FrozenRole::Background) => FrozenRole::Background,
         Ok(pb::FrozenRole::Ego) => FrozenRole::Ego,
         Ok(pb::FrozenRole::Adversary) => FrozenRole::Adversary,
-        _ => return wire("assignment.frozen.role", format!("{} is not a frozen-policy role", f.role)),
+        _ => {
+            return wire(
+                "assignment.frozen.role",
+                format!("{} is not a frozen-policy role", f.role),
+            )
+        }
     };
     if f.job_id == 0 || f.config_toml.is_empty() {
         return wire("assignment.frozen.job_id", "a frozen policy names its job and config");
@@ -172,7 +188,10 @@ fn frozen_from_wire(f: &pb::FrozenPolicy) -> Result<Frozen, WireError> {
         if g.scenario.is_empty() {
             return wire("assignment.frozen.svo_gaussians.scenario", "must be set");
         }
-        gauss.validate().map_err(|e| WireError { field: "assignment.frozen.svo_gaussians", reason: e.to_string() })?;
+        gauss.validate().map_err(|e| WireError {
+            field: "assignment.frozen.svo_gaussians",
+            reason: e.to_string(),
+        })?;
         svo_gaussians.push((g.scenario.clone(), gauss));
     }
     Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })
@@ -211,29 +230,72 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
         return wire("eval.cases", "cases, seeds and envs must be positive");
     }
     if c.svo_deg.is_some_and(|s| s > 90) {
-        return wire("eval.cell.svo_deg", format!("{} is not in [0, 90]", c.svo_deg.unwrap_or_default()));
+        return wire(
+            "eval.cell.svo_deg",
+            format!("{} is not in [0, 90]", c.svo_deg.unwrap_or_default()),
+        );
     }
-    let cell = Cell { experiment: c.experiment.clone(), ego: c.ego.clone(), flow: c.flow.clone(), scenario: c.scenario.clone(), svo_deg: c.svo_deg, vehicles: c.vehicles.map(|v| v as usize) };
+    let cell = Cell {
+        experiment: c.experiment.clone(),
+        ego: c.ego.clone(),
+        flow: c.flow.clone(),
+        scenario: c.scenario.clone(),
+        svo_deg: c.svo_deg,
+        vehicles: c.vehicles.map(|v| v as usize),
+    };
     let policies = w.policies.iter().map(frozen_from_wire).collect::<Result<Vec<_>, _>>()?;
     // Who sits in the ego's seat: a cell that names an ego gets exactly one of the IDM
     // driver and an EGO policy; a cell without one (a flow on its own) gets neither.
     let ego_policy = policies.iter().any(|p| p.role == FrozenRole::Ego);
     match (cell.ego.is_empty(), w.ego_idm, ego_policy) {
         (true, false, false) | (false, true, false) | (false, false, true) => {}
-        (true, _, _) => return wire("eval.cell.ego", "a cell without an ego gets no EGO policy and no IDM ego"),
-        (false, true, true) => return wire("eval.ego_idm", format!("the IDM driver and an EGO policy both given for ego `{}`", cell.ego)),
-        (false, false, false) => return wire("eval.policies", format!("ego `{}` has no EGO policy and is not the IDM driver", cell.ego)),
+        (true, _, _) => {
+            return wire("eval.cell.ego", "a cell without an ego gets no EGO policy and no IDM ego")
+        }
+        (false, true, true) => {
+            return wire(
+                "eval.ego_idm",
+                format!("the IDM driver and an EGO policy both given for ego `{}`", cell.ego),
+            )
+        }
+        (false, false, false) => {
+            return wire(
+                "eval.policies",
+                format!("ego `{}` has no EGO policy and is not the IDM driver", cell.ego),
+            )
+        }
     }
-    Ok(EvalWork { job_id: w.job_id, cell_id: w.cell_id, cell, cases: w.cases, seeds: w.seeds, envs: w.envs, policies, ego_idm: w.ego_idm })
+    Ok(EvalWork {
+        job_id: w.job_id,
+        cell_id: w.cell_id,
+        cell,
+        cases: w.cases,
+        seeds: w.seeds,
+        envs: w.envs,
+        policies,
+        ego_idm: w.ego_idm,
+    })
 }
 
 pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
-    pb::EvalEpisode { case_id: e.case, seed: e.seed, success: e.scores.success, safety: e.scores.safety, speed: e.scores.speed, collision: e.collision }
+    pb::EvalEpisode {
+        case_id: e.case,
+        seed: e.seed,
+        success: e.scores.success,
+        safety: e.scores.safety,
+        speed: e.scores.speed,
+        collision: e.collision,
+    }
 }
 
 /// Decodes and validates one episode's metrics.
 pub fn eval_episode_from_wire(e: &pb::EvalEpisode) -> Result<EvalEpisode, WireError> {
-    let ep = EvalEpisode { case: e.case_id, seed: e.seed, scores: Scores { success: e.success, safety: e.safety, speed: e.speed }, collision: e.collision };
+    let ep = EvalEpisode {
+        case: e.case_id,
+        seed: e.seed,
+        scores: Scores { success: e.success, safety: e.safety, speed: e.speed },
+        collision: e.collision,
+    };
     ep.validate().map_err(|e| WireError { field: "episodes", reason: e.to_string() })?;
     Ok(ep)
 }
@@ -268,9 +330,17 @@ fn f16_to_bytes(v: &[f16]) -> Vec<u8> {
 
 fn f16_from_bytes(field: &'static str, b: &[u8], want: usize) -> Result<Vec<f16>, WireError> {
     // `want` is the peer's count x obs_len (up to (2^32 - 1)^2): its byte count may overflow.
-    let Some(want_bytes) = want.checked_mul(2) else { return wire("count", format!("count x obs_len ({want}) half floats overflow a byte count")) };
+    let Some(want_bytes) = want.checked_mul(2) else {
+        return wire(
+            "count",
+            format!("count x obs_len ({want}) half floats overflow a byte count"),
+        );
+    };
     if b.len() != want_bytes {
-        return wire(field, format!("{} bytes, expected {} ({} half floats)", b.len(), want_bytes, want));
+        return wire(
+            field,
+            format!("{} bytes, expected {} ({} half floats)", b.len(), want_bytes, want),
+        );
     }
     Ok(b.chunks_exact(2).map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]]))).collect())
 }
@@ -335,7 +405,9 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
         return wire("job_id", "must be set");
     }
     let n = m.count as usize;
-    let want = n.checked_mul(m.obs_len as usize).ok_or(WireError { field: "count", reason: "count x obs_len overflows".into() })?;
+    let want = n
+        .checked_mul(m.obs_len as usize)
+        .ok_or(WireError { field: "count", reason: "count x obs_len overflows".into() })?;
     let obs = f16_from_bytes("obs_f16", &m.obs_f16, want)?;
     let next_obs = f16_from_bytes("next_obs_f16", &m.next_obs_f16, want)?;
     let mut terminals = Vec::with_capacity(m.terminals.len());
@@ -367,7 +439,13 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
             .map(|e| EpisodeResult {
                 scenario_index: e.scenario_index,
                 scores: Scores { success: e.success, safety: e.safety, speed: e.speed },
-                ends: Ends { collision: e.collision, off_road: e.off_road, off_route: e.off_route, wrong_lane: e.wrong_lane, timeout: e.timeout },
+                ends: Ends {
+                    collision: e.collision,
+                    off_road: e.off_road,
+                    off_route: e.off_route,
+                    wrong_lane: e.wrong_lane,
+                    timeout: e.timeout,
+                },
             })
             .collect(),
         sim_steps: m.sim_steps,
@@ -384,7 +462,11 @@ mod tests {
     fn a_batch_round_trips_and_bad_ones_are_named() {
         let mut b = TransitionBatch::new(3, 4, 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
-        b.episodes.push(EpisodeResult { scenario_index: 1, scores: Scores { success: 1.0, safety: 1.0, speed: 0.5 }, ends: Ends { collision: 0.25, timeout: 0.5, ..Ends::default() } });
+        b.episodes.push(EpisodeResult {
+            scenario_index: 1,
+            scores: Scores { success: 1.0, safety: 1.0, speed: 0.5 },
+            ends: Ends { collision: 0.25, timeout: 0.5, ..Ends::default() },
+        });
         let back = batch_from_wire(batch_to_wire(&b)).expect("round trip");
         assert_eq!(back, b);
 
@@ -420,9 +502,18 @@ mod tests {
     fn version_zero_decodes_to_warm_up_or_latest_by_message() {
         use std::num::NonZeroU64;
         let five = NonZeroU64::new(5).expect("non-zero");
-        assert_eq!((acted_by_from_wire(0), acted_by_from_wire(5)), (ActedBy::Warmup, ActedBy::Policy(five)));
-        assert_eq!((acted_by_to_wire(ActedBy::Warmup), acted_by_to_wire(ActedBy::Policy(five))), (0, 5));
-        assert_eq!((policy_request_from_wire(0), policy_request_from_wire(5)), (PolicyRequest::Latest, PolicyRequest::Version(five)));
+        assert_eq!(
+            (acted_by_from_wire(0), acted_by_from_wire(5)),
+            (ActedBy::Warmup, ActedBy::Policy(five))
+        );
+        assert_eq!(
+            (acted_by_to_wire(ActedBy::Warmup), acted_by_to_wire(ActedBy::Policy(five))),
+            (0, 5)
+        );
+        assert_eq!(
+            (policy_request_from_wire(0), policy_request_from_wire(5)),
+            (PolicyRequest::Latest, PolicyRequest::Version(five))
+        );
         for which in [PolicyRequest::Latest, PolicyRequest::Version(five)] {
             let m = get_policy_to_wire(9, which);
             assert_eq!((m.job_id, policy_request_from_wire(m.version)), (9, which));
@@ -449,7 +540,8 @@ mod tests {
     #[test]
     fn an_assignment_carries_its_frozen_policies_and_coordinator_gaussians() {
         let mut bg = Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into());
-        bg.svo_gaussians = vec![("merge".into(), sf_job::SvoGaussian { mean_deg: 45.0, std_deg: 4.5 })];
+        bg.svo_gaussians =
+            vec![("merge".into(), sf_job::SvoGaussian { mean_deg: 45.0, std_deg: 4.5 })];
         let a = Assignment {
             job_id: 5,
             config_toml: "name = \"ego\"".into(),
@@ -467,7 +559,10 @@ mod tests {
         assert_eq!(back.frozen[0].svo_gaussian("intersection"), None);
         let mut m = assignment_to_wire(&a);
         m.frozen[0].svo_gaussians[0].mean_deg = 120.0;
-        assert_eq!(assignment_from_wire(&m).expect_err("out of range").field, "assignment.frozen.svo_gaussians");
+        assert_eq!(
+            assignment_from_wire(&m).expect_err("out of range").field,
+            "assignment.frozen.svo_gaussians"
+        );
         let mut m = assignment_to_wire(&a);
         m.frozen[0].svo_gaussians[0].std_deg = f32::NAN;
         assert!(assignment_from_wire(&m).is_err());
@@ -478,7 +573,14 @@ mod tests {
         let w = EvalWork {
             job_id: 3,
             cell_id: 17,
-            cell: Cell { experiment: "svo_sweep".into(), ego: String::new(), flow: "CoPO".into(), scenario: "merge".into(), svo_deg: Some(40), vehicles: None },
+            cell: Cell {
+                experiment: "svo_sweep".into(),
+                ego: String::new(),
+                flow: "CoPO".into(),
+                scenario: "merge".into(),
+                svo_deg: Some(40),
+                vehicles: None,
+            },
             cases: 20,
             seeds: 2,
             envs: 40,
@@ -488,7 +590,16 @@ mod tests {
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&w)), Ok(w.clone()));
         // Who sits in the ego's seat: exactly one of the IDM driver and an EGO policy when the
         // cell names an ego, neither when it does not.
-        let idm_ego = EvalWork { cell: Cell { experiment: "cross".into(), ego: "IDM ego".into(), svo_deg: None, ..w.cell.clone() }, ego_idm: true, ..w.clone() };
+        let idm_ego = EvalWork {
+            cell: Cell {
+                experiment: "cross".into(),
+                ego: "IDM ego".into(),
+                svo_deg: None,
+                ..w.cell.clone()
+            },
+            ego_idm: true,
+            ..w.clone()
+        };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&idm_ego)), Ok(idm_ego.clone()));
         let mut m = eval_work_to_wire(&idm_ego);
         m.policies.push(frozen_to_wire(&Frozen::new(FrozenRole::Ego, 5, "name = \"e\"".into())));
@@ -499,14 +610,22 @@ mod tests {
         assert_eq!(eval_work_from_wire(&m).expect_err("no ego at all").field, "eval.policies");
         let mut m = eval_work_to_wire(&w);
         m.ego_idm = true;
-        assert_eq!(eval_work_from_wire(&m).expect_err("an IDM ego in a flow-only cell").field, "eval.cell.ego");
+        assert_eq!(
+            eval_work_from_wire(&m).expect_err("an IDM ego in a flow-only cell").field,
+            "eval.cell.ego"
+        );
         let mut m = eval_work_to_wire(&w);
         m.cell = None;
         assert_eq!(eval_work_from_wire(&m).expect_err("no cell").field, "eval.cell");
         let mut m = eval_work_to_wire(&w);
         m.seeds = 0;
         assert!(eval_work_from_wire(&m).is_err());
-        let e = EvalEpisode { case: 4, seed: 1, scores: Scores { success: 1.0, safety: 0.5, speed: 0.7 }, collision: 0.0 };
+        let e = EvalEpisode {
+            case: 4,
+            seed: 1,
+            scores: Scores { success: 1.0, safety: 0.5, speed: 0.7 },
+            collision: 0.0,
+        };
         assert_eq!(eval_episode_from_wire(&eval_episode_to_wire(&e)), Ok(e));
         let mut m = eval_episode_to_wire(&e);
         m.speed = f32::NAN;

@@ -77,101 +77,205 @@ fn fraction() -> impl Strategy<Value = f32> {
 }
 
 fn episode_result() -> impl Strategy<Value = EpisodeResult> {
-    (any::<u32>(), fraction(), fraction(), fraction(), [fraction(), fraction(), fraction(), fraction(), fraction()]).prop_map(|(scenario_index, success, safety, speed, ends)| EpisodeResult {
-        scenario_index,
-        scores: sf_job::Scores { success, safety, speed },
-        ends: Ends::from_values(ends),
-    })
+    (
+        any::<u32>(),
+        fraction(),
+        fraction(),
+        fraction(),
+        [fraction(), fraction(), fraction(), fraction(), fraction()],
+    )
+        .prop_map(|(scenario_index, success, safety, speed, ends)| EpisodeResult {
+            scenario_index,
+            scores: sf_job::Scores { success, safety, speed },
+            ends: Ends::from_values(ends),
+        })
 }
 
 /// A valid batch: 1-8 rows of 1-6 observation floats and 1-3 action floats, finite values.
 fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
-    (1u64.., any::<u64>(), 1usize..=6, 1usize..=3, 1usize..=8).prop_flat_map(|(job_id, worker_id, obs_len, action_dim, n)| {
-        (
-            Just((job_id, worker_id, obs_len, action_dim)),
-            prop::collection::vec(-1000.0f32..1000.0, n * obs_len),
-            prop::collection::vec(-1000.0f32..1000.0, n * obs_len),
-            prop::collection::vec(-1.0f32..=1.0, n * action_dim),
-            prop::collection::vec(-100.0f32..100.0, n),
-            prop::collection::vec(any::<bool>(), n),
-            prop::collection::vec(0u32..4, n),
-            prop::collection::vec(episode_result(), 0..3),
-            any::<u64>(),
-            any::<u64>(),
-        )
-            .prop_map(|((job_id, worker_id, obs_len, action_dim), obs, next_obs, actions, rewards, terminals, map_ids, episodes, policy_version, sim_steps)| {
-                let mut b = TransitionBatch::new(job_id, worker_id, obs_len, action_dim);
-                for i in 0..rewards.len() {
-                    let o = i * obs_len..(i + 1) * obs_len;
-                    let a = i * action_dim..(i + 1) * action_dim;
-                    b.push(&obs[o.clone()], &actions[a], rewards[i], &next_obs[o], terminals[i], map_ids[i]);
-                }
-                b.episodes = episodes;
-                b.acted_by = sf_proto::acted_by_from_wire(policy_version);
-                b.sim_steps = sim_steps;
-                b
-            })
-    })
-}
-
-fn svo_gaussian() -> impl Strategy<Value = (String, SvoGaussian)> {
-    ("[a-z]{1,12}", 0.0f32..=90.0, 0.0f32..30.0).prop_map(|(s, mean_deg, std_deg)| (s, SvoGaussian { mean_deg, std_deg }))
-}
-
-fn frozen() -> impl Strategy<Value = Frozen> {
-    (prop_oneof![Just(FrozenRole::Background), Just(FrozenRole::Ego), Just(FrozenRole::Adversary)], 1u64.., "name = \"[a-z-]{1,16}\"", prop::collection::vec(svo_gaussian(), 0..3))
-        .prop_map(|(role, job_id, config_toml, svo_gaussians)| Frozen { role, job_id, config_toml, svo_gaussians })
-}
-
-fn valid_assignment() -> impl Strategy<Value = Assignment> {
-    (1u64.., "[ -~\n]{0,64}", any::<u32>(), any::<u64>(), any::<u64>(), 1u32.., 1u32.., any::<bool>(), prop::collection::vec(frozen(), 0..3)).prop_map(
-        |(job_id, config_toml, scenario_index, seed, policy_version, obs_len, action_dim, warmup, frozen)| Assignment {
-            job_id,
-            config_toml,
-            scenario_index,
-            seed,
-            policy_version,
-            obs_len,
-            action_dim,
-            warmup,
-            frozen,
+    (1u64.., any::<u64>(), 1usize..=6, 1usize..=3, 1usize..=8).prop_flat_map(
+        |(job_id, worker_id, obs_len, action_dim, n)| {
+            (
+                Just((job_id, worker_id, obs_len, action_dim)),
+                prop::collection::vec(-1000.0f32..1000.0, n * obs_len),
+                prop::collection::vec(-1000.0f32..1000.0, n * obs_len),
+                prop::collection::vec(-1.0f32..=1.0, n * action_dim),
+                prop::collection::vec(-100.0f32..100.0, n),
+                prop::collection::vec(any::<bool>(), n),
+                prop::collection::vec(0u32..4, n),
+                prop::collection::vec(episode_result(), 0..3),
+                any::<u64>(),
+                any::<u64>(),
+            )
+                .prop_map(
+                    |(
+                        (job_id, worker_id, obs_len, action_dim),
+                        obs,
+                        next_obs,
+                        actions,
+                        rewards,
+                        terminals,
+                        map_ids,
+                        episodes,
+                        policy_version,
+                        sim_steps,
+                    )| {
+                        let mut b = TransitionBatch::new(job_id, worker_id, obs_len, action_dim);
+                        for i in 0..rewards.len() {
+                            let o = i * obs_len..(i + 1) * obs_len;
+                            let a = i * action_dim..(i + 1) * action_dim;
+                            b.push(
+                                &obs[o.clone()],
+                                &actions[a],
+                                rewards[i],
+                                &next_obs[o],
+                                terminals[i],
+                                map_ids[i],
+                            );
+                        }
+                        b.episodes = episodes;
+                        b.acted_by = sf_proto::acted_by_from_wire(policy_version);
+                        b.sim_steps = sim_steps;
+                        b
+                    },
+                )
         },
     )
 }
 
+fn svo_gaussian() -> impl Strategy<Value = (String, SvoGaussian)> {
+    ("[a-z]{1,12}", 0.0f32..=90.0, 0.0f32..30.0)
+        .prop_map(|(s, mean_deg, std_deg)| (s, SvoGaussian { mean_deg, std_deg }))
+}
+
+fn frozen() -> impl Strategy<Value = Frozen> {
+    (
+        prop_oneof![
+            Just(FrozenRole::Background),
+            Just(FrozenRole::Ego),
+            Just(FrozenRole::Adversary)
+        ],
+        1u64..,
+        "name = \"[a-z-]{1,16}\"",
+        prop::collection::vec(svo_gaussian(), 0..3),
+    )
+        .prop_map(|(role, job_id, config_toml, svo_gaussians)| Frozen {
+            role,
+            job_id,
+            config_toml,
+            svo_gaussians,
+        })
+}
+
+fn valid_assignment() -> impl Strategy<Value = Assignment> {
+    (
+        1u64..,
+        "[ -~\n]{0,64}",
+        any::<u32>(),
+        any::<u64>(),
+        any::<u64>(),
+        1u32..,
+        1u32..,
+        any::<bool>(),
+        prop::collection::vec(frozen(), 0..3),
+    )
+        .prop_map(
+            |(
+                job_id,
+                config_toml,
+                scenario_index,
+                seed,
+                policy_version,
+                obs_len,
+                action_dim,
+                warmup,
+                frozen,
+            )| Assignment {
+                job_id,
+                config_toml,
+                scenario_index,
+                seed,
+                policy_version,
+                obs_len,
+                action_dim,
+                warmup,
+                frozen,
+            },
+        )
+}
+
 fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
-    let cell = ("[a-z_]{1,12}", "[A-Za-z/]{0,12}", "[A-Za-z]{1,12}", "[a-z]{1,12}", prop::option::of(0u32..=90), prop::option::of(1usize..=64))
-        .prop_map(|(experiment, ego, flow, scenario, svo_deg, vehicles)| Cell { experiment, ego, flow, scenario, svo_deg, vehicles });
+    let cell = (
+        "[a-z_]{1,12}",
+        "[A-Za-z/]{0,12}",
+        "[A-Za-z]{1,12}",
+        "[a-z]{1,12}",
+        prop::option::of(0u32..=90),
+        prop::option::of(1usize..=64),
+    )
+        .prop_map(|(experiment, ego, flow, scenario, svo_deg, vehicles)| Cell {
+            experiment,
+            ego,
+            flow,
+            scenario,
+            svo_deg,
+            vehicles,
+        });
     // Who sits in the ego's seat: nobody (a flow on its own), the IDM driver, or an EGO policy.
     let seat = prop_oneof![Just(None), Just(Some(true)), Just(Some(false))];
-    (1u64.., any::<u64>(), cell, 1u32.., 1u32.., 1u32.., prop::collection::vec(frozen(), 0..3), seat, frozen()).prop_map(|(job_id, cell_id, mut cell, cases, seeds, envs, mut policies, seat, ego)| {
-        policies.retain(|p| p.role != FrozenRole::Ego);
-        match seat {
-            None => cell.ego.clear(),
-            Some(_) if cell.ego.is_empty() => cell.ego = "E".into(),
-            Some(_) => {}
-        }
-        if seat == Some(false) {
-            policies.push(Frozen { role: FrozenRole::Ego, ..ego });
-        }
-        EvalWork { job_id, cell_id, cell, cases, seeds, envs, policies, ego_idm: seat == Some(true) }
-    })
+    (
+        1u64..,
+        any::<u64>(),
+        cell,
+        1u32..,
+        1u32..,
+        1u32..,
+        prop::collection::vec(frozen(), 0..3),
+        seat,
+        frozen(),
+    )
+        .prop_map(
+            |(job_id, cell_id, mut cell, cases, seeds, envs, mut policies, seat, ego)| {
+                policies.retain(|p| p.role != FrozenRole::Ego);
+                match seat {
+                    None => cell.ego.clear(),
+                    Some(_) if cell.ego.is_empty() => cell.ego = "E".into(),
+                    Some(_) => {}
+                }
+                if seat == Some(false) {
+                    policies.push(Frozen { role: FrozenRole::Ego, ..ego });
+                }
+                EvalWork {
+                    job_id,
+                    cell_id,
+                    cell,
+                    cases,
+                    seeds,
+                    envs,
+                    policies,
+                    ego_idm: seat == Some(true),
+                }
+            },
+        )
 }
 
 fn valid_eval_results() -> impl Strategy<Value = pb::EvalResults> {
-    let episode = (any::<u32>(), any::<u32>(), fraction(), fraction(), fraction(), fraction()).prop_map(|(case, seed, success, safety, speed, collision)| EvalEpisode {
-        case,
-        seed,
-        scores: sf_job::Scores { success, safety, speed },
-        collision,
-    });
-    (1u64.., any::<u64>(), any::<u64>(), prop::collection::vec(episode, 0..6)).prop_map(|(job_id, worker_id, cell_id, episodes)| pb::EvalResults {
-        job_id,
-        worker_id,
-        cell_id,
-        episodes: episodes.iter().map(sf_proto::eval_episode_to_wire).collect(),
-        error: String::new(),
-    })
+    let episode = (any::<u32>(), any::<u32>(), fraction(), fraction(), fraction(), fraction())
+        .prop_map(|(case, seed, success, safety, speed, collision)| EvalEpisode {
+            case,
+            seed,
+            scores: sf_job::Scores { success, safety, speed },
+            collision,
+        });
+    (1u64.., any::<u64>(), any::<u64>(), prop::collection::vec(episode, 0..6)).prop_map(
+        |(job_id, worker_id, cell_id, episodes)| pb::EvalResults {
+            job_id,
+            worker_id,
+            cell_id,
+            episodes: episodes.iter().map(sf_proto::eval_episode_to_wire).collect(),
+            error: String::new(),
+        },
+    )
 }
 
 /// One edit of an encoded message.
@@ -242,7 +346,14 @@ enum FieldDamage {
 }
 
 fn huge_or_other() -> impl Strategy<Value = u32> {
-    prop_oneof![Just(0u32), Just(u32::MAX), Just(u32::MAX - 1), Just(1 << 31), 0u32..64, any::<u32>()]
+    prop_oneof![
+        Just(0u32),
+        Just(u32::MAX),
+        Just(u32::MAX - 1),
+        Just(1 << 31),
+        0u32..64,
+        any::<u32>()
+    ]
 }
 
 fn field_damage() -> impl Strategy<Value = FieldDamage> {
@@ -262,7 +373,17 @@ fn field_damage() -> impl Strategy<Value = FieldDamage> {
         any::<Index>().prop_map(FieldDamage::NanObs),
         any::<Index>().prop_map(FieldDamage::NanAction),
         any::<Index>().prop_map(FieldDamage::InfReward),
-        (0u8..8, prop_oneof![Just(f32::NAN), Just(f32::INFINITY), Just(-0.5f32), Just(2.0f32), Just(f32::MAX)]).prop_map(|(k, v)| FieldDamage::BadEpisodeFraction(k, v)),
+        (
+            0u8..8,
+            prop_oneof![
+                Just(f32::NAN),
+                Just(f32::INFINITY),
+                Just(-0.5f32),
+                Just(2.0f32),
+                Just(f32::MAX)
+            ]
+        )
+            .prop_map(|(k, v)| FieldDamage::BadEpisodeFraction(k, v)),
     ]
 }
 

@@ -12,7 +12,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode};
 
-pub const EPISODES_HEADER: &str = "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision";
+pub const EPISODES_HEADER: &str =
+    "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision";
 
 /// One evaluated episode: the cell it belongs to and what the episode measured. `cell.ego` is
 /// empty when the flow was evaluated on its own.
@@ -62,16 +63,25 @@ impl EpisodeRow {
         if f.len() != 12 {
             return Err(RowError::Fields(f.len()));
         }
-        let int = |i: usize, what: &'static str| RowError::NotAnInteger { what, text: f[i].to_string() };
+        let int =
+            |i: usize, what: &'static str| RowError::NotAnInteger { what, text: f[i].to_string() };
         let num = |i: usize, what: &'static str| {
-            let v = f[i].parse::<f32>().map_err(|_| RowError::NotANumber { what, text: f[i].to_string() })?;
+            let v = f[i]
+                .parse::<f32>()
+                .map_err(|_| RowError::NotANumber { what, text: f[i].to_string() })?;
             if v.is_finite() {
                 Ok(v)
             } else {
                 Err(RowError::NotFinite { what })
             }
         };
-        let opt = |i: usize, what: &'static str| if f[i].is_empty() { Ok(None) } else { f[i].parse::<u64>().map(Some).map_err(|_| int(i, what)) };
+        let opt = |i: usize, what: &'static str| {
+            if f[i].is_empty() {
+                Ok(None)
+            } else {
+                f[i].parse::<u64>().map(Some).map_err(|_| int(i, what))
+            }
+        };
         let cell = Cell {
             experiment: f[0].into(),
             ego: f[1].into(),
@@ -83,7 +93,11 @@ impl EpisodeRow {
         let ep = EvalEpisode {
             case: f[6].parse().map_err(|_| int(6, "case"))?,
             seed: f[7].parse().map_err(|_| int(7, "seed"))?,
-            scores: sf_job::Scores { success: num(8, "success")?, safety: num(9, "safety")?, speed: num(10, "speed")? },
+            scores: sf_job::Scores {
+                success: num(8, "success")?,
+                safety: num(9, "safety")?,
+                speed: num(10, "speed")?,
+            },
             collision: num(11, "collision")?,
         };
         Ok(Self { cell, ep, replicate: 0 })
@@ -127,7 +141,13 @@ pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
         Some(h) => return Err(file_err(path, format!("header `{h}` is not `{EPISODES_HEADER}`"))),
         None => return Ok(Vec::new()),
     }
-    lines.enumerate().filter(|(_, l)| !l.is_empty()).map(|(i, l)| EpisodeRow::parse(l).map_err(|e| file_err(path, format!("line {}: {e}", i + 2)))).collect()
+    lines
+        .enumerate()
+        .filter(|(_, l)| !l.is_empty())
+        .map(|(i, l)| {
+            EpisodeRow::parse(l).map_err(|e| file_err(path, format!("line {}: {e}", i + 2)))
+        })
+        .collect()
 }
 
 /// What the report needs to know besides the episodes.
@@ -166,14 +186,24 @@ impl Meta {
     /// What a report of `cfg`'s grid needs to know.
     pub fn of(cfg: &EvalConfig) -> Self {
         Self {
-            trained_in: cfg.egos.iter().filter_map(|e| e.trained_in.clone().map(|t| (e.name.clone(), t))).collect(),
+            trained_in: cfg
+                .egos
+                .iter()
+                .filter_map(|e| e.trained_in.clone().map(|t| (e.name.clone(), t)))
+                .collect(),
             ours: cfg.ours.clone(),
             idm_ego: cfg.egos.iter().find(|e| e.is_idm()).map(|e| e.name.clone()),
             flows: cfg.flows.iter().map(|f| f.name.clone()).collect(),
             egos: cfg.egos.iter().map(|f| f.name.clone()).collect(),
             cases: cfg.cases,
             seeds: cfg.seeds,
-            sizes: cfg.sizes.iter().map(|(e, o)| (e.clone(), [o.cases.unwrap_or(cfg.cases), o.seeds.unwrap_or(cfg.seeds)])).collect(),
+            sizes: cfg
+                .sizes
+                .iter()
+                .map(|(e, o)| {
+                    (e.clone(), [o.cases.unwrap_or(cfg.cases), o.seeds.unwrap_or(cfg.seeds)])
+                })
+                .collect(),
         }
     }
 }
@@ -187,7 +217,11 @@ pub struct EpisodesWriter {
 
 impl EpisodesWriter {
     pub fn open(path: &Path) -> Result<Self, FileError> {
-        let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(|e| file_err(path, e))?;
+        let mut file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(|e| file_err(path, e))?;
         let empty = file.metadata().map_err(|e| file_err(path, e))?.len() == 0;
         if empty {
             use std::io::Write;
@@ -199,7 +233,10 @@ impl EpisodesWriter {
     pub fn append(&mut self, rows: &[EpisodeRow]) -> Result<(), FileError> {
         use std::io::Write;
         let text: String = rows.iter().map(|r| r.to_csv() + "\n").collect();
-        self.file.write_all(text.as_bytes()).and_then(|()| self.file.sync_data()).map_err(|e| file_err(&self.path, e))
+        self.file
+            .write_all(text.as_bytes())
+            .and_then(|()| self.file.sync_data())
+            .map_err(|e| file_err(&self.path, e))
     }
 }
 
@@ -215,14 +252,30 @@ mod tests {
     #[test]
     fn rows_round_trip_and_bad_lines_name_the_line() {
         let r = EpisodeRow::new(
-            &Cell { experiment: "svo_sweep".into(), ego: String::new(), flow: "CoPO".into(), scenario: "merge".into(), svo_deg: Some(30), vehicles: Some(8) },
-            &EvalEpisode { case: 3, seed: 1, scores: sf_job::Scores { success: 0.25, safety: 0.25, speed: 0.5 }, collision: 0.0 },
+            &Cell {
+                experiment: "svo_sweep".into(),
+                ego: String::new(),
+                flow: "CoPO".into(),
+                scenario: "merge".into(),
+                svo_deg: Some(30),
+                vehicles: Some(8),
+            },
+            &EvalEpisode {
+                case: 3,
+                seed: 1,
+                scores: sf_job::Scores { success: 0.25, safety: 0.25, speed: 0.5 },
+                collision: 0.0,
+            },
         );
         assert_eq!(EpisodeRow::parse(&r.to_csv()), Ok(r.clone()));
         let dir = std::env::temp_dir().join(format!("sf-report-rows-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
         let p = dir.join("episodes.csv");
-        std::fs::write(&p, format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0\n", r.to_csv())).expect("write");
+        std::fs::write(
+            &p,
+            format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0\n", r.to_csv()),
+        )
+        .expect("write");
         let e = read_episodes(&p).expect_err("NaN").to_string();
         assert!(e.contains("line 3") && e.contains("success"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);

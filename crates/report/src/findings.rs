@@ -80,7 +80,15 @@ impl Check {
     /// (`what` names the compared quantity, e.g. "success, SocialComm - CoPO").
     pub fn from_paired(claim: impl Into<String>, what: &str, t: &PairedT) -> Check {
         let test = format!("paired t, two-sided, {} episode starts: {what}", t.n);
-        Check::decide(claim.into(), test, t.mean_diff, t.se, (t.n.max(2) - 1) as f64, t.n, t.p_value)
+        Check::decide(
+            claim.into(),
+            test,
+            t.mean_diff,
+            t.se,
+            (t.n.max(2) - 1) as f64,
+            t.n,
+            t.p_value,
+        )
     }
 
     /// A claim decided by Welch's t-test between two independent samples whose `mean_diff` is
@@ -97,16 +105,50 @@ impl Check {
     /// The check carries the decisive part's effect, error and p. `None` without parts.
     pub fn all_of(claim: impl Into<String>, parts: &[(String, Check)]) -> Option<Check> {
         let all_positive = parts.iter().all(|(_, c)| c.effect_points > 0.0);
-        let (label, d) = if all_positive { parts.iter().max_by(|a, b| a.1.p_value.total_cmp(&b.1.p_value))? } else { parts.iter().min_by(|a, b| a.1.effect_points.total_cmp(&b.1.effect_points))? };
-        let each: Vec<String> = parts.iter().map(|(l, c)| format!("{l} {:+.1} (p {:.2e})", c.effect_points, c.p_value)).collect();
+        let (label, d) = if all_positive {
+            parts.iter().max_by(|a, b| a.1.p_value.total_cmp(&b.1.p_value))?
+        } else {
+            parts.iter().min_by(|a, b| a.1.effect_points.total_cmp(&b.1.effect_points))?
+        };
+        let each: Vec<String> = parts
+            .iter()
+            .map(|(l, c)| format!("{l} {:+.1} (p {:.2e})", c.effect_points, c.p_value))
+            .collect();
         let test = format!("every one of {} comparisons must hold (intersection-union); decisive: {label}; {}; all: {}", parts.len(), d.test, each.join(", "));
-        Some(Check::decide(claim.into(), test, d.effect_points / 100.0, d.se_points / 100.0, d.df, d.n, d.p_value))
+        Some(Check::decide(
+            claim.into(),
+            test,
+            d.effect_points / 100.0,
+            d.se_points / 100.0,
+            d.df,
+            d.n,
+            d.p_value,
+        ))
     }
 
-    fn decide(claim: String, test: String, mean_diff: f64, se: f64, df: f64, n: usize, p_value: f64) -> Check {
+    fn decide(
+        claim: String,
+        test: String,
+        mean_diff: f64,
+        se: f64,
+        df: f64,
+        n: usize,
+        p_value: f64,
+    ) -> Check {
         let effect_points = 100.0 * mean_diff;
         let verdict = Verdict::of(effect_points, p_value);
-        Check { key: claim.clone(), claim, test, effect_points, n, se_points: 100.0 * se, df, p_value, p_adjusted: p_value, verdict }
+        Check {
+            key: claim.clone(),
+            claim,
+            test,
+            effect_points,
+            n,
+            se_points: 100.0 * se,
+            df,
+            p_value,
+            p_adjusted: p_value,
+            verdict,
+        }
     }
 
     /// The same check identified by `key` instead of its claim: for a claim whose text quotes
@@ -167,8 +209,13 @@ impl RunsVerdict {
 
     /// The replication rule over the runs' (corrected) verdicts.
     pub fn of(runs: &[Option<Verdict>]) -> RunsVerdict {
-        let Some(v) = runs.iter().copied().collect::<Option<Vec<Verdict>>>() else { return RunsVerdict::Untested };
-        let (holds, opposite) = (v.iter().filter(|v| **v == Verdict::Holds).count(), v.iter().filter(|v| **v == Verdict::Opposite).count());
+        let Some(v) = runs.iter().copied().collect::<Option<Vec<Verdict>>>() else {
+            return RunsVerdict::Untested;
+        };
+        let (holds, opposite) = (
+            v.iter().filter(|v| **v == Verdict::Holds).count(),
+            v.iter().filter(|v| **v == Verdict::Opposite).count(),
+        );
         match (holds, opposite) {
             _ if v.is_empty() => RunsVerdict::Untested,
             (h, 0) if h == v.len() => RunsVerdict::Holds,
@@ -203,10 +250,14 @@ pub fn across_runs(runs: &[Vec<Check>]) -> Vec<AcrossRuns> {
     }
     keys.into_iter()
         .map(|key| {
-            let each: Vec<Option<Check>> = runs.iter().map(|r| r.iter().find(|c| c.key == key).cloned()).collect();
-            let est: Option<Vec<(f64, f64)>> = each.iter().map(|c| c.as_ref().map(|c| (c.effect_points, c.se_points))).collect();
+            let each: Vec<Option<Check>> =
+                runs.iter().map(|r| r.iter().find(|c| c.key == key).cloned()).collect();
+            let est: Option<Vec<(f64, f64)>> =
+                each.iter().map(|c| c.as_ref().map(|c| (c.effect_points, c.se_points))).collect();
             let combined = est.and_then(|e| inference::random_effects(&e));
-            let verdict = RunsVerdict::of(&each.iter().map(|c| c.as_ref().map(|c| c.verdict)).collect::<Vec<_>>());
+            let verdict = RunsVerdict::of(
+                &each.iter().map(|c| c.as_ref().map(|c| c.verdict)).collect::<Vec<_>>(),
+            );
             AcrossRuns { key: key.to_string(), runs: each, combined, verdict }
         })
         .collect()
@@ -226,13 +277,39 @@ mod tests {
     fn verdict_has_a_direction() {
         let c = Check::from_paired("A beats B", "success, A - B", &t(0.12, 1e-6));
         assert_eq!((c.verdict, c.n), (Verdict::Holds, 400));
-        assert!((c.effect_points - 12.0).abs() < 1e-9 && c.test.contains("400 episode starts") && c.test.contains("A - B"), "{c:?}");
-        assert_eq!(Check::from_paired("A beats B", "x", &t(-0.08, 4e-11)).verdict, Verdict::Opposite);
-        assert_eq!(Check::from_paired("A beats B", "x", &t(-0.0015, 0.94)).verdict, Verdict::NotSignificant);
-        assert_eq!(Check::from_paired("A beats B", "x", &t(0.3, 0.05)).verdict, Verdict::NotSignificant, "p must be below 0.05");
-        assert_eq!(Check::from_paired("A beats B", "x", &t(0.3, f64::NAN)).verdict, Verdict::NotSignificant);
+        assert!(
+            (c.effect_points - 12.0).abs() < 1e-9
+                && c.test.contains("400 episode starts")
+                && c.test.contains("A - B"),
+            "{c:?}"
+        );
+        assert_eq!(
+            Check::from_paired("A beats B", "x", &t(-0.08, 4e-11)).verdict,
+            Verdict::Opposite
+        );
+        assert_eq!(
+            Check::from_paired("A beats B", "x", &t(-0.0015, 0.94)).verdict,
+            Verdict::NotSignificant
+        );
+        assert_eq!(
+            Check::from_paired("A beats B", "x", &t(0.3, 0.05)).verdict,
+            Verdict::NotSignificant,
+            "p must be below 0.05"
+        );
+        assert_eq!(
+            Check::from_paired("A beats B", "x", &t(0.3, f64::NAN)).verdict,
+            Verdict::NotSignificant
+        );
         assert!(!Check::from_paired("A beats B", "x", &t(-0.08, 4e-11)).holds());
-        let w = WelchT { n_a: 40, n_b: 120, mean_diff: 0.1, se: 0.03, t: 3.0, df: 60.0, p_value: 0.004 };
+        let w = WelchT {
+            n_a: 40,
+            n_b: 120,
+            mean_diff: 0.1,
+            se: 0.03,
+            t: 3.0,
+            df: 60.0,
+            p_value: 0.004,
+        };
         let c = Check::from_welch("larger in merge", "merge vs others", &w);
         assert_eq!((c.verdict, c.n), (Verdict::Holds, 160));
         assert!(c.test.starts_with("Welch t") && c.test.contains("40 vs 120"), "{c:?}");
@@ -241,12 +318,23 @@ mod tests {
     /// Holm over the family decides the verdicts: a p of 0.03 holds alone, not among three.
     #[test]
     fn holm_decides_the_family_verdicts() {
-        let mut fam = vec![Check::from_paired("a", "x", &t(0.1, 0.03)), Check::from_paired("b", "x", &t(0.1, 0.01)), Check::from_paired("c", "x", &t(-0.1, 0.001))];
+        let mut fam = vec![
+            Check::from_paired("a", "x", &t(0.1, 0.03)),
+            Check::from_paired("b", "x", &t(0.1, 0.01)),
+            Check::from_paired("c", "x", &t(-0.1, 0.001)),
+        ];
         assert!(fam[0].holds(), "uncorrected");
         adjust(&mut fam);
         assert_eq!(fam.iter().map(|c| c.p_adjusted).collect::<Vec<_>>(), vec![0.03, 0.02, 0.003]);
-        assert_eq!(fam.iter().map(|c| c.verdict).collect::<Vec<_>>(), vec![Verdict::Holds, Verdict::Holds, Verdict::Opposite]);
-        let mut fam = vec![Check::from_paired("a", "x", &t(0.1, 0.03)), Check::from_paired("b", "x", &t(0.1, 0.02)), Check::from_paired("c", "x", &t(0.1, 0.2))];
+        assert_eq!(
+            fam.iter().map(|c| c.verdict).collect::<Vec<_>>(),
+            vec![Verdict::Holds, Verdict::Holds, Verdict::Opposite]
+        );
+        let mut fam = vec![
+            Check::from_paired("a", "x", &t(0.1, 0.03)),
+            Check::from_paired("b", "x", &t(0.1, 0.02)),
+            Check::from_paired("c", "x", &t(0.1, 0.2)),
+        ];
         adjust(&mut fam);
         assert_eq!(fam[0].verdict, Verdict::NotSignificant, "0.03 x 2 = 0.06: {fam:?}");
         assert!((fam[0].p_value - 0.03).abs() < 1e-12, "the raw p is kept");
@@ -256,7 +344,13 @@ mod tests {
     /// the combined interval covers zero and the heterogeneity is reported.
     #[test]
     fn opposite_runs_do_not_hold() {
-        let run = |d: f64| vec![Check::from_paired("SVO sweep", "x", &PairedT { n: 200, mean_diff: d, se: 0.01, t: d / 0.01, p_value: 1e-9 })];
+        let run = |d: f64| {
+            vec![Check::from_paired(
+                "SVO sweep",
+                "x",
+                &PairedT { n: 200, mean_diff: d, se: 0.01, t: d / 0.01, p_value: 1e-9 },
+            )]
+        };
         let a = across_runs(&[run(-0.053), run(0.037)]);
         assert_eq!(a.len(), 1);
         assert_eq!(a[0].verdict, RunsVerdict::Conflict);
@@ -264,9 +358,15 @@ mod tests {
         assert!(re.estimate.abs() < re.ci95 && re.i2 > 0.9, "{re:?}");
         let b = across_runs(&[run(0.05), run(0.04)]);
         assert_eq!(b[0].verdict, RunsVerdict::Holds);
-        assert_eq!(RunsVerdict::of(&[Some(Verdict::Holds), Some(Verdict::NotSignificant)]), RunsVerdict::NotReplicated);
+        assert_eq!(
+            RunsVerdict::of(&[Some(Verdict::Holds), Some(Verdict::NotSignificant)]),
+            RunsVerdict::NotReplicated
+        );
         assert_eq!(RunsVerdict::of(&[Some(Verdict::Holds), None]), RunsVerdict::Untested);
-        assert_eq!(RunsVerdict::of(&[Some(Verdict::NotSignificant); 2]), RunsVerdict::NotSignificant);
+        assert_eq!(
+            RunsVerdict::of(&[Some(Verdict::NotSignificant); 2]),
+            RunsVerdict::NotSignificant
+        );
     }
 
     /// "Better than every other": holds only when every comparison holds; one clear loss
@@ -274,11 +374,20 @@ mod tests {
     #[test]
     fn all_of_is_an_intersection_union_test() {
         let c = |d: f64, p: f64| Check::from_paired("x", "y", &t(d, p));
-        let all = Check::all_of("best", &[("A".into(), c(0.1, 1e-4)), ("B".into(), c(0.05, 0.01))]).expect("parts");
-        assert!(all.holds() && (all.p_value - 0.01).abs() < 1e-12 && all.test.contains("decisive: B"), "{all:?}");
-        let lost = Check::all_of("best", &[("A".into(), c(0.1, 1e-4)), ("B".into(), c(-0.07, 1e-3))]).expect("parts");
+        let all = Check::all_of("best", &[("A".into(), c(0.1, 1e-4)), ("B".into(), c(0.05, 0.01))])
+            .expect("parts");
+        assert!(
+            all.holds() && (all.p_value - 0.01).abs() < 1e-12 && all.test.contains("decisive: B"),
+            "{all:?}"
+        );
+        let lost =
+            Check::all_of("best", &[("A".into(), c(0.1, 1e-4)), ("B".into(), c(-0.07, 1e-3))])
+                .expect("parts");
         assert_eq!(lost.verdict, Verdict::Opposite);
-        assert!((lost.effect_points + 7.0).abs() < 1e-9 && lost.test.contains("decisive: B"), "{lost:?}");
+        assert!(
+            (lost.effect_points + 7.0).abs() < 1e-9 && lost.test.contains("decisive: B"),
+            "{lost:?}"
+        );
         assert!(Check::all_of("best", &[]).is_none());
     }
 }

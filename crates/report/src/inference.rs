@@ -147,11 +147,25 @@ pub fn bootstrap_ratio(units: &[[f64; 3]], draws: usize, seed: u64) -> Option<Ra
         }
     }
     if defined.is_empty() {
-        return Some(RatioInterval { ratio, lo: f64::NAN, hi: f64::NAN, undefined_share: 1.0, draws });
+        return Some(RatioInterval {
+            ratio,
+            lo: f64::NAN,
+            hi: f64::NAN,
+            undefined_share: 1.0,
+            draws,
+        });
     }
     defined.sort_by(f64::total_cmp);
-    let q = |p: f64| defined[((p * (defined.len() - 1) as f64).round() as usize).min(defined.len() - 1)];
-    Some(RatioInterval { ratio, lo: q(0.025), hi: q(0.975), undefined_share: 1.0 - defined.len() as f64 / draws as f64, draws })
+    let q = |p: f64| {
+        defined[((p * (defined.len() - 1) as f64).round() as usize).min(defined.len() - 1)]
+    };
+    Some(RatioInterval {
+        ratio,
+        lo: q(0.025),
+        hi: q(0.975),
+        undefined_share: 1.0 - defined.len() as f64 / draws as f64,
+        draws,
+    })
 }
 
 #[cfg(test)]
@@ -167,7 +181,10 @@ mod tests {
             assert!((a - want).abs() < 1e-12, "{adj:?}");
         }
         let adj = holm(&[0.01, f64::NAN, 0.04]);
-        assert!((adj[0] - 0.02).abs() < 1e-12 && adj[1].is_nan() && (adj[2] - 0.04).abs() < 1e-12, "{adj:?}");
+        assert!(
+            (adj[0] - 0.02).abs() < 1e-12 && adj[1].is_nan() && (adj[2] - 0.04).abs() < 1e-12,
+            "{adj:?}"
+        );
         assert_eq!(holm(&[0.9, 0.8]), vec![1.0, 1.0], "capped at 1");
         assert_eq!(holm(&[0.45, 0.4]), vec![0.8, 0.8], "monotone in the ordered p");
     }
@@ -178,12 +195,23 @@ mod tests {
     fn random_effects_widen_when_replicates_disagree() {
         let agree = random_effects(&[(5.0, 1.0), (5.5, 1.0)]).expect("two");
         assert_eq!(agree.tau2, 0.0);
-        assert!((agree.estimate - 5.25).abs() < 1e-12 && (agree.se - 0.5f64.sqrt()).abs() < 1e-12, "{agree:?}");
+        assert!(
+            (agree.estimate - 5.25).abs() < 1e-12 && (agree.se - 0.5f64.sqrt()).abs() < 1e-12,
+            "{agree:?}"
+        );
         assert!(agree.p_value < 1e-6 && agree.i2 == 0.0);
         let disagree = random_effects(&[(-5.3, 1.0), (3.7, 1.0)]).expect("two");
         // Q = 40.5, C = 1, tau2 = 39.5: se = sqrt((1 + 39.5) / 2).
-        assert!((disagree.q - 40.5).abs() < 1e-9 && (disagree.tau2 - 39.5).abs() < 1e-9, "{disagree:?}");
-        assert!((disagree.se - 20.25f64.sqrt()).abs() < 1e-9 && disagree.p_value > 0.5 && disagree.i2 > 0.95, "{disagree:?}");
+        assert!(
+            (disagree.q - 40.5).abs() < 1e-9 && (disagree.tau2 - 39.5).abs() < 1e-9,
+            "{disagree:?}"
+        );
+        assert!(
+            (disagree.se - 20.25f64.sqrt()).abs() < 1e-9
+                && disagree.p_value > 0.5
+                && disagree.i2 > 0.95,
+            "{disagree:?}"
+        );
         assert!(disagree.q_p_value < 1e-8);
         assert!(random_effects(&[(1.0, 1.0)]).is_none());
     }
@@ -202,12 +230,25 @@ mod tests {
     /// ratio is given; a noisy denominator leaves many draws undefined.
     #[test]
     fn bootstrap_ratio_of_drops() {
-        let units: Vec<[f64; 3]> = (0..50).map(|i| [0.8, 0.78 + 0.0001 * (i % 3) as f64, 0.7]).collect();
+        let units: Vec<[f64; 3]> =
+            (0..50).map(|i| [0.8, 0.78 + 0.0001 * (i % 3) as f64, 0.7]).collect();
         let r = bootstrap_ratio(&units, 500, 1).expect("a drop");
-        assert!((r.ratio - 0.1 / 0.0199).abs() < 0.2 && r.lo <= r.ratio && r.ratio <= r.hi && r.undefined_share == 0.0, "{r:?}");
+        assert!(
+            (r.ratio - 0.1 / 0.0199).abs() < 0.2
+                && r.lo <= r.ratio
+                && r.ratio <= r.hi
+                && r.undefined_share == 0.0,
+            "{r:?}"
+        );
         assert!(bootstrap_ratio(&[[0.5, 0.6, 0.2]], 10, 1).is_none(), "no drop under a");
-        let coin: Vec<[f64; 3]> = (0..40).map(|i| [0.5, if i % 2 == 0 { 0.45 } else { 0.55 }, 0.1]).chain([[0.5, 0.49, 0.1]]).collect();
+        let coin: Vec<[f64; 3]> = (0..40)
+            .map(|i| [0.5, if i % 2 == 0 { 0.45 } else { 0.55 }, 0.1])
+            .chain([[0.5, 0.49, 0.1]])
+            .collect();
         let r = bootstrap_ratio(&coin, 1000, 3).expect("a tiny drop");
-        assert!(r.undefined_share > 0.2, "a drop indistinguishable from zero leaves many draws undefined: {r:?}");
+        assert!(
+            r.undefined_share > 0.2,
+            "a drop indistinguishable from zero leaves many draws undefined: {r:?}"
+        );
     }
 }

@@ -134,7 +134,15 @@ pub fn welch_t_test(a: &[f64], b: &[f64]) -> Result<WelchT, StatsError> {
     if se == 0.0 {
         let p_value = if mean_diff == 0.0 { 1.0 } else { 0.0 };
         let t = if mean_diff == 0.0 { 0.0 } else { mean_diff.signum() * f64::INFINITY };
-        return Ok(WelchT { n_a: sa.n, n_b: sb.n, mean_diff, se, t, df: (sa.n + sb.n - 2) as f64, p_value });
+        return Ok(WelchT {
+            n_a: sa.n,
+            n_b: sb.n,
+            mean_diff,
+            se,
+            t,
+            df: (sa.n + sb.n - 2) as f64,
+            p_value,
+        });
     }
     let t = mean_diff / se;
     let df = (va + vb).powi(2) / (va * va / (sa.n - 1) as f64 + vb * vb / (sb.n - 1) as f64);
@@ -173,7 +181,8 @@ mod tests {
     fn welch_t_matches_reference() {
         // Means 3 and 5, variances 2.5 each, n = 5 each: t = -2, df = 8, two-sided p = 0.0805
         // (scipy.stats.ttest_ind(a, b, equal_var=False)).
-        let w = welch_t_test(&[1.0, 2.0, 3.0, 4.0, 5.0], &[3.0, 4.0, 5.0, 6.0, 7.0]).expect("valid");
+        let w =
+            welch_t_test(&[1.0, 2.0, 3.0, 4.0, 5.0], &[3.0, 4.0, 5.0, 6.0, 7.0]).expect("valid");
         assert!((w.t + 2.0).abs() < 1e-12 && (w.df - 8.0).abs() < 1e-9, "{w:?}");
         assert!((w.p_value - 0.08052).abs() < 1e-4, "{}", w.p_value);
         assert_eq!(welch_t_test(&[1.0, 1.0], &[1.0, 1.0]).expect("valid").p_value, 1.0);

@@ -83,9 +83,13 @@ pub fn read_events(bytes: &[u8]) -> Result<Vec<Event>, RecordError> {
         if masked_crc(len_bytes).to_le_bytes() != len_crc {
             return Err(RecordError::Crc { what: "length", at });
         }
-        let len_u64 = u64::from_le_bytes(len_bytes.try_into().map_err(|_| RecordError::Length { at })?);
+        let len_u64 =
+            u64::from_le_bytes(len_bytes.try_into().map_err(|_| RecordError::Length { at })?);
         let len = usize::try_from(len_u64).map_err(|_| RecordError::Length { at })?;
-        let end = at.checked_add(16).and_then(|e| e.checked_add(len)).ok_or(RecordError::Length { at })?;
+        let end = at
+            .checked_add(16)
+            .and_then(|e| e.checked_add(len))
+            .ok_or(RecordError::Length { at })?;
         let payload = bytes.get(at + 12..end - 4).ok_or_else(cut("payload", at))?;
         let crc = bytes.get(end - 4..end).ok_or_else(cut("CRC", at))?;
         if masked_crc(payload).to_le_bytes() != crc {
@@ -107,14 +111,19 @@ pub struct EventWriter {
 }
 
 fn now_s() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
 }
 
 impl EventWriter {
     /// Creates the directory and a new event file with its `brain.Event:2` header.
     pub fn create(dir: &Path) -> std::io::Result<Self> {
         std::fs::create_dir_all(dir)?;
-        let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "socialflow".into());
+        let host = std::fs::read_to_string("/etc/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_else(|_| "socialflow".into());
         let t = now_s();
         let mut name = format!("events.out.tfevents.{}.{host}", t as u64);
         // Two writers in the same second (a quick restart) get distinct files.
@@ -125,7 +134,12 @@ impl EventWriter {
         }
         let path = dir.join(name);
         let mut w = Self { out: BufWriter::new(File::create(&path)?), path };
-        let head = Event { wall_time: t, step: 0, file_version: Some("brain.Event:2".into()), summary: None };
+        let head = Event {
+            wall_time: t,
+            step: 0,
+            file_version: Some("brain.Event:2".into()),
+            summary: None,
+        };
         w.write(&head)?;
         Ok(w)
     }
@@ -141,11 +155,20 @@ impl EventWriter {
 
     /// One event at `step` holding every finite `(tag, value)`.
     pub fn scalars(&mut self, step: u64, values: &[(&str, f64)]) -> std::io::Result<()> {
-        let value: Vec<SummaryValue> = values.iter().filter(|(_, v)| v.is_finite()).map(|(t, v)| SummaryValue { tag: t.to_string(), simple_value: Some(*v as f32) }).collect();
+        let value: Vec<SummaryValue> = values
+            .iter()
+            .filter(|(_, v)| v.is_finite())
+            .map(|(t, v)| SummaryValue { tag: t.to_string(), simple_value: Some(*v as f32) })
+            .collect();
         if value.is_empty() {
             return Ok(());
         }
-        let e = Event { wall_time: now_s(), step: step as i64, file_version: None, summary: Some(Summary { value }) };
+        let e = Event {
+            wall_time: now_s(),
+            step: step as i64,
+            file_version: None,
+            summary: Some(Summary { value }),
+        };
         self.write(&e)
     }
 }
@@ -176,7 +199,10 @@ mod tests {
         assert_eq!(ev.len(), 3);
         assert_eq!(ev[0].file_version.as_deref(), Some("brain.Event:2"));
         let s = ev[1].summary.as_ref().expect("summary");
-        assert_eq!((ev[1].step, s.value.len(), s.value[0].tag.as_str(), s.value[0].simple_value), (10, 1, "train/success", Some(0.5)));
+        assert_eq!(
+            (ev[1].step, s.value.len(), s.value[0].tag.as_str(), s.value[0].simple_value),
+            (10, 1, "train/success", Some(0.5))
+        );
         let mut bad = bytes.clone();
         let n = bad.len();
         bad[n - 6] ^= 0xff;

@@ -123,10 +123,16 @@ impl CoordinatorFile {
         if !p.exists() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&p).map_err(|source| CoordinatorError::Read { path: p.display().to_string(), source })?;
-        let f: Self = serde_json::from_str(&text).map_err(|source| CoordinatorError::Parse { path: p.display().to_string(), source })?;
+        let text = std::fs::read_to_string(&p)
+            .map_err(|source| CoordinatorError::Read { path: p.display().to_string(), source })?;
+        let f: Self = serde_json::from_str(&text)
+            .map_err(|source| CoordinatorError::Parse { path: p.display().to_string(), source })?;
         for s in &f.scenarios {
-            s.gaussian.validate().map_err(|source| CoordinatorError::Gaussian { path: p.display().to_string(), scenario: s.scenario.clone(), source })?;
+            s.gaussian.validate().map_err(|source| CoordinatorError::Gaussian {
+                path: p.display().to_string(),
+                scenario: s.scenario.clone(),
+                source,
+            })?;
         }
         Ok(Some(f))
     }
@@ -160,7 +166,13 @@ pub fn fit_scenario(
     s: &FitSettings,
     mut progress: impl FnMut(&IterationLog),
 ) -> Result<(Coordinator, Vec<IterationLog>), CoordinatorError> {
-    if s.population == 0 || s.episodes == 0 || s.envs == 0 || s.vehicles.0 == 0 || s.vehicles.0 > s.vehicles.1 || !(s.elite_frac > 0.0 && s.elite_frac <= 1.0) {
+    if s.population == 0
+        || s.episodes == 0
+        || s.envs == 0
+        || s.vehicles.0 == 0
+        || s.vehicles.0 > s.vehicles.1
+        || !(s.elite_frac > 0.0 && s.elite_frac <= 1.0)
+    {
         return Err(CoordinatorError::Settings(s.clone()));
     }
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
@@ -175,11 +187,22 @@ pub fn fit_scenario(
         for (p, &svo) in cand.iter().enumerate() {
             for e in 0..eps {
                 let n = rng.random_range(s.vehicles.0..=s.vehicles.1) as usize;
-                specs.push(EpisodeSpec { case: random_case(map, &mut rng, case_id, n), vehicles: None, svo_deg: Some(svo), tag: (p * eps + e) as u64 });
+                specs.push(EpisodeSpec {
+                    case: random_case(map, &mut rng, case_id, n),
+                    vehicles: None,
+                    svo_deg: Some(svo),
+                    tag: (p * eps + e) as u64,
+                });
                 case_id += 1;
             }
         }
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), Mode::MultiAgent, s.envs, specs)?;
+        let mut v = VecEnv::from_episodes(
+            Arc::clone(map),
+            Arc::clone(sim),
+            Mode::MultiAgent,
+            s.envs,
+            specs,
+        )?;
         let (mut sum, mut count) = (vec![0f64; pop], vec![0u64; pop]);
         run_episodes(&mut v, &drivers, &mut rng, |v, tags| {
             for (r, st) in v.row_steps().iter().enumerate().filter(|(_, st)| st.stepped) {
@@ -189,7 +212,8 @@ pub fn fit_scenario(
                 }
             }
         });
-        let scores: Vec<f32> = sum.iter().zip(&count).map(|(s, &n)| (s / n.max(1) as f64) as f32).collect();
+        let scores: Vec<f32> =
+            sum.iter().zip(&count).map(|(s, &n)| (s / n.max(1) as f64) as f32).collect();
         coord.update(&cand, &scores, s.elite_frac);
         let log = IterationLog {
             iteration,

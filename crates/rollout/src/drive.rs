@@ -99,7 +99,13 @@ impl Seat {
 
     /// `own` in this seat and the frozen policies (`background`, `ego`, `adversary`) in the
     /// others; a RARL job's frozen ego that is missing drives randomly.
-    pub fn drivers<'a>(self, own: Actor<'a>, background: Option<Actor<'a>>, ego: Option<Actor<'a>>, adversary: Option<Actor<'a>>) -> Drivers<'a> {
+    pub fn drivers<'a>(
+        self,
+        own: Actor<'a>,
+        background: Option<Actor<'a>>,
+        ego: Option<Actor<'a>>,
+        adversary: Option<Actor<'a>>,
+    ) -> Drivers<'a> {
         let ego = ego.unwrap_or(Actor::Random { dim: 2 });
         match self {
             Self::Alive => Drivers { alive: own, background, adversary },
@@ -157,15 +163,29 @@ fn gather(venvs: &[VecEnv], rows: &[Vec<usize>], n: usize) -> (Vec<f32>, Vec<u32
 }
 
 /// `actor.dim()` actions per listed row of every batch, one inference for all of them.
-fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) -> (Vec<Vec<f32>>, usize) {
+fn act(
+    venvs: &[VecEnv],
+    rows: &[Vec<usize>],
+    actor: Actor,
+    rng: &mut impl Rng,
+) -> (Vec<Vec<f32>>, usize) {
     let n: usize = rows.iter().map(Vec::len).sum();
     let dim = actor.dim();
     let flat = match actor {
         Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
         Actor::Demo { noise, action } => {
             // Residual kinds demonstrate with zeros: no IDM action to compute.
-            let mut a: Vec<f32> =
-                if action == DriveAction::Direct { venvs.iter().zip(rows).flat_map(|(v, rs)| rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))).collect() } else { vec![0.0; n * dim] };
+            let mut a: Vec<f32> = if action == DriveAction::Direct {
+                venvs
+                    .iter()
+                    .zip(rows)
+                    .flat_map(|(v, rs)| {
+                        rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))
+                    })
+                    .collect()
+            } else {
+                vec![0.0; n * dim]
+            };
             // Noise-free demonstrations draw nothing, so the stream other roles sample from (a
             // learned flow's) is the one an outside actor with the same actions would leave.
             if noise > 0.0 {
@@ -179,14 +199,23 @@ fn act(venvs: &[VecEnv], rows: &[Vec<usize>], actor: Actor, rng: &mut impl Rng) 
         Actor::Policy { .. } | Actor::External { .. } if n == 0 => Vec::new(),
         Actor::Policy { runner, deterministic } => {
             let (obs, ids) = gather(venvs, rows, n);
-            let a = if deterministic { runner.mean(&obs, &ids) } else { runner.sample(&obs, &ids, rng) };
+            let a = if deterministic {
+                runner.mean(&obs, &ids)
+            } else {
+                runner.sample(&obs, &ids, rng)
+            };
             assert_eq!(a.len(), n * dim, "policy action size differs from its role's");
             a
         }
         Actor::External { act, .. } => {
             let (obs, _) = gather(venvs, rows, n);
             let a = act(&obs, n);
-            assert_eq!(a.len(), n * dim, "an external actor returned {} floats for {n} rows of {dim}", a.len());
+            assert_eq!(
+                a.len(),
+                n * dim,
+                "an external actor returned {} floats for {n} rows of {dim}",
+                a.len()
+            );
             a
         }
     };
@@ -229,7 +258,8 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
         out.background_action = bg.drive_action();
         out.inferred_rows += n;
     } else {
-        out.background_actions = out.background_rows.iter().map(|rs| vec![0.0; rs.len() * 2]).collect();
+        out.background_actions =
+            out.background_rows.iter().map(|rs| vec![0.0; rs.len() * 2]).collect();
     }
     out
 }
@@ -240,9 +270,20 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
 pub fn apply(venvs: &mut [VecEnv], d: &Decision) {
     for (k, v) in venvs.iter_mut().enumerate() {
         let mut acts = vec![Action::default(); v.alive().len()];
-        for (rows, a, kind) in [(&d.alive_rows[k], &d.alive_actions[k], d.alive_action), (&d.background_rows[k], &d.background_actions[k], d.background_action)] {
+        for (rows, a, kind) in [
+            (&d.alive_rows[k], &d.alive_actions[k], d.alive_action),
+            (&d.background_rows[k], &d.background_actions[k], d.background_action),
+        ] {
             let dim = kind.dim();
-            assert_eq!(a.len(), rows.len() * dim, "{} action floats for {} rows of {kind:?} (alive {:?}, background {:?})", a.len(), rows.len(), d.alive_action, d.background_action);
+            assert_eq!(
+                a.len(),
+                rows.len() * dim,
+                "{} action floats for {} rows of {kind:?} (alive {:?}, background {:?})",
+                a.len(),
+                rows.len(),
+                d.alive_action,
+                d.background_action
+            );
             for (j, &r) in rows.iter().enumerate() {
                 // The IDM driver's action only where the kind adds to it.
                 let demo = kind.needs_demo().then(|| v.demo_action(r));
@@ -281,7 +322,12 @@ struct Held {
 impl Held {
     /// Starts a segment with probability `prob` when none runs (`start` draws its length and
     /// value) and returns the value held this step, if any.
-    fn step<R: Rng + ?Sized>(&mut self, prob: f32, rng: &mut R, start: impl FnOnce(&mut R) -> (u32, f32)) -> Option<f32> {
+    fn step<R: Rng + ?Sized>(
+        &mut self,
+        prob: f32,
+        rng: &mut R,
+        start: impl FnOnce(&mut R) -> (u32, f32),
+    ) -> Option<f32> {
         if self.left == 0 && prob > 0.0 && rng.random::<f32>() < prob {
             (self.left, self.value) = start(rng);
         }
@@ -308,18 +354,26 @@ impl WarmupSegments {
     /// and [`apply`]; the recorded action is then the one applied): braking holds the first
     /// action number at -1..-0.2 for 4-12 steps, a lane change the lateral one at +-1 for 8-20.
     pub fn overlay(&mut self, d: &mut Decision, rng: &mut impl Rng) {
-        let (all_rows, all_actions, kind) = if self.background { (&d.background_rows, &mut d.background_actions, d.background_action) } else { (&d.alive_rows, &mut d.alive_actions, d.alive_action) };
+        let (all_rows, all_actions, kind) = if self.background {
+            (&d.background_rows, &mut d.background_actions, d.background_action)
+        } else {
+            (&d.alive_rows, &mut d.alive_actions, d.alive_action)
+        };
         let dim = kind.dim();
         let lateral = kind == sf_sim::DriveAction::IdmResidualLateral;
         for (k, (rows, actions)) in all_rows.iter().zip(all_actions.iter_mut()).enumerate() {
             for (j, &r) in rows.iter().enumerate() {
-                if let Some(v) = self.brake[k][r].step(self.brake_prob, rng, |g| (g.random_range(4..=12), g.random_range(-1.0..-0.2))) {
+                if let Some(v) = self.brake[k][r].step(self.brake_prob, rng, |g| {
+                    (g.random_range(4..=12), g.random_range(-1.0..-0.2))
+                }) {
                     actions[j * dim] = v;
                 }
                 if !lateral {
                     continue;
                 }
-                if let Some(v) = self.lateral[k][r].step(self.lane_change_prob, rng, |g| (g.random_range(8..=20), if g.random::<bool>() { 1.0 } else { -1.0 })) {
+                if let Some(v) = self.lateral[k][r].step(self.lane_change_prob, rng, |g| {
+                    (g.random_range(8..=20), if g.random::<bool>() { 1.0 } else { -1.0 })
+                }) {
                     actions[j * dim + 1] = v;
                 }
             }
@@ -343,7 +397,12 @@ impl WarmupSegments {
 /// `after_step(v, tags)` sees every step's results (`VecEnv::row_steps`, the environments)
 /// with the tags of the episodes that took it, per environment (`None`: idle). Returns every
 /// episode's `(tag, metrics)` in the order they finished.
-pub fn run_episodes(v: &mut VecEnv, d: &Drivers, rng: &mut impl Rng, mut after_step: impl FnMut(&VecEnv, &[Option<u64>])) -> Vec<(u64, EpisodeMetrics)> {
+pub fn run_episodes(
+    v: &mut VecEnv,
+    d: &Drivers,
+    rng: &mut impl Rng,
+    mut after_step: impl FnMut(&VecEnv, &[Option<u64>]),
+) -> Vec<(u64, EpisodeMetrics)> {
     let mut out = Vec::new();
     let venvs = std::slice::from_mut(v);
     while !venvs[0].is_finished() {

@@ -85,10 +85,19 @@ fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -
 
 /// A scenario's map (`<scenarios_dir>/<name>.json`) and its stored evaluation cases
 /// (`<cases_dir>/<name>.v<CASES_VERSION>.json`).
-pub fn load_scenario(scenarios_dir: &Path, cases_dir: &Path, name: &str) -> Result<(Arc<Map>, CaseFile), EvalError> {
-    let map = Map::load(&scenarios_dir.join(format!("{name}.json"))).map_err(|source| EvalError::Scenario { name: name.to_string(), source })?;
+pub fn load_scenario(
+    scenarios_dir: &Path,
+    cases_dir: &Path,
+    name: &str,
+) -> Result<(Arc<Map>, CaseFile), EvalError> {
+    let map = Map::load(&scenarios_dir.join(format!("{name}.json")))
+        .map_err(|source| EvalError::Scenario { name: name.to_string(), source })?;
     let path = cases_dir.join(format!("{name}.v{}.json", sf_sim::case::CASES_VERSION));
-    let cases = CaseFile::load(&path, &map).map_err(|source| EvalError::Cases { name: name.to_string(), path: path.clone(), source })?;
+    let cases = CaseFile::load(&path, &map).map_err(|source| EvalError::Cases {
+        name: name.to_string(),
+        path: path.clone(),
+        source,
+    })?;
     Ok((Arc::new(map), cases))
 }
 
@@ -109,11 +118,14 @@ impl Policy {
     pub fn load(dir: &Path) -> Result<Self, EvalError> {
         let path = dir.join("config.toml");
         let text = std::fs::read_to_string(&path).map_err(io("reading", &path))?;
-        let cfg = JobConfig::from_toml(&text).map_err(|source| EvalError::JobFile { path: path.clone(), source })?;
+        let cfg = JobConfig::from_toml(&text)
+            .map_err(|source| EvalError::JobFile { path: path.clone(), source })?;
         let path = dir.join("policy.bpk");
         let weights = std::fs::read(&path).map_err(io("reading (is the job finished?)", &path))?;
         let coordinator = crate::coordinator::CoordinatorFile::load(dir)?;
-        let svo_gaussians = coordinator.map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect()).unwrap_or_default();
+        let svo_gaussians = coordinator
+            .map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect())
+            .unwrap_or_default();
         Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
     }
 }
@@ -165,16 +177,36 @@ impl FlowDef {
     pub fn load(dir: &Path) -> Result<Self, EvalError> {
         let p = Policy::load(dir)?;
         match p.cfg.kind {
-            JobKind::Ego => Err(EvalError::Misfit(format!("{} is an ego job, not a flow", dir.display()))),
+            JobKind::Ego => {
+                Err(EvalError::Misfit(format!("{} is an ego job, not a flow", dir.display())))
+            }
             JobKind::SocialcommAdv => {
-                let id = p.cfg.env.background_job.ok_or_else(|| EvalError::Invalid(format!("{}: a socialcomm-adv job without its flow (env.background_job)", dir.display())))?;
-                let jobs = dir.parent().ok_or_else(|| EvalError::Misfit(format!("{} has no parent directory", dir.display())))?;
+                let id = p.cfg.env.background_job.ok_or_else(|| {
+                    EvalError::Invalid(format!(
+                        "{}: a socialcomm-adv job without its flow (env.background_job)",
+                        dir.display()
+                    ))
+                })?;
+                let jobs = dir.parent().ok_or_else(|| {
+                    EvalError::Misfit(format!("{} has no parent directory", dir.display()))
+                })?;
                 let entries = std::fs::read_dir(jobs).map_err(io("reading", jobs))?;
                 let bg = entries
                     .flatten()
                     .map(|e| e.path())
-                    .find(|d| d.file_name().and_then(|n| n.to_str()).and_then(|n| n.split_once('-')).is_some_and(|(i, _)| i.parse::<u64>() == Ok(id)))
-                    .ok_or_else(|| EvalError::Misfit(format!("{}: its flow, job {id}, has no directory in {}", dir.display(), jobs.display())))?;
+                    .find(|d| {
+                        d.file_name()
+                            .and_then(|n| n.to_str())
+                            .and_then(|n| n.split_once('-'))
+                            .is_some_and(|(i, _)| i.parse::<u64>() == Ok(id))
+                    })
+                    .ok_or_else(|| {
+                        EvalError::Misfit(format!(
+                            "{}: its flow, job {id}, has no directory in {}",
+                            dir.display(),
+                            jobs.display()
+                        ))
+                    })?;
                 Ok(Self::learned(Policy::load(&bg)?, Some(p)))
             }
             _ => Ok(Self::learned(p, None)),
@@ -198,7 +230,9 @@ impl EgoDef {
     /// policy if it has one.
     pub fn of_work(ego: Option<Policy>, idm: bool) -> Result<Option<Self>, EvalError> {
         match (ego, idm) {
-            (Some(_), true) => Err(EvalError::Misfit("the IDM driver and an ego policy both given for the ego's seat".into())),
+            (Some(_), true) => Err(EvalError::Misfit(
+                "the IDM driver and an ego policy both given for the ego's seat".into(),
+            )),
             (None, true) => Ok(Some(Self::Idm)),
             (ego, false) => Ok(ego.map(Self::Learned)),
         }
@@ -216,15 +250,30 @@ impl EgoDef {
 /// The ego and flow of a cell from the frozen policies of an evaluation job's work item and
 /// their fetched weights (`weights[i]` belongs to `policies[i]`), each config parsed from the
 /// text it travelled with (a worker's view).
-pub fn from_frozen(policies: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<(FlowDef, Option<Policy>), EvalError> {
-    from_frozen_with(policies, weights, |f| JobConfig::from_toml(&f.config_toml).map_err(|source| EvalError::FrozenConfig { job_id: f.job_id, source }))
+pub fn from_frozen(
+    policies: &[Frozen],
+    weights: &[Arc<Vec<u8>>],
+) -> Result<(FlowDef, Option<Policy>), EvalError> {
+    from_frozen_with(policies, weights, |f| {
+        JobConfig::from_toml(&f.config_toml)
+            .map_err(|source| EvalError::FrozenConfig { job_id: f.job_id, source })
+    })
 }
 
 /// [`from_frozen`] with each policy's config from `config` (the learner's: the configs it
 /// parsed once when the jobs were stored), failing with the caller's error type.
-pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<Vec<u8>>], config: impl Fn(&Frozen) -> Result<JobConfig, E>) -> Result<(FlowDef, Option<Policy>), E> {
+pub fn from_frozen_with<E: From<EvalError>>(
+    policies: &[Frozen],
+    weights: &[Arc<Vec<u8>>],
+    config: impl Fn(&Frozen) -> Result<JobConfig, E>,
+) -> Result<(FlowDef, Option<Policy>), E> {
     if policies.len() != weights.len() {
-        return Err(EvalError::Misfit(format!("{} policies but {} weights", policies.len(), weights.len())).into());
+        return Err(EvalError::Misfit(format!(
+            "{} policies but {} weights",
+            policies.len(),
+            weights.len()
+        ))
+        .into());
     }
     let (mut ego, mut background, mut adversary) = (None, None, None);
     for (f, w) in policies.iter().zip(weights) {
@@ -234,13 +283,23 @@ pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<
             FrozenRole::Background => &mut background,
             FrozenRole::Adversary => &mut adversary,
         };
-        if slot.replace(Policy { key: f.job_id.to_string(), cfg, weights: Arc::clone(w), svo_gaussians: f.svo_gaussians.clone() }).is_some() {
+        if slot
+            .replace(Policy {
+                key: f.job_id.to_string(),
+                cfg,
+                weights: Arc::clone(w),
+                svo_gaussians: f.svo_gaussians.clone(),
+            })
+            .is_some()
+        {
             return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)).into());
         }
     }
     let flow = match background {
         Some(background) => FlowDef::learned(background, adversary),
-        None if adversary.is_some() => return Err(EvalError::Misfit("an adversary without the flow it talks to".into()).into()),
+        None if adversary.is_some() => {
+            return Err(EvalError::Misfit("an adversary without the flow it talks to".into()).into())
+        }
         None => FlowDef::Idm,
     };
     Ok((flow, ego))
@@ -250,7 +309,12 @@ pub fn from_frozen_with<E: From<EvalError>>(policies: &[Frozen], weights: &[Arc<
 /// flow's layout; a flow on its own is a Stage-1 flow that drives every vehicle.
 pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(), EvalError> {
     if cell.ego.is_empty() != ego.is_none() {
-        return Err(EvalError::Misfit(format!("cell {} names ego `{}` but {} given", cell.key(), cell.ego, if ego.is_some() { "an ego is" } else { "none is" })));
+        return Err(EvalError::Misfit(format!(
+            "cell {} names ego `{}` but {} given",
+            cell.key(),
+            cell.ego,
+            if ego.is_some() { "an ego is" } else { "none is" }
+        )));
     }
     let ego = match ego {
         // The IDM driver ignores what it observes: it fits every flow.
@@ -261,20 +325,36 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(
     if let Some(e) = ego {
         // A Stage-1 flow's actor may sit in the ego's seat (`flow_actor`, a probe); the
         // observation is one layout for every kind, each network reads the channels it consumes.
-        if !matches!(e.cfg.kind, JobKind::Ego | JobKind::Macad | JobKind::Copo | JobKind::Socialcomm) {
-            return Err(EvalError::Misfit(format!("ego `{}` is a {} job, not an ego policy (or a Stage-1 flow's actor)", cell.ego, e.cfg.kind.as_str())));
+        if !matches!(
+            e.cfg.kind,
+            JobKind::Ego | JobKind::Macad | JobKind::Copo | JobKind::Socialcomm
+        ) {
+            return Err(EvalError::Misfit(format!(
+                "ego `{}` is a {} job, not an ego policy (or a Stage-1 flow's actor)",
+                cell.ego,
+                e.cfg.kind.as_str()
+            )));
         }
     }
     match (ego, flow) {
         (None, FlowDef::Learned { .. }) => {
             let kind = flow.kind().unwrap_or_default();
             if !kind.multi_agent() {
-                return Err(EvalError::Misfit(format!("flow `{}` ({}) needs an ego to act against; evaluate it with an ego", cell.flow, kind.as_str())));
+                return Err(EvalError::Misfit(format!(
+                    "flow `{}` ({}) needs an ego to act against; evaluate it with an ego",
+                    cell.flow,
+                    kind.as_str()
+                )));
             }
         }
         (Some(e), FlowDef::Learned { background, .. }) => {
-            if setup::resolve(&e.cfg, None).obs.layout != setup::resolve(&background.cfg, None).obs.layout {
-                return Err(EvalError::Misfit(format!("ego `{}` and flow `{}` observe in different layouts", cell.ego, cell.flow)));
+            if setup::resolve(&e.cfg, None).obs.layout
+                != setup::resolve(&background.cfg, None).obs.layout
+            {
+                return Err(EvalError::Misfit(format!(
+                    "ego `{}` and flow `{}` observe in different layouts",
+                    cell.ego, cell.flow
+                )));
             }
         }
         (_, FlowDef::Idm) => {}
@@ -295,18 +375,34 @@ impl Runners {
     }
 
     fn segments(&mut self, map: &Map) -> Arc<MapSegments> {
-        Arc::clone(self.segments.entry(map.name.clone()).or_insert_with(|| Arc::new(MapSegments::build(map, SimConfig::default().obs.segment_points))))
+        Arc::clone(self.segments.entry(map.name.clone()).or_insert_with(|| {
+            Arc::new(MapSegments::build(map, SimConfig::default().obs.segment_points))
+        }))
     }
 
     /// The runner of `p` on `map` (built once, then cached).
-    pub fn get(&mut self, p: &Policy, map: &Map, sim: &SimConfig) -> Result<Arc<PolicyRunner>, EvalError> {
+    pub fn get(
+        &mut self,
+        p: &Policy,
+        map: &Map,
+        sim: &SimConfig,
+    ) -> Result<Arc<PolicyRunner>, EvalError> {
         let key = (p.key.clone(), map.name.clone());
         if let Some(r) = self.cache.get(&key) {
             return Ok(Arc::clone(r));
         }
         let segs = self.segments(map);
         let own = setup::resolve(&p.cfg, None);
-        let r = PolicyRunner::from_bytes(&own.net, &own.obs, sim.dt_s, &[segs.as_ref()], &p.weights, 0, &self.device).map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
+        let r = PolicyRunner::from_bytes(
+            &own.net,
+            &own.obs,
+            sim.dt_s,
+            &[segs.as_ref()],
+            &p.weights,
+            0,
+            &self.device,
+        )
+        .map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
         let r = Arc::new(r);
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
@@ -341,29 +437,52 @@ impl Acting {
     /// The ego acts with its mean (the IDM driver with the zero residual); flows and the
     /// adversary sample.
     fn drivers(&self) -> Drivers<'_> {
-        let (background, adversary) = (self.background.as_deref().map(Actor::sampled), self.adversary.as_deref().map(Actor::sampled));
+        let (background, adversary) = (
+            self.background.as_deref().map(Actor::sampled),
+            self.adversary.as_deref().map(Actor::sampled),
+        );
         match (&self.ego, &self.background) {
             (Seat::Policy(e), _) => Drivers { alive: Actor::mean(e), background, adversary },
             (Seat::Idm, _) => Drivers { alive: IDM_EGO, background, adversary },
-            (Seat::Empty, Some(f)) => Drivers { alive: Actor::sampled(f), background: None, adversary: None },
+            (Seat::Empty, Some(f)) => {
+                Drivers { alive: Actor::sampled(f), background: None, adversary: None }
+            }
             // The all-IDM flow: its vehicles' controllers ignore these actions.
-            (Seat::Empty, None) => Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None },
+            (Seat::Empty, None) => {
+                Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None }
+            }
         }
     }
 }
 
 /// The IDM driver in the ego's seat: the demonstrator with no noise, as a zero residual.
-const IDM_EGO: Actor<'static> = Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual };
+const IDM_EGO: Actor<'static> =
+    Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual };
 
 /// Simulator settings, mode and acting policies of a cell.
-fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
+fn cell_setup(
+    cell: &Cell,
+    map: &Map,
+    flow: &FlowDef,
+    ego: Option<&EgoDef>,
+    runners: &mut Runners,
+) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
     check_cell(cell, flow, ego)?;
     let ego = match ego {
         // The IDM driver observes in the flow's settings, as `eval-flow --ego idm` runs it.
         Some(EgoDef::Idm) => {
             let f = FlowSetup::new(flow, map, None, runners)?;
             let svo_gaussian = f.svo_gaussian.filter(|_| cell.svo_deg.is_none());
-            return Ok((f.sim, f.mode, Acting { ego: Seat::Idm, background: f.background, adversary: f.adversary, svo_gaussian }));
+            return Ok((
+                f.sim,
+                f.mode,
+                Acting {
+                    ego: Seat::Idm,
+                    background: f.background,
+                    adversary: f.adversary,
+                    svo_gaussian,
+                },
+            ));
         }
         Some(EgoDef::Learned(p)) => Some(p),
         None => None,
@@ -374,20 +493,31 @@ fn cell_setup(cell: &Cell, map: &Map, flow: &FlowDef, ego: Option<&EgoDef>, runn
         FlowDef::Learned { background, .. } => Some(background.cfg.kind),
     };
     let (sim, mode) = match (ego, flow) {
-        (Some(e), FlowDef::Idm) => (setup::resolve(&e.cfg, None).sim, Mode::Ego { background: Controller::Idm }),
-        (Some(e), FlowDef::Learned { .. }) => (setup::resolve(&e.cfg, bg_kind).sim, Mode::Ego { background: Controller::External }),
+        (Some(e), FlowDef::Idm) => {
+            (setup::resolve(&e.cfg, None).sim, Mode::Ego { background: Controller::Idm })
+        }
+        (Some(e), FlowDef::Learned { .. }) => {
+            (setup::resolve(&e.cfg, bg_kind).sim, Mode::Ego { background: Controller::External })
+        }
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
-        (None, FlowDef::Learned { background, .. }) => (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent),
+        (None, FlowDef::Learned { background, .. }) => {
+            (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent)
+        }
     };
     let mut sim = sim;
     flow.probe(&mut sim);
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
         FlowDef::Idm => (None, None),
-        FlowDef::Learned { background, adversary, .. } => (Some(runners.get(background, map, &sim)?), adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?),
+        FlowDef::Learned { background, adversary, .. } => (
+            Some(runners.get(background, map, &sim)?),
+            adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?,
+        ),
     };
     let svo_gaussian = match flow {
-        FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g),
+        FlowDef::Learned { background, .. } if cell.svo_deg.is_none() => {
+            background.svo_gaussians.iter().find(|(s, _)| *s == cell.scenario).map(|(_, g)| *g)
+        }
         _ => None,
     };
     let ego = ego.map_or(Seat::Empty, Seat::Policy);
@@ -411,23 +541,53 @@ pub struct CellSize {
 
 /// Runs one cell on `map` (the cell's scenario) over its stored `cases`; episodes in (seed,
 /// case) order.
-pub fn run_cell(cell: &Cell, size: CellSize, map: &Arc<Map>, cases: &CaseFile, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+pub fn run_cell(
+    cell: &Cell,
+    size: CellSize,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    flow: &FlowDef,
+    ego: Option<&EgoDef>,
+    runners: &mut Runners,
+) -> Result<Vec<EvalEpisode>, EvalError> {
     if map.name != cell.scenario {
-        return Err(EvalError::Misfit(format!("cell of scenario `{}` given the map `{}`", cell.scenario, map.name)));
+        return Err(EvalError::Misfit(format!(
+            "cell of scenario `{}` given the map `{}`",
+            cell.scenario, map.name
+        )));
     }
     let n_cases = size.cases as usize;
     if n_cases > cases.cases.len() {
-        return Err(EvalError::Misfit(format!("eval config field `cases`: {} exceeds the {} stored cases of {}", n_cases, cases.cases.len(), cell.scenario)));
+        return Err(EvalError::Misfit(format!(
+            "eval config field `cases`: {} exceeds the {} stored cases of {}",
+            n_cases,
+            cases.cases.len(),
+            cell.scenario
+        )));
     }
     let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
-    let episodes = Episodes { cases: &cases.cases[..n_cases], seeds: size.seeds, envs: size.envs, vehicles: cell.vehicles, svo_deg: cell.svo_deg.map(|s| s as f32) };
+    let episodes = Episodes {
+        cases: &cases.cases[..n_cases],
+        seeds: size.seeds,
+        envs: size.envs,
+        vehicles: cell.vehicles,
+        svo_deg: cell.svo_deg.map(|s| s as f32),
+    };
     run_stored(map, &sim, mode, acting.svo_gaussian, &episodes, &acting.drivers())
 }
 
 /// Runs `cases` chosen outside (a training job's generated validation cases, say) once per
 /// seed, as a cell of `ego` (or the flow on its own) in `flow` would: the same settings, mode
 /// and acting policies; episodes in (seed, case) order.
-pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize, flow: &FlowDef, ego: Option<&EgoDef>, runners: &mut Runners) -> Result<Vec<EvalEpisode>, EvalError> {
+pub fn run_cases(
+    map: &Arc<Map>,
+    cases: &[sf_sim::Case],
+    seeds: u32,
+    envs: usize,
+    flow: &FlowDef,
+    ego: Option<&EgoDef>,
+    runners: &mut Runners,
+) -> Result<Vec<EvalEpisode>, EvalError> {
     let cell = Cell {
         experiment: String::new(),
         ego: ego.map(EgoDef::key).unwrap_or_default(),
@@ -437,7 +597,14 @@ pub fn run_cases(map: &Arc<Map>, cases: &[sf_sim::Case], seeds: u32, envs: usize
         vehicles: None,
     };
     let (sim, mode, acting) = cell_setup(&cell, map, flow, ego, runners)?;
-    run_stored(map, &sim, mode, acting.svo_gaussian, &Episodes { cases, seeds, envs, vehicles: None, svo_deg: None }, &acting.drivers())
+    run_stored(
+        map,
+        &sim,
+        mode,
+        acting.svo_gaussian,
+        &Episodes { cases, seeds, envs, vehicles: None, svo_deg: None },
+        &acting.drivers(),
+    )
 }
 
 /// Stored episodes to run: every case once per seed.
@@ -454,16 +621,33 @@ pub struct Episodes<'a> {
 /// Runs `episodes` with `drivers` (one random stream per seed, seeded by the seed) and returns
 /// one row per episode in (seed, case) order. What a cell runs once its policies are chosen;
 /// also the loop of an ego chosen outside ([`FlowSetup`]).
-pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian: Option<SvoGaussian>, episodes: &Episodes, drivers: &Drivers) -> Result<Vec<EvalEpisode>, EvalError> {
+pub fn run_stored(
+    map: &Arc<Map>,
+    sim: &Arc<SimConfig>,
+    mode: Mode,
+    svo_gaussian: Option<SvoGaussian>,
+    episodes: &Episodes,
+    drivers: &Drivers,
+) -> Result<Vec<EvalEpisode>, EvalError> {
     if episodes.envs == 0 || episodes.seeds == 0 {
         return Err(EvalError::Misfit("`envs` and `seeds` must be positive".into()));
     }
     let n_cases = episodes.cases.len();
     let mut rows = Vec::with_capacity(n_cases * episodes.seeds as usize);
     for seed in 0..episodes.seeds {
-        let eps: Vec<EpisodeSpec> =
-            episodes.cases.iter().enumerate().map(|(c, case)| EpisodeSpec { case: case.clone(), vehicles: episodes.vehicles, svo_deg: episodes.svo_deg, tag: episode_tag(seed, c) }).collect();
-        let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
+        let eps: Vec<EpisodeSpec> = episodes
+            .cases
+            .iter()
+            .enumerate()
+            .map(|(c, case)| EpisodeSpec {
+                case: case.clone(),
+                vehicles: episodes.vehicles,
+                svo_deg: episodes.svo_deg,
+                tag: episode_tag(seed, c),
+            })
+            .collect();
+        let mut v =
+            VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
         v.set_svo_gaussian(svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
@@ -472,7 +656,12 @@ pub fn run_stored(map: &Arc<Map>, sim: &Arc<SimConfig>, mode: Mode, svo_gaussian
         }
         for (c, m) in done.into_iter().enumerate() {
             let m = m.ok_or_else(|| EvalError::Run(format!("case {c} did not finish")))?;
-            rows.push(EvalEpisode { case: episodes.cases[c].id, seed, scores: m.scores, collision: m.collision });
+            rows.push(EvalEpisode {
+                case: episodes.cases[c].id,
+                seed,
+                scores: m.scores,
+                collision: m.collision,
+            });
         }
     }
     Ok(rows)
@@ -492,51 +681,102 @@ pub struct FlowSetup {
 
 impl FlowSetup {
     /// `layout`: the ego's wish; refused when a learned flow observes in another layout.
-    pub fn new(flow: &FlowDef, map: &Map, layout: Option<sf_sim::Layout>, runners: &mut Runners) -> Result<Self, EvalError> {
+    pub fn new(
+        flow: &FlowDef,
+        map: &Map,
+        layout: Option<sf_sim::Layout>,
+        runners: &mut Runners,
+    ) -> Result<Self, EvalError> {
         match flow {
             FlowDef::Idm => {
                 let mut sim = SimConfig::default();
                 if let Some(l) = layout {
                     sim.obs.layout = l;
                 }
-                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::Idm }, background: None, adversary: None, svo_gaussian: None })
+                Ok(Self {
+                    sim: Arc::new(sim),
+                    mode: Mode::Ego { background: Controller::Idm },
+                    background: None,
+                    adversary: None,
+                    svo_gaussian: None,
+                })
             }
             FlowDef::Learned { background, adversary, .. } => {
                 let mut sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
                 flow.probe(&mut sim);
                 if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
-                    return Err(EvalError::Misfit(format!("the flow observes in the {} layout, not {}", sim.obs.layout.as_str(), l.as_str())));
+                    return Err(EvalError::Misfit(format!(
+                        "the flow observes in the {} layout, not {}",
+                        sim.obs.layout.as_str(),
+                        l.as_str()
+                    )));
                 }
                 let bg = runners.get(background, map, &sim)?;
                 let adv = adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?;
-                let svo_gaussian = background.svo_gaussians.iter().find(|(s, _)| *s == map.name).map(|(_, g)| *g);
-                Ok(Self { sim: Arc::new(sim), mode: Mode::Ego { background: Controller::External }, background: Some(bg), adversary: adv, svo_gaussian })
+                let svo_gaussian =
+                    background.svo_gaussians.iter().find(|(s, _)| *s == map.name).map(|(_, g)| *g);
+                Ok(Self {
+                    sim: Arc::new(sim),
+                    mode: Mode::Ego { background: Controller::External },
+                    background: Some(bg),
+                    adversary: adv,
+                    svo_gaussian,
+                })
             }
         }
     }
 
     /// The ego acts with `ego`; the flow and its adversary sample.
     pub fn drivers<'a>(&'a self, ego: Actor<'a>) -> Drivers<'a> {
-        Drivers { alive: ego, background: self.background.as_deref().map(Actor::sampled), adversary: self.adversary.as_deref().map(Actor::sampled) }
+        Drivers {
+            alive: ego,
+            background: self.background.as_deref().map(Actor::sampled),
+            adversary: self.adversary.as_deref().map(Actor::sampled),
+        }
     }
 }
 
 /// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
 /// into a GIF at `path`.
-pub fn render_gif(ego: (&str, &EgoDef), flows: &[(&str, &FlowDef)], case: u32, map: &Arc<Map>, cases: &CaseFile, runners: &mut Runners, path: &Path) -> Result<(), EvalError> {
+pub fn render_gif(
+    ego: (&str, &EgoDef),
+    flows: &[(&str, &FlowDef)],
+    case: u32,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    runners: &mut Runners,
+    path: &Path,
+) -> Result<(), EvalError> {
     use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
-    let case = cases.cases.get(case as usize).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}")))?;
+    let case = cases.cases.get(case as usize).ok_or_else(|| {
+        EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}"))
+    })?;
     let renderer = Renderer::new(map, 320, ColourBy::Svo)?;
     let mut films = Vec::new();
     for (name, flow) in flows {
-        let cell = Cell { experiment: "gif".into(), ego: ego.0.into(), flow: name.to_string(), scenario: scenario.clone(), svo_deg: None, vehicles: None };
+        let cell = Cell {
+            experiment: "gif".into(),
+            ego: ego.0.into(),
+            flow: name.to_string(),
+            scenario: scenario.clone(),
+            svo_deg: None,
+            vehicles: None,
+        };
         let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
-        let mut v = VecEnv::from_episodes(Arc::clone(map), sim, mode, 1, vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }])?;
+        let mut v = VecEnv::from_episodes(
+            Arc::clone(map),
+            sim,
+            mode,
+            1,
+            vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }],
+        )?;
         v.set_svo_gaussian(acting.svo_gaussian);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut frames = vec![renderer.frame(v.env(0))];
-        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| frames.push(renderer.frame(v.env(0))));
+        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| {
+            frames.push(renderer.frame(v.env(0)))
+        });
         films.push(frames);
     }
     let len = films.iter().map(Vec::len).max().unwrap_or(0);
@@ -544,7 +784,8 @@ pub fn render_gif(ego: (&str, &EgoDef), flows: &[(&str, &FlowDef)], case: u32, m
     let mut out = Some(std::io::BufWriter::new(file));
     let mut gif: Option<GifWriter<_>> = None;
     for k in 0..len {
-        let row: Vec<&sf_sim::render::Pixmap> = films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
+        let row: Vec<&sf_sim::render::Pixmap> =
+            films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
         let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
         if let Some(o) = out.take() {
             gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10)?);
@@ -566,8 +807,17 @@ pub struct Resolved {
 impl Resolved {
     /// The flow and ego (if any) acting in `cell`.
     pub fn cell(&self, cell: &Cell) -> Result<(&FlowDef, Option<&EgoDef>), EvalError> {
-        let flow = self.flows.get(&cell.flow).ok_or_else(|| EvalError::Misfit(format!("flow `{}` is not in the grid", cell.flow)))?;
-        let ego = if cell.ego.is_empty() { None } else { Some(self.egos.get(&cell.ego).ok_or_else(|| EvalError::Misfit(format!("ego `{}` is not in the grid", cell.ego)))?) };
+        let flow = self
+            .flows
+            .get(&cell.flow)
+            .ok_or_else(|| EvalError::Misfit(format!("flow `{}` is not in the grid", cell.flow)))?;
+        let ego = if cell.ego.is_empty() {
+            None
+        } else {
+            Some(self.egos.get(&cell.ego).ok_or_else(|| {
+                EvalError::Misfit(format!("ego `{}` is not in the grid", cell.ego))
+            })?)
+        };
         Ok((flow, ego))
     }
 
@@ -575,18 +825,31 @@ impl Resolved {
     pub fn check(&self, cells: &[Cell]) -> Result<(), EvalError> {
         for c in cells {
             let (flow, ego) = self.cell(c)?;
-            check_cell(c, flow, ego).map_err(|e| EvalError::Misfit(format!("cell {}: {e}", c.key())))?;
+            check_cell(c, flow, ego)
+                .map_err(|e| EvalError::Misfit(format!("cell {}: {e}", c.key())))?;
         }
         Ok(())
     }
 
     /// The config's GIFs (`gif-<scenario>.gif` in `out`) not already there; the paths written.
-    pub fn render_gifs(&self, g: &sf_job::eval::Gifs, out: &Path, maps: &BTreeMap<String, (Arc<Map>, CaseFile)>, runners: &mut Runners) -> Result<Vec<std::path::PathBuf>, EvalError> {
-        let ego = self.egos.get(&g.ego).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego)))?;
+    pub fn render_gifs(
+        &self,
+        g: &sf_job::eval::Gifs,
+        out: &Path,
+        maps: &BTreeMap<String, (Arc<Map>, CaseFile)>,
+        runners: &mut Runners,
+    ) -> Result<Vec<std::path::PathBuf>, EvalError> {
+        let ego = self.egos.get(&g.ego).ok_or_else(|| {
+            EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego))
+        })?;
         let flows = g
             .flows
             .iter()
-            .map(|f| self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| EvalError::Misfit(format!("experiments.gifs.flows: `{f}` is not in the grid"))))
+            .map(|f| {
+                self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| {
+                    EvalError::Misfit(format!("experiments.gifs.flows: `{f}` is not in the grid"))
+                })
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let mut written = Vec::new();
         for s in &g.scenarios {
@@ -594,8 +857,11 @@ impl Resolved {
             if path.exists() {
                 continue;
             }
-            let (map, cases) = maps.get(s).ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
-            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path).map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
+            let (map, cases) = maps
+                .get(s)
+                .ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
+            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path)
+                .map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
             written.push(path);
         }
         Ok(written)

@@ -24,12 +24,28 @@ pub struct PolicyRunner {
 
 impl PolicyRunner {
     /// Loads actor weights (`sf_nn::weights` bytes) for `net` and encodes the maps' segments.
-    pub fn from_bytes(net: &NetConfig, spec: &ObsSpec, frame_dt_s: f32, maps: &[&MapSegments], bytes: &[u8], version: u64, device: &Device) -> Result<Self, weights::WeightsError> {
+    pub fn from_bytes(
+        net: &NetConfig,
+        spec: &ObsSpec,
+        frame_dt_s: f32,
+        maps: &[&MapSegments],
+        bytes: &[u8],
+        version: u64,
+        device: &Device,
+    ) -> Result<Self, weights::WeightsError> {
         let actor = weights::from_bytes(Actor::new(net, 0, device), bytes)?;
         Ok(Self::new(actor, net, spec, frame_dt_s, maps, version, device))
     }
 
-    pub fn new(actor: Actor, net: &NetConfig, spec: &ObsSpec, frame_dt_s: f32, maps: &[&MapSegments], version: u64, device: &Device) -> Self {
+    pub fn new(
+        actor: Actor,
+        net: &NetConfig,
+        spec: &ObsSpec,
+        frame_dt_s: f32,
+        maps: &[&MapSegments],
+        version: u64,
+        device: &Device,
+    ) -> Self {
         let (table, offsets) = if spec.layout == Layout::QueryCentric {
             let input = SegmentInput::new(maps, device);
             let offsets = input.offsets.clone();
@@ -37,13 +53,33 @@ impl PolicyRunner {
         } else {
             (None, Vec::new())
         };
-        Self { version, actor, table, offsets, net: net.clone(), spec: spec.clone(), frame_dt_s, device: device.clone() }
+        Self {
+            version,
+            actor,
+            table,
+            offsets,
+            net: net.clone(),
+            spec: spec.clone(),
+            frame_dt_s,
+            device: device.clone(),
+        }
     }
 
     /// Its actor's deterministic action as an ONNX model (`sf_nn::onnx`), the segment table of
     /// its maps included as constants (query-centric).
-    pub fn export_onnx(&self, producer_version: &str, doc: &str) -> Result<Vec<u8>, sf_nn::onnx::OnnxError> {
-        let x = sf_nn::onnx::ExportSpec { spec: &self.spec, net: &self.net, frame_dt_s: self.frame_dt_s, table: self.table.as_ref(), producer_version, doc };
+    pub fn export_onnx(
+        &self,
+        producer_version: &str,
+        doc: &str,
+    ) -> Result<Vec<u8>, sf_nn::onnx::OnnxError> {
+        let x = sf_nn::onnx::ExportSpec {
+            spec: &self.spec,
+            net: &self.net,
+            frame_dt_s: self.frame_dt_s,
+            table: self.table.as_ref(),
+            producer_version,
+            doc,
+        };
         sf_nn::onnx::export_actor(&self.actor, &x)
     }
 
@@ -55,7 +91,16 @@ impl PolicyRunner {
     /// Rows of one step: in the query-centric layout each agent's history is encoded once for
     /// all its observers ([`Histories::Shared`]).
     pub fn batch(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
-        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, self.histories(), &self.device)
+        ObsBatch::from_rows(
+            rows,
+            &self.spec,
+            &self.net,
+            self.frame_dt_s,
+            map_ids,
+            &self.offsets,
+            self.histories(),
+            &self.device,
+        )
     }
 
     fn histories(&self) -> Histories {
@@ -68,12 +113,25 @@ impl PolicyRunner {
 
     /// The same step without sharing (benchmarks and tests compare the two).
     pub fn batch_unshared(&self, rows: &[f32], map_ids: &[u32]) -> ObsBatch {
-        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, &self.offsets, Histories::PerObservation, &self.device)
+        ObsBatch::from_rows(
+            rows,
+            &self.spec,
+            &self.net,
+            self.frame_dt_s,
+            map_ids,
+            &self.offsets,
+            Histories::PerObservation,
+            &self.device,
+        )
     }
 
     /// Mean actions of a prepared batch.
     pub fn mean_of(&self, batch: &ObsBatch) -> Vec<f32> {
-        self.actor.act_mean(batch, self.table.as_ref()).into_data().try_to_vec::<f32>().expect("actions are f32")
+        self.actor
+            .act_mean(batch, self.table.as_ref())
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("actions are f32")
     }
 
     /// Stochastic actions `[B * A]` (row-major) for `B` observation rows.

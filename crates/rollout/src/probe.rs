@@ -57,7 +57,13 @@ struct Pending {
 }
 
 /// Runs the demonstrator for at least `transitions` ego transitions over the job's scenarios.
-pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: usize, seed: u64) -> Result<ProbeData, ProbeError> {
+pub fn collect(
+    job: &JobConfig,
+    maps: &[Arc<Map>],
+    transitions: usize,
+    horizon: usize,
+    seed: u64,
+) -> Result<ProbeData, ProbeError> {
     let setup::ResolvedJob { sim, net, .. } = setup::resolve(job, None);
     let sim = Arc::new(sim);
     let per_map = 8;
@@ -68,16 +74,33 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
             VecEnv::new(
                 Arc::clone(m),
                 Arc::clone(&sim),
-                VecEnvConfig { n_envs: per_map, mode: Mode::Ego { background: Controller::Idm }, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed: seed.wrapping_add(k as u64 * 7919) },
+                VecEnvConfig {
+                    n_envs: per_map,
+                    mode: Mode::Ego { background: Controller::Idm },
+                    vehicles: (job.env.vehicles_min, job.env.vehicles_max),
+                    seed: seed.wrapping_add(k as u64 * 7919),
+                },
             )
         })
         .collect();
     let len = venvs[0].spec.len;
-    let drivers = Drivers { alive: Actor::Demo { noise: job.sac.warmup_noise, action: net.action }, background: None, adversary: None };
+    let drivers = Drivers {
+        alive: Actor::Demo { noise: job.sac.warmup_noise, action: net.action },
+        background: None,
+        adversary: None,
+    };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut brakes = (job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0).then(|| drive::WarmupSegments::new(job.sac.warmup_brake_prob, job.sac.warmup_lane_change_prob, &venvs));
+    let mut brakes = (job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0)
+        .then(|| {
+            drive::WarmupSegments::new(
+                job.sac.warmup_brake_prob,
+                job.sac.warmup_lane_change_prob,
+                &venvs,
+            )
+        });
     // Per environment row: the episode in progress.
-    let mut open: Vec<Vec<Vec<Pending>>> = venvs.iter().map(|v| (0..v.alive().len()).map(|_| Vec::new()).collect()).collect();
+    let mut open: Vec<Vec<Vec<Pending>>> =
+        venvs.iter().map(|v| (0..v.alive().len()).map(|_| Vec::new()).collect()).collect();
     let mut episodes: Vec<Vec<Pending>> = Vec::new();
     let mut n = 0;
     while n < transitions {
@@ -125,7 +148,15 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
         let fail_at = ep.iter().position(|p| p.failed);
         for (t, p) in ep.iter().enumerate() {
             if i < n_train {
-                train.push(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &p.next_obs, terminal: p.terminal, steps: 1, map_id: p.map_id })?;
+                train.push(Transition {
+                    obs: &p.obs,
+                    action: &p.action,
+                    reward: p.reward,
+                    next_obs: &p.next_obs,
+                    terminal: p.terminal,
+                    steps: 1,
+                    map_id: p.map_id,
+                })?;
             } else {
                 test.obs.extend_from_slice(&p.obs);
                 test.next_obs.extend_from_slice(&p.next_obs);
@@ -139,7 +170,14 @@ pub fn collect(job: &JobConfig, maps: &[Arc<Map>], transitions: usize, horizon: 
             }
         }
     }
-    Ok(ProbeData { train, test, test_labels, test_failed, failure_episodes, episodes: episodes.len() })
+    Ok(ProbeData {
+        train,
+        test,
+        test_labels,
+        test_failed,
+        failure_episodes,
+        episodes: episodes.len(),
+    })
 }
 
 /// What the probe measured.
@@ -162,7 +200,12 @@ pub struct ProbeScore {
 
 /// Trains `sac` (cloning updates as configured, then the critic alone) for `updates` updates
 /// on the training split and scores its critic on the held-out rows.
-pub fn train_and_score(sac: &mut Sac, data: &ProbeData, updates: u64, seed: u64) -> Result<ProbeScore, ProbeError> {
+pub fn train_and_score(
+    sac: &mut Sac,
+    data: &ProbeData,
+    updates: u64,
+    seed: u64,
+) -> Result<ProbeScore, ProbeError> {
     sac.cfg.critic_pretrain_updates = u64::MAX / 2;
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x70_726f_6265);
     let mut batch = Batch::default();

@@ -35,7 +35,13 @@ pub struct ResolvedJob {
 /// frozen flow), which decides what the background's observations must carry; it changes
 /// `sim` only.
 pub fn resolve(job: &JobConfig, background: Option<JobKind>) -> ResolvedJob {
-    ResolvedJob { sim: sim_config(job, background), net: net_config(job), obs: obs_spec(job), sac: job.sac.clone(), mode: mode(job) }
+    ResolvedJob {
+        sim: sim_config(job, background),
+        net: net_config(job),
+        obs: obs_spec(job),
+        sac: job.sac.clone(),
+        mode: mode(job),
+    }
 }
 
 /// The network of the job's ego policy.
@@ -138,7 +144,11 @@ fn obs_spec(job: &JobConfig) -> ObsSpec {
 pub fn rate_limiter(job: &JobConfig, min_size: u64) -> RateLimiterConfig {
     let spi = job.train.samples_per_insert;
     let batch = job.worker.batch_transitions as f64;
-    RateLimiterConfig { samples_per_insert: spi, min_size_to_sample: min_size.max(1), error_buffer: (spi * batch).max(spi).max(1.0) * 2.0 }
+    RateLimiterConfig {
+        samples_per_insert: spi,
+        min_size_to_sample: min_size.max(1),
+        error_buffer: (spi * batch).max(spi).max(1.0) * 2.0,
+    }
 }
 
 #[cfg(test)]
@@ -172,7 +182,11 @@ mod tests {
             assert_eq!(sim_config(&j, bg).obs.svo, vis, "{kind}");
             assert_eq!(mode(&j) == Mode::MultiAgent, multi, "{kind}");
             assert_eq!(reward(&j, &r), want, "{kind}");
-            assert_eq!(net_config(&j).action_dim, if kind == "socialcomm-adv" { 1 } else { 2 }, "{kind}");
+            assert_eq!(
+                net_config(&j).action_dim,
+                if kind == "socialcomm-adv" { 1 } else { 2 },
+                "{kind}"
+            );
             assert_eq!(net_config(&j).ego_flag, kind == "failmaker", "{kind}");
         }
     }
@@ -182,7 +196,11 @@ mod tests {
     #[test]
     fn failmaker_observations_flag_the_ego_and_widen_the_svo_range() {
         let ego = job("ego");
-        for (bg, flag, lo) in [(None, false, 0.0), (Some(JobKind::Socialcomm), false, 0.0), (Some(JobKind::Failmaker), true, -90.0)] {
+        for (bg, flag, lo) in [
+            (None, false, 0.0),
+            (Some(JobKind::Socialcomm), false, 0.0),
+            (Some(JobKind::Failmaker), true, -90.0),
+        ] {
             let s = sim_config(&ego, bg);
             assert_eq!((s.obs.ego_flag, s.svo_range_deg[0]), (flag, lo), "{bg:?}");
         }
@@ -197,7 +215,10 @@ mod tests {
     fn resolve_is_the_parts_and_the_background_changes_only_the_simulator() {
         let ego = job("ego");
         let (plain, with_bg) = (resolve(&ego, None), resolve(&ego, Some(JobKind::Failmaker)));
-        assert_eq!((&plain.net, &plain.obs, plain.mode), (&net_config(&ego), &obs_spec(&ego), mode(&ego)));
+        assert_eq!(
+            (&plain.net, &plain.obs, plain.mode),
+            (&net_config(&ego), &obs_spec(&ego), mode(&ego))
+        );
         assert_eq!((&with_bg.net, &with_bg.obs), (&plain.net, &plain.obs));
         assert!(with_bg.sim.obs.ego_flag && !plain.sim.obs.ego_flag);
         assert_eq!(plain.sac, ego.sac);
@@ -213,8 +234,14 @@ mod defaults {
     #[test]
     fn sac_defaults_are_the_papers() {
         let c = SacConfig::default();
-        assert_eq!((c.gamma, c.tau, c.batch_size, c.initial_alpha, c.reward_scale), (0.9, 0.005, 128, 1.0, 50.0));
+        assert_eq!(
+            (c.gamma, c.tau, c.batch_size, c.initial_alpha, c.reward_scale),
+            (0.9, 0.005, 128, 1.0, 50.0)
+        );
         assert_eq!((c.lr_actor, c.lr_critic, c.lr_alpha), (1e-4, 5e-4, 1e-4));
-        assert_eq!((c.warmup_steps, c.target_entropy, c.reuse_critic_features), (30_000, None, true));
+        assert_eq!(
+            (c.warmup_steps, c.target_entropy, c.reuse_critic_features),
+            (30_000, None, true)
+        );
     }
 }

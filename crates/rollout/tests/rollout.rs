@@ -16,7 +16,8 @@ fn tiny_net() -> NetConfig {
 }
 
 fn map() -> Arc<Map> {
-    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/scenarios/merge.json");
+    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../configs/scenarios/merge.json");
     Arc::new(Map::load(&p).expect("merge loads"))
 }
 
@@ -27,13 +28,23 @@ fn map() -> Arc<Map> {
 fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
     let sim = Arc::new(SimConfig::default());
     let m = map();
-    let mut v = VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (10, 12), seed: 5 });
+    let mut v = VecEnv::new(
+        m.clone(),
+        sim.clone(),
+        VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (10, 12), seed: 5 },
+    );
     let spec = v.spec.clone();
     assert_eq!(spec.layout, sf_sim::Layout::QueryCentric);
     let mut acts = vec![Action::default(); v.alive().len()];
     for _ in 0..12 {
         for (i, a) in acts.iter_mut().enumerate() {
-            *a = route_follower(&spec, &v.observations()[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.5);
+            *a = route_follower(
+                &spec,
+                &v.observations()[i * spec.len..(i + 1) * spec.len],
+                &sim.vehicle,
+                2,
+                0.5,
+            );
         }
         v.step(&acts);
     }
@@ -47,13 +58,25 @@ fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
     let segs = MapSegments::build(&m, sim.obs.segment_points);
     let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu");
     let actor = sf_nn::Actor::new(&tiny_net(), 7, &device);
-    let runner = sf_rollout::inference::PolicyRunner::new(actor, &tiny_net(), &spec, sim.dt_s, &[&segs], 1, &device);
+    let runner = sf_rollout::inference::PolicyRunner::new(
+        actor,
+        &tiny_net(),
+        &spec,
+        sim.dt_s,
+        &[&segs],
+        1,
+        &device,
+    );
     let (shared, copies) = (runner.batch(&rows, &ids), runner.batch_unshared(&rows, &ids));
     assert!(matches!(shared.histories, sf_nn::AgentInput::Shared { .. }));
     let n = spec.neighbours;
     assert_eq!(copies.histories.encoded_histories(), b * (n + 1));
     // Each live agent once, plus at most one empty neighbour slot.
-    assert!(shared.histories.encoded_histories() <= b + 1, "{} distinct histories for {b} agents", shared.histories.encoded_histories());
+    assert!(
+        shared.histories.encoded_histories() <= b + 1,
+        "{} distinct histories for {b} agents",
+        shared.histories.encoded_histories()
+    );
     let (a, c) = (runner.mean_of(&shared), runner.mean_of(&copies));
     let diff = a.iter().zip(&c).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
     assert!(diff < 1e-5, "shared and per-observation encodings act differently: {diff}");
@@ -70,8 +93,16 @@ fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
     let sim = Arc::new(SimConfig::default());
     let m = map();
     let run = |action: DriveAction| {
-        let mut v = vec![VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 11 })];
-        let d = Drivers { alive: Actor::Demo { noise: 0.0, action }, background: None, adversary: None };
+        let mut v = vec![VecEnv::new(
+            m.clone(),
+            sim.clone(),
+            VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 11 },
+        )];
+        let d = Drivers {
+            alive: Actor::Demo { noise: 0.0, action },
+            background: None,
+            adversary: None,
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let mut recorded = Vec::new();
         for _ in 0..30 {
@@ -86,7 +117,10 @@ fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
     let (residual_obs, residual_actions) = run(DriveAction::IdmResidual);
     assert_eq!(direct_obs, residual_obs, "same trajectories");
     assert!(residual_actions.iter().all(|&a| a == 0.0), "a residual role records its residual");
-    assert!(direct_actions.iter().any(|&a| a != 0.0), "the demonstrator's own actions are recorded as they are");
+    assert!(
+        direct_actions.iter().any(|&a| a != 0.0),
+        "the demonstrator's own actions are recorded as they are"
+    );
 }
 
 /// Braking segments in a residual warm-up: each row holds one value in [-1, -0.2] for 4 to 12
@@ -97,8 +131,21 @@ fn braking_segments_hold_a_braking_residual_for_4_to_12_steps() {
     use sf_sim::env::Controller;
     use sf_sim::DriveAction;
     let sim = Arc::new(SimConfig::default());
-    let mut v = vec![VecEnv::new(map(), sim, VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 2 })];
-    let d = Drivers { alive: Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual }, background: None, adversary: None };
+    let mut v = vec![VecEnv::new(
+        map(),
+        sim,
+        VecEnvConfig {
+            n_envs: 3,
+            mode: Mode::Ego { background: Controller::Idm },
+            vehicles: (4, 6),
+            seed: 2,
+        },
+    )];
+    let d = Drivers {
+        alive: Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual },
+        background: None,
+        adversary: None,
+    };
     let mut brakes = WarmupSegments::new(1.0, 0.0, &v);
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     // Per row: the run of equal values so far.
@@ -141,9 +188,11 @@ fn an_external_ego_evaluates_like_the_same_builtin_driver() {
     use sf_sim::DriveAction;
     let m = map();
     let cases = sf_sim::case::generate(&m, 12, 7, (3, 6));
-    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu"));
+    let mut runners =
+        Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu"));
     let setup = FlowSetup::new(&FlowDef::Idm, &m, None, &mut runners).expect("idm flow");
-    let episodes = Episodes { cases: &cases.cases, seeds: 2, envs: 5, vehicles: None, svo_deg: None };
+    let episodes =
+        Episodes { cases: &cases.cases, seeds: 2, envs: 5, vehicles: None, svo_deg: None };
     let demo = setup.drivers(Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual });
     let want = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &demo).expect("demo");
     let len = setup.sim.obs.layout;
@@ -153,13 +202,32 @@ fn an_external_ego_evaluates_like_the_same_builtin_driver() {
         seen.set(seen.get() + n);
         vec![0.0; n]
     };
-    let got = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &zero, action: DriveAction::IdmAccelResidual })).expect("external");
+    let got = run_stored(
+        &m,
+        &setup.sim,
+        setup.mode,
+        None,
+        &episodes,
+        &setup.drivers(Actor::External { act: &zero, action: DriveAction::IdmAccelResidual }),
+    )
+    .expect("external");
     assert_eq!(got, want);
     assert!(seen.get() > 24, "the external actor saw {} rows ({len:?})", seen.get());
     let brake = |_: &[f32], n: usize| vec![-1.0; n];
-    let braked = run_stored(&m, &setup.sim, setup.mode, None, &episodes, &setup.drivers(Actor::External { act: &brake, action: DriveAction::IdmAccelResidual })).expect("brake");
+    let braked = run_stored(
+        &m,
+        &setup.sim,
+        setup.mode,
+        None,
+        &episodes,
+        &setup.drivers(Actor::External { act: &brake, action: DriveAction::IdmAccelResidual }),
+    )
+    .expect("brake");
     assert_ne!(braked, want);
-    assert!(braked.iter().map(|e| e.scores.success).sum::<f32>() < want.iter().map(|e| e.scores.success).sum::<f32>());
+    assert!(
+        braked.iter().map(|e| e.scores.success).sum::<f32>()
+            < want.iter().map(|e| e.scores.success).sum::<f32>()
+    );
 }
 
 /// A job's own policy sits where its kind says: FailMaker drives the background around its
@@ -170,16 +238,34 @@ fn a_jobs_seat_follows_its_kind() {
     use sf_job::config::JobKind;
     use sf_rollout::drive::{Actor, Decision, Seat};
     use sf_sim::DriveAction;
-    assert_eq!([JobKind::Ego, JobKind::Macad, JobKind::Socialcomm].map(Seat::for_job), [Seat::Alive; 3]);
-    assert_eq!((Seat::for_job(JobKind::Failmaker), Seat::for_job(JobKind::SocialcommAdv)), (Seat::Background, Seat::Adversary));
+    assert_eq!(
+        [JobKind::Ego, JobKind::Macad, JobKind::Socialcomm].map(Seat::for_job),
+        [Seat::Alive; 3]
+    );
+    assert_eq!(
+        (Seat::for_job(JobKind::Failmaker), Seat::for_job(JobKind::SocialcommAdv)),
+        (Seat::Background, Seat::Adversary)
+    );
     let own = Actor::Random { dim: 1 };
     let ego = Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual };
     let d = Seat::Background.drivers(own, None, Some(ego), None);
-    assert!(matches!((d.alive, d.background, d.adversary), (Actor::Demo { .. }, Some(Actor::Random { dim: 1 }), None)));
+    assert!(matches!(
+        (d.alive, d.background, d.adversary),
+        (Actor::Demo { .. }, Some(Actor::Random { dim: 1 }), None)
+    ));
     let d = Seat::Adversary.drivers(own, None, None, None);
-    assert!(matches!((d.alive, d.adversary), (Actor::Random { dim: 2 }, Some(Actor::Random { dim: 1 }))), "a missing frozen ego drives randomly");
+    assert!(
+        matches!(
+            (d.alive, d.adversary),
+            (Actor::Random { dim: 2 }, Some(Actor::Random { dim: 1 }))
+        ),
+        "a missing frozen ego drives randomly"
+    );
     let d = Seat::Alive.drivers(own, Some(ego), None, None);
-    assert!(matches!((d.alive, d.background), (Actor::Random { dim: 1 }, Some(Actor::Demo { .. }))));
+    assert!(matches!(
+        (d.alive, d.background),
+        (Actor::Random { dim: 1 }, Some(Actor::Demo { .. }))
+    ));
     let dec = Decision {
         alive_rows: vec![vec![0, 2]],
         background_rows: vec![vec![1]],
@@ -189,7 +275,10 @@ fn a_jobs_seat_follows_its_kind() {
         ..Decision::default()
     };
     assert_eq!(Seat::Alive.trained(&dec), (&dec.alive_rows[..], &dec.alive_actions[..]));
-    assert_eq!(Seat::Background.trained(&dec), (&dec.background_rows[..], &dec.background_actions[..]));
+    assert_eq!(
+        Seat::Background.trained(&dec),
+        (&dec.background_rows[..], &dec.background_actions[..])
+    );
     assert_eq!(Seat::Adversary.trained(&dec), (&dec.alive_rows[..], &dec.adversary_actions[..]));
 }
 
@@ -201,13 +290,27 @@ fn evaluation_loading_errors_name_what_is_wrong() {
     let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let (scen, cases) = (root.join("configs/scenarios"), root.join("configs/cases"));
     let Err(e) = load_scenario(&scen, &cases, "nowhere") else { panic!("no such scenario") };
-    assert!(matches!(e, EvalError::Scenario { .. }) && e.to_string().starts_with("scenario `nowhere`: "), "{e}");
+    assert!(
+        matches!(e, EvalError::Scenario { .. })
+            && e.to_string().starts_with("scenario `nowhere`: "),
+        "{e}"
+    );
     let empty = std::env::temp_dir().join(format!("sf-rollout-noc-{}", std::process::id()));
     std::fs::create_dir_all(&empty).expect("tmp");
     let Err(e) = load_scenario(&scen, &empty, "merge") else { panic!("no cases") };
-    assert!(matches!(e, EvalError::Cases { .. }) && e.to_string().starts_with("cases of `merge` ("), "{e}");
-    std::fs::write(empty.join("config.toml"), "name = \"x\"\nkind = \"ego\"\n[env]\nscenarios = []\n").expect("config");
+    assert!(
+        matches!(e, EvalError::Cases { .. }) && e.to_string().starts_with("cases of `merge` ("),
+        "{e}"
+    );
+    std::fs::write(
+        empty.join("config.toml"),
+        "name = \"x\"\nkind = \"ego\"\n[env]\nscenarios = []\n",
+    )
+    .expect("config");
     let Err(e) = Policy::load(&empty) else { panic!("invalid config") };
-    assert!(matches!(e, EvalError::JobFile { .. }) && e.to_string().contains("config.toml: "), "{e}");
+    assert!(
+        matches!(e, EvalError::JobFile { .. }) && e.to_string().contains("config.toml: "),
+        "{e}"
+    );
     let _ = std::fs::remove_dir_all(&empty);
 }

@@ -55,17 +55,30 @@ fn rec_err<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(String) -> Che
 }
 
 /// `m`'s record; the error names `what` in checkpoint `dir`.
-fn module_bytes<M: Module + Clone>(m: &M, dir: &Path, what: &'static str) -> Result<Vec<u8>, CheckpointError> {
+fn module_bytes<M: Module + Clone>(
+    m: &M,
+    dir: &Path,
+    what: &'static str,
+) -> Result<Vec<u8>, CheckpointError> {
     weights::to_bytes(m).map_err(|e| rec_err(dir, what)(e.to_string()))
 }
 
 /// `o`'s state; the error names `what` in checkpoint `dir`.
-fn opt_bytes(o: &burn::optim::ModuleOptimizer, dir: &Path, what: &'static str) -> Result<Vec<u8>, CheckpointError> {
+fn opt_bytes(
+    o: &burn::optim::ModuleOptimizer,
+    dir: &Path,
+    what: &'static str,
+) -> Result<Vec<u8>, CheckpointError> {
     o.into_bytes().map(|b| b.to_vec()).map_err(|e| rec_err(dir, what)(format!("{e:?}")))
 }
 
 /// `bytes` loaded into `m`; the error names `what` in checkpoint `dir`.
-fn load_module<M: Module>(m: M, bytes: Vec<u8>, dir: &Path, what: &'static str) -> Result<M, CheckpointError> {
+fn load_module<M: Module>(
+    m: M,
+    bytes: Vec<u8>,
+    dir: &Path,
+    what: &'static str,
+) -> Result<M, CheckpointError> {
     weights::from_bytes(m, &bytes).map_err(|e| rec_err(dir, what)(e.to_string()))
 }
 
@@ -85,7 +98,8 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
         ("opt_critic.bpk", opt_bytes(&sac.opt_critic, dir, "critic optimizer")),
         ("opt_alpha.bpk", opt_bytes(&sac.opt_alpha, dir, "alpha optimizer")),
     ];
-    let avg = sac.actor_avg.as_ref().map(|a| ("actor_avg.bpk", module_bytes(a, dir, "averaged actor")));
+    let avg =
+        sac.actor_avg.as_ref().map(|a| ("actor_avg.bpk", module_bytes(a, dir, "averaged actor")));
     for (name, bytes) in files.into_iter().chain(avg) {
         let bytes = bytes?;
         let p = tmp.join(name);
@@ -96,11 +110,17 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
         updates: sac.updates,
         rng_seed: sac.rng.get_seed(),
         rng_word_pos: sac.rng.get_word_pos(),
-        sac: serde_json::to_value(&sac.cfg).map_err(|e| CheckpointError::State { path: dir.display().to_string(), reason: e.to_string() })?,
+        sac: serde_json::to_value(&sac.cfg).map_err(|e| CheckpointError::State {
+            path: dir.display().to_string(),
+            reason: e.to_string(),
+        })?,
         net: sac.net.clone(),
     };
     let p = tmp.join("state.json");
-    let text = serde_json::to_string_pretty(&state).map_err(|e| CheckpointError::State { path: p.display().to_string(), reason: e.to_string() })?;
+    let text = serde_json::to_string_pretty(&state).map_err(|e| CheckpointError::State {
+        path: p.display().to_string(),
+        reason: e.to_string(),
+    })?;
     std::fs::write(&p, text).map_err(io(&p))?;
     // Swap: old -> .old, tmp -> dir, drop .old.
     let old = sibling(dir, "old");
@@ -125,13 +145,25 @@ pub fn save(sac: &Sac, dir: &Path) -> Result<(), CheckpointError> {
 /// kept, not its last) replaces the actor and the averaged actor. This is the one rule of a
 /// continuation: it goes on with exactly the policy that every job depending on the other run
 /// (an adversary trained against it, an evaluation) acted with.
-pub fn warm_start(sac: &mut Sac, dir: &Path, kept_actor: Option<&[u8]>) -> Result<(), CheckpointError> {
+pub fn warm_start(
+    sac: &mut Sac,
+    dir: &Path,
+    kept_actor: Option<&[u8]>,
+) -> Result<(), CheckpointError> {
     // Decoded first, so that nothing is changed on error.
     let kept = match kept_actor {
         Some(bytes) => {
-            let err = |e: sf_nn::weights::WeightsError| CheckpointError::Record { path: dir.display().to_string(), what: "the kept actor (policy.bpk)", reason: e.to_string() };
+            let err = |e: sf_nn::weights::WeightsError| CheckpointError::Record {
+                path: dir.display().to_string(),
+                what: "the kept actor (policy.bpk)",
+                reason: e.to_string(),
+            };
             let actor = weights::from_bytes(sac.actor.clone(), bytes).map_err(err)?;
-            let avg = sac.actor_avg.clone().map(|avg| weights::from_bytes(avg, bytes).map_err(err)).transpose()?;
+            let avg = sac
+                .actor_avg
+                .clone()
+                .map(|avg| weights::from_bytes(avg, bytes).map_err(err))
+                .transpose()?;
             Some((actor, avg))
         }
         None => None,
@@ -146,7 +178,10 @@ pub fn warm_start(sac: &mut Sac, dir: &Path, kept_actor: Option<&[u8]>) -> Resul
 }
 
 fn sibling(dir: &Path, suffix: &str) -> PathBuf {
-    let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_else(|| "checkpoint".into());
+    let name = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "checkpoint".into());
     dir.with_file_name(format!(".{name}.{suffix}"))
 }
 
@@ -160,12 +195,24 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     };
     let p = dir.join("state.json");
     let text = std::fs::read_to_string(&p).map_err(io(&p))?;
-    let state: State = serde_json::from_str(&text).map_err(|e| CheckpointError::State { path: dir.display().to_string(), reason: e.to_string() })?;
+    let state: State = serde_json::from_str(&text).map_err(|e| CheckpointError::State {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
     if state.version != CHECKPOINT_VERSION {
-        return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("version {} is not supported (this build reads {CHECKPOINT_VERSION})", state.version) });
+        return Err(CheckpointError::State {
+            path: dir.display().to_string(),
+            reason: format!(
+                "version {} is not supported (this build reads {CHECKPOINT_VERSION})",
+                state.version
+            ),
+        });
     }
     if !state.net.same_network(&sac.net) {
-        return Err(CheckpointError::State { path: dir.display().to_string(), reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net) });
+        return Err(CheckpointError::State {
+            path: dir.display().to_string(),
+            reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net),
+        });
     }
     let actor = load_module(sac.actor.clone(), read("actor.bpk")?, dir, "actor")?;
     let critic = load_module(sac.critic.clone(), read("critic.bpk")?, dir, "critic")?;
@@ -174,15 +221,24 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     // A checkpoint without an averaged actor (written without `sac.actor_average_tau`) starts
     // the average at the restored actor.
     let actor_avg = match &sac.actor_avg {
-        Some(avg) if dir.join("actor_avg.bpk").exists() => Some(load_module(avg.clone(), read("actor_avg.bpk")?, dir, "averaged actor")?),
+        Some(avg) if dir.join("actor_avg.bpk").exists() => {
+            Some(load_module(avg.clone(), read("actor_avg.bpk")?, dir, "averaged actor")?)
+        }
         Some(_) => Some(actor.valid()),
         None => None,
     };
-    let opt = |name: &str| -> Result<Bytes, CheckpointError> { Ok(Bytes::from_bytes_vec(read(name)?)) };
+    let opt =
+        |name: &str| -> Result<Bytes, CheckpointError> { Ok(Bytes::from_bytes_vec(read(name)?)) };
     let fresh = || burn::optim::AdamConfig::new().init();
-    let opt_actor = fresh().from_bytes(opt("opt_actor.bpk")?).map_err(|e| rec_err(dir, "actor optimizer")(format!("{e:?}")))?;
-    let opt_critic = fresh().from_bytes(opt("opt_critic.bpk")?).map_err(|e| rec_err(dir, "critic optimizer")(format!("{e:?}")))?;
-    let opt_alpha = fresh().from_bytes(opt("opt_alpha.bpk")?).map_err(|e| rec_err(dir, "alpha optimizer")(format!("{e:?}")))?;
+    let opt_actor = fresh()
+        .from_bytes(opt("opt_actor.bpk")?)
+        .map_err(|e| rec_err(dir, "actor optimizer")(format!("{e:?}")))?;
+    let opt_critic = fresh()
+        .from_bytes(opt("opt_critic.bpk")?)
+        .map_err(|e| rec_err(dir, "critic optimizer")(format!("{e:?}")))?;
+    let opt_alpha = fresh()
+        .from_bytes(opt("opt_alpha.bpk")?)
+        .map_err(|e| rec_err(dir, "alpha optimizer")(format!("{e:?}")))?;
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::from_seed(state.rng_seed);
     rng.set_word_pos(state.rng_word_pos);
     sac.actor = actor;

@@ -67,9 +67,15 @@ mod tests {
     fn old_points_read_and_rows_keep_their_order() {
         let old = r#"{"env_steps":2000,"updates":400,"episodes":50,"success":0.75,"safety":0.5,"speed":0.25,"critic_loss":3.0,"actor_loss":-1.0,"alpha":0.1,"entropy":0.5,"wall_s":20.0,"ends":{"collision":0.25,"off_road":0.0,"off_route":0.0,"wrong_lane":0.0,"timeout":0.0},"critic_loss_mean":2.5,"critic_loss_median":2.0,"q_mean":-4.0}"#;
         let p: CurvePoint = serde_json::from_str(old).expect("an old curve point");
-        assert_eq!((p.learning.env_steps, p.learning.updates, p.learning.episodes), (2000, 400, 50));
+        assert_eq!(
+            (p.learning.env_steps, p.learning.updates, p.learning.episodes),
+            (2000, 400, 50)
+        );
         assert_eq!(p.learning.scores.success, 0.75);
-        assert_eq!(p.csv_row(), "2000,400,50,0.75,0.5,0.25,3,-1,0.1,0.5,20.0,0.25,0,0,0,0,2.5,2,-4");
+        assert_eq!(
+            p.csv_row(),
+            "2000,400,50,0.75,0.5,0.25,3,-1,0.1,0.5,20.0,0.25,0,0,0,0,2.5,2,-4"
+        );
         assert_eq!(p.csv_row().split(',').count(), CurvePoint::CSV_HEADER.split(',').count());
     }
 }

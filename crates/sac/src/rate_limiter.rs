@@ -40,13 +40,22 @@ impl RateLimiterConfig {
     pub fn validate(&self, capacity: u64) -> Result<(), RateLimitError> {
         let bad = |field, reason: String| Err(RateLimitError::Invalid { field, reason });
         if !(self.samples_per_insert.is_finite() && self.samples_per_insert > 0.0) {
-            return bad("samples_per_insert", format!("{} must be a positive number", self.samples_per_insert));
+            return bad(
+                "samples_per_insert",
+                format!("{} must be a positive number", self.samples_per_insert),
+            );
         }
         if self.min_size_to_sample < 1 {
             return bad("min_size_to_sample", "must be at least 1".into());
         }
         if self.min_size_to_sample > capacity {
-            return bad("min_size_to_sample", format!("{} exceeds the replay capacity {capacity}: sampling could never start", self.min_size_to_sample));
+            return bad(
+                "min_size_to_sample",
+                format!(
+                    "{} exceeds the replay capacity {capacity}: sampling could never start",
+                    self.min_size_to_sample
+                ),
+            );
         }
         let need = self.samples_per_insert.max(1.0);
         if !(self.error_buffer.is_finite() && self.error_buffer >= need) {
@@ -105,7 +114,8 @@ impl RateLimiter {
     }
 
     fn insert_ok(&self, c: &Counts, n: u64) -> bool {
-        c.inserts + n <= self.cfg.min_size_to_sample || self.diff(c) + n as f64 * self.cfg.samples_per_insert <= self.bounds().1
+        c.inserts + n <= self.cfg.min_size_to_sample
+            || self.diff(c) + n as f64 * self.cfg.samples_per_insert <= self.bounds().1
     }
 
     /// Whether one sample (update) may happen now.
@@ -118,7 +128,13 @@ impl RateLimiter {
         c.inserts >= self.cfg.min_size_to_sample && self.diff(c) - 1.0 >= self.bounds().0
     }
 
-    fn wait(&self, what: &'static str, timeout: Duration, ok: impl Fn(&Counts) -> bool, apply: impl FnOnce(&mut Counts)) -> Result<(), RateLimitError> {
+    fn wait(
+        &self,
+        what: &'static str,
+        timeout: Duration,
+        ok: impl Fn(&Counts) -> bool,
+        apply: impl FnOnce(&mut Counts),
+    ) -> Result<(), RateLimitError> {
         let deadline = Instant::now() + timeout;
         let mut c = self.lock();
         loop {
@@ -173,9 +189,18 @@ mod tests {
 
     #[test]
     fn refuses_settings_that_deadlock() {
-        assert!(matches!(cfg(4.0, 10, 2.0).validate(100), Err(RateLimitError::Invalid { field: "error_buffer", .. })));
-        assert!(matches!(cfg(1.0, 200, 2.0).validate(100), Err(RateLimitError::Invalid { field: "min_size_to_sample", .. })));
-        assert!(matches!(cfg(0.0, 10, 2.0).validate(100), Err(RateLimitError::Invalid { field: "samples_per_insert", .. })));
+        assert!(matches!(
+            cfg(4.0, 10, 2.0).validate(100),
+            Err(RateLimitError::Invalid { field: "error_buffer", .. })
+        ));
+        assert!(matches!(
+            cfg(1.0, 200, 2.0).validate(100),
+            Err(RateLimitError::Invalid { field: "min_size_to_sample", .. })
+        ));
+        assert!(matches!(
+            cfg(0.0, 10, 2.0).validate(100),
+            Err(RateLimitError::Invalid { field: "samples_per_insert", .. })
+        ));
         assert!(cfg(1.0, 10, 1.0).validate(100).is_ok());
     }
 

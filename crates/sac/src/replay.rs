@@ -32,7 +32,11 @@ impl Batch {
     /// Each row's bootstrap factor in the TD target `r + f (min Q' - alpha log pi)`:
     /// `gamma^steps`, or 0 where the row ends its episode by a failure or its destination.
     pub fn bootstrap_discounts(&self, gamma: f32) -> Vec<f32> {
-        self.terminals.iter().zip(&self.steps).map(|(&d, &n)| (1.0 - d) * gamma.powi(i32::from(n))).collect()
+        self.terminals
+            .iter()
+            .zip(&self.steps)
+            .map(|(&d, &n)| (1.0 - d) * gamma.powi(i32::from(n)))
+            .collect()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -188,11 +192,22 @@ impl Replay {
 
     /// Validates and stores a transition, evicting the oldest when full.
     pub fn push(&mut self, t: Transition<'_>) -> Result<(), ReplayError> {
-        let check = |field, got: usize, want| if got == want { Ok(()) } else { Err(ReplayError::Shape { field, got, want }) };
+        let check = |field, got: usize, want| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(ReplayError::Shape { field, got, want })
+            }
+        };
         check("obs", t.obs.len(), self.obs_len)?;
         check("next_obs", t.next_obs.len(), self.obs_len)?;
         check("action", t.action.len(), self.act_dim)?;
-        for (field, v) in [("obs", t.obs), ("next_obs", t.next_obs), ("action", t.action), ("reward", std::slice::from_ref(&t.reward))] {
+        for (field, v) in [
+            ("obs", t.obs),
+            ("next_obs", t.next_obs),
+            ("action", t.action),
+            ("reward", std::slice::from_ref(&t.reward)),
+        ] {
             if !v.iter().all(|x| x.is_finite()) {
                 return Err(ReplayError::NotFinite(field));
             }
@@ -200,14 +215,28 @@ impl Replay {
         check_steps(t.steps)?;
         let to16 = |s: &[f32]| s.iter().map(|&x| f16::from_f32(x)).collect::<Vec<_>>();
         let (obs, next_obs) = (to16(t.obs), to16(t.next_obs));
-        self.store(Stored { obs: &obs, next_obs: &next_obs, action: t.action, reward: t.reward, terminal: t.terminal, steps: t.steps, map_id: t.map_id });
+        self.store(Stored {
+            obs: &obs,
+            next_obs: &next_obs,
+            action: t.action,
+            reward: t.reward,
+            terminal: t.terminal,
+            steps: t.steps,
+            map_id: t.map_id,
+        });
         Ok(())
     }
 
     /// Stores a transition whose observations are already half floats (the wire format), so
     /// ingest copies instead of converting. Same checks and eviction as [`Replay::push`].
     pub fn push_f16(&mut self, t: Stored<'_>) -> Result<(), ReplayError> {
-        let check = |field, got: usize, want| if got == want { Ok(()) } else { Err(ReplayError::Shape { field, got, want }) };
+        let check = |field, got: usize, want| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(ReplayError::Shape { field, got, want })
+            }
+        };
         check("obs", t.obs.len(), self.obs_len)?;
         check("next_obs", t.next_obs.len(), self.obs_len)?;
         check("action", t.action.len(), self.act_dim)?;
@@ -252,14 +281,25 @@ impl Replay {
     }
 
     /// Uniformly samples `n` transitions (with replacement) into `out`, reusing its buffers.
-    pub fn sample_into(&self, rng: &mut impl Rng, n: usize, out: &mut Batch) -> Result<(), ReplayError> {
+    pub fn sample_into(
+        &self,
+        rng: &mut impl Rng,
+        n: usize,
+        out: &mut Batch,
+    ) -> Result<(), ReplayError> {
         self.sample_before_into(rng, n, u64::MAX, out)
     }
 
     /// Like [`Replay::sample_into`], among the held transitions whose insertion number is
     /// below `before` only (the first ones a job took, e.g. its warm-up's). `Empty` if none of
     /// them is held any more.
-    pub fn sample_before_into(&self, rng: &mut impl Rng, n: usize, before: u64, out: &mut Batch) -> Result<(), ReplayError> {
+    pub fn sample_before_into(
+        &self,
+        rng: &mut impl Rng,
+        n: usize,
+        before: u64,
+        out: &mut Batch,
+    ) -> Result<(), ReplayError> {
         let (first, end) = (self.oldest(), self.inserted.min(before));
         if end <= first {
             return Err(ReplayError::Empty);
@@ -275,7 +315,11 @@ impl Replay {
         for _ in 0..n {
             // The whole buffer draws a position directly (as it always has, so seeded runs keep
             // their batches); a prefix draws an insertion number and finds its position.
-            let i = if all { rng.random_range(0..self.len) } else { ((rng.random_range(first..end) - self.offset) % self.capacity as u64) as usize };
+            let i = if all {
+                rng.random_range(0..self.len)
+            } else {
+                ((rng.random_range(first..end) - self.offset) % self.capacity as u64) as usize
+            };
             let o = i * self.obs_len;
             out.obs.extend(self.obs[o..o + self.obs_len].iter().map(|x| x.to_f32()));
             out.next_obs.extend(self.next_obs[o..o + self.obs_len].iter().map(|x| x.to_f32()));
@@ -303,7 +347,15 @@ mod tests {
     use super::*;
 
     fn t(v: f32, obs: &[f32; 3]) -> Transition<'_> {
-        Transition { obs, action: &[0.5, -0.5], reward: v, next_obs: obs, terminal: v > 2.0, steps: 1, map_id: 1 }
+        Transition {
+            obs,
+            action: &[0.5, -0.5],
+            reward: v,
+            next_obs: obs,
+            terminal: v > 2.0,
+            steps: 1,
+            map_id: 1,
+        }
     }
 
     #[test]
@@ -370,12 +422,32 @@ mod tests {
             let o = [k as f32, 0.5, -0.25];
             a.push(t(k as f32, &o)).expect("push");
             let h: Vec<f16> = o.iter().map(|&x| f16::from_f32(x)).collect();
-            b.push_f16(Stored { obs: &h, next_obs: &h, action: &[0.5, -0.5], reward: k as f32, terminal: k as f32 > 2.0, steps: 1, map_id: 1 }).expect("push_f16");
+            b.push_f16(Stored {
+                obs: &h,
+                next_obs: &h,
+                action: &[0.5, -0.5],
+                reward: k as f32,
+                terminal: k as f32 > 2.0,
+                steps: 1,
+                map_id: 1,
+            })
+            .expect("push_f16");
         }
         let mut r1 = ChaCha8Rng::seed_from_u64(3);
         let mut r2 = ChaCha8Rng::seed_from_u64(3);
         assert_eq!(a.sample(&mut r1, 20), b.sample(&mut r2, 20));
-        assert_eq!(b.push_f16(Stored { obs: &[f16::NAN; 3], next_obs: &[f16::ZERO; 3], action: &[0.0, 0.0], reward: 0.0, terminal: false, steps: 1, map_id: 0 }), Err(ReplayError::NotFinite("obs")));
+        assert_eq!(
+            b.push_f16(Stored {
+                obs: &[f16::NAN; 3],
+                next_obs: &[f16::ZERO; 3],
+                action: &[0.0, 0.0],
+                reward: 0.0,
+                terminal: false,
+                steps: 1,
+                map_id: 0
+            }),
+            Err(ReplayError::NotFinite("obs"))
+        );
         assert_eq!(b.inserted(), 3);
     }
 
@@ -398,8 +470,14 @@ mod tests {
     fn bad_transitions_are_refused_and_change_nothing() {
         let mut r = Replay::new(4, 3, 2);
         let o = [0.0; 3];
-        assert_eq!(r.push(Transition { obs: &[0.0; 2], ..t(0.0, &o) }), Err(ReplayError::Shape { field: "obs", got: 2, want: 3 }));
-        assert_eq!(r.push(Transition { reward: f32::NAN, ..t(0.0, &o) }), Err(ReplayError::NotFinite("reward")));
+        assert_eq!(
+            r.push(Transition { obs: &[0.0; 2], ..t(0.0, &o) }),
+            Err(ReplayError::Shape { field: "obs", got: 2, want: 3 })
+        );
+        assert_eq!(
+            r.push(Transition { reward: f32::NAN, ..t(0.0, &o) }),
+            Err(ReplayError::NotFinite("reward"))
+        );
         assert_eq!(r.push(Transition { steps: 0, ..t(0.0, &o) }), Err(ReplayError::ZeroSteps));
         assert_eq!(r.len(), 0);
         assert_eq!(r.sample(&mut ChaCha8Rng::seed_from_u64(0), 1), Err(ReplayError::Empty));
@@ -411,7 +489,8 @@ mod tests {
         let mut r = Replay::new(4, 3, 2);
         let o = [0.0; 3];
         for (steps, terminal) in [(1, false), (3, false), (3, true), (2, false)] {
-            r.push(Transition { steps, terminal, reward: f32::from(steps), ..t(0.0, &o) }).expect("push");
+            r.push(Transition { steps, terminal, reward: f32::from(steps), ..t(0.0, &o) })
+                .expect("push");
         }
         let b = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 64).expect("sample");
         let f = b.bootstrap_discounts(0.9);

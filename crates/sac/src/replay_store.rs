@@ -47,7 +47,8 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ReplayStoreError + '_ {
 fn row_hash(row: &[f16]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for c in row.chunks(4) {
-        let w = c.iter().enumerate().fold(0u64, |w, (i, v)| w | (u64::from(v.to_bits()) << (16 * i)));
+        let w =
+            c.iter().enumerate().fold(0u64, |w, (i, v)| w | (u64::from(v.to_bits()) << (16 * i)));
         h = (h ^ w).wrapping_mul(0x0000_0100_0000_01b3);
         h ^= h >> 29;
     }
@@ -119,7 +120,8 @@ impl Segment {
     /// The bytes of the segment file (CRC-32 last).
     pub fn encode(&self) -> Vec<u8> {
         let rows = self.rows.len() / self.obs_len.max(1);
-        let mut b = Vec::with_capacity(48 + self.rows.len() * 2 + self.len() * (17 + 4 * self.act_dim));
+        let mut b =
+            Vec::with_capacity(48 + self.rows.len() * 2 + self.len() * (17 + 4 * self.act_dim));
         b.extend_from_slice(MAGIC);
         for v in [VERSION, self.obs_len as u32, self.act_dim as u32] {
             b.extend_from_slice(&v.to_le_bytes());
@@ -128,8 +130,14 @@ impl Segment {
         b.extend_from_slice(&(self.len() as u64).to_le_bytes());
         b.extend_from_slice(&(rows as u64).to_le_bytes());
         self.rows.iter().for_each(|v| b.extend_from_slice(&v.to_bits().to_le_bytes()));
-        self.obs_row.iter().chain(&self.next_row).for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
-        self.actions.iter().chain(&self.rewards).for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
+        self.obs_row
+            .iter()
+            .chain(&self.next_row)
+            .for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
+        self.actions
+            .iter()
+            .chain(&self.rewards)
+            .for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
         b.extend(self.terminals.iter().map(|&t| t as u8));
         self.map_ids.iter().for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
         b.extend_from_slice(&self.steps);
@@ -140,12 +148,17 @@ impl Segment {
 
     /// Parses and checks a segment file's bytes (`path` names it in errors).
     pub fn decode(bytes: &[u8], path: &Path) -> Result<Self, ReplayStoreError> {
-        let bad = |reason: &str| ReplayStoreError::Corrupt { path: path.display().to_string(), reason: reason.to_string() };
+        let bad = |reason: &str| ReplayStoreError::Corrupt {
+            path: path.display().to_string(),
+            reason: reason.to_string(),
+        };
         if bytes.len() < 48 || &bytes[..8] != MAGIC {
             return Err(bad("not a socialflow replay segment"));
         }
         let (body, tail) = bytes.split_at(bytes.len() - 4);
-        if crc32fast::hash(body) != u32::from_le_bytes(tail.try_into().map_err(|_| bad("truncated"))?) {
+        if crc32fast::hash(body)
+            != u32::from_le_bytes(tail.try_into().map_err(|_| bad("truncated"))?)
+        {
             return Err(bad("checksum mismatch (a torn or altered file)"));
         }
         let mut at = 8;
@@ -155,20 +168,33 @@ impl Segment {
             Ok(s)
         };
         let u32_at = |s: &[u8]| u32::from_le_bytes([s[0], s[1], s[2], s[3]]);
-        let u64_of = |s: &[u8]| u64::from_le_bytes([s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]]);
+        let u64_of =
+            |s: &[u8]| u64::from_le_bytes([s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]]);
         let version = u32_at(take(4)?);
         if version != VERSION && version != VERSION_ONE_STEP {
-            return Err(bad(&format!("format version {version}; this build reads {VERSION_ONE_STEP} and {VERSION}")));
+            return Err(bad(&format!(
+                "format version {version}; this build reads {VERSION_ONE_STEP} and {VERSION}"
+            )));
         }
         let obs_len = u32_at(take(4)?) as usize;
         let act_dim = u32_at(take(4)?) as usize;
         let first = u64_of(take(8)?);
         let count = usize::try_from(u64_of(take(8)?)).map_err(|_| bad("count"))?;
         let rows = usize::try_from(u64_of(take(8)?)).map_err(|_| bad("rows"))?;
-        let need = rows.checked_mul(obs_len).and_then(|r| r.checked_mul(2)).ok_or_else(|| bad("row count overflows"))?;
-        let rows_v: Vec<f16> = take(need)?.chunks_exact(2).map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]]))).collect();
+        let need = rows
+            .checked_mul(obs_len)
+            .and_then(|r| r.checked_mul(2))
+            .ok_or_else(|| bad("row count overflows"))?;
+        let rows_v: Vec<f16> = take(need)?
+            .chunks_exact(2)
+            .map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]])))
+            .collect();
         let u32s = |s: &[u8]| s.chunks_exact(4).map(u32_at).collect::<Vec<u32>>();
-        let f32s = |s: &[u8]| s.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<f32>>();
+        let f32s = |s: &[u8]| {
+            s.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect::<Vec<f32>>()
+        };
         let n4 = count.checked_mul(4).ok_or_else(|| bad("count overflows"))?;
         let obs_row = u32s(take(n4)?);
         let next_row = u32s(take(n4)?);
@@ -176,7 +202,8 @@ impl Segment {
         let rewards = f32s(take(n4)?);
         let terminals: Vec<bool> = take(count)?.iter().map(|&t| t != 0).collect();
         let map_ids = u32s(take(n4)?);
-        let steps = if version == VERSION_ONE_STEP { vec![1; count] } else { take(count)?.to_vec() };
+        let steps =
+            if version == VERSION_ONE_STEP { vec![1; count] } else { take(count)?.to_vec() };
         if steps.contains(&0) {
             return Err(bad("a transition spanning 0 steps"));
         }
@@ -186,7 +213,19 @@ impl Segment {
         if obs_row.iter().chain(&next_row).any(|&r| r as usize >= rows) {
             return Err(bad("a row index past the rows"));
         }
-        Ok(Segment { first, obs_len, act_dim, rows: rows_v, obs_row, next_row, actions, rewards, terminals, map_ids, steps })
+        Ok(Segment {
+            first,
+            obs_len,
+            act_dim,
+            rows: rows_v,
+            obs_row,
+            next_row,
+            actions,
+            rewards,
+            terminals,
+            map_ids,
+            steps,
+        })
     }
 
     /// Pushes transitions with insertion numbers below `upto` into `r` (in order).
@@ -245,7 +284,9 @@ impl ReplayStore {
         for e in std::fs::read_dir(&self.dir).map_err(io(&self.dir))? {
             let path = e.map_err(io(&self.dir))?.path();
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-            let Some(range) = name.strip_prefix("seg-").and_then(|r| r.strip_suffix(".bin")) else { continue };
+            let Some(range) = name.strip_prefix("seg-").and_then(|r| r.strip_suffix(".bin")) else {
+                continue;
+            };
             let Some((a, b)) = range.split_once('-') else { continue };
             if let (Ok(first), Ok(end)) = (a.parse(), b.parse()) {
                 out.push(SegmentFile { first, end, path });
@@ -291,12 +332,20 @@ impl ReplayStore {
     /// and their counted part is written again by the next append. If transitions are missing
     /// (a lost segment, persistence turned on mid-job), what was read is kept, renumbered to end
     /// at `upto`, and the directory starts over with a full write.
-    pub fn restore(&self, capacity: usize, obs_len: usize, act_dim: usize, upto: u64) -> Result<(Replay, u64), ReplayStoreError> {
+    pub fn restore(
+        &self,
+        capacity: usize,
+        obs_len: usize,
+        act_dim: usize,
+        upto: u64,
+    ) -> Result<(Replay, u64), ReplayStoreError> {
         let segs = self.segments()?;
         // The window: the newest `capacity` transitions the segments hold below `upto`.
-        let reach = segs.iter().filter(|s| s.first < upto).map(|s| s.end.min(upto)).max().unwrap_or(upto);
+        let reach =
+            segs.iter().filter(|s| s.first < upto).map(|s| s.end.min(upto)).max().unwrap_or(upto);
         let start = reach.saturating_sub(capacity as u64);
-        let first = segs.iter().find(|s| s.end > start).map_or(reach, |s| s.first.max(start)).min(reach);
+        let first =
+            segs.iter().find(|s| s.end > start).map_or(reach, |s| s.first.max(start)).min(reach);
         let mut r = Replay::numbered_from(capacity, obs_len, act_dim, first);
         for s in segs.iter().filter(|s| s.end > first) {
             if s.first > r.inserted() || r.inserted() >= reach {
@@ -305,9 +354,16 @@ impl ReplayStore {
             let bytes = std::fs::read(&s.path).map_err(io(&s.path))?;
             let seg = Segment::decode(&bytes, &s.path)?;
             if (seg.obs_len, seg.act_dim) != (obs_len, act_dim) {
-                return Err(ReplayStoreError::Shape { path: s.path.display().to_string(), got: format!("({}, {})", seg.obs_len, seg.act_dim), want: (obs_len, act_dim) });
+                return Err(ReplayStoreError::Shape {
+                    path: s.path.display().to_string(),
+                    got: format!("({}, {})", seg.obs_len, seg.act_dim),
+                    want: (obs_len, act_dim),
+                });
             }
-            seg.push_into(&mut r, reach).map_err(|source| ReplayStoreError::Refused { path: s.path.display().to_string(), source })?;
+            seg.push_into(&mut r, reach).map_err(|source| ReplayStoreError::Refused {
+                path: s.path.display().to_string(),
+                source,
+            })?;
         }
         if r.inserted() < upto {
             r.renumber(upto);
@@ -337,7 +393,16 @@ mod tests {
         for k in 0..n {
             let o = [k as f32, 0.5, -0.25, (k % 7) as f32];
             let nx = [(k + 1) as f32, 0.5, -0.25, ((k + 1) % 7) as f32];
-            r.push(Transition { obs: &o, action: &[0.1, -(k as f32) / 100.0], reward: k as f32, next_obs: &nx, terminal: k % 5 == 4, steps: 1 + (k % 3) as u8, map_id: (k % 3) as u32 }).expect("push");
+            r.push(Transition {
+                obs: &o,
+                action: &[0.1, -(k as f32) / 100.0],
+                reward: k as f32,
+                next_obs: &nx,
+                terminal: k % 5 == 4,
+                steps: 1 + (k % 3) as u8,
+                map_id: (k % 3) as u32,
+            })
+            .expect("push");
         }
         r
     }
@@ -366,7 +431,10 @@ mod tests {
         assert_eq!(back, seg);
         let mut bytes = seg.encode();
         bytes[60] ^= 1;
-        assert!(matches!(Segment::decode(&bytes, Path::new("mem")), Err(ReplayStoreError::Corrupt { .. })));
+        assert!(matches!(
+            Segment::decode(&bytes, Path::new("mem")),
+            Err(ReplayStoreError::Corrupt { .. })
+        ));
         assert!(Segment::decode(&bytes[..30], Path::new("mem")).is_err());
     }
 
@@ -398,14 +466,26 @@ mod tests {
             for _ in 0..30 {
                 let o = [k as f32, 1.0, 0.0, 0.0];
                 let nx = [(k + 1) as f32, 1.0, 0.0, 0.0];
-                r.push(Transition { obs: &o, action: &[0.0, 1.0], reward: 1.0, next_obs: &nx, terminal: false, steps: 1, map_id: 0 }).expect("push");
+                r.push(Transition {
+                    obs: &o,
+                    action: &[0.0, 1.0],
+                    reward: 1.0,
+                    next_obs: &nx,
+                    terminal: false,
+                    steps: 1,
+                    map_id: 0,
+                })
+                .expect("push");
                 k += 1;
             }
             let seg = Segment::snapshot(&r, store.next().expect("next"));
             assert_eq!(seg.len(), 30);
             store.append(&seg, r.oldest()).expect("append");
         }
-        assert_eq!(store.segments().expect("list").iter().map(|s| (s.first, s.end)).collect::<Vec<_>>(), vec![(60, 90), (90, 120)]);
+        assert_eq!(
+            store.segments().expect("list").iter().map(|s| (s.first, s.end)).collect::<Vec<_>>(),
+            vec![(60, 90), (90, 120)]
+        );
         let (back, next) = store.restore(50, 4, 2, 120).expect("restore");
         same(&r, &back);
         assert_eq!(next, 120);

@@ -121,9 +121,21 @@ pub struct Sac {
 
 impl Sac {
     /// `maps` are the maps whose segments query-centric observations index (by map id).
-    pub fn new(cfg: SacConfig, net: NetConfig, spec: ObsSpec, frame_dt_s: f32, maps: &[&MapSegments]) -> Result<Self, SacError> {
+    pub fn new(
+        cfg: SacConfig,
+        net: NetConfig,
+        spec: ObsSpec,
+        frame_dt_s: f32,
+        maps: &[&MapSegments],
+    ) -> Result<Self, SacError> {
         net.validate()?;
-        if !(cfg.gamma > 0.0 && cfg.gamma <= 1.0 && cfg.tau > 0.0 && cfg.tau <= 1.0 && cfg.batch_size > 0 && cfg.initial_alpha > 0.0) {
+        if !(cfg.gamma > 0.0
+            && cfg.gamma <= 1.0
+            && cfg.tau > 0.0
+            && cfg.tau <= 1.0
+            && cfg.batch_size > 0
+            && cfg.initial_alpha > 0.0)
+        {
             return Err(SacError::Settings(Box::new(cfg)));
         }
         let plain = device::device(device_kind(cfg.device))?;
@@ -161,7 +173,16 @@ impl Sac {
 
     fn batch_on(&self, rows: &[f32], map_ids: &[u32], device: &Device) -> ObsBatch {
         let offsets = self.seg_plain.as_ref().map_or(&[][..], |s| &s.offsets[..]);
-        ObsBatch::from_rows(rows, &self.spec, &self.net, self.frame_dt_s, map_ids, offsets, Histories::PerObservation, device)
+        ObsBatch::from_rows(
+            rows,
+            &self.spec,
+            &self.net,
+            self.frame_dt_s,
+            map_ids,
+            offsets,
+            Histories::PerObservation,
+            device,
+        )
     }
 
     fn noise(&mut self, b: usize, device: &Device) -> Tensor<2> {
@@ -183,8 +204,13 @@ impl Sac {
         let (critic, q_mean) = (c.loss, c.q_mean);
         // Not while the critic alone is trained (`critic_pretrain_updates`).
         let cloning = self.updates < self.cfg.bc_updates;
-        let evaluating_only = !cloning && self.updates < self.cfg.bc_updates + self.cfg.critic_pretrain_updates;
-        let a = if evaluating_only { ActorLosses::default() } else { self.actor_step(batch, c, alpha, cloning) };
+        let evaluating_only =
+            !cloning && self.updates < self.cfg.bc_updates + self.cfg.critic_pretrain_updates;
+        let a = if evaluating_only {
+            ActorLosses::default()
+        } else {
+            self.actor_step(batch, c, alpha, cloning)
+        };
 
         // 5. Polyak: target <- (1 - tau) target + tau critic.
         self.target = polyak(self.target.clone(), &self.critic.valid(), self.cfg.tau);
@@ -192,7 +218,14 @@ impl Sac {
             self.actor_avg = Some(polyak(avg, &self.actor.valid(), t));
         }
         self.updates += 1;
-        Losses { critic, actor: a.actor, alpha_loss: a.alpha_loss, alpha: self.alpha(), entropy: a.entropy, q_mean }
+        Losses {
+            critic,
+            actor: a.actor,
+            alpha_loss: a.alpha_loss,
+            alpha: self.alpha(),
+            entropy: a.entropy,
+            q_mean,
+        }
     }
 
     /// 1. The TD target without gradients, on the autodiff device:
@@ -209,7 +242,8 @@ impl Sac {
         let (tq1, tq2) = self.target.forward(&next, table.as_ref(), a2);
         let soft_q = tq1.min_pair(tq2) - logp2.mul_scalar(alpha);
         let discount = column(&batch.bootstrap_discounts(self.cfg.gamma), &self.plain);
-        let y = column(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale) + discount * soft_q;
+        let y = column(&batch.rewards, &self.plain).mul_scalar(self.cfg.reward_scale)
+            + discount * soft_q;
         Tensor::<2>::from_data(y.into_data(), &self.ad)
     }
 
@@ -218,9 +252,13 @@ impl Sac {
     fn critic_step(&mut self, batch: &Batch, y: Tensor<2>) -> CriticStep {
         let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.ad);
         let table = self.seg_ad.as_ref().map(|s| self.critic.enc.segment_table(s));
-        let act = Tensor::<2>::from_data(TensorData::new(batch.actions.clone(), [batch.len(), self.net.action_dim]), &self.ad);
+        let act = Tensor::<2>::from_data(
+            TensorData::new(batch.actions.clone(), [batch.len(), self.net.action_dim]),
+            &self.ad,
+        );
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
-        let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder).then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
+        let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder)
+            .then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
         let (q1, q2) = self.critic.heads(f_critic, act.clone());
         // Detached: a node on q1 that no backward consumes would stay in the autodiff graph and
         // slow every later critic-only update (`critic_pretrain_updates`), which has no actor
@@ -229,7 +267,9 @@ impl Sac {
         let loss_c = match self.cfg.critic_loss {
             CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
             // 2 x Huber, so that it equals the squared error within delta of the target.
-            CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta) + huber(q2 - y, self.cfg.huber_delta)).mul_scalar(2.0),
+            CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta)
+                + huber(q2 - y, self.cfg.huber_delta))
+            .mul_scalar(2.0),
         };
         let loss = loss_c.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
@@ -242,14 +282,23 @@ impl Sac {
 
     /// 3. Actor: maximise min(Q1, Q2)(s, a~pi) - alpha log pi, critic features taken without
     ///    gradients (the cloning updates instead fit the replayed actions); 4. temperature.
-    fn actor_step(&mut self, batch: &Batch, c: CriticStep, alpha: f32, cloning: bool) -> ActorLosses {
+    fn actor_step(
+        &mut self,
+        batch: &Batch,
+        c: CriticStep,
+        alpha: f32,
+        cloning: bool,
+    ) -> ActorLosses {
         let fc = match c.features {
             Some(f) => f,
             None => {
                 let critic_v = self.critic.valid();
                 let obs_plain = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
                 let table = self.seg_plain.as_ref().map(|s| critic_v.enc.segment_table(s));
-                Tensor::<2>::from_data(critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(), &self.ad)
+                Tensor::<2>::from_data(
+                    critic_v.enc.forward(&obs_plain, table.as_ref()).into_data(),
+                    &self.ad,
+                )
             }
         };
         let ad = self.ad.clone();
@@ -264,25 +313,37 @@ impl Sac {
         // reads it) is drawn off the autodiff graph: nodes that no backward pass consumes stay
         // in burn's graph, which every later backward sweeps, and updates slowed with every
         // cloning update (2x after 1,000 of them on the L3 job, `bench sac --phase cloning`).
-        let (mean_s, log_std_s) = if cloning { (mean.clone().detach(), log_std.clone().detach()) } else { (mean.clone(), log_std.clone()) };
+        let (mean_s, log_std_s) = if cloning {
+            (mean.clone().detach(), log_std.clone().detach())
+        } else {
+            (mean.clone(), log_std.clone())
+        };
         let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean_s, log_std_s, eps);
         let loss_a = if cloning {
             // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
             self.cloning_loss(mean, log_std, c.act, None)
         } else {
-            self.actor_objective(Sampled { mean, log_std, a_new, logp: logp.clone() }, fc, c.act, alpha)
+            self.actor_objective(
+                Sampled { mean, log_std, a_new, logp: logp.clone() },
+                fc,
+                c.act,
+                alpha,
+            )
         };
         let actor = loss_a.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss_a.backward(), &self.actor);
-        self.actor = self.opt_actor.step(self.cfg.actor_lr(self.updates), self.actor.clone(), grads);
+        self.actor =
+            self.opt_actor.step(self.cfg.actor_lr(self.updates), self.actor.clone(), grads);
 
         // 4. Temperature: push the policy's entropy towards the target (not while cloning).
         let target_entropy = self.cfg.target_entropy.unwrap_or(-(self.net.action_dim as f32));
         let logp = Tensor::<2>::from_data(logp.into_data(), &self.ad);
         let entropy = -logp.clone().mean().into_scalar::<f32>();
         // While cloning the temperature does not move: its loss is reported, off the graph.
-        let log_alpha = if cloning { self.log_alpha.value.val().detach() } else { self.log_alpha.value.val() };
-        let loss_al = (log_alpha.unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
+        let log_alpha =
+            if cloning { self.log_alpha.value.val().detach() } else { self.log_alpha.value.val() };
+        let loss_al =
+            (log_alpha.unsqueeze_dim::<2>(0) * logp.add_scalar(target_entropy)).mean().neg();
         let alpha_loss = loss_al.clone().into_scalar::<f32>();
         if !cloning {
             let grads = GradientsParams::from_grads(loss_al.backward(), &self.log_alpha);
@@ -293,7 +354,13 @@ impl Sac {
 
     /// Behaviour cloning: the mean action to `target` (row weights `w_rows`, or all rows), the
     /// log-std to `bc_log_std`.
-    fn cloning_loss(&self, mean: Tensor<2>, log_std: Tensor<2>, target: Tensor<2>, w_rows: Option<Tensor<2>>) -> Tensor<1> {
+    fn cloning_loss(
+        &self,
+        mean: Tensor<2>,
+        log_std: Tensor<2>,
+        target: Tensor<2>,
+        w_rows: Option<Tensor<2>>,
+    ) -> Tensor<1> {
         let err = (mean.tanh() - target).square();
         let err = match w_rows {
             Some(w) => (err * w).mean(),
@@ -388,7 +455,10 @@ impl Sac {
         for start in (0..map_ids.len()).step_by(256) {
             let end = (start + 256).min(map_ids.len());
             let ob = self.batch_on(&obs[start * len..end * len], &map_ids[start..end], &self.plain);
-            let a = Tensor::<2>::from_data(TensorData::new(actions[start * a_dim..end * a_dim].to_vec(), [end - start, a_dim]), &self.plain);
+            let a = Tensor::<2>::from_data(
+                TensorData::new(actions[start * a_dim..end * a_dim].to_vec(), [end - start, a_dim]),
+                &self.plain,
+            );
             let (q1, q2) = critic.forward(&ob, table.as_ref(), a);
             out.extend(q1.min_pair(q2).into_data().try_to_vec::<f32>().expect("Q values are f32"));
         }

@@ -19,14 +19,19 @@ fn tiny_net() -> NetConfig {
 }
 
 fn map() -> Arc<Map> {
-    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/scenarios/merge.json");
+    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../configs/scenarios/merge.json");
     Arc::new(Map::load(&p).expect("merge loads"))
 }
 
 /// A replay filled from real simulator rollouts (route follower with noise).
 fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
     let m = map();
-    let mut v = VecEnv::new(m.clone(), sim.clone(), VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 3 });
+    let mut v = VecEnv::new(
+        m.clone(),
+        sim.clone(),
+        VecEnvConfig { n_envs: 2, mode: Mode::MultiAgent, vehicles: (6, 10), seed: 3 },
+    );
     let spec = v.spec.clone();
     let mut r = Replay::new(10_000, spec.len, 2);
     let mut acts = vec![Action::default(); v.alive().len()];
@@ -34,14 +39,29 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
         let before = v.observations().to_vec();
         let alive = v.alive().to_vec();
         for (i, a) in acts.iter_mut().enumerate() {
-            *a = route_follower(&spec, &before[i * spec.len..(i + 1) * spec.len], &sim.vehicle, 2, 0.5);
+            *a = route_follower(
+                &spec,
+                &before[i * spec.len..(i + 1) * spec.len],
+                &sim.vehicle,
+                2,
+                0.5,
+            );
         }
         v.step(&acts);
         for i in 0..alive.len() {
             if alive[i] == 1.0 {
                 let next = &v.observations()[i * spec.len..(i + 1) * spec.len];
                 let a = [acts[i].ref_speed, acts[i].steer];
-                r.push(Transition { obs: &before[i * spec.len..(i + 1) * spec.len], action: &a, reward: 0.1, next_obs: next, terminal: false, steps: 1, map_id: 0 }).expect("valid transition");
+                r.push(Transition {
+                    obs: &before[i * spec.len..(i + 1) * spec.len],
+                    action: &a,
+                    reward: 0.1,
+                    next_obs: next,
+                    terminal: false,
+                    steps: 1,
+                    map_id: 0,
+                })
+                .expect("valid transition");
             }
         }
     }
@@ -49,7 +69,12 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
 }
 
 fn sac_for(sim: &SimConfig, m: &Map, seed: u64) -> Sac {
-    sac_with(sim, m, SacConfig { seed, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() }, tiny_net())
+    sac_with(
+        sim,
+        m,
+        SacConfig { seed, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() },
+        tiny_net(),
+    )
 }
 
 /// A learner on `m`'s segments with `cfg` and `net`.
@@ -90,8 +115,16 @@ fn tanh_gaussian_log_prob_matches_change_of_variables() {
     for i in 0..n {
         // Density of a = tanh(u), u ~ N(mu, sigma): N(atanh a) / (1 - a^2).
         let u = (a[i] as f64).atanh();
-        let want = -0.5 * ((u - mu) / sigma).powi(2) - sigma.ln() - 0.5 * (2.0 * std::f64::consts::PI).ln() - (1.0 - (a[i] as f64).powi(2)).ln();
-        assert!((lp[i] as f64 - want).abs() < 2e-3 * want.abs().max(1.0), "a = {}: {} vs {want}", a[i], lp[i]);
+        let want = -0.5 * ((u - mu) / sigma).powi(2)
+            - sigma.ln()
+            - 0.5 * (2.0 * std::f64::consts::PI).ln()
+            - (1.0 - (a[i] as f64).powi(2)).ln();
+        assert!(
+            (lp[i] as f64 - want).abs() < 2e-3 * want.abs().max(1.0),
+            "a = {}: {} vs {want}",
+            a[i],
+            lp[i]
+        );
     }
     // And the density integrates to 1 over (-1, 1).
     let k = 20_000;
@@ -99,7 +132,10 @@ fn tanh_gaussian_log_prob_matches_change_of_variables() {
     for j in 0..k {
         let aa = -1.0 + (j as f64 + 0.5) * 2.0 / k as f64;
         let u = aa.atanh();
-        let logp = -0.5 * ((u - mu) / sigma).powi(2) - sigma.ln() - 0.5 * (2.0 * std::f64::consts::PI).ln() - (1.0 - aa * aa).ln();
+        let logp = -0.5 * ((u - mu) / sigma).powi(2)
+            - sigma.ln()
+            - 0.5 * (2.0 * std::f64::consts::PI).ln()
+            - (1.0 - aa * aa).ln();
         total += logp.exp() * 2.0 / k as f64;
     }
     assert!((total - 1.0).abs() < 1e-3, "integral {total}");
@@ -120,7 +156,11 @@ fn one_update_moves_online_nets_and_the_target_only_by_polyak() {
     assert!(critic0.iter().zip(&critic1).any(|(a, b)| a != b), "critic unchanged");
     for i in 0..target1.len() {
         let want = 0.995 * target0[i] + 0.005 * critic1[i];
-        assert!((target1[i] - want).abs() <= 1e-6 * want.abs().max(1.0), "target param {i}: {} vs {want}", target1[i]);
+        assert!(
+            (target1[i] - want).abs() <= 1e-6 * want.abs().max(1.0),
+            "target param {i}: {} vs {want}",
+            target1[i]
+        );
     }
     assert_ne!(sac.alpha(), 1.0, "alpha is tuned");
 }
@@ -131,7 +171,22 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
     let (r, m) = replay_from_sim(&sim, 64);
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let make = |seed| Sac::new(SacConfig { seed, batch_size: 16, reward_scale: 1.0, actor_average_tau: Some(0.1), ..SacConfig::default() }, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+    let make = |seed| {
+        Sac::new(
+            SacConfig {
+                seed,
+                batch_size: 16,
+                reward_scale: 1.0,
+                actor_average_tau: Some(0.1),
+                ..SacConfig::default()
+            },
+            tiny_net(),
+            spec.clone(),
+            sim.dt_s,
+            &[&segs],
+        )
+        .expect("sac")
+    };
     let mut a = make(4);
     let avg0 = flat(a.actor_avg.as_ref().expect("an average"));
     assert_eq!(avg0, flat(&a.actor), "the average starts at the actor");
@@ -142,7 +197,11 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
     assert!(actor1.iter().zip(&avg0).any(|(x, y)| x != y), "the actor moved");
     for i in 0..avg1.len() {
         let want = 0.9 * avg0[i] + 0.1 * actor1[i];
-        assert!((avg1[i] - want).abs() <= 1e-6 * want.abs().max(1.0), "param {i}: {} vs {want}", avg1[i]);
+        assert!(
+            (avg1[i] - want).abs() <= 1e-6 * want.abs().max(1.0),
+            "param {i}: {} vs {want}",
+            avg1[i]
+        );
     }
     // What validation scores and the final policy takes is the average, not the actor;
     // rollouts keep the actor unless `act_with_average` says otherwise.
@@ -157,7 +216,11 @@ fn the_averaged_actor_follows_the_actor_by_polyak_and_survives_a_checkpoint() {
     let mut b = make(99);
     checkpoint::restore(&mut b, &dir).expect("restore");
     b.update(&batches[1]);
-    assert_eq!(flat(a.actor_avg.as_ref().expect("avg")), flat(b.actor_avg.as_ref().expect("avg")), "the average continues exactly");
+    assert_eq!(
+        flat(a.actor_avg.as_ref().expect("avg")),
+        flat(b.actor_avg.as_ref().expect("avg")),
+        "the average continues exactly"
+    );
     // Without the setting there is no average and the actor is what is selected.
     let plain = sac_for(&sim, &m, 4);
     assert!(plain.actor_avg.is_none());
@@ -193,7 +256,11 @@ fn a_continuation_starts_from_the_kept_actor_and_the_last_critic() {
     assert_eq!(b.updates, 0);
     let mut c = sac_for(&sim, &m, 3);
     checkpoint::warm_start(&mut c, &dir, None).expect("continue");
-    assert_eq!(c.actor_bytes().expect("bytes"), a.actor_bytes().expect("bytes"), "no kept actor: the checkpoint's");
+    assert_eq!(
+        c.actor_bytes().expect("bytes"),
+        a.actor_bytes().expect("bytes"),
+        "no kept actor: the checkpoint's"
+    );
     let mut d = sac_for(&sim, &m, 4);
     let fresh = d.actor_bytes().expect("bytes");
     let e = checkpoint::warm_start(&mut d, &dir, Some(b"not a module")).expect_err("garbage");
@@ -209,7 +276,8 @@ fn gradients_do_not_reach_frozen_modules() {
     let m = map();
     let sac = sac_for(&sim, &m, 2);
     let dev = sac.ad.clone();
-    let x = Tensor::<2>::from_data(TensorData::new(vec![0.1f32; 2 * 18], [2, 18]), &dev).require_grad();
+    let x =
+        Tensor::<2>::from_data(TensorData::new(vec![0.1f32; 2 * 18], [2, 18]), &dev).require_grad();
     let frozen = sac.critic.q1.clone().no_grad();
     let y = frozen.forward(x.clone()).sum();
     let grads = y.backward();
@@ -265,12 +333,25 @@ fn cloning_updates_fit_the_stored_actions_and_hold_alpha() {
     let (r, m) = replay_from_sim(&sim, 512);
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let cfg = SacConfig { seed: 2, batch_size: 32, lr_actor: 1e-3, initial_alpha: 0.5, bc_updates: 300, warmup_noise: (-2.0f32).exp(), reward_scale: 1.0, ..SacConfig::default() };
+    let cfg = SacConfig {
+        seed: 2,
+        batch_size: 32,
+        lr_actor: 1e-3,
+        initial_alpha: 0.5,
+        bc_updates: 300,
+        warmup_noise: (-2.0f32).exp(),
+        reward_scale: 1.0,
+        ..SacConfig::default()
+    };
     let mut sac = Sac::new(cfg, tiny_net(), spec, sim.dt_s, &[&segs]).expect("sac");
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(5), 128).expect("probe batch");
     let mse = |sac: &Sac| -> f32 {
         let (actor, table) = sac.policy();
-        let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+        let a: Vec<f32> = actor
+            .act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref())
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
         a.iter().zip(&probe.actions).map(|(x, y)| (x - y).powi(2)).sum::<f32>() / a.len() as f32
     };
     let before = mse(&sac);
@@ -295,7 +376,8 @@ fn every_critic_head_and_the_actor_keep_learning_across_updates() {
     let mut sac = sac_for(&sim, &m, 4);
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     for k in 0..4 {
-        let (q1, q2, enc, actor) = (flat(&sac.critic.q1), flat(&sac.critic.q2), flat(&sac.critic.enc), flat(&sac.actor));
+        let (q1, q2, enc, actor) =
+            (flat(&sac.critic.q1), flat(&sac.critic.q2), flat(&sac.critic.enc), flat(&sac.actor));
         sac.update(&r.sample(&mut rng, 16).expect("batch"));
         assert_ne!(q1, flat(&sac.critic.q1), "update {k}: Q1 head unchanged");
         assert_ne!(q2, flat(&sac.critic.q2), "update {k}: Q2 head unchanged");
@@ -316,13 +398,27 @@ fn the_mean_action_reaches_the_full_range_unless_squashed_twice() {
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 8).expect("batch");
     for twice in [false, true] {
         let net = NetConfig { squash_mean_twice: twice, ..tiny_net() };
-        let mut sac = Sac::new(SacConfig { reward_scale: 1.0, ..SacConfig::default() }, net, spec.clone(), sim.dt_s, &[&segs]).expect("sac");
+        let mut sac = Sac::new(
+            SacConfig { reward_scale: 1.0, ..SacConfig::default() },
+            net,
+            spec.clone(),
+            sim.dt_s,
+            &[&segs],
+        )
+        .expect("sac");
         // A mean head that outputs 3 whatever it reads.
         let last = sac.actor.mean.layers.last_mut().expect("layers");
         last.weight = Param::from_tensor(Tensor::zeros(last.weight.dims(), &sac.ad));
-        last.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![3.0f32; 2], [2]), &sac.ad)));
+        last.bias = Some(Param::from_tensor(Tensor::from_data(
+            TensorData::new(vec![3.0f32; 2], [2]),
+            &sac.ad,
+        )));
         let (actor, table) = sac.policy();
-        let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+        let a: Vec<f32> = actor
+            .act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref())
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
         let want = if twice { 3f32.tanh().tanh() } else { 3f32.tanh() };
         assert!(a.iter().all(|&x| (x - want).abs() < 1e-5), "twice {twice}: {a:?}, want {want}");
     }
@@ -335,25 +431,43 @@ fn the_first_policy_starts_at_the_configured_log_std() {
         let net = NetConfig { init_log_std: want, ..tiny_net() };
         let actor = sf_nn::Actor::new(&net, 3, &burn::tensor::Device::flex());
         let b = actor.log_std.layers.last().and_then(|l| l.bias.as_ref()).expect("bias").val();
-        let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), net.log_std_min).into_data().try_to_vec().expect("f32");
+        let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), net.log_std_min)
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
         assert!(got.iter().all(|&g| (g - want).abs() < 1e-4), "{got:?} vs {want}");
     }
-    assert!(NetConfig { init_log_std: -3.0, ..tiny_net() }.validate().is_err(), "outside the log-std range");
+    assert!(
+        NetConfig { init_log_std: -3.0, ..tiny_net() }.validate().is_err(),
+        "outside the log-std range"
+    );
     // A lower floor (`net.log_std_min`) admits a smaller first spread, and the released
     // code's range is the default: 1.5 tanh(x) - 1.
     let low = NetConfig { init_log_std: -4.0, log_std_min: -5.0, ..tiny_net() };
     low.validate().expect("inside the lower range");
     let actor = sf_nn::Actor::new(&low, 3, &burn::tensor::Device::flex());
     let b = actor.log_std.layers.last().and_then(|l| l.bias.as_ref()).expect("bias").val();
-    let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), low.log_std_min).into_data().try_to_vec().expect("f32");
+    let got: Vec<f32> = sf_nn::policy::squash_log_std(b.unsqueeze_dim::<2>(0), low.log_std_min)
+        .into_data()
+        .try_to_vec()
+        .expect("f32");
     assert!(got.iter().all(|&g| (g + 4.0).abs() < 1e-4), "{got:?} vs -4");
-    let x = Tensor::<2>::from_data(TensorData::new(vec![-20.0f32, -0.3, 0.0, 0.7, 20.0], [1, 5]), &burn::tensor::Device::flex());
-    let paper: Vec<f32> = sf_nn::policy::squash_log_std(x, tiny_net().log_std_min).into_data().try_to_vec().expect("f32");
+    let x = Tensor::<2>::from_data(
+        TensorData::new(vec![-20.0f32, -0.3, 0.0, 0.7, 20.0], [1, 5]),
+        &burn::tensor::Device::flex(),
+    );
+    let paper: Vec<f32> = sf_nn::policy::squash_log_std(x, tiny_net().log_std_min)
+        .into_data()
+        .try_to_vec()
+        .expect("f32");
     for (got, x) in paper.iter().zip([-20.0f32, -0.3, 0.0, 0.7, 20.0]) {
         assert!((got - (1.5 * x.tanh() - 1.0)).abs() < 1e-5, "{x}: {got}");
     }
     for m in [0.5f32, -11.0, f32::NAN] {
-        assert!(NetConfig { log_std_min: m, init_log_std: 0.0, ..tiny_net() }.validate().is_err(), "log_std_min {m}");
+        assert!(
+            NetConfig { log_std_min: m, init_log_std: 0.0, ..tiny_net() }.validate().is_err(),
+            "log_std_min {m}"
+        );
     }
 }
 
@@ -365,8 +479,23 @@ fn critic_pretraining_holds_the_actor_and_shared_encoders_follow_the_critic() {
     let (r, m) = replay_from_sim(&sim, 128);
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let cfg = SacConfig { seed: 4, batch_size: 16, bc_updates: 2, critic_pretrain_updates: 3, shared_encoder: true, reward_scale: 1.0, ..SacConfig::default() };
-    let mut sac = Sac::new(cfg, NetConfig { critic_layer_norm: true, ego_skip: true, pose_layers: 2, ..tiny_net() }, spec, sim.dt_s, &[&segs]).expect("sac");
+    let cfg = SacConfig {
+        seed: 4,
+        batch_size: 16,
+        bc_updates: 2,
+        critic_pretrain_updates: 3,
+        shared_encoder: true,
+        reward_scale: 1.0,
+        ..SacConfig::default()
+    };
+    let mut sac = Sac::new(
+        cfg,
+        NetConfig { critic_layer_norm: true, ego_skip: true, pose_layers: 2, ..tiny_net() },
+        spec,
+        sim.dt_s,
+        &[&segs],
+    )
+    .expect("sac");
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     for _ in 0..2 {
         sac.update(&r.sample(&mut rng, 16).expect("batch"));
@@ -377,7 +506,11 @@ fn critic_pretraining_holds_the_actor_and_shared_encoders_follow_the_critic() {
         assert_eq!(actor, flat(&sac.actor.mean), "critic-only update {k} moved the actor");
         assert_eq!(alpha, sac.alpha(), "critic-only update {k} moved alpha");
         assert_ne!(critic, flat(&sac.critic), "critic-only update {k} did not train the critic");
-        assert_eq!(flat(&sac.actor.enc), flat(&sac.critic.enc), "the shared encoder is the critic's");
+        assert_eq!(
+            flat(&sac.actor.enc),
+            flat(&sac.critic.enc),
+            "the shared encoder is the critic's"
+        );
     }
     let actor = flat(&sac.actor.mean);
     sac.update(&r.sample(&mut rng, 16).expect("batch"));
@@ -401,20 +534,34 @@ fn huber_is_quadratic_within_delta_and_linear_beyond() {
 fn awac_weights_follow_the_advantage_and_average_one() {
     let dev = burn::tensor::Device::flex();
     let col = |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [v.len(), 1]), &dev);
-    let w: Vec<f32> = sf_sac::sac::awac_weights(col(&[1.0, 2.0, 3.0, 2.0]), col(&[2.0, 2.0, 2.0, 2.0]), 1.0).into_data().try_to_vec().expect("f32");
+    let w: Vec<f32> =
+        sf_sac::sac::awac_weights(col(&[1.0, 2.0, 3.0, 2.0]), col(&[2.0, 2.0, 2.0, 2.0]), 1.0)
+            .into_data()
+            .try_to_vec()
+            .expect("f32");
     let raw = [(-1f32).exp(), 1.0, 1f32.exp(), 1.0];
     let mean = raw.iter().sum::<f32>() / 4.0;
     for (got, r) in w.iter().zip(raw) {
         assert!((got - r / mean).abs() < 1e-5, "{w:?}");
     }
     assert!(w[2] > w[1] && w[1] > w[0], "ordered by advantage: {w:?}");
-    let flat: Vec<f32> = sf_sac::sac::awac_weights(col(&[5.0; 3]), col(&[5.0; 3]), 0.3).into_data().try_to_vec().expect("f32");
+    let flat: Vec<f32> = sf_sac::sac::awac_weights(col(&[5.0; 3]), col(&[5.0; 3]), 0.3)
+        .into_data()
+        .try_to_vec()
+        .expect("f32");
     assert!(flat.iter().all(|x| (x - 1.0).abs() < 1e-6), "{flat:?}");
     // A huge advantage is clipped at AWAC_MAX_WEIGHT before the normalisation: the other rows
     // keep weight, instead of exp(100) taking the whole term.
-    let clipped: Vec<f32> = sf_sac::sac::awac_weights(col(&[100.0, 0.0]), col(&[0.0, 0.0]), 1.0).into_data().try_to_vec().expect("f32");
+    let clipped: Vec<f32> = sf_sac::sac::awac_weights(col(&[100.0, 0.0]), col(&[0.0, 0.0]), 1.0)
+        .into_data()
+        .try_to_vec()
+        .expect("f32");
     let max = sf_job::config::AWAC_MAX_WEIGHT;
-    assert!((clipped[0] - 2.0 * max / (max + 1.0)).abs() < 1e-4 && (clipped[1] - 2.0 / (max + 1.0)).abs() < 1e-5, "{clipped:?}");
+    assert!(
+        (clipped[0] - 2.0 * max / (max + 1.0)).abs() < 1e-4
+            && (clipped[1] - 2.0 / (max + 1.0)).abs() < 1e-5,
+        "{clipped:?}"
+    );
 }
 
 /// With `bc_awac_lambda` the SAC updates after cloning run the weighted cloning term and stay
@@ -423,7 +570,15 @@ fn awac_weights_follow_the_advantage_and_average_one() {
 fn awac_weighted_cloning_updates_run_and_stay_finite() {
     let sim = Arc::new(SimConfig::default());
     let (r, m) = replay_from_sim(&sim, 128);
-    let cfg = SacConfig { seed: 5, batch_size: 16, bc_updates: 1, bc_weight: 0.5, bc_awac_lambda: Some(1.0), reward_scale: 1.0, ..SacConfig::default() };
+    let cfg = SacConfig {
+        seed: 5,
+        batch_size: 16,
+        bc_updates: 1,
+        bc_weight: 0.5,
+        bc_awac_lambda: Some(1.0),
+        reward_scale: 1.0,
+        ..SacConfig::default()
+    };
     let mut sac = sac_with(&sim, &m, cfg, tiny_net());
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     for _ in 0..4 {
@@ -462,13 +617,20 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
         let mut sac = Sac::new(cfg, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
         let mean = |sac: &Sac| -> f32 {
             let (actor, table) = sac.policy();
-            let a: Vec<f32> = actor.act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref()).into_data().try_to_vec().expect("f32");
+            let a: Vec<f32> = actor
+                .act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref())
+                .into_data()
+                .try_to_vec()
+                .expect("f32");
             a.iter().sum::<f32>() / a.len() as f32
         };
         // Start the mean action at tanh(0.5) in both components.
         let last = sac.actor.mean.layers.last_mut().expect("layers");
         last.weight = Param::from_tensor(Tensor::zeros(last.weight.dims(), &sac.ad));
-        last.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![0.5f32; 2], [2]), &sac.ad)));
+        last.bias = Some(Param::from_tensor(Tensor::from_data(
+            TensorData::new(vec![0.5f32; 2], [2]),
+            &sac.ad,
+        )));
         // Q = 1 + slope * (a0 + a1), through a ReLU-free path: first layer passes the action
         // (plus 10, to stay positive) to unit 0, the next layers copy unit 0.
         for q in [&mut sac.critic.q1, &mut sac.critic.q2] {
@@ -478,18 +640,25 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
             w[(d_in - 1) * d_out] = 1.0;
             let mut b = vec![0f32; d_out];
             b[0] = 10.0;
-            q.layers[0].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
-            q.layers[0].bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(b, [d_out]), &sac.ad)));
+            q.layers[0].weight =
+                Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
+            q.layers[0].bias =
+                Some(Param::from_tensor(Tensor::from_data(TensorData::new(b, [d_out]), &sac.ad)));
             let (d_in, d_out) = (q.layers[1].weight.dims()[0], q.layers[1].weight.dims()[1]);
             let mut w = vec![0f32; d_in * d_out];
             w[0] = 1.0;
-            q.layers[1].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
+            q.layers[1].weight =
+                Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, d_out]), &sac.ad));
             q.layers[1].bias = Some(Param::from_tensor(Tensor::zeros([d_out], &sac.ad)));
             let d_in = q.layers[2].weight.dims()[0];
             let mut w = vec![0f32; d_in];
             w[0] = slope;
-            q.layers[2].weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, 1]), &sac.ad));
-            q.layers[2].bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![1.0 - 10.0 * slope], [1]), &sac.ad)));
+            q.layers[2].weight =
+                Param::from_tensor(Tensor::from_data(TensorData::new(w, [d_in, 1]), &sac.ad));
+            q.layers[2].bias = Some(Param::from_tensor(Tensor::from_data(
+                TensorData::new(vec![1.0 - 10.0 * slope], [1]),
+                &sac.ad,
+            )));
         }
         let before = mean(&sac);
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -499,7 +668,13 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
         (before, mean(&sac))
     };
     let (before, flat) = run(0.0);
-    assert!(flat.abs() < 0.5 * before.abs(), "flat critic: the term pulls to zero ({before} -> {flat})");
+    assert!(
+        flat.abs() < 0.5 * before.abs(),
+        "flat critic: the term pulls to zero ({before} -> {flat})"
+    );
     let (before, rising) = run(1.0);
-    assert!(rising > before, "a critic preferring larger actions filters the term out ({before} -> {rising})");
+    assert!(
+        rising > before,
+        "a critic preferring larger actions filters the term out ({before} -> {rising})"
+    );
 }

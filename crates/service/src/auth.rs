@@ -48,7 +48,8 @@ impl Token {
     /// The token from `file` if given, else from the environment variable `env`.
     pub fn load(env: &str, file: Option<&Path>) -> Result<Self, TokenError> {
         if let Some(p) = file {
-            let s = std::fs::read_to_string(p).map_err(|source| TokenError::File { path: p.display().to_string(), source })?;
+            let s = std::fs::read_to_string(p)
+                .map_err(|source| TokenError::File { path: p.display().to_string(), source })?;
             return Self::new(&s, &p.display().to_string());
         }
         match std::env::var(env) {
@@ -77,7 +78,9 @@ impl Transport {
     pub fn accepts_token_from(self, peer: Option<SocketAddr>) -> bool {
         match self {
             Transport::Tls | Transport::Plaintext { allow_remote: true } => true,
-            Transport::Plaintext { allow_remote: false } => peer.is_some_and(|p| p.ip().to_canonical().is_loopback()),
+            Transport::Plaintext { allow_remote: false } => {
+                peer.is_some_and(|p| p.ip().to_canonical().is_loopback())
+            }
         }
     }
 }
@@ -93,7 +96,11 @@ pub struct RequireToken {
 impl RequireToken {
     /// Plaintext from loopback only, until [`RequireToken::transport`] says otherwise.
     pub fn new(token: &Token, on_reject: impl Fn() + Send + Sync + 'static) -> Self {
-        Self { want: Arc::from(format!("Bearer {}", token.0).into_bytes()), on_reject: Arc::new(on_reject), transport: Transport::Plaintext { allow_remote: false } }
+        Self {
+            want: Arc::from(format!("Bearer {}", token.0).into_bytes()),
+            on_reject: Arc::new(on_reject),
+            transport: Transport::Plaintext { allow_remote: false },
+        }
     }
 
     pub fn transport(mut self, t: Transport) -> Self {
@@ -119,7 +126,10 @@ impl Interceptor for RequireToken {
                 "bearer token over plaintext from {from} refused: the learner serves TLS-less tokens to loopback only (serve TLS, or start it with --allow-plaintext-token on a trusted network)"
             )));
         }
-        let ok = req.metadata().get("authorization").is_some_and(|v| constant_time_eq(v.as_bytes(), &self.want));
+        let ok = req
+            .metadata()
+            .get("authorization")
+            .is_some_and(|v| constant_time_eq(v.as_bytes(), &self.want));
         if ok {
             Ok(req)
         } else {
@@ -155,32 +165,47 @@ mod tests {
     #[test]
     fn plaintext_tokens_come_from_loopback_only_unless_allowed() {
         let strict = Transport::Plaintext { allow_remote: false };
-        for (peer, ok) in [("127.0.0.1:5", true), ("[::1]:5", true), ("[::ffff:127.0.0.1]:5", true), ("10.0.0.7:5", false), ("[2001:db8::1]:5", false)] {
+        for (peer, ok) in [
+            ("127.0.0.1:5", true),
+            ("[::1]:5", true),
+            ("[::ffff:127.0.0.1]:5", true),
+            ("10.0.0.7:5", false),
+            ("[2001:db8::1]:5", false),
+        ] {
             assert_eq!(strict.accepts_token_from(Some(peer.parse().expect("addr"))), ok, "{peer}");
         }
         assert!(!strict.accepts_token_from(None));
-        assert!(Transport::Plaintext { allow_remote: true }.accepts_token_from(Some("10.0.0.7:5".parse().expect("addr"))));
+        assert!(Transport::Plaintext { allow_remote: true }
+            .accepts_token_from(Some("10.0.0.7:5".parse().expect("addr"))));
         assert!(Transport::Tls.accepts_token_from(None));
     }
 
     #[test]
     fn only_the_right_token_passes() {
         let t = Token::new("s3cret-token", "test").expect("valid");
-        let mut check = RequireToken::new(&t, || {}).transport(Transport::Plaintext { allow_remote: true });
+        let mut check =
+            RequireToken::new(&t, || {}).transport(Transport::Plaintext { allow_remote: true });
         let mut attach = AttachToken::new(Some(t));
         let req = attach.call(Request::new(())).expect("attach");
         assert!(check.call(req).is_ok());
-        assert_eq!(check.call(Request::new(())).expect_err("none").code(), tonic::Code::Unauthenticated);
+        assert_eq!(
+            check.call(Request::new(())).expect_err("none").code(),
+            tonic::Code::Unauthenticated
+        );
         let mut wrong = AttachToken::new(Some(Token::new("s3cret-tokeN", "t").expect("valid")));
         let req = wrong.call(Request::new(())).expect("attach");
         assert_eq!(check.call(req).expect_err("wrong").code(), tonic::Code::Unauthenticated);
         assert!(Token::new("short", "t").is_err());
         // A request with no known peer (as here) is not on loopback: refused over plaintext
         // unless allowed, accepted under TLS.
-        let mut strict = RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {});
-        let e = strict.call(attach.call(Request::new(())).expect("attach")).expect_err("plaintext from an unknown peer");
+        let mut strict =
+            RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {});
+        let e = strict
+            .call(attach.call(Request::new(())).expect("attach"))
+            .expect_err("plaintext from an unknown peer");
         assert!(e.message().contains("--allow-plaintext-token"), "{e:?}");
-        let mut tls = RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {}).transport(Transport::Tls);
+        let mut tls = RequireToken::new(&Token::new("s3cret-token", "test").expect("valid"), || {})
+            .transport(Transport::Tls);
         assert!(tls.call(attach.call(Request::new(())).expect("attach")).is_ok());
         assert!(Token::new("has space inside", "t").is_err());
     }

@@ -12,7 +12,12 @@ pub struct Backoff {
 
 impl Backoff {
     pub fn new(initial: Duration, max: Duration) -> Self {
-        Self { initial, max, current: initial, state: 0x9e37_79b9_7f4a_7c15 ^ std::process::id() as u64 }
+        Self {
+            initial,
+            max,
+            current: initial,
+            state: 0x9e37_79b9_7f4a_7c15 ^ std::process::id() as u64,
+        }
     }
 
     /// The next delay: doubles up to `max`, with up to 25 % jitter below it.

@@ -112,7 +112,9 @@ mod tests {
 
     #[test]
     fn domain_errors_map_to_the_documented_codes() {
-        let s: Status = ServiceError::from(sf_proto::WireError { field: "obs_f16", reason: "short".into() }).into();
+        let s: Status =
+            ServiceError::from(sf_proto::WireError { field: "obs_f16", reason: "short".into() })
+                .into();
         assert_eq!(s.code(), Code::InvalidArgument);
         assert!(s.message().contains("obs_f16"));
         let s: Status = ServiceError::NotFound("job 7 not found".into()).into();

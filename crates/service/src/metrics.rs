@@ -26,14 +26,27 @@ impl CommonMetrics {
     /// Registers under `socialflow_<component>_...`.
     pub fn register(reg: &mut Registry, component: &str) -> Self {
         let m = Self { rpcs: Family::default(), resident_memory_bytes: Gauge::default() };
-        reg.register(format!("socialflow_{component}_rpcs"), "RPCs handled (server) or made (client), by method and gRPC status code", m.rpcs.clone());
-        reg.register(format!("socialflow_{component}_resident_memory_bytes"), "Resident set size of the process", m.resident_memory_bytes.clone());
+        reg.register(
+            format!("socialflow_{component}_rpcs"),
+            "RPCs handled (server) or made (client), by method and gRPC status code",
+            m.rpcs.clone(),
+        );
+        reg.register(
+            format!("socialflow_{component}_resident_memory_bytes"),
+            "Resident set size of the process",
+            m.resident_memory_bytes.clone(),
+        );
         m
     }
 
     /// Counts one RPC outcome.
     pub fn rpc(&self, method: &str, code: tonic::Code) {
-        self.rpcs.get_or_create(&RpcLabels { method: method.to_string(), code: crate::error::code_label(code).to_string() }).inc();
+        self.rpcs
+            .get_or_create(&RpcLabels {
+                method: method.to_string(),
+                code: crate::error::code_label(code).to_string(),
+            })
+            .inc();
     }
 
     /// Reads the resident set size from /proc (Linux); leaves the gauge alone elsewhere.

@@ -16,10 +16,17 @@ fn read(path: &Path, what: &str) -> anyhow::Result<Vec<u8>> {
 }
 
 /// The server side from PEM files; `client_ca`: require client certificates signed by it.
-pub fn server(cert: &Path, key: &Path, client_ca: Option<&Path>) -> anyhow::Result<ServerTlsConfig> {
-    let tls = ServerTlsConfig::new().identity(Identity::from_pem(read(cert, "TLS certificate")?, read(key, "TLS key")?));
+pub fn server(
+    cert: &Path,
+    key: &Path,
+    client_ca: Option<&Path>,
+) -> anyhow::Result<ServerTlsConfig> {
+    let tls = ServerTlsConfig::new()
+        .identity(Identity::from_pem(read(cert, "TLS certificate")?, read(key, "TLS key")?));
     Ok(match client_ca {
-        Some(ca) => tls.client_ca_root(Certificate::from_pem(read(ca, "TLS client CA certificate")?)),
+        Some(ca) => {
+            tls.client_ca_root(Certificate::from_pem(read(ca, "TLS client CA certificate")?))
+        }
         None => tls,
     })
 }
@@ -36,18 +43,29 @@ pub struct ClientTls {
 /// A client endpoint for `url`: TLS with the CA as the trust root (and the client identity, if
 /// any) for `https://`, plain for `http://`.
 pub fn endpoint(url: &str, tls: &ClientTls) -> anyhow::Result<Endpoint> {
-    let ep = Endpoint::from_shared(url.to_string()).with_context(|| format!("learner url `{url}`"))?.connect_timeout(Duration::from_secs(5)).tcp_nodelay(true);
+    let ep = Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("learner url `{url}`"))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
     match (url.starts_with("https://"), &tls.ca_file) {
         (true, Some(ca)) => {
-            let mut c = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(read(ca, "TLS CA certificate")?));
+            let mut c = ClientTlsConfig::new()
+                .ca_certificate(Certificate::from_pem(read(ca, "TLS CA certificate")?));
             if let Some((cert, key)) = &tls.identity {
-                c = c.identity(Identity::from_pem(read(cert, "TLS client certificate")?, read(key, "TLS client key")?));
+                c = c.identity(Identity::from_pem(
+                    read(cert, "TLS client certificate")?,
+                    read(key, "TLS client key")?,
+                ));
             }
             Ok(ep.tls_config(c).context("TLS client configuration")?)
         }
-        (true, None) => bail!("`{url}` is https: pass the learner's CA certificate with --tls-ca-file"),
+        (true, None) => {
+            bail!("`{url}` is https: pass the learner's CA certificate with --tls-ca-file")
+        }
         (false, Some(_)) => bail!("--tls-ca-file given but `{url}` is not https"),
-        (false, None) if tls.identity.is_some() => bail!("--tls-client-cert-file given but `{url}` is not https"),
+        (false, None) if tls.identity.is_some() => {
+            bail!("--tls-client-cert-file given but `{url}` is not https")
+        }
         (false, None) => Ok(ep),
     }
 }

@@ -33,7 +33,9 @@ pub struct SvoGaussian {
 impl SvoGaussian {
     /// Checks the parameters; names the field.
     pub fn validate(&self) -> Result<(), SvoGaussianError> {
-        if !self.mean_deg.is_finite() || !(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1).contains(&self.mean_deg) {
+        if !self.mean_deg.is_finite()
+            || !(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1).contains(&self.mean_deg)
+        {
             return Err(SvoGaussianError::Mean { mean_deg: self.mean_deg });
         }
         if !self.std_deg.is_finite() || self.std_deg < 0.0 {
@@ -121,7 +123,12 @@ pub fn generate(map: &Map, n_cases: u32, seed: u64, vehicles: (u32, u32)) -> Cas
             random_case(map, &mut rng, id, n)
         })
         .collect();
-    CaseFile { format_version: CASES_VERSION, scenario: map.name.clone(), generator_seed: seed, cases }
+    CaseFile {
+        format_version: CASES_VERSION,
+        scenario: map.name.clone(),
+        generator_seed: seed,
+        cases,
+    }
 }
 
 impl Case {
@@ -134,19 +141,31 @@ impl Case {
         for (k, v) in self.vehicles.iter().enumerate() {
             let f = format!("vehicles[{k}]");
             let Some(sp) = map.spawns.get(v.spawn as usize) else {
-                return Err((format!("{f}.spawn"), format!("spawn point {} does not exist", v.spawn)));
+                return Err((
+                    format!("{f}.spawn"),
+                    format!("spawn point {} does not exist", v.spawn),
+                ));
             };
             if std::mem::replace(&mut used[v.spawn as usize], true) {
-                return Err((format!("{f}.spawn"), format!("spawn point {} is used twice", v.spawn)));
+                return Err((
+                    format!("{f}.spawn"),
+                    format!("spawn point {} is used twice", v.spawn),
+                ));
             }
             if !sp.routes.contains(&v.route) {
-                return Err((format!("{f}.route"), format!("route {} does not start at spawn point {}", v.route, v.spawn)));
+                return Err((
+                    format!("{f}.route"),
+                    format!("route {} does not start at spawn point {}", v.route, v.spawn),
+                ));
             }
             if !(v.svo_deg.is_finite() && (-90.0..=90.0).contains(&v.svo_deg)) {
                 return Err((format!("{f}.svo_deg"), format!("{} is not in [-90, 90]", v.svo_deg)));
             }
             if let Some(cap) = v.max_speed_mps.filter(|c| !(c.is_finite() && *c >= 0.0)) {
-                return Err((format!("{f}.max_speed_mps"), format!("{cap} must be a speed >= 0 m/s")));
+                return Err((
+                    format!("{f}.max_speed_mps"),
+                    format!("{cap} must be a speed >= 0 m/s"),
+                ));
             }
         }
         Ok(())
@@ -157,20 +176,29 @@ impl CaseFile {
     /// Loads and validates a case file against its scenario's map.
     pub fn load(path: &Path, map: &Map) -> Result<Self, CaseError> {
         let p = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| CaseError::Io { path: p.clone(), source })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| CaseError::Io { path: p.clone(), source })?;
         Self::from_json(&text, &p, map)
     }
 
     /// Parses and validates a case file's text (`origin` names it in errors).
     pub fn from_json(text: &str, origin: &str, map: &Map) -> Result<Self, CaseError> {
         let p = origin.to_string();
-        let f: CaseFile = serde_json::from_str(text).map_err(|source| CaseError::Parse { path: p.clone(), source })?;
-        let bad = |field: String, reason: String| CaseError::Invalid { path: p.clone(), field, reason };
+        let f: CaseFile = serde_json::from_str(text)
+            .map_err(|source| CaseError::Parse { path: p.clone(), source })?;
+        let bad =
+            |field: String, reason: String| CaseError::Invalid { path: p.clone(), field, reason };
         if f.format_version != CASES_VERSION {
-            return Err(bad("format_version".into(), format!("{} is not supported (this build reads {CASES_VERSION})", f.format_version)));
+            return Err(bad(
+                "format_version".into(),
+                format!("{} is not supported (this build reads {CASES_VERSION})", f.format_version),
+            ));
         }
         if f.scenario != map.name {
-            return Err(bad("scenario".into(), format!("file is for `{}`, map is `{}`", f.scenario, map.name)));
+            return Err(bad(
+                "scenario".into(),
+                format!("file is for `{}`, map is `{}`", f.scenario, map.name),
+            ));
         }
         for (i, c) in f.cases.iter().enumerate() {
             c.check(map).map_err(|(field, reason)| bad(format!("cases[{i}].{field}"), reason))?;

@@ -106,7 +106,9 @@ impl MessageProbe {
     pub fn out_of_range(&self) -> Option<(&'static str, f32)> {
         [("neighbours_deg", self.neighbours_deg), ("told_ego_deg", self.told_ego_deg)]
             .into_iter()
-            .find_map(|(field, v)| v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))).map(|v| (field, v)))
+            .find_map(|(field, v)| {
+                v.filter(|v| !(v.is_finite() && (-90.0..=90.0).contains(v))).map(|v| (field, v))
+            })
     }
 }
 
@@ -253,7 +255,10 @@ impl SimConfig {
         at_least("substeps", self.substeps as usize, 1)?;
         let [lo, hi] = self.svo_range_deg;
         if !(lo.is_finite() && hi.is_finite() && -90.0 <= lo && lo <= hi && hi <= 90.0) {
-            return Err(ConfigError { field: "svo_range_deg", reason: format!("[{lo}, {hi}] must lie in [-90, 90], low first") });
+            return Err(ConfigError {
+                field: "svo_range_deg",
+                reason: format!("[{lo}, {hi}] must lie in [-90, 90], low first"),
+            });
         }
         at_least("horizon", self.horizon as usize, 1)?;
         at_least("obs.history", self.obs.history, 1)?;
@@ -263,11 +268,21 @@ impl SimConfig {
         at_least("obs.max_segments", self.obs.max_segments, 1)?;
         at_least("obs.segment_points", self.obs.segment_points, 2)?;
         if self.vehicle.max_steer_deg >= 90.0 {
-            return Err(ConfigError { field: "vehicle.max_steer_deg", reason: "must be below 90".into() });
+            return Err(ConfigError {
+                field: "vehicle.max_steer_deg",
+                reason: "must be below 90".into(),
+            });
         }
         if let Some((field, v)) = self.obs.messages.out_of_range() {
-            let field = if field == "neighbours_deg" { "obs.messages.neighbours_deg" } else { "obs.messages.told_ego_deg" };
-            return Err(ConfigError { field, reason: format!("{v} must be an SVO in [-90, 90] degrees") });
+            let field = if field == "neighbours_deg" {
+                "obs.messages.neighbours_deg"
+            } else {
+                "obs.messages.told_ego_deg"
+            };
+            return Err(ConfigError {
+                field,
+                reason: format!("{v} must be an SVO in [-90, 90] degrees"),
+            });
         }
         Ok(())
     }
@@ -283,9 +298,11 @@ mod tests {
         let text = toml::to_string(&c).expect("serialise");
         let back: SimConfig = toml::from_str(&text).expect("parse");
         assert_eq!(c, back);
-        let err = toml::from_str::<SimConfig>("horizon = 10\nhorizn = 3\n").expect_err("unknown field");
+        let err =
+            toml::from_str::<SimConfig>("horizon = 10\nhorizn = 3\n").expect_err("unknown field");
         assert!(err.to_string().contains("horizn"), "{err}");
-        let partial: SimConfig = toml::from_str("[obs]\nlayout = \"ego-frame\"\n").expect("partial");
+        let partial: SimConfig =
+            toml::from_str("[obs]\nlayout = \"ego-frame\"\n").expect("partial");
         assert_eq!(partial.obs.layout, Layout::EgoFrame);
         assert_eq!(partial.horizon, 100);
     }

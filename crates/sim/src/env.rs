@@ -172,7 +172,11 @@ impl Agent {
             role: self.role,
             success: self.zone_passed && !self.termination.is_some_and(Termination::is_failure),
             termination: self.termination,
-            speed_ratio: if self.steps > 0 { self.speed_ratio_sum / self.steps as f32 } else { 0.0 },
+            speed_ratio: if self.steps > 0 {
+                self.speed_ratio_sum / self.steps as f32
+            } else {
+                0.0
+            },
             steps: self.steps,
             left_lane: self.left_lane,
         }
@@ -262,8 +266,17 @@ impl Env {
     }
 
     /// Starts an episode from a case; `max_vehicles` truncates it (density sweeps use fewer).
-    pub fn reset(&mut self, case: &Case, mode: Mode, max_vehicles: Option<usize>) -> Result<(), EnvError> {
-        case.check(&self.map).map_err(|(field, reason)| EnvError::BadCase { case: case.id, field, reason })?;
+    pub fn reset(
+        &mut self,
+        case: &Case,
+        mode: Mode,
+        max_vehicles: Option<usize>,
+    ) -> Result<(), EnvError> {
+        case.check(&self.map).map_err(|(field, reason)| EnvError::BadCase {
+            case: case.id,
+            field,
+            reason,
+        })?;
         let n = max_vehicles.map_or(case.vehicles.len(), |m| m.min(case.vehicles.len()));
         let h = self.cfg.obs.history;
         let [svo_lo, svo_hi] = self.cfg.svo_range_deg;
@@ -271,14 +284,20 @@ impl Env {
         for (i, cv) in case.vehicles[..n].iter().enumerate() {
             let sp = &self.map.spawns[cv.spawn as usize];
             let route = &self.map.routes[cv.route as usize];
-            let pr = geom::project_range(&route.points, &route.cum_m, sp.pos, 0, route.points.len());
+            let pr =
+                geom::project_range(&route.points, &route.cum_m, sp.pos, 0, route.points.len());
             let (controller, role) = match mode {
                 Mode::MultiAgent => (Controller::External, Role::Learner),
                 Mode::AllIdm => (Controller::Idm, Role::Learner),
                 Mode::Ego { .. } if i == 0 => (Controller::External, Role::Learner),
                 Mode::Ego { background } => (background, Role::Background),
             };
-            let state = VehicleState { x_m: sp.pos[0], y_m: sp.pos[1], theta_rad: sp.heading_rad, speed_mps: 0.0 };
+            let state = VehicleState {
+                x_m: sp.pos[0],
+                y_m: sp.pos[1],
+                theta_rad: sp.heading_rad,
+                speed_mps: 0.0,
+            };
             let mut a = Agent {
                 state,
                 route: cv.route,
@@ -301,7 +320,9 @@ impl Env {
                 lateral_target_m: 0.0,
                 lateral_offset_m: 0.0,
                 left_lane: false,
-                max_speed_mps: cv.max_speed_mps.map_or(self.cfg.vehicle.max_speed_mps, |v| v.min(self.cfg.vehicle.max_speed_mps)),
+                max_speed_mps: cv.max_speed_mps.map_or(self.cfg.vehicle.max_speed_mps, |v| {
+                    v.min(self.cfg.vehicle.max_speed_mps)
+                }),
                 collided: false,
                 leader: None,
                 hist: vec![[state.x_m, state.y_m, state.theta_rad, 0.0]; h],
@@ -413,9 +434,14 @@ impl Env {
                 let (v, d) = actions[i].decode(vp);
                 a.ref_speed_mps = v;
                 a.steer_rad = d;
-                a.idm_accel_residual = actions[i].idm_accel.map(|r| if r.is_finite() { r.clamp(-1.0, 1.0) } else { 0.0 });
+                a.idm_accel_residual =
+                    actions[i]
+                        .idm_accel
+                        .map(|r| if r.is_finite() { r.clamp(-1.0, 1.0) } else { 0.0 });
                 a.lateral_target_m = match (a.idm_accel_residual, actions[i].lateral) {
-                    (Some(_), Some(l)) if l.is_finite() => l.clamp(-1.0, 1.0) * cfg.lateral.max_offset_m,
+                    (Some(_), Some(l)) if l.is_finite() => {
+                        l.clamp(-1.0, 1.0) * cfg.lateral.max_offset_m
+                    }
                     _ => 0.0,
                 };
             }
@@ -425,13 +451,24 @@ impl Env {
             let map = &self.map;
             for a in self.agents.iter_mut().filter(|a| a.alive && !a.collided) {
                 let accel = match (a.controller, a.idm_accel_residual) {
-                    (Controller::External, None) => a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt),
+                    (Controller::External, None) => {
+                        a.pid.command(vp, a.ref_speed_mps, a.state.speed_mps, dt)
+                    }
                     (Controller::Idm, _) | (Controller::External, Some(_)) => {
                         if a.lateral_offset_m != a.lateral_target_m {
-                            a.lateral_offset_m = lateral_step(a.lateral_offset_m, a.lateral_target_m, cfg.lateral.rate_mps, dt);
+                            a.lateral_offset_m = lateral_step(
+                                a.lateral_offset_m,
+                                a.lateral_target_m,
+                                cfg.lateral.rate_mps,
+                                dt,
+                            );
                         }
                         a.steer_rad = route_steer_rad(map, vp, a);
-                        residual_accel(idm_accel(&cfg.idm, a.state.speed_mps, a.leader), a.idm_accel_residual, vp.max_accel_mps2)
+                        residual_accel(
+                            idm_accel(&cfg.idm, a.state.speed_mps, a.leader),
+                            a.idm_accel_residual,
+                            vp.max_accel_mps2,
+                        )
                     }
                 };
                 let v0 = a.state.speed_mps;
@@ -482,7 +519,10 @@ impl Env {
         let hi = route.cum_m.partition_point(|&c| c <= a.s_m + p.look_ahead_m) + 1;
         let mut best: Option<(f32, f32)> = None;
         for (j, b) in self.agents.iter().enumerate() {
-            if j == i || !b.alive || geom::dist2(a.state.pos(), b.state.pos()) > (p.look_ahead_m + len).powi(2) {
+            if j == i
+                || !b.alive
+                || geom::dist2(a.state.pos(), b.state.pos()) > (p.look_ahead_m + len).powi(2)
+            {
                 continue;
             }
             let pr = geom::project_range(&route.points, &route.cum_m, b.state.pos(), a.seg, hi);
@@ -509,7 +549,8 @@ impl Env {
         let vp = &self.cfg.vehicle;
         let steer_rad = route_steer_rad(&self.map, vp, a);
         let accel = idm_accel(&self.cfg.idm, a.state.speed_mps, self.leader_of(i));
-        let ref_speed_mps = (a.state.speed_mps + accel / vp.pid_kp.max(1e-3)).clamp(0.0, vp.max_speed_mps);
+        let ref_speed_mps =
+            (a.state.speed_mps + accel / vp.pid_kp.max(1e-3)).clamp(0.0, vp.max_speed_mps);
         Action::encode(vp, ref_speed_mps, steer_rad)
     }
 
@@ -520,7 +561,11 @@ impl Env {
             v.length_m * v.length_m + v.width_m * v.width_m
         };
         self.poses.clear();
-        self.poses.extend(self.agents.iter().map(|a| Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad)));
+        self.poses.extend(
+            self.agents
+                .iter()
+                .map(|a| Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad)),
+        );
         let n = self.agents.len();
         for i in 0..n {
             if !self.agents[i].alive {
@@ -547,7 +592,8 @@ impl Env {
 
     /// Whether agent `a`'s shrunk box touches a road edge.
     fn off_road(&self, a: &Agent) -> bool {
-        let pose_inv = Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad).inverse();
+        let pose_inv =
+            Pose::new(Vector::new(a.state.x_m, a.state.y_m), a.state.theta_rad).inverse();
         let reach = 0.5 * (self.cfg.vehicle.length_m + self.cfg.vehicle.width_m);
         let mut hit = false;
         self.map.edge_grid.for_each_near(a.state.pos(), reach, |k| {
@@ -555,7 +601,10 @@ impl Env {
                 return;
             }
             let (p, q) = self.map.edge_segments[k];
-            let seg = Segment::new(pose_inv * Vector::new(p[0], p[1]), pose_inv * Vector::new(q[0], q[1]));
+            let seg = Segment::new(
+                pose_inv * Vector::new(p[0], p[1]),
+                pose_inv * Vector::new(q[0], q[1]),
+            );
             hit = intersection_test_cuboid_segment(&Pose::IDENTITY, &self.box_road, &seg);
         });
         hit
@@ -590,7 +639,10 @@ impl Env {
             } else if a.zone_entered {
                 a.zone_passed = true;
             }
-            let wrong_lane = !map.in_junction(pos) && map.nearest_lane_heading(pos, 4.0).is_some_and(|h| geom::wrap_angle(a.state.theta_rad - h).abs() > max_heading);
+            let wrong_lane = !map.in_junction(pos)
+                && map
+                    .nearest_lane_heading(pos, 4.0)
+                    .is_some_and(|h| geom::wrap_angle(a.state.theta_rad - h).abs() > max_heading);
             a.termination = if a.collided {
                 Some(Termination::Collision)
             } else if off_road {
@@ -628,7 +680,12 @@ impl Env {
             let fail = a.termination.is_some_and(Termination::is_failure);
             r.individual = speed - if fail { rc.failure_penalty } else { 0.0 };
             // FailMaker's own term: no collision penalty.
-            let own = speed - if fail && a.termination != Some(Termination::Collision) { rc.failure_penalty } else { 0.0 };
+            let own = speed
+                - if fail && a.termination != Some(Termination::Collision) {
+                    rc.failure_penalty
+                } else {
+                    0.0
+                };
             r.failmaker = own;
             if i == 0 {
                 ego_r = r.individual;
@@ -642,7 +699,11 @@ impl Env {
             let a = &self.agents[i];
             let (mut sum, mut cnt) = (0.0, 0u32);
             for (j, b) in self.agents.iter().enumerate() {
-                if j != i && alive_before[j] && b.controller == Controller::External && geom::dist2(a.state.pos(), b.state.pos()) <= r2 {
+                if j != i
+                    && alive_before[j]
+                    && b.controller == Controller::External
+                    && geom::dist2(a.state.pos(), b.state.pos()) <= r2
+                {
                     sum += self.rewards[j].individual;
                     cnt += 1;
                 }
@@ -658,7 +719,11 @@ impl Env {
 
     /// Runs the episode to its end: before each step `policy` fills one action per agent,
     /// after each step (and once after reset) `on_step` sees the environment.
-    pub fn run_episode(&mut self, mut policy: impl FnMut(&Env, &mut [Action]), mut on_step: impl FnMut(&Env)) -> Result<(), EnvError> {
+    pub fn run_episode(
+        &mut self,
+        mut policy: impl FnMut(&Env, &mut [Action]),
+        mut on_step: impl FnMut(&Env),
+    ) -> Result<(), EnvError> {
         let mut actions = vec![Action::default(); self.agents.len()];
         on_step(self);
         while !self.done {

@@ -92,7 +92,10 @@ impl Frame {
     /// This frame's coordinates -> world point.
     #[inline]
     pub fn to_world(&self, p: P2) -> P2 {
-        [self.origin[0] + p[0] * self.cos - p[1] * self.sin, self.origin[1] + p[0] * self.sin + p[1] * self.cos]
+        [
+            self.origin[0] + p[0] * self.cos - p[1] * self.sin,
+            self.origin[1] + p[0] * self.sin + p[1] * self.cos,
+        ]
     }
 
     /// World heading -> heading relative to this frame, wrapped.
@@ -108,7 +111,8 @@ pub fn polyline_headings(points: &[P2]) -> Vec<f32> {
     let n = points.len();
     (0..n)
         .map(|i| {
-            let (a, b) = if i + 1 < n { (points[i], points[i + 1]) } else { (points[i - 1], points[i]) };
+            let (a, b) =
+                if i + 1 < n { (points[i], points[i + 1]) } else { (points[i - 1], points[i]) };
             let d = sub(b, a);
             d[1].atan2(d[0])
         })
@@ -262,8 +266,10 @@ impl Grid {
 
     #[inline]
     fn cell_of(&self, p: P2) -> (usize, usize) {
-        let cx = ((p[0] - self.min[0]) / self.cell_m).floor().clamp(0.0, (self.nx - 1) as f32) as usize;
-        let cy = ((p[1] - self.min[1]) / self.cell_m).floor().clamp(0.0, (self.ny - 1) as f32) as usize;
+        let cx =
+            ((p[0] - self.min[0]) / self.cell_m).floor().clamp(0.0, (self.nx - 1) as f32) as usize;
+        let cy =
+            ((p[1] - self.min[1]) / self.cell_m).floor().clamp(0.0, (self.ny - 1) as f32) as usize;
         (cx, cy)
     }
 

@@ -23,7 +23,16 @@ pub struct IdmParams {
 
 impl Default for IdmParams {
     fn default() -> Self {
-        Self { desired_speed_mps: 12.0, time_headway_s: 1.0, min_gap_m: 2.0, delta: 4.0, max_accel_mps2: 5.0, comfort_decel_mps2: 5.0, look_ahead_m: 50.0, lateral_tolerance_m: 2.5 }
+        Self {
+            desired_speed_mps: 12.0,
+            time_headway_s: 1.0,
+            min_gap_m: 2.0,
+            delta: 4.0,
+            max_accel_mps2: 5.0,
+            comfort_decel_mps2: 5.0,
+            look_ahead_m: 50.0,
+            lateral_tolerance_m: 2.5,
+        }
     }
 }
 
@@ -35,7 +44,10 @@ pub fn idm_accel(p: &IdmParams, v_mps: f32, leader: Option<(f32, f32)>) -> f32 {
         None => 0.0,
         Some((gap_m, v_lead_mps)) => {
             let dv = v_mps - v_lead_mps;
-            let s_star = p.min_gap_m + (v_mps * p.time_headway_s + v_mps * dv / (2.0 * (p.max_accel_mps2 * p.comfort_decel_mps2).sqrt())).max(0.0);
+            let s_star = p.min_gap_m
+                + (v_mps * p.time_headway_s
+                    + v_mps * dv / (2.0 * (p.max_accel_mps2 * p.comfort_decel_mps2).sqrt()))
+                .max(0.0);
             let g = gap_m.max(0.01);
             (s_star / g).powi(2)
         }
@@ -67,7 +79,8 @@ mod tests {
         let p = IdmParams::default();
         let vp = VehicleParams::default();
         let leader_rear_m = 60.0;
-        let mut s = VehicleState { x_m: 0.0, y_m: 0.0, theta_rad: 0.0, speed_mps: vp.max_speed_mps };
+        let mut s =
+            VehicleState { x_m: 0.0, y_m: 0.0, theta_rad: 0.0, speed_mps: vp.max_speed_mps };
         let dt = 0.025;
         let mut min_gap = f32::INFINITY;
         for _ in 0..(30.0 / dt) as usize {

@@ -161,7 +161,8 @@ impl ScenarioFile {
     /// Reads and parses a scenario file; use [`Map::from_file`] to validate it too.
     pub fn read(path: &Path) -> Result<Self, MapError> {
         let p = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| MapError::Io { path: p.clone(), source })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| MapError::Io { path: p.clone(), source })?;
         serde_json::from_str(&text).map_err(|source| MapError::Parse { path: p, source })
     }
 
@@ -192,11 +193,20 @@ impl Map {
     }
 
     /// The map of a checked file: its parts and the spatial indices over them.
-    fn indexed(f: &ScenarioFile, lanes: Vec<Lane>, routes: Vec<Route>, spawns: Vec<SpawnPoint>) -> Self {
+    fn indexed(
+        f: &ScenarioFile,
+        lanes: Vec<Lane>,
+        routes: Vec<Route>,
+        spawns: Vec<SpawnPoint>,
+    ) -> Self {
         let b = &f.boundary;
         let edges: Vec<Vec<P2>> = f.edges.iter().map(|e| e.points.clone()).collect();
-        let edge_segments: Vec<(P2, P2)> = edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
-        let seg_boxes: Vec<(P2, P2)> = edge_segments.iter().map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])])).collect();
+        let edge_segments: Vec<(P2, P2)> =
+            edges.iter().flat_map(|e| e.windows(2).map(|w| (w[0], w[1]))).collect();
+        let seg_boxes: Vec<(P2, P2)> = edge_segments
+            .iter()
+            .map(|(a, b)| ([a[0].min(b[0]), a[1].min(b[1])], [a[0].max(b[0]), a[1].max(b[1])]))
+            .collect();
         let edge_grid = Grid::build(b.min, b.max, 8.0, &seg_boxes);
         let lane_points: Vec<(P2, f32)> = lanes
             .iter()
@@ -245,7 +255,10 @@ impl Map {
 
     /// Static polylines (lane centre-lines with their widths, then edges with width 0).
     pub fn static_polylines(&self) -> impl Iterator<Item = (PolyKind, &[P2], f32)> {
-        self.lanes.iter().map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m)).chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
+        self.lanes
+            .iter()
+            .map(|l| (PolyKind::Lane, l.centre.as_slice(), l.width_m))
+            .chain(self.edges.iter().map(|e| (PolyKind::Edge, e.as_slice(), 0.0)))
     }
 }
 
@@ -260,18 +273,30 @@ impl<'a> Checker<'a> {
     fn new(f: &'a ScenarioFile, origin: &'a str) -> Result<Self, MapError> {
         let c = Self { f, origin };
         if f.format_version != FORMAT_VERSION {
-            return Err(c.bad("format_version", format!("version {} is not supported (this build reads {FORMAT_VERSION})", f.format_version)));
+            return Err(c.bad(
+                "format_version",
+                format!(
+                    "version {} is not supported (this build reads {FORMAT_VERSION})",
+                    f.format_version
+                ),
+            ));
         }
         if f.name.is_empty() {
             return Err(c.bad("name", "must not be empty"));
         }
         let b = &f.boundary;
-        if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite()) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
+        if !(b.min.iter().chain(b.max.iter()).all(|v| v.is_finite())
+            && b.min[0] < b.max[0]
+            && b.min[1] < b.max[1])
+        {
             return Err(c.bad("boundary", "min must be finite and below max on both axes"));
         }
         let extent_m = [b.max[0] - b.min[0], b.max[1] - b.min[1]];
         if extent_m.iter().any(|&e| e > MAX_EXTENT_M) {
-            return Err(c.bad("boundary", format!("{} x {} m exceeds {MAX_EXTENT_M} m a side", extent_m[0], extent_m[1])));
+            return Err(c.bad(
+                "boundary",
+                format!("{} x {} m exceeds {MAX_EXTENT_M} m a side", extent_m[0], extent_m[1]),
+            ));
         }
         Ok(c)
     }
@@ -283,16 +308,22 @@ impl<'a> Checker<'a> {
     /// At least `min_len` finite points, all inside the boundary.
     fn poly(&self, field: String, pts: &[P2], min_len: usize) -> Result<(), MapError> {
         let b = &self.f.boundary;
-        let inside = |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
+        let inside =
+            |p: &P2| p[0] >= b.min[0] && p[0] <= b.max[0] && p[1] >= b.min[1] && p[1] <= b.max[1];
         if pts.len() < min_len {
-            return Err(self.bad(field, format!("needs at least {min_len} points, has {}", pts.len())));
+            return Err(
+                self.bad(field, format!("needs at least {min_len} points, has {}", pts.len()))
+            );
         }
         for (k, p) in pts.iter().enumerate() {
             if !(p[0].is_finite() && p[1].is_finite()) {
                 return Err(self.bad(format!("{field}[{k}]"), "point is not finite"));
             }
             if !inside(p) {
-                return Err(self.bad(format!("{field}[{k}]"), format!("point {p:?} lies outside the boundary")));
+                return Err(self.bad(
+                    format!("{field}[{k}]"),
+                    format!("point {p:?} lies outside the boundary"),
+                ));
             }
         }
         Ok(())
@@ -308,19 +339,30 @@ impl<'a> Checker<'a> {
         let mut lanes = Vec::with_capacity(f.lanes.len());
         for (i, l) in f.lanes.iter().enumerate() {
             if l.id != i as u32 {
-                return Err(self.bad(format!("lanes[{i}].id"), format!("is {}, ids must equal their index {i}", l.id)));
+                return Err(self.bad(
+                    format!("lanes[{i}].id"),
+                    format!("is {}, ids must equal their index {i}", l.id),
+                ));
             }
             if !(l.width_m.is_finite() && l.width_m > 0.0 && l.width_m < 10.0) {
-                return Err(self.bad(format!("lanes[{i}].width_m"), format!("{} is not in (0, 10) m", l.width_m)));
+                return Err(self.bad(
+                    format!("lanes[{i}].width_m"),
+                    format!("{} is not in (0, 10) m", l.width_m),
+                ));
             }
             self.poly(format!("lanes[{i}].centre"), &l.centre, 2)?;
             for (k, w) in l.centre.windows(2).enumerate() {
                 if geom::dist(w[0], w[1]) < 1e-3 {
-                    return Err(self.bad(format!("lanes[{i}].centre[{}]", k + 1), "repeats the previous point"));
+                    return Err(self.bad(
+                        format!("lanes[{i}].centre[{}]", k + 1),
+                        "repeats the previous point",
+                    ));
                 }
             }
             if let Some(s) = l.successors.iter().find(|&&s| s >= n_lanes) {
-                return Err(self.bad(format!("lanes[{i}].successors"), format!("lane {s} does not exist")));
+                return Err(
+                    self.bad(format!("lanes[{i}].successors"), format!("lane {s} does not exist"))
+                );
             }
             lanes.push(Lane {
                 width_m: l.width_m,
@@ -338,7 +380,10 @@ impl<'a> Checker<'a> {
         let f = self.f;
         for (i, e) in f.edges.iter().enumerate() {
             if e.id != i as u32 {
-                return Err(self.bad(format!("edges[{i}].id"), format!("is {}, ids must equal their index {i}", e.id)));
+                return Err(self.bad(
+                    format!("edges[{i}].id"),
+                    format!("is {}, ids must equal their index {i}", e.id),
+                ));
             }
             self.poly(format!("edges[{i}].points"), &e.points, 2)?;
         }
@@ -360,17 +405,25 @@ impl<'a> Checker<'a> {
         for (i, r) in f.routes.iter().enumerate() {
             let field = format!("routes[{i}]");
             if r.id != i as u32 {
-                return Err(self.bad(format!("{field}.id"), format!("is {}, ids must equal their index {i}", r.id)));
+                return Err(self.bad(
+                    format!("{field}.id"),
+                    format!("is {}, ids must equal their index {i}", r.id),
+                ));
             }
             if r.lanes.is_empty() {
                 return Err(self.bad(format!("{field}.lanes"), "a route needs at least one lane"));
             }
             for (k, &l) in r.lanes.iter().enumerate() {
                 if l >= n_lanes {
-                    return Err(self.bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist")));
+                    return Err(
+                        self.bad(format!("{field}.lanes[{k}]"), format!("lane {l} does not exist"))
+                    );
                 }
                 if k > 0 && !lanes[r.lanes[k - 1] as usize].successors.contains(&l) {
-                    return Err(self.bad(format!("{field}.lanes[{k}]"), format!("lane {l} is not a successor of lane {}", r.lanes[k - 1])));
+                    return Err(self.bad(
+                        format!("{field}.lanes[{k}]"),
+                        format!("lane {l} is not a successor of lane {}", r.lanes[k - 1]),
+                    ));
                 }
             }
             let route = build_route(lanes, &r.lanes);
@@ -401,29 +454,48 @@ impl<'a> Checker<'a> {
             let mut pose = None;
             for &r in &s.routes {
                 let Some(route) = routes.get(r as usize) else {
-                    return Err(self.bad(format!("{field}.routes"), format!("route {r} does not exist")));
+                    return Err(
+                        self.bad(format!("{field}.routes"), format!("route {r} does not exist"))
+                    );
                 };
                 let first_lane = route.lanes[0];
                 let lane_len = lanes[first_lane as usize].cum_m.last().copied().unwrap_or(0.0);
                 if !(s.s_m.is_finite() && s.s_m >= 0.0 && s.s_m <= lane_len) {
-                    return Err(self.bad(format!("{field}.s_m"), format!("{} is not on the first lane of route {r} (length {lane_len:.1} m)", s.s_m)));
+                    return Err(self.bad(
+                        format!("{field}.s_m"),
+                        format!(
+                            "{} is not on the first lane of route {r} (length {lane_len:.1} m)",
+                            s.s_m
+                        ),
+                    ));
                 }
                 let here = geom::point_at(&route.points, &route.cum_m, s.s_m);
                 match pose {
                     None => pose = Some((first_lane, here)),
-                    Some((l0, _)) if l0 != first_lane => return Err(self.bad(format!("{field}.routes"), "routes listed do not share their first lane")),
+                    Some((l0, _)) if l0 != first_lane => {
+                        return Err(self.bad(
+                            format!("{field}.routes"),
+                            "routes listed do not share their first lane",
+                        ))
+                    }
                     _ => {}
                 }
             }
-            let Some((_, (pos, heading_rad))) = pose else { return Err(self.bad(format!("{field}.routes"), "lists no route")) };
+            let Some((_, (pos, heading_rad))) = pose else {
+                return Err(self.bad(format!("{field}.routes"), "lists no route"));
+            };
             if geom::point_in_polygon(pos, &f.interaction_zone) {
                 return Err(self.bad(field, "spawn point lies inside the interaction zone"));
             }
             spawns.push(SpawnPoint { s_m: s.s_m, pos, heading_rad, routes: s.routes.clone() });
         }
         for (i, a) in spawns.iter().enumerate() {
-            if let Some(j) = spawns[..i].iter().position(|b| geom::dist(a.pos, b.pos) < MIN_SPAWN_SEPARATION_M) {
-                return Err(self.bad(format!("spawn_points[{i}]"), format!("overlaps spawn point {j}")));
+            if let Some(j) =
+                spawns[..i].iter().position(|b| geom::dist(a.pos, b.pos) < MIN_SPAWN_SEPARATION_M)
+            {
+                return Err(
+                    self.bad(format!("spawn_points[{i}]"), format!("overlaps spawn point {j}"))
+                );
             }
         }
         Ok(spawns)
@@ -441,7 +513,14 @@ fn build_route(lanes: &[Lane], ids: &[u32]) -> Route {
     }
     let points = geom::resample(&pts, POINT_SPACING_M);
     let cum_m = geom::cumulative_lengths(&points);
-    Route { lanes: ids.to_vec(), headings: geom::polyline_headings(&points), length_m: cum_m[cum_m.len() - 1], cum_m, points, width_m: lanes[ids[0] as usize].width_m }
+    Route {
+        lanes: ids.to_vec(),
+        headings: geom::polyline_headings(&points),
+        length_m: cum_m[cum_m.len() - 1],
+        cum_m,
+        points,
+        width_m: lanes[ids[0] as usize].width_m,
+    }
 }
 
 #[cfg(test)]
@@ -457,7 +536,10 @@ mod tests {
             let mut f = good.clone();
             f.boundary.min[axis] = v;
             let e = Map::from_file(&f, "big.json").expect_err("huge boundary").to_string();
-            assert!(e.contains("big.json") && e.contains("`boundary`") && e.contains("exceeds"), "{e}");
+            assert!(
+                e.contains("big.json") && e.contains("`boundary`") && e.contains("exceeds"),
+                "{e}"
+            );
         }
         let mut f = good.clone();
         f.boundary.min[0] = f.boundary.max[0] - MAX_EXTENT_M;

@@ -58,7 +58,10 @@ pub struct EpisodeMetrics {
 
 impl EpisodeMetrics {
     /// Scores an episode; `learners_only` keeps agents with the learner role (ego evaluation).
-    pub fn from_outcomes(outcomes: impl IntoIterator<Item = AgentOutcome>, learners_only: bool) -> Self {
+    pub fn from_outcomes(
+        outcomes: impl IntoIterator<Item = AgentOutcome>,
+        learners_only: bool,
+    ) -> Self {
         let mut m = Self::default();
         for o in outcomes {
             if learners_only && o.role != Role::Learner {
@@ -105,15 +108,29 @@ mod tests {
     use super::*;
 
     fn o(role: Role, success: bool, t: Termination, speed: f32) -> AgentOutcome {
-        AgentOutcome { role, success, termination: Some(t), speed_ratio: speed, steps: 10, left_lane: false }
+        AgentOutcome {
+            role,
+            success,
+            termination: Some(t),
+            speed_ratio: speed,
+            steps: 10,
+            left_lane: false,
+        }
     }
 
     #[test]
     fn episode_means_and_learner_filter() {
-        let outs = [o(Role::Learner, true, Termination::Destination, 0.8), o(Role::Background, false, Termination::Collision, 0.2)];
+        let outs = [
+            o(Role::Learner, true, Termination::Destination, 0.8),
+            o(Role::Background, false, Termination::Collision, 0.2),
+        ];
         let m = EpisodeMetrics::from_outcomes(outs, false);
         assert_eq!(m.agents, 2);
-        assert!((m.scores.success - 0.5).abs() < 1e-6 && (m.scores.safety - 0.5).abs() < 1e-6 && (m.collision - 0.5).abs() < 1e-6);
+        assert!(
+            (m.scores.success - 0.5).abs() < 1e-6
+                && (m.scores.safety - 0.5).abs() < 1e-6
+                && (m.collision - 0.5).abs() < 1e-6
+        );
         assert!((m.scores.speed - 0.5).abs() < 1e-6);
         let e = EpisodeMetrics::from_outcomes(outs, true);
         assert_eq!((e.agents, e.scores.success, e.scores.safety), (1, 1.0, 1.0));

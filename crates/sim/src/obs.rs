@@ -122,7 +122,8 @@ impl ObsSpec {
     /// The non-empty blocks of the layout in order, as `(name, range, shape)`: the arrays a
     /// row splits into (the Python package's dict observations and the ONNX model's inputs).
     pub fn blocks(&self) -> Vec<(&'static str, Range<usize>, Vec<usize>)> {
-        let (h, n, r, m, p) = (self.history, self.neighbours, self.route_points, self.map_pieces, self.piece_points);
+        let (h, n, r, m, p) =
+            (self.history, self.neighbours, self.route_points, self.map_pieces, self.piece_points);
         let all = [
             ("ego_hist", self.ego_hist.clone(), vec![h, AGENT_FEATS]),
             ("ego_ctx", self.ego_ctx.clone(), vec![EGO_CTX]),
@@ -150,12 +151,21 @@ impl ObsSpec {
     /// whole number below `segments` (the map's piece count). The error names the block and slot.
     /// Generic over the stored value (`f32`, or the wire's half floats): only the checked
     /// values are converted.
-    pub fn check_row<T: Copy + Into<f32>>(&self, row: &[T], segments: usize) -> Result<(), ObsRowError> {
+    pub fn check_row<T: Copy + Into<f32>>(
+        &self,
+        row: &[T],
+        segments: usize,
+    ) -> Result<(), ObsRowError> {
         if row.len() != self.len {
             return Err(ObsRowError::Length { got: row.len(), want: self.len });
         }
         let at = |r: &Range<usize>| row[r.clone()].iter().map(|&v| v.into());
-        for (block, r) in [("agents_mask", &self.agents_mask), ("route_mask", &self.route_mask), ("map_mask", &self.map_mask), ("seg_mask", &self.seg_mask)] {
+        for (block, r) in [
+            ("agents_mask", &self.agents_mask),
+            ("route_mask", &self.route_mask),
+            ("map_mask", &self.map_mask),
+            ("seg_mask", &self.seg_mask),
+        ] {
             if let Some((slot, value)) = at(r).enumerate().find(|&(_, v)| v != 0.0 && v != 1.0) {
                 return Err(ObsRowError::Mask { block, slot, value });
             }
@@ -225,10 +235,17 @@ impl MapSegments {
                 let hs = &heads[start..end];
                 let frame = Frame::new(pts[0], hs[0]);
                 let n = pts.len() as f32;
-                let centre = [pts.iter().map(|p| p[0]).sum::<f32>() / n, pts.iter().map(|p| p[1]).sum::<f32>() / n];
+                let centre = [
+                    pts.iter().map(|p| p[0]).sum::<f32>() / n,
+                    pts.iter().map(|p| p[1]).sum::<f32>() / n,
+                ];
                 let radius = pts.iter().map(|p| geom::dist(*p, centre)).fold(0.0, f32::max);
                 for k in 0..points {
-                    let (p, h, valid) = if k < pts.len() { (pts[k], hs[k], 1.0) } else { (pts[pts.len() - 1], hs[pts.len() - 1], 0.0) };
+                    let (p, h, valid) = if k < pts.len() {
+                        (pts[k], hs[k], 1.0)
+                    } else {
+                        (pts[pts.len() - 1], hs[pts.len() - 1], 0.0)
+                    };
                     s.world.push(p);
                     s.world_headings.push(h);
                     let l = frame.to_local(p);
@@ -288,7 +305,16 @@ impl Observer {
     /// Shares an existing segment store (one per map and piece length).
     pub fn with_segments(segments: Arc<MapSegments>, sim: &crate::config::SimConfig) -> Self {
         let cfg = sim.obs.clone();
-        Self { spec: ObsSpec::new(&cfg), cfg, segments, vmax: sim.vehicle.max_speed_mps, own_hist: Vec::new(), cand: Vec::new(), pieces: Vec::new(), pieces_in_reach: 0 }
+        Self {
+            spec: ObsSpec::new(&cfg),
+            cfg,
+            segments,
+            vmax: sim.vehicle.max_speed_mps,
+            own_hist: Vec::new(),
+            cand: Vec::new(),
+            pieces: Vec::new(),
+            pieces_in_reach: 0,
+        }
     }
 
     /// Computes the per-step data shared by all observers (each agent's own-frame history).
@@ -301,7 +327,12 @@ impl Observer {
             for k in 0..h {
                 let st = a.history(h - 1 - k);
                 let l = f.to_local([st[0], st[1]]);
-                self.own_hist.extend_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, f.angle_to_local(st[2]) / PI, st[3] / self.vmax]);
+                self.own_hist.extend_from_slice(&[
+                    l[0] / POS_SCALE_M,
+                    l[1] / POS_SCALE_M,
+                    f.angle_to_local(st[2]) / PI,
+                    st[3] / self.vmax,
+                ]);
             }
         }
     }
@@ -309,7 +340,11 @@ impl Observer {
     /// Writes agent `i`'s observation into `out` (length `spec.len`), overwriting all of it.
     pub fn write(&mut self, env: &Env, i: usize, out: &mut [f32]) {
         assert_eq!(out.len(), self.spec.len, "observation slice has the wrong length");
-        assert_eq!(self.own_hist.len(), env.len() * self.cfg.history * AGENT_FEATS, "prepare() must run after each step");
+        assert_eq!(
+            self.own_hist.len(),
+            env.len() * self.cfg.history * AGENT_FEATS,
+            "prepare() must run after each step"
+        );
         out.fill(0.0);
         let me = &env.agents()[i];
         let frame = me.frame();
@@ -323,7 +358,8 @@ impl Observer {
     fn write_ego(&self, env: &Env, i: usize, out: &mut [f32]) {
         let (spec, cfg) = (&self.spec, &self.cfg);
         let hist_len = cfg.history * AGENT_FEATS;
-        out[spec.ego_hist.clone()].copy_from_slice(&self.own_hist[i * hist_len..(i + 1) * hist_len]);
+        out[spec.ego_hist.clone()]
+            .copy_from_slice(&self.own_hist[i * hist_len..(i + 1) * hist_len]);
         let ctx = &mut out[spec.ego_ctx.clone()];
         if cfg.svo != SvoVisibility::None {
             ctx[0] = env.agents()[i].svo_deg / 90.0;
@@ -357,20 +393,31 @@ impl Observer {
             let b = &agents[j];
             let hs = spec.agents_hist.start + slot * hist_len;
             match cfg.layout {
-                Layout::QueryCentric => out[hs..hs + hist_len].copy_from_slice(&self.own_hist[j * hist_len..(j + 1) * hist_len]),
+                Layout::QueryCentric => out[hs..hs + hist_len]
+                    .copy_from_slice(&self.own_hist[j * hist_len..(j + 1) * hist_len]),
                 Layout::EgoFrame => {
                     for k in 0..h {
                         let st = b.history(h - 1 - k);
                         let l = frame.to_local([st[0], st[1]]);
                         let o = hs + k * AGENT_FEATS;
-                        out[o..o + AGENT_FEATS].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, frame.angle_to_local(st[2]) / PI, st[3] / self.vmax]);
+                        out[o..o + AGENT_FEATS].copy_from_slice(&[
+                            l[0] / POS_SCALE_M,
+                            l[1] / POS_SCALE_M,
+                            frame.angle_to_local(st[2]) / PI,
+                            st[3] / self.vmax,
+                        ]);
                     }
                 }
             }
             let l = frame.to_local(b.state.pos());
             let dth = frame.angle_to_local(b.state.theta_rad);
             let c = spec.agents_ctx.start + slot * AGENT_CTX;
-            out[c..c + 4].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, dth.cos(), dth.sin()]);
+            out[c..c + 4].copy_from_slice(&[
+                l[0] / POS_SCALE_M,
+                l[1] / POS_SCALE_M,
+                dth.cos(),
+                dth.sin(),
+            ]);
             if cfg.svo == SvoVisibility::All {
                 out[c + 4] = env.communicated_svo_deg(i, j) / 90.0;
             }
@@ -393,7 +440,12 @@ impl Observer {
             }
             let l = frame.to_local(route.points[idx]);
             let o = spec.route.start + k * ROUTE_FEATS;
-            out[o..o + ROUTE_FEATS].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, frame.angle_to_local(route.headings[idx]) / PI, k as f32 / spec.route_points as f32]);
+            out[o..o + ROUTE_FEATS].copy_from_slice(&[
+                l[0] / POS_SCALE_M,
+                l[1] / POS_SCALE_M,
+                frame.angle_to_local(route.headings[idx]) / PI,
+                k as f32 / spec.route_points as f32,
+            ]);
             out[spec.route_mask.start + k] = 1.0;
         }
     }
@@ -423,7 +475,12 @@ impl Observer {
                     let dth = frame.angle_to_local(f.theta_rad);
                     out[spec.seg_id.start + slot] = k as f32;
                     let o = spec.seg_pose.start + slot * SEG_POSE;
-                    out[o..o + SEG_POSE].copy_from_slice(&[l[0] / POS_SCALE_M, l[1] / POS_SCALE_M, dth.cos(), dth.sin()]);
+                    out[o..o + SEG_POSE].copy_from_slice(&[
+                        l[0] / POS_SCALE_M,
+                        l[1] / POS_SCALE_M,
+                        dth.cos(),
+                        dth.sin(),
+                    ]);
                     out[spec.seg_mask.start + slot] = 1.0;
                 }
                 Layout::EgoFrame => {

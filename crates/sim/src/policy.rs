@@ -8,7 +8,13 @@ use crate::obs::{ObsSpec, POS_SCALE_M, ROUTE_FEATS};
 use crate::vehicle::{Action, VehicleParams};
 
 /// Pure pursuit on the observed route point `look` points ahead; `speed` in [-1, 1].
-pub fn route_follower(spec: &ObsSpec, obs: &[f32], vp: &VehicleParams, look: usize, speed: f32) -> Action {
+pub fn route_follower(
+    spec: &ObsSpec,
+    obs: &[f32],
+    vp: &VehicleParams,
+    look: usize,
+    speed: f32,
+) -> Action {
     let r = &obs[spec.route.clone()];
     let m = &obs[spec.route_mask.clone()];
     let mut k = look.min(spec.route_points - 1);
@@ -21,5 +27,9 @@ pub fn route_follower(spec: &ObsSpec, obs: &[f32], vp: &VehicleParams, look: usi
     let (x, y) = (r[k * ROUTE_FEATS] * POS_SCALE_M, r[k * ROUTE_FEATS + 1] * POS_SCALE_M);
     let ld2 = (x * x + y * y).max(1e-6);
     let steer_rad = (2.0 * vp.wheelbase_m * y / ld2).atan();
-    Action { ref_speed: speed, steer: steer_rad / vp.max_steer_deg.to_radians(), ..Action::default() }
+    Action {
+        ref_speed: speed,
+        steer: steer_rad / vp.max_steer_deg.to_radians(),
+        ..Action::default()
+    }
 }

@@ -7,7 +7,9 @@
 use std::io::Write;
 
 pub use tiny_skia::Pixmap;
-use tiny_skia::{Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Stroke, StrokeDash, Transform};
+use tiny_skia::{
+    Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Stroke, StrokeDash, Transform,
+};
 
 use crate::env::{Env, Role};
 use crate::geom::P2;
@@ -52,16 +54,27 @@ fn rgba(r: u8, g: u8, b: u8, a: u8) -> Paint<'static> {
 impl Renderer {
     /// A renderer whose longer side is `max_px` pixels.
     pub fn new(map: &Map, max_px: u32, colour_by: ColourBy) -> Result<Self, RenderError> {
-        let (w_m, h_m) = (map.boundary.max[0] - map.boundary.min[0], map.boundary.max[1] - map.boundary.min[1]);
+        let (w_m, h_m) =
+            (map.boundary.max[0] - map.boundary.min[0], map.boundary.max[1] - map.boundary.min[1]);
         let px_per_m = max_px as f32 / w_m.max(h_m);
         let (width, height) = ((w_m * px_per_m).ceil() as u32, (h_m * px_per_m).ceil() as u32);
-        let mut r = Self { min: map.boundary.min, px_per_m, width, height, background: Pixmap::new(width, height).ok_or(RenderError::Size(width, height))?, colour_by };
+        let mut r = Self {
+            min: map.boundary.min,
+            px_per_m,
+            width,
+            height,
+            background: Pixmap::new(width, height).ok_or(RenderError::Size(width, height))?,
+            colour_by,
+        };
         r.background = r.draw_map(map)?;
         Ok(r)
     }
 
     fn px(&self, p: P2) -> (f32, f32) {
-        ((p[0] - self.min[0]) * self.px_per_m, self.height as f32 - (p[1] - self.min[1]) * self.px_per_m)
+        (
+            (p[0] - self.min[0]) * self.px_per_m,
+            self.height as f32 - (p[1] - self.min[1]) * self.px_per_m,
+        )
     }
 
     fn path(&self, pts: &[P2], close: bool) -> Option<tiny_skia::Path> {
@@ -91,12 +104,19 @@ impl Renderer {
     }
 
     fn draw_map(&self, map: &Map) -> Result<Pixmap, RenderError> {
-        let mut pm = Pixmap::new(self.width, self.height).ok_or(RenderError::Size(self.width, self.height))?;
+        let mut pm = Pixmap::new(self.width, self.height)
+            .ok_or(RenderError::Size(self.width, self.height))?;
         pm.fill(Color::from_rgba8(34, 85, 51, 255));
         let t = Transform::identity();
         for l in &map.lanes {
             if let Some(p) = self.path(&l.centre, false) {
-                pm.stroke_path(&p, &rgba(70, 70, 75, 255), &Stroke { line_cap: LineCap::Butt, ..self.stroke(l.width_m + 0.1, false) }, t, None);
+                pm.stroke_path(
+                    &p,
+                    &rgba(70, 70, 75, 255),
+                    &Stroke { line_cap: LineCap::Butt, ..self.stroke(l.width_m + 0.1, false) },
+                    t,
+                    None,
+                );
             }
         }
         if let Some(p) = self.path(&map.zone, true) {
@@ -164,7 +184,11 @@ impl Renderer {
                 pm.fill_path(&p, &rgba(r, g, b, 255), FillRule::Winding, t, None);
                 pm.stroke_path(&p, &rgba(20, 20, 20, 255), &self.stroke(0.12, false), t, None);
             }
-            let nose = [f.to_world([hl - 0.6, hw - 0.3]), f.to_world([hl - 0.1, 0.0]), f.to_world([hl - 0.6, -hw + 0.3])];
+            let nose = [
+                f.to_world([hl - 0.6, hw - 0.3]),
+                f.to_world([hl - 0.1, 0.0]),
+                f.to_world([hl - 0.6, -hw + 0.3]),
+            ];
             if let Some(p) = self.path(&nose, true) {
                 pm.fill_path(&p, &rgba(255, 255, 255, 220), FillRule::Winding, t, None);
             }
@@ -181,13 +205,21 @@ impl Renderer {
 /// same case under different flows). `None` if there are no frames or a size is invalid.
 pub fn side_by_side(frames: &[&Pixmap]) -> Option<Pixmap> {
     let gap = 4;
-    let w = frames.iter().map(|f| f.width()).sum::<u32>() + gap * frames.len().saturating_sub(1) as u32;
+    let w =
+        frames.iter().map(|f| f.width()).sum::<u32>() + gap * frames.len().saturating_sub(1) as u32;
     let h = frames.iter().map(|f| f.height()).max()?;
     let mut out = Pixmap::new(w, h)?;
     out.fill(tiny_skia::Color::WHITE);
     let mut x = 0i32;
     for f in frames {
-        out.draw_pixmap(x, 0, f.as_ref(), &tiny_skia::PixmapPaint::default(), Transform::identity(), None);
+        out.draw_pixmap(
+            x,
+            0,
+            f.as_ref(),
+            &tiny_skia::PixmapPaint::default(),
+            Transform::identity(),
+            None,
+        );
         x += (f.width() + gap) as i32;
     }
     Some(out)
@@ -210,14 +242,16 @@ impl<W: Write> GifWriter<W> {
     /// `delay_cs`: hundredths of a second per frame.
     pub fn new(out: W, width: u32, height: u32, delay_cs: u16) -> Result<Self, RenderError> {
         let to16 = |v: u32| u16::try_from(v).map_err(|_| RenderError::Size(width, height));
-        let mut enc = gif::Encoder::new(out, to16(width)?, to16(height)?, &[]).map_err(|e| RenderError::Encode(e.to_string()))?;
+        let mut enc = gif::Encoder::new(out, to16(width)?, to16(height)?, &[])
+            .map_err(|e| RenderError::Encode(e.to_string()))?;
         enc.set_repeat(gif::Repeat::Infinite).map_err(|e| RenderError::Encode(e.to_string()))?;
         Ok(Self { enc, delay_cs })
     }
 
     pub fn push(&mut self, pm: &Pixmap) -> Result<(), RenderError> {
         let mut data = pm.data().to_vec();
-        let mut f = gif::Frame::from_rgba_speed(pm.width() as u16, pm.height() as u16, &mut data, 10);
+        let mut f =
+            gif::Frame::from_rgba_speed(pm.width() as u16, pm.height() as u16, &mut data, 10);
         f.delay = self.delay_cs;
         self.enc.write_frame(&f).map_err(|e| RenderError::Encode(e.to_string()))
     }

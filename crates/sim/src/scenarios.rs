@@ -9,7 +9,10 @@
 use std::f32::consts::{FRAC_PI_2, PI};
 
 use crate::geom::{self, P2};
-use crate::map::{Boundary, EdgeSpec, LaneSpec, RouteSpec, ScenarioFile, SpawnSpec, FORMAT_VERSION, POINT_SPACING_M};
+use crate::map::{
+    Boundary, EdgeSpec, LaneSpec, RouteSpec, ScenarioFile, SpawnSpec, FORMAT_VERSION,
+    POINT_SPACING_M,
+};
 
 /// Lane width, metres (digest).
 pub const LANE_W: f32 = 3.5;
@@ -71,7 +74,10 @@ fn hermite(p0: P2, h0: f32, p1: P2, h1: f32) -> Vec<P2> {
             let h10 = t3 - 2.0 * t2 + t;
             let h01 = -2.0 * t3 + 3.0 * t2;
             let h11 = t3 - t2;
-            [h00 * p0[0] + h10 * t0[0] + h01 * p1[0] + h11 * t1[0], h00 * p0[1] + h10 * t0[1] + h01 * p1[1] + h11 * t1[1]]
+            [
+                h00 * p0[0] + h10 * t0[0] + h01 * p1[0] + h11 * t1[0],
+                h00 * p0[1] + h10 * t0[1] + h01 * p1[1] + h11 * t1[1],
+            ]
         })
         .collect();
     geom::resample(&dense, POINT_SPACING_M)
@@ -100,7 +106,12 @@ struct Builder {
 impl Builder {
     fn lane(&mut self, centre: Vec<P2>) -> u32 {
         let id = self.lanes.len() as u32;
-        self.lanes.push(LaneSpec { id, width_m: LANE_W, centre: centre.into_iter().map(round_mm).collect(), successors: vec![] });
+        self.lanes.push(LaneSpec {
+            id,
+            width_m: LANE_W,
+            centre: centre.into_iter().map(round_mm).collect(),
+            successors: vec![],
+        });
         id
     }
 
@@ -119,12 +130,21 @@ impl Builder {
     }
 
     fn edge(&mut self, pts: Vec<P2>) {
-        self.edges.push(EdgeSpec { id: self.edges.len() as u32, points: pts.into_iter().map(round_mm).collect() });
+        self.edges.push(EdgeSpec {
+            id: self.edges.len() as u32,
+            points: pts.into_iter().map(round_mm).collect(),
+        });
     }
 
     /// Spawn points every [`SPAWN_SPACING_M`] along each distinct first lane, from
     /// [`FIRST_SPAWN_M`] up to a clearance before the lane's end or the zone, whichever is first.
-    fn finish(self, name: &str, boundary: Boundary, zone: Vec<P2>, junction_zones: Vec<Vec<P2>>) -> ScenarioFile {
+    fn finish(
+        self,
+        name: &str,
+        boundary: Boundary,
+        zone: Vec<P2>,
+        junction_zones: Vec<Vec<P2>>,
+    ) -> ScenarioFile {
         let mut spawn_points = Vec::new();
         let mut firsts: Vec<u32> = Vec::new();
         for r in &self.routes {
@@ -133,10 +153,16 @@ impl Builder {
             }
         }
         for first in firsts {
-            let routes: Vec<u32> = self.routes.iter().filter(|r| r.lanes[0] == first).map(|r| r.id).collect();
+            let routes: Vec<u32> =
+                self.routes.iter().filter(|r| r.lanes[0] == first).map(|r| r.id).collect();
             let centre = &self.lanes[first as usize].centre;
             let cum = geom::cumulative_lengths(centre);
-            let zone_s = centre.iter().zip(&cum).find(|(p, _)| geom::point_in_polygon(**p, &zone)).map(|(_, s)| *s).unwrap_or(f32::INFINITY);
+            let zone_s = centre
+                .iter()
+                .zip(&cum)
+                .find(|(p, _)| geom::point_in_polygon(**p, &zone))
+                .map(|(_, s)| *s)
+                .unwrap_or(f32::INFINITY);
             let last = (cum[cum.len() - 1]).min(zone_s) - SPAWN_END_CLEARANCE_M;
             let mut s = FIRST_SPAWN_M;
             while s <= last {
@@ -152,7 +178,10 @@ impl Builder {
             edges: self.edges,
             routes: self.routes,
             interaction_zone: zone.into_iter().map(round_mm).collect(),
-            junction_zones: junction_zones.into_iter().map(|z| z.into_iter().map(round_mm).collect()).collect(),
+            junction_zones: junction_zones
+                .into_iter()
+                .map(|z| z.into_iter().map(round_mm).collect())
+                .collect(),
             spawn_points,
         }
     }
@@ -212,7 +241,12 @@ pub fn intersection() -> ScenarioFile {
     }
     let zone = rect(-BOX, -BOX, BOX, BOX);
     let junction = rect(-BOX - 1.0, -BOX - 1.0, BOX + 1.0, BOX + 1.0);
-    b.finish("intersection", Boundary { min: [-90.0, -90.0], max: [90.0, 90.0] }, zone, vec![junction])
+    b.finish(
+        "intersection",
+        Boundary { min: [-90.0, -90.0], max: [90.0, 90.0] },
+        zone,
+        vec![junction],
+    )
 }
 
 /// 240 m road, two lanes each way, narrowing to one lane each way over |x| <= 12 m with
@@ -295,7 +329,15 @@ pub fn merge() -> ScenarioFile {
     b.edge(lower_edge);
     // Zone: the main road between ZONE_X0 and ZONE_X1 plus the ramp from where it is at ZONE_X0.
     let iz = reference.iter().position(|p| p[0] >= ZONE_X0).unwrap_or(0);
-    let zone = vec![[ZONE_X0, top], [ZONE_X1, top], [ZONE_X1, bottom], [MERGE_X, bottom], lower[iz], upper[iz], [ZONE_X0, bottom]];
+    let zone = vec![
+        [ZONE_X0, top],
+        [ZONE_X1, top],
+        [ZONE_X1, bottom],
+        [MERGE_X, bottom],
+        lower[iz],
+        upper[iz],
+        [ZONE_X0, bottom],
+    ];
     b.finish("merge", Boundary { min: [-95.0, -65.0], max: [60.0, 10.0] }, zone, vec![])
 }
 
@@ -317,7 +359,8 @@ pub fn roundabout() -> ScenarioFile {
     let mut outbound = [[0u32; 2]; 3];
     let mut entry = [[0u32; 2]; 3];
     let mut exit = [[0u32; 2]; 3];
-    let mut entry_pts = [[Vec::new(), Vec::new()], [Vec::new(), Vec::new()], [Vec::new(), Vec::new()]];
+    let mut entry_pts =
+        [[Vec::new(), Vec::new()], [Vec::new(), Vec::new()], [Vec::new(), Vec::new()]];
     let mut exit_pts = entry_pts.clone();
     for k in 0..3 {
         let a = arm_rot(k);
@@ -325,8 +368,18 @@ pub fn roundabout() -> ScenarioFile {
             inbound[k][i] = b.lane(rot_all(&line([offs[i], -FAR], [offs[i], -ARM_IN]), a));
             outbound[k][i] = b.lane(rot_all(&line([-offs[i], -ARM_IN], [-offs[i], -FAR]), a));
             let (ain, aout) = (phi(k) + alpha, phi(k) - alpha);
-            let e = hermite(rot([offs[i], -ARM_IN], a), phi(k) + PI, ring_pt(radii[i], ain), ain + FRAC_PI_2);
-            let x = hermite(ring_pt(radii[i], aout), aout + FRAC_PI_2, rot([-offs[i], -ARM_IN], a), phi(k));
+            let e = hermite(
+                rot([offs[i], -ARM_IN], a),
+                phi(k) + PI,
+                ring_pt(radii[i], ain),
+                ain + FRAC_PI_2,
+            );
+            let x = hermite(
+                ring_pt(radii[i], aout),
+                aout + FRAC_PI_2,
+                rot([-offs[i], -ARM_IN], a),
+                phi(k),
+            );
             entry[k][i] = b.lane(e.clone());
             exit[k][i] = b.lane(x.clone());
             entry_pts[k][i] = e;
@@ -334,7 +387,10 @@ pub fn roundabout() -> ScenarioFile {
         }
     }
     // Ring lanes split at every entry and exit angle into arcs (counter-clockwise).
-    let mut cuts: Vec<f32> = (0..3).flat_map(|k| [phi(k) + alpha, phi(k) - alpha]).map(|a| a.rem_euclid(2.0 * PI)).collect();
+    let mut cuts: Vec<f32> = (0..3)
+        .flat_map(|k| [phi(k) + alpha, phi(k) - alpha])
+        .map(|a| a.rem_euclid(2.0 * PI))
+        .collect();
     cuts.sort_by(f32::total_cmp);
     let mut arcs = [Vec::new(), Vec::new()];
     for i in 0..2 {
@@ -347,7 +403,9 @@ pub fn roundabout() -> ScenarioFile {
             arcs[i].push((a0, id));
         }
     }
-    let arc_index = |a: f32| cuts.iter().position(|c| (c - a.rem_euclid(2.0 * PI)).abs() < 1e-4).expect("cut angle");
+    let arc_index = |a: f32| {
+        cuts.iter().position(|c| (c - a.rem_euclid(2.0 * PI)).abs() < 1e-4).expect("cut angle")
+    };
     for k in 0..3 {
         for i in 0..2 {
             let dest = (k + 2 - i) % 3; // outer lane (i = 1): next arm; inner lane: the one after
@@ -384,5 +442,10 @@ pub fn roundabout() -> ScenarioFile {
     }
     let zone = circle(RING_OUT, 48);
     let junction = circle(ARM_IN + 1.0, 48);
-    b.finish("roundabout", Boundary { min: [-105.0, -105.0], max: [105.0, 105.0] }, zone, vec![junction])
+    b.finish(
+        "roundabout",
+        Boundary { min: [-105.0, -105.0], max: [105.0, 105.0] },
+        zone,
+        vec![junction],
+    )
 }

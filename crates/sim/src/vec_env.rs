@@ -87,7 +87,10 @@ impl SlowLeader {
         if !(self.share.is_finite() && (0.0..=1.0).contains(&self.share)) {
             return Err(format!("share: {} must be in [0, 1]", self.share));
         }
-        if !(self.speed_mps.is_finite() && self.speed_mps >= 0.0 && self.speed_mps < vehicle_max_speed_mps) {
+        if !(self.speed_mps.is_finite()
+            && self.speed_mps >= 0.0
+            && self.speed_mps < vehicle_max_speed_mps)
+        {
             return Err(format!("speed_mps: {} must be in [0, {vehicle_max_speed_mps}) m/s (a vehicle slower than the others)", self.speed_mps));
         }
         Ok(())
@@ -98,7 +101,14 @@ impl SlowLeader {
 /// Some(p)`, with probability p one in which the IDM driver in agent 0's seat ends by a
 /// collision (tried up to 200 draws, then the last draw is taken); with `draw.slow_leader`,
 /// with its probability a case with a slow vehicle ahead of agent 0 ([`SlowLeader`]).
-pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u32, vehicles: (u32, u32), draw: CaseDraw) -> Case {
+pub fn draw_case(
+    map: &Arc<Map>,
+    sim: &Arc<SimConfig>,
+    rng: &mut impl Rng,
+    id: u32,
+    vehicles: (u32, u32),
+    draw: CaseDraw,
+) -> Case {
     let want_conflict = draw.conflict_share.is_some_and(|p| rng.random::<f32>() < p);
     let n = rng.random_range(vehicles.0..=vehicles.1) as usize;
     if let Some(slow) = draw.slow_leader {
@@ -124,14 +134,21 @@ pub fn draw_case(map: &Arc<Map>, sim: &Arc<SimConfig>, rng: &mut impl Rng, id: u
 /// Spawn points that start the same lane as spawn `k` (spawn points of one first lane share
 /// their route list), in order along it.
 fn same_lane(map: &Map, k: usize) -> Vec<usize> {
-    let mut lane: Vec<usize> = (0..map.spawns.len()).filter(|&j| map.spawns[j].routes == map.spawns[k].routes).collect();
+    let mut lane: Vec<usize> =
+        (0..map.spawns.len()).filter(|&j| map.spawns[j].routes == map.spawns[k].routes).collect();
     lane.sort_by(|&a, &b| map.spawns[a].s_m.total_cmp(&map.spawns[b].s_m));
     lane
 }
 
 /// A case of `n` vehicles (at least 2) with a slow leader ahead of agent 0 ([`SlowLeader`]);
 /// `None` if the map has no lane with room for one.
-fn slow_leader_case(map: &Map, rng: &mut impl Rng, id: u32, n: usize, speed_mps: f32) -> Option<Case> {
+fn slow_leader_case(
+    map: &Map,
+    rng: &mut impl Rng,
+    id: u32,
+    n: usize,
+    speed_mps: f32,
+) -> Option<Case> {
     let starts: Vec<(usize, Vec<usize>)> = (0..map.spawns.len())
         .filter_map(|k| {
             let lane = same_lane(map, k);
@@ -148,8 +165,18 @@ fn slow_leader_case(map: &Map, rng: &mut impl Rng, id: u32, n: usize, speed_mps:
     let routes = &map.spawns[*ego].routes;
     let route = routes[rng.random_range(0..routes.len())];
     let mut vehicles = vec![
-        CaseVehicle { spawn: *ego as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: None },
-        CaseVehicle { spawn: lead as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: Some(speed_mps) },
+        CaseVehicle {
+            spawn: *ego as u32,
+            route,
+            svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1),
+            max_speed_mps: None,
+        },
+        CaseVehicle {
+            spawn: lead as u32,
+            route,
+            svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1),
+            max_speed_mps: Some(speed_mps),
+        },
     ];
     let lane = same_lane(map, *ego);
     let others: Vec<usize> = (0..map.spawns.len()).filter(|j| !lane.contains(j)).collect();
@@ -157,7 +184,12 @@ fn slow_leader_case(map: &Map, rng: &mut impl Rng, id: u32, n: usize, speed_mps:
     for j in sample(rng, others.len(), k) {
         let sp = &map.spawns[others[j]];
         let route = sp.routes[rng.random_range(0..sp.routes.len())];
-        vehicles.push(CaseVehicle { spawn: others[j] as u32, route, svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1), max_speed_mps: None });
+        vehicles.push(CaseVehicle {
+            spawn: others[j] as u32,
+            route,
+            svo_deg: rng.random_range(SVO_RANGE_DEG.0..=SVO_RANGE_DEG.1),
+            max_speed_mps: None,
+        });
     }
     Some(Case { id, vehicles })
 }
@@ -238,12 +270,31 @@ impl VecEnv {
     /// that finishes takes the next one (slots in index order, so results do not depend on
     /// thread timing). Rows of slots with nothing left stay zero; [`VecEnv::is_finished`] tells
     /// when all are done and [`VecEnv::take_finished_tagged`] returns their metrics by tag.
-    pub fn from_episodes(map: Arc<Map>, sim: Arc<SimConfig>, mode: Mode, n_envs: usize, episodes: Vec<EpisodeSpec>) -> Result<Self, VecEnvError> {
+    pub fn from_episodes(
+        map: Arc<Map>,
+        sim: Arc<SimConfig>,
+        mode: Mode,
+        n_envs: usize,
+        episodes: Vec<EpisodeSpec>,
+    ) -> Result<Self, VecEnvError> {
         for e in &episodes {
-            e.case.check(&map).map_err(|(field, reason)| VecEnvError::Case { case: e.case.id, field, reason })?;
+            e.case.check(&map).map_err(|(field, reason)| VecEnvError::Case {
+                case: e.case.id,
+                field,
+                reason,
+            })?;
         }
-        let most = episodes.iter().map(|e| e.vehicles.unwrap_or(usize::MAX).min(e.case.vehicles.len())).max().unwrap_or(1);
-        let cfg = VecEnvConfig { n_envs: n_envs.max(1), mode, vehicles: (1, most.max(1) as u32), seed: 0 };
+        let most = episodes
+            .iter()
+            .map(|e| e.vehicles.unwrap_or(usize::MAX).min(e.case.vehicles.len()))
+            .max()
+            .unwrap_or(1);
+        let cfg = VecEnvConfig {
+            n_envs: n_envs.max(1),
+            mode,
+            vehicles: (1, most.max(1) as u32),
+            seed: 0,
+        };
         let mut v = Self::build(map, sim, cfg);
         v.queue = Some(episodes.into());
         for s in &mut v.slots {
@@ -268,17 +319,25 @@ impl VecEnv {
         let Some(q) = self.queue.as_mut() else { return };
         let (len, per, mode) = (self.spec.len, self.max_agents, self.cfg.mode);
         for (k, s) in self.slots.iter_mut().enumerate().filter(|(_, s)| s.idle) {
-            let (obs, alive, bg) = (&mut self.obs[k * per * len..(k + 1) * per * len], &mut self.alive[k * per..(k + 1) * per], &mut self.background[k * per..(k + 1) * per]);
+            let (obs, alive, bg) = (
+                &mut self.obs[k * per * len..(k + 1) * per * len],
+                &mut self.alive[k * per..(k + 1) * per],
+                &mut self.background[k * per..(k + 1) * per],
+            );
             match q.pop_front() {
                 Some(ep) => {
-                    s.env.reset(&ep.case, mode, ep.vehicles).expect("stored cases were checked against the map");
+                    s.env
+                        .reset(&ep.case, mode, ep.vehicles)
+                        .expect("stored cases were checked against the map");
                     if let Some(svo) = ep.svo_deg {
                         for i in 0..s.env.len() {
                             s.env.set_svo(i, svo);
                         }
                     }
                     // A stored episode's random draws depend on its tag, not on its slot.
-                    s.rng = ChaCha8Rng::seed_from_u64(ep.tag.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5356_4f47);
+                    s.rng = ChaCha8Rng::seed_from_u64(
+                        ep.tag.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5356_4f47,
+                    );
                     if ep.svo_deg.is_none() {
                         s.redraw_svos(self.svo_gaussian, mode);
                     }
@@ -297,13 +356,17 @@ impl VecEnv {
 
     pub fn new(map: Arc<Map>, sim: Arc<SimConfig>, cfg: VecEnvConfig) -> Self {
         let mut v = Self::build(map, sim, cfg);
-        let (spec_len, mode, vehicles, max_agents) = (v.spec.len, v.cfg.mode, v.cfg.vehicles, v.max_agents);
-        v.slots.par_iter_mut().zip(v.obs.par_chunks_mut(max_agents * spec_len)).zip(v.alive.par_chunks_mut(max_agents)).zip(v.background.par_chunks_mut(max_agents)).for_each(
-            |(((s, obs), alive), bg)| {
+        let (spec_len, mode, vehicles, max_agents) =
+            (v.spec.len, v.cfg.mode, v.cfg.vehicles, v.max_agents);
+        v.slots
+            .par_iter_mut()
+            .zip(v.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(v.alive.par_chunks_mut(max_agents))
+            .zip(v.background.par_chunks_mut(max_agents))
+            .for_each(|(((s, obs), alive), bg)| {
                 s.reset(mode, vehicles, CaseDraw::default());
                 s.observe(obs, alive, bg, spec_len);
-            },
-        );
+            });
         v
     }
 
@@ -425,21 +488,29 @@ impl VecEnv {
     pub fn communicate_ego_svo(&mut self, svo_deg: &[Option<f32>]) {
         assert_eq!(svo_deg.len(), self.slots.len(), "one message per environment");
         let (spec_len, max_agents) = (self.spec.len, self.max_agents);
-        self.slots.par_iter_mut().zip(self.obs.par_chunks_mut(max_agents * spec_len)).zip(self.background.par_chunks(max_agents)).zip(svo_deg.par_iter()).for_each(|(((s, obs), bg), &msg)| {
-            let env = &mut s.env;
-            let Some(ego) = env.agents().first().filter(|a| a.alive).map(|a| a.state.pos()) else {
-                return;
-            };
-            let r2 = env.cfg.obs.radius_m * env.cfg.obs.radius_m;
-            for i in 1..env.len() {
-                let near = crate::geom::dist2(env.agents()[i].state.pos(), ego) <= r2;
-                env.set_seen_ego_svo(i, msg.filter(|_| near));
-            }
-            s.observer.prepare(&s.env);
-            for (i, row) in obs.chunks_mut(spec_len).enumerate().filter(|&(i, _)| bg.get(i) == Some(&1.0)) {
-                s.observer.write(&s.env, i, row);
-            }
-        });
+        self.slots
+            .par_iter_mut()
+            .zip(self.obs.par_chunks_mut(max_agents * spec_len))
+            .zip(self.background.par_chunks(max_agents))
+            .zip(svo_deg.par_iter())
+            .for_each(|(((s, obs), bg), &msg)| {
+                let env = &mut s.env;
+                let Some(ego) = env.agents().first().filter(|a| a.alive).map(|a| a.state.pos())
+                else {
+                    return;
+                };
+                let r2 = env.cfg.obs.radius_m * env.cfg.obs.radius_m;
+                for i in 1..env.len() {
+                    let near = crate::geom::dist2(env.agents()[i].state.pos(), ego) <= r2;
+                    env.set_seen_ego_svo(i, msg.filter(|_| near));
+                }
+                s.observer.prepare(&s.env);
+                for (i, row) in
+                    obs.chunks_mut(spec_len).enumerate().filter(|&(i, _)| bg.get(i) == Some(&1.0))
+                {
+                    s.observer.write(&s.env, i, row);
+                }
+            });
     }
 
     /// The IDM demonstrator's action ([`Env::demo_action`]) of row `r`'s agent, normalised.
@@ -457,7 +528,11 @@ impl VecEnv {
     /// itself is already reset), else its current row.
     pub fn next_observation(&self, r: usize) -> &[f32] {
         let len = self.spec.len;
-        let src = if self.steps[r].ended.is_some() || self.steps[r].truncated { &self.final_obs } else { &self.obs };
+        let src = if self.steps[r].ended.is_some() || self.steps[r].truncated {
+            &self.final_obs
+        } else {
+            &self.obs
+        };
         &src[r * len..(r + 1) * len]
     }
 
@@ -475,7 +550,8 @@ impl VecEnv {
     /// scored and replaced by fresh random ones before observing.
     pub fn step(&mut self, actions: &[Action]) {
         assert_eq!(actions.len(), self.alive.len(), "one action per observation row");
-        let (spec_len, max_agents, mode, vehicles) = (self.spec.len, self.max_agents, self.cfg.mode, self.cfg.vehicles);
+        let (spec_len, max_agents, mode, vehicles) =
+            (self.spec.len, self.max_agents, self.cfg.mode, self.cfg.vehicles);
         let learners_only = matches!(mode, Mode::Ego { .. });
         let queued = self.queue.is_some();
         let svo_gaussian = self.svo_gaussian;
@@ -495,11 +571,16 @@ impl VecEnv {
                     return 0;
                 }
                 let n = s.env.len();
-                let stepped = s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count() as u64;
+                let stepped =
+                    s.env.agents().iter().filter(|a| a.alive && a.role == Role::Learner).count()
+                        as u64;
                 s.env.step(&acts[..n]).expect("a live episode with one action per agent");
                 s.record(steps, finals, alive, bg, spec_len);
                 if s.env.done() {
-                    s.finished.push((s.tag, EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only)));
+                    s.finished.push((
+                        s.tag,
+                        EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only),
+                    ));
                     if queued {
                         s.idle = true;
                         return stepped;
@@ -530,7 +611,14 @@ impl Slot {
 
     /// Fills per-row step results (learner and externally driven background rows) and the
     /// final observations of rows that ended, or were cut by the episode's end.
-    fn record(&mut self, steps: &mut [RowStep], finals: &mut [f32], alive: &[f32], bg: &[f32], spec_len: usize) {
+    fn record(
+        &mut self,
+        steps: &mut [RowStep],
+        finals: &mut [f32],
+        alive: &[f32],
+        bg: &[f32],
+        spec_len: usize,
+    ) {
         let mut prepared = false;
         let done = self.env.done();
         for (i, st) in steps.iter_mut().enumerate() {
@@ -555,7 +643,8 @@ impl Slot {
     }
 
     fn reset(&mut self, mode: Mode, vehicles: (u32, u32), draw: CaseDraw) {
-        let case = draw_case(&self.env.map, &self.env.cfg, &mut self.rng, self.episodes, vehicles, draw);
+        let case =
+            draw_case(&self.env.map, &self.env.cfg, &mut self.rng, self.episodes, vehicles, draw);
         self.tag = self.episodes as u64;
         self.episodes += 1;
         self.env.reset(&case, mode, None).expect("generated cases are valid for their map");
@@ -563,13 +652,17 @@ impl Slot {
 
     fn observe(&mut self, obs: &mut [f32], alive: &mut [f32], bg: &mut [f32], spec_len: usize) {
         self.observer.prepare(&self.env);
-        for (i, ((row, live), back)) in obs.chunks_mut(spec_len).zip(alive.iter_mut()).zip(bg.iter_mut()).enumerate() {
+        for (i, ((row, live), back)) in
+            obs.chunks_mut(spec_len).zip(alive.iter_mut()).zip(bg.iter_mut()).enumerate()
+        {
             let a = self.env.agents().get(i);
             if a.is_some_and(|a| a.alive && a.role == Role::Learner) {
                 self.observer.write(&self.env, i, row);
                 *live = 1.0;
                 *back = 0.0;
-            } else if a.is_some_and(|a| a.alive && a.role == Role::Background && a.controller == Controller::External) {
+            } else if a.is_some_and(|a| {
+                a.alive && a.role == Role::Background && a.controller == Controller::External
+            }) {
                 self.observer.write(&self.env, i, row);
                 *live = 0.0;
                 *back = 1.0;

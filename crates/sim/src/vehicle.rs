@@ -26,7 +26,18 @@ pub struct VehicleParams {
 
 impl Default for VehicleParams {
     fn default() -> Self {
-        Self { length_m: 4.2, width_m: 2.0, wheelbase_m: 2.6, max_speed_mps: 6.0, max_accel_mps2: 5.0, max_steer_deg: 45.0, pid_kp: 1.0, pid_ki: 0.01, pid_kd: 0.05, pid_integral_reset: 10.0 }
+        Self {
+            length_m: 4.2,
+            width_m: 2.0,
+            wheelbase_m: 2.6,
+            max_speed_mps: 6.0,
+            max_accel_mps2: 5.0,
+            max_steer_deg: 45.0,
+            pid_kp: 1.0,
+            pid_ki: 0.01,
+            pid_kd: 0.05,
+            pid_integral_reset: 10.0,
+        }
     }
 }
 
@@ -49,7 +60,8 @@ impl VehicleState {
         let (s, c) = self.theta_rad.sin_cos();
         self.x_m += dt_s * self.speed_mps * c;
         self.y_m += dt_s * self.speed_mps * s;
-        self.theta_rad = wrap_angle(self.theta_rad + dt_s * self.speed_mps * d.tan() / p.wheelbase_m);
+        self.theta_rad =
+            wrap_angle(self.theta_rad + dt_s * self.speed_mps * d.tan() / p.wheelbase_m);
         self.speed_mps = (self.speed_mps + dt_s * a).clamp(0.0, p.max_speed_mps);
     }
 
@@ -68,7 +80,13 @@ pub struct Pid {
 impl Pid {
     /// Acceleration command (m/s^2, clipped to the vehicle's limit) for one sub-step.
     #[inline]
-    pub fn command(&mut self, p: &VehicleParams, ref_speed_mps: f32, speed_mps: f32, dt_s: f32) -> f32 {
+    pub fn command(
+        &mut self,
+        p: &VehicleParams,
+        ref_speed_mps: f32,
+        speed_mps: f32,
+        dt_s: f32,
+    ) -> f32 {
         let e = ref_speed_mps - speed_mps;
         self.integral += e;
         if self.integral.abs() > p.pid_integral_reset {
@@ -76,7 +94,8 @@ impl Pid {
         }
         let de = self.prev_error.map_or(0.0, |pe| (e - pe) / dt_s);
         self.prev_error = Some(e);
-        (p.pid_kp * e + p.pid_ki * self.integral + p.pid_kd * de).clamp(-p.max_accel_mps2, p.max_accel_mps2)
+        (p.pid_kp * e + p.pid_ki * self.integral + p.pid_kd * de)
+            .clamp(-p.max_accel_mps2, p.max_accel_mps2)
     }
 }
 
@@ -130,8 +149,10 @@ pub enum DriveActionError {
 }
 
 impl DriveAction {
-    pub const ALL: [Self; 4] = [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual, Self::IdmResidualLateral];
-    pub const NAMES: [&'static str; 4] = ["direct", "idm-residual", "idm-accel-residual", "idm-residual-lateral"];
+    pub const ALL: [Self; 4] =
+        [Self::Direct, Self::IdmResidual, Self::IdmAccelResidual, Self::IdmResidualLateral];
+    pub const NAMES: [&'static str; 4] =
+        ["direct", "idm-residual", "idm-accel-residual", "idm-residual-lateral"];
 
     /// The name in configuration files (`env.action`).
     pub fn as_str(self) -> &'static str {
@@ -145,7 +166,10 @@ impl DriveAction {
 
     /// Parses [`DriveAction::as_str`]'s names; the error lists them.
     pub fn parse(s: &str) -> Result<Self, DriveActionError> {
-        Self::ALL.into_iter().find(|a| a.as_str() == s).ok_or_else(|| DriveActionError::Unknown { name: s.to_string() })
+        Self::ALL
+            .into_iter()
+            .find(|a| a.as_str() == s)
+            .ok_or_else(|| DriveActionError::Unknown { name: s.to_string() })
     }
 
     /// Floats per action.
@@ -163,10 +187,16 @@ impl DriveAction {
             Self::Direct => Action { ref_speed: a[0], steer: a[1], ..Action::default() },
             Self::IdmResidual => {
                 let d = demo.unwrap_or_default();
-                Action { ref_speed: (d.ref_speed + a[0]).clamp(-1.0, 1.0), steer: (d.steer + a[1]).clamp(-1.0, 1.0), ..Action::default() }
+                Action {
+                    ref_speed: (d.ref_speed + a[0]).clamp(-1.0, 1.0),
+                    steer: (d.steer + a[1]).clamp(-1.0, 1.0),
+                    ..Action::default()
+                }
             }
             Self::IdmAccelResidual => Action { idm_accel: Some(a[0]), ..Action::default() },
-            Self::IdmResidualLateral => Action { idm_accel: Some(a[0]), lateral: Some(a[1]), ..Action::default() },
+            Self::IdmResidualLateral => {
+                Action { idm_accel: Some(a[0]), lateral: Some(a[1]), ..Action::default() }
+            }
         }
     }
 
@@ -180,7 +210,9 @@ impl DriveAction {
     pub fn demonstrator(self, demo: Action) -> Vec<f32> {
         match self {
             Self::Direct => vec![demo.ref_speed, demo.steer],
-            Self::IdmResidual | Self::IdmAccelResidual | Self::IdmResidualLateral => vec![0.0; self.dim()],
+            Self::IdmResidual | Self::IdmAccelResidual | Self::IdmResidualLateral => {
+                vec![0.0; self.dim()]
+            }
         }
     }
 }
@@ -197,7 +229,11 @@ impl Action {
 
     /// Encodes physical values into a normalised action (inverse of [`Action::decode`]).
     pub fn encode(p: &VehicleParams, ref_speed_mps: f32, steer_rad: f32) -> Self {
-        Self { ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0), steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0), ..Self::default() }
+        Self {
+            ref_speed: (2.0 * ref_speed_mps / p.max_speed_mps - 1.0).clamp(-1.0, 1.0),
+            steer: (steer_rad / p.max_steer_deg.to_radians()).clamp(-1.0, 1.0),
+            ..Self::default()
+        }
     }
 }
 
@@ -221,7 +257,12 @@ mod tests {
         let omega = v / r;
         let th = omega * t_end;
         let (x, y) = (r * th.sin(), r * (1.0 - th.cos()));
-        assert!((s.x_m - x).abs() < 0.05 && (s.y_m - y).abs() < 0.05, "got ({}, {}), want ({x}, {y})", s.x_m, s.y_m);
+        assert!(
+            (s.x_m - x).abs() < 0.05 && (s.y_m - y).abs() < 0.05,
+            "got ({}, {}), want ({x}, {y})",
+            s.x_m,
+            s.y_m
+        );
         assert!((wrap_angle(s.theta_rad - th)).abs() < 1e-2);
         // Distance from the circle's centre stays r.
         let rr = (s.x_m.powi(2) + (s.y_m - r).powi(2)).sqrt();

@@ -11,7 +11,8 @@ use sf_sim::{Action, CaseFile, Env, Mode, Observer, SimConfig};
 
 fn trajectory(name: &str, case_id: usize, mode: Mode) -> Vec<u32> {
     let m = common::map(name);
-    let cases = CaseFile::load(&common::configs().join(format!("cases/{name}.v1.json")), &m).expect("cases");
+    let cases = CaseFile::load(&common::configs().join(format!("cases/{name}.v1.json")), &m)
+        .expect("cases");
     let cfg = Arc::new(SimConfig::default());
     let mut env = Env::new(m.clone(), cfg.clone());
     env.reset(&cases.cases[case_id], mode, None).expect("reset");
@@ -30,7 +31,10 @@ fn trajectory(name: &str, case_id: usize, mode: Mode) -> Vec<u32> {
         },
         |e| {
             for a in e.agents() {
-                bits.extend([a.state.x_m, a.state.y_m, a.state.theta_rad, a.state.speed_mps].map(f32::to_bits));
+                bits.extend(
+                    [a.state.x_m, a.state.y_m, a.state.theta_rad, a.state.speed_mps]
+                        .map(f32::to_bits),
+                );
             }
         },
     )
@@ -41,13 +45,18 @@ fn trajectory(name: &str, case_id: usize, mode: Mode) -> Vec<u32> {
 #[test]
 fn replays_are_bit_identical() {
     for name in sf_sim::scenarios::SCENARIOS {
-        for mode in [Mode::MultiAgent, Mode::AllIdm, Mode::Ego { background: sf_sim::Controller::Idm }] {
+        for mode in
+            [Mode::MultiAgent, Mode::AllIdm, Mode::Ego { background: sf_sim::Controller::Idm }]
+        {
             let a = trajectory(name, 3, mode);
             let b = trajectory(name, 3, mode);
             assert!(a.len() > 100);
             assert!(a == b, "{name} {mode:?}: replay differs");
         }
-        assert!(trajectory(name, 3, Mode::AllIdm) != trajectory(name, 4, Mode::AllIdm), "different cases differ");
+        assert!(
+            trajectory(name, 3, Mode::AllIdm) != trajectory(name, 4, Mode::AllIdm),
+            "different cases differ"
+        );
     }
 }
 
@@ -56,13 +65,23 @@ fn batched_run(threads: usize) -> (Vec<u32>, u64) {
     let cfg = Arc::new(SimConfig::default());
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
     pool.install(|| {
-        let mut v = VecEnv::new(m.clone(), cfg.clone(), VecEnvConfig { n_envs: 6, mode: Mode::MultiAgent, vehicles: (8, 20), seed: 11 });
+        let mut v = VecEnv::new(
+            m.clone(),
+            cfg.clone(),
+            VecEnvConfig { n_envs: 6, mode: Mode::MultiAgent, vehicles: (8, 20), seed: 11 },
+        );
         let mut actions = vec![Action::default(); v.alive().len()];
         let spec = v.spec.clone();
         for _ in 0..150 {
             for (r, a) in actions.iter_mut().enumerate() {
                 if v.alive()[r] != 0.0 {
-                    *a = route_follower(&spec, &v.observations()[r * spec.len..(r + 1) * spec.len], &cfg.vehicle, 2, 1.0);
+                    *a = route_follower(
+                        &spec,
+                        &v.observations()[r * spec.len..(r + 1) * spec.len],
+                        &cfg.vehicle,
+                        2,
+                        1.0,
+                    );
                 }
             }
             v.step(&actions);
@@ -90,7 +109,14 @@ fn stored_episodes_run_once_each_and_score_as_alone() {
     let m = common::map("merge");
     let cases = CaseFile::load(&common::configs().join("cases/merge.v1.json"), &m).expect("cases");
     let cfg = Arc::new(SimConfig::default());
-    let eps: Vec<EpisodeSpec> = (0..7).map(|k| EpisodeSpec { case: cases.cases[k].clone(), vehicles: (k % 2 == 0).then_some(4), svo_deg: (k == 3).then_some(30.0), tag: 100 + k as u64 }).collect();
+    let eps: Vec<EpisodeSpec> = (0..7)
+        .map(|k| EpisodeSpec {
+            case: cases.cases[k].clone(),
+            vehicles: (k % 2 == 0).then_some(4),
+            svo_deg: (k == 3).then_some(30.0),
+            tag: 100 + k as u64,
+        })
+        .collect();
     let alone: Vec<EpisodeMetrics> = eps
         .iter()
         .map(|e| {
@@ -101,7 +127,8 @@ fn stored_episodes_run_once_each_and_score_as_alone() {
         })
         .collect();
     for width in [1, 3, 16] {
-        let mut v = VecEnv::from_episodes(m.clone(), cfg.clone(), Mode::AllIdm, width, eps.clone()).expect("valid cases");
+        let mut v = VecEnv::from_episodes(m.clone(), cfg.clone(), Mode::AllIdm, width, eps.clone())
+            .expect("valid cases");
         let mut got = Vec::new();
         let mut guard = 0;
         while !v.is_finished() {
@@ -112,7 +139,11 @@ fn stored_episodes_run_once_each_and_score_as_alone() {
             assert!(guard < 10_000, "never finished");
         }
         got.sort_by_key(|(t, _)| *t);
-        assert_eq!(got.iter().map(|(t, _)| *t).collect::<Vec<_>>(), (100..107).collect::<Vec<_>>(), "width {width}");
+        assert_eq!(
+            got.iter().map(|(t, _)| *t).collect::<Vec<_>>(),
+            (100..107).collect::<Vec<_>>(),
+            "width {width}"
+        );
         for ((_, g), a) in got.iter().zip(&alone) {
             assert_eq!(g, a, "width {width}");
         }
@@ -128,13 +159,22 @@ fn a_coordinator_gaussian_redraws_flow_svos_every_step_but_not_the_egos() {
     use sf_sim::vec_env::EpisodeSpec;
     use sf_sim::{Controller, SvoGaussian};
     let m = common::map("roundabout");
-    let cases = CaseFile::load(&common::configs().join("cases/roundabout.v1.json"), &m).expect("cases");
+    let cases =
+        CaseFile::load(&common::configs().join("cases/roundabout.v1.json"), &m).expect("cases");
     let cfg = Arc::new(SimConfig::default());
     let g = SvoGaussian { mean_deg: 72.0, std_deg: 4.5 };
     let mode = Mode::Ego { background: Controller::Idm };
-    let eps: Vec<EpisodeSpec> = (0..4).map(|k| EpisodeSpec { case: cases.cases[k].clone(), vehicles: None, svo_deg: None, tag: k as u64 }).collect();
+    let eps: Vec<EpisodeSpec> = (0..4)
+        .map(|k| EpisodeSpec {
+            case: cases.cases[k].clone(),
+            vehicles: None,
+            svo_deg: None,
+            tag: k as u64,
+        })
+        .collect();
     let run = |width: usize| {
-        let mut v = VecEnv::from_episodes(m.clone(), cfg.clone(), mode, width, eps.clone()).expect("valid cases");
+        let mut v = VecEnv::from_episodes(m.clone(), cfg.clone(), mode, width, eps.clone())
+            .expect("valid cases");
         v.set_svo_gaussian(Some(g));
         let ego_svo = v.env(0).agents()[0].svo_deg;
         assert_eq!(ego_svo, cases.cases[0].vehicles[0].svo_deg, "the ego keeps the case's SVO");
@@ -157,7 +197,10 @@ fn a_coordinator_gaussian_redraws_flow_svos_every_step_but_not_the_egos() {
     let mean = draws.iter().sum::<f32>() / draws.len() as f32;
     assert!((mean - 72.0).abs() < 3.0, "mean of the draws {mean}");
     let case_svos: Vec<f32> = cases.cases[0].vehicles.iter().skip(1).map(|c| c.svo_deg).collect();
-    assert!(case_svos.iter().any(|s| (s - 72.0).abs() > 15.0), "the case's own SVOs are spread, so the test can tell them apart");
+    assert!(
+        case_svos.iter().any(|s| (s - 72.0).abs() > 15.0),
+        "the case's own SVOs are spread, so the test can tell them apart"
+    );
     v.set_svo_gaussian(None);
     let before: Vec<f32> = v.env(0).agents().iter().map(|a| a.svo_deg).collect();
     v.step(&vec![Action::default(); v.alive().len()]);

@@ -16,9 +16,16 @@ fn shipped_scenarios_equal_their_builders() {
         let path = configs().join(format!("scenarios/{name}.json"));
         let file = ScenarioFile::read(&path).expect("readable");
         let built = scenarios::build(name).expect("builder");
-        assert!(file == built, "configs/scenarios/{name}.json is stale: run `socialflow gen-scenarios`");
+        assert!(
+            file == built,
+            "configs/scenarios/{name}.json is stale: run `socialflow gen-scenarios`"
+        );
         let map = Map::from_file(&file, name).expect("valid");
-        assert!(map.spawns.len() >= 40, "{name}: {} spawn points, the 40-vehicle benchmark needs 40", map.spawns.len());
+        assert!(
+            map.spawns.len() >= 40,
+            "{name}: {} spawn points, the 40-vehicle benchmark needs 40",
+            map.spawns.len()
+        );
     }
 }
 
@@ -40,7 +47,11 @@ fn shipped_cases_load_and_replay_their_generator() {
         let f = CaseFile::load(&path, &m).expect("valid case file");
         assert_eq!(f.cases.len(), 200);
         let again = case::generate(&m, 200, f.generator_seed, DEFAULT_VEHICLES);
-        assert!(again == f, "{name}: stored cases differ from the generator (seed {})", f.generator_seed);
+        assert!(
+            again == f,
+            "{name}: stored cases differ from the generator (seed {})",
+            f.generator_seed
+        );
         assert_eq!(f.generator_seed, 20221 + k as u64);
         for c in &f.cases {
             assert!((8..=20).contains(&c.vehicles.len()));
@@ -53,7 +64,10 @@ fn reject(file: &ScenarioFile, field: &str) -> String {
         Ok(_) => panic!("accepted a file with a bad `{field}`"),
         Err(e) => {
             let msg = e.to_string();
-            assert!(msg.contains("test.json") && msg.contains(field), "message `{msg}` does not name `{field}`");
+            assert!(
+                msg.contains("test.json") && msg.contains(field),
+                "message `{msg}` does not name `{field}`"
+            );
             msg
         }
     }
@@ -107,7 +121,9 @@ fn unreadable_and_unparsable_files_name_the_path() {
     // A case file referring to a route that does not start at its spawn point.
     let m = common::map("merge");
     let mut cf = case::generate(&m, 3, 1, (8, 8));
-    let wrong = (0..m.routes.len() as u32).find(|r| !m.spawns[cf.cases[1].vehicles[2].spawn as usize].routes.contains(r)).expect("some other route");
+    let wrong = (0..m.routes.len() as u32)
+        .find(|r| !m.spawns[cf.cases[1].vehicles[2].spawn as usize].routes.contains(r))
+        .expect("some other route");
     cf.cases[1].vehicles[2].route = wrong;
     let p = dir.join("cases.json");
     cf.write(&p).expect("write");

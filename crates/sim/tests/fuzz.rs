@@ -62,9 +62,14 @@ fn shipped() -> &'static [Shipped] {
         SCENARIOS
             .iter()
             .map(|&name| {
-                let scenario_text = std::fs::read_to_string(configs().join(format!("scenarios/{name}.json"))).expect("shipped scenario is readable");
-                let cases_text = std::fs::read_to_string(configs().join(format!("cases/{name}.v1.json"))).expect("shipped case file is readable");
-                let file: ScenarioFile = serde_json::from_str(&scenario_text).expect("shipped scenario parses");
+                let scenario_text =
+                    std::fs::read_to_string(configs().join(format!("scenarios/{name}.json")))
+                        .expect("shipped scenario is readable");
+                let cases_text =
+                    std::fs::read_to_string(configs().join(format!("cases/{name}.v1.json")))
+                        .expect("shipped case file is readable");
+                let file: ScenarioFile =
+                    serde_json::from_str(&scenario_text).expect("shipped scenario parses");
                 Shipped {
                     name,
                     scenario: serde_json::from_str(&scenario_text).expect("JSON"),
@@ -80,14 +85,20 @@ fn shipped() -> &'static [Shipped] {
 
 /// What the scenario loader does after reading the file.
 fn load_scenario(text: &str, origin: &str) -> Result<Map, String> {
-    let file: ScenarioFile = serde_json::from_str(text).map_err(|e| format!("scenario file {origin} is not valid JSON for the scenario format: {e}"))?;
+    let file: ScenarioFile = serde_json::from_str(text).map_err(|e| {
+        format!("scenario file {origin} is not valid JSON for the scenario format: {e}")
+    })?;
     Map::from_file(&file, origin).map_err(|e| e.to_string())
 }
 
 /// Runs the case loader on `text` (written to a temporary file, as the loader reads paths).
 fn load_cases(text: &str, map: &Map) -> Result<CaseFile, String> {
     static N: AtomicUsize = AtomicUsize::new(0);
-    let path = std::env::temp_dir().join(format!("sf-sim-fuzz-{}-{}.json", std::process::id(), N.fetch_add(1, Ordering::Relaxed)));
+    let path = std::env::temp_dir().join(format!(
+        "sf-sim-fuzz-{}-{}.json",
+        std::process::id(),
+        N.fetch_add(1, Ordering::Relaxed)
+    ));
     std::fs::write(&path, text).expect("temporary file is writable");
     let r = CaseFile::load(&path, map).map_err(|e| e.to_string());
     let _ = std::fs::remove_file(&path);
@@ -96,7 +107,11 @@ fn load_cases(text: &str, map: &Map) -> Result<CaseFile, String> {
 
 /// An accepted map is usable: a few all-IDM episodes with observations, random resets included.
 fn use_map(map: Map) {
-    let mut v = VecEnv::new(Arc::new(map), Arc::new(SimConfig::default()), VecEnvConfig { n_envs: 2, mode: Mode::AllIdm, vehicles: (1, 6), seed: 7 });
+    let mut v = VecEnv::new(
+        Arc::new(map),
+        Arc::new(SimConfig::default()),
+        VecEnvConfig { n_envs: 2, mode: Mode::AllIdm, vehicles: (1, 6), seed: 7 },
+    );
     let actions = vec![Action::default(); v.alive().len()];
     for _ in 0..10 {
         v.step(&actions);
@@ -106,8 +121,21 @@ fn use_map(map: Map) {
 
 /// Accepted cases are usable: the first few run as stored episodes on their map.
 fn use_cases(f: &CaseFile, map: &Arc<Map>) {
-    let eps: Vec<EpisodeSpec> = f.cases.iter().take(3).enumerate().map(|(k, c)| EpisodeSpec { case: c.clone(), vehicles: None, svo_deg: None, tag: k as u64 }).collect();
-    let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::new(SimConfig::default()), Mode::AllIdm, 2, eps).expect("loaded cases pass the simulator's check");
+    let eps: Vec<EpisodeSpec> = f
+        .cases
+        .iter()
+        .take(3)
+        .enumerate()
+        .map(|(k, c)| EpisodeSpec { case: c.clone(), vehicles: None, svo_deg: None, tag: k as u64 })
+        .collect();
+    let mut v = VecEnv::from_episodes(
+        Arc::clone(map),
+        Arc::new(SimConfig::default()),
+        Mode::AllIdm,
+        2,
+        eps,
+    )
+    .expect("loaded cases pass the simulator's check");
     let actions = vec![Action::default(); v.alive().len()];
     for _ in 0..5 {
         v.step(&actions);
@@ -128,7 +156,24 @@ enum Edit {
     Nudge(Index, Index, f64),
 }
 
-const REPLACEMENTS: [&str; 16] = ["-1", "0", "1", "1.5", "1e308", "-1e308", "1e30", "-1e30", "3e38", "1e6", "4294967295", "4294967296", "18446744073709551615", "null", "\"\"", "[]"];
+const REPLACEMENTS: [&str; 16] = [
+    "-1",
+    "0",
+    "1",
+    "1.5",
+    "1e308",
+    "-1e308",
+    "1e30",
+    "-1e30",
+    "3e38",
+    "1e6",
+    "4294967295",
+    "4294967296",
+    "18446744073709551615",
+    "null",
+    "\"\"",
+    "[]",
+];
 
 fn edit() -> impl Strategy<Value = Edit> {
     prop_oneof![
@@ -189,14 +234,19 @@ fn pick(v: &Value, i: &Index, want: &dyn Fn(&Value) -> bool) -> Option<Vec<Step>
 fn pick_number(v: &Value, key: &Index, i: &Index) -> Option<Vec<Step>> {
     let mut all = Vec::new();
     paths(v, &Value::is_number, &mut Vec::new(), &mut all);
-    let mut keys: Vec<String> = all.iter().flatten().filter_map(|s| if let Step::Key(k) = s { Some(k.clone()) } else { None }).collect();
+    let mut keys: Vec<String> = all
+        .iter()
+        .flatten()
+        .filter_map(|s| if let Step::Key(k) = s { Some(k.clone()) } else { None })
+        .collect();
     keys.sort();
     keys.dedup();
     if keys.is_empty() {
         return None;
     }
     let k = &keys[key.index(keys.len())];
-    let mut under: Vec<Vec<Step>> = all.into_iter().filter(|p| p.iter().any(|s| matches!(s, Step::Key(x) if x == k))).collect();
+    let mut under: Vec<Vec<Step>> =
+        all.into_iter().filter(|p| p.iter().any(|s| matches!(s, Step::Key(x) if x == k))).collect();
     let n = under.len();
     Some(under.swap_remove(i.index(n)))
 }
@@ -220,7 +270,9 @@ fn apply(v: &mut Value, e: &Edit) {
             }
         }
         Edit::RemoveField(i) => {
-            let Some(p) = pick(v, i, &|x| x.as_object().is_some_and(|o| !o.is_empty())) else { return };
+            let Some(p) = pick(v, i, &|x| x.as_object().is_some_and(|o| !o.is_empty())) else {
+                return;
+            };
             let o = node(v, &p).as_object_mut().expect("picked an object");
             let key = o.keys().nth(i.index(o.len())).cloned().expect("non-empty");
             o.remove(&key);
@@ -234,7 +286,11 @@ fn apply(v: &mut Value, e: &Edit) {
             let x = node(v, &p);
             let moved = x.as_f64().unwrap_or(0.0) + d;
             // Integers (ids, indices) stay integers so the edit survives deserialisation.
-            *x = if x.is_f64() { serde_json::json!(moved) } else { serde_json::json!(moved.round().max(0.0) as u64) };
+            *x = if x.is_f64() {
+                serde_json::json!(moved)
+            } else {
+                serde_json::json!(moved.round().max(0.0) as u64)
+            };
         }
     }
 }
@@ -252,7 +308,8 @@ fn text_edit() -> impl Strategy<Value = TextEdit> {
     prop_oneof![
         any::<Index>().prop_map(TextEdit::Truncate),
         (any::<Index>(), 0u8..7).prop_map(|(i, b)| TextEdit::Flip(i, b)),
-        (any::<Index>(), prop::sample::select(b"0123456789-.,:[]{}\"e ".to_vec())).prop_map(|(i, c)| TextEdit::Insert(i, c)),
+        (any::<Index>(), prop::sample::select(b"0123456789-.,:[]{}\"e ".to_vec()))
+            .prop_map(|(i, c)| TextEdit::Insert(i, c)),
         any::<Index>().prop_map(TextEdit::Delete),
     ]
 }
@@ -299,7 +356,9 @@ fn check_scenario(r: Result<Map, String>, origin: &str) -> Result<(), TestCaseEr
 fn check_cases(r: Result<CaseFile, String>, map: &Arc<Map>) -> Result<(), TestCaseError> {
     match r {
         Ok(f) => use_cases(&f, map),
-        Err(msg) => prop_assert!(msg.contains("sf-sim-fuzz-"), "refusal does not name the file: {}", msg),
+        Err(msg) => {
+            prop_assert!(msg.contains("sf-sim-fuzz-"), "refusal does not name the file: {}", msg)
+        }
     }
     Ok(())
 }

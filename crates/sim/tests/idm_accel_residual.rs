@@ -57,7 +57,14 @@ fn the_residual_interpolates_between_full_braking_idm_and_full_acceleration() {
 
 #[test]
 fn drive_actions_have_their_dimensions_and_demonstrators() {
-    assert_eq!((DriveAction::Direct.dim(), DriveAction::IdmResidual.dim(), DriveAction::IdmAccelResidual.dim()), (2, 2, 1));
+    assert_eq!(
+        (
+            DriveAction::Direct.dim(),
+            DriveAction::IdmResidual.dim(),
+            DriveAction::IdmAccelResidual.dim()
+        ),
+        (2, 2, 1)
+    );
     let demo = Action { ref_speed: 0.5, steer: -0.2, ..Action::default() };
     assert_eq!(DriveAction::Direct.demonstrator(demo), vec![0.5, -0.2]);
     assert_eq!(DriveAction::IdmAccelResidual.demonstrator(demo), vec![0.0]);
@@ -76,13 +83,38 @@ fn conflict_cases_are_those_the_idm_ego_collides_in() {
     let m = map("intersection");
     let sim = std::sync::Arc::new(sf_sim::SimConfig::default());
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let conflicts: Vec<_> = (0..20).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), CaseDraw { conflict_share: Some(1.0), slow_leader: None })).collect();
-    assert!(conflicts.iter().all(|c| idm_ego_collides(&m, &sim, c)), "every conflict case makes the IDM ego collide");
-    let plain: Vec<_> = (0..200).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), CaseDraw::default())).collect();
+    let conflicts: Vec<_> = (0..20)
+        .map(|id| {
+            draw_case(
+                &m,
+                &sim,
+                &mut rng,
+                id,
+                (2, 3),
+                CaseDraw { conflict_share: Some(1.0), slow_leader: None },
+            )
+        })
+        .collect();
+    assert!(
+        conflicts.iter().all(|c| idm_ego_collides(&m, &sim, c)),
+        "every conflict case makes the IDM ego collide"
+    );
+    let plain: Vec<_> =
+        (0..200).map(|id| draw_case(&m, &sim, &mut rng, id, (2, 3), CaseDraw::default())).collect();
     let share = plain.iter().filter(|c| idm_ego_collides(&m, &sim, c)).count() as f32 / 200.0;
     assert!(share < 0.5, "without the filter the IDM ego collides less often ({share})");
     // An ego whose residual is zero collides in every episode of a conflicts-only VecEnv.
-    let mut v = VecEnv::new(m.clone(), sim, VecEnvConfig { n_envs: 4, mode: Mode::Ego { background: Controller::Idm }, vehicles: (2, 3), seed: 1 }).with_conflicts(1.0);
+    let mut v = VecEnv::new(
+        m.clone(),
+        sim,
+        VecEnvConfig {
+            n_envs: 4,
+            mode: Mode::Ego { background: Controller::Idm },
+            vehicles: (2, 3),
+            seed: 1,
+        },
+    )
+    .with_conflicts(1.0);
     let mut ended = Vec::new();
     for _ in 0..200 {
         let acts: Vec<Action> = (0..v.alive().len()).map(|_| residual(0.0)).collect();
@@ -90,5 +122,9 @@ fn conflict_cases_are_those_the_idm_ego_collides_in() {
         ended.extend(v.take_finished());
     }
     assert!(ended.len() >= 8, "episodes finished: {}", ended.len());
-    assert!(ended.iter().all(|m| m.collision == 1.0), "{:?}", ended.iter().map(|m| m.collision).collect::<Vec<_>>());
+    assert!(
+        ended.iter().all(|m| m.collision == 1.0),
+        "{:?}",
+        ended.iter().map(|m| m.collision).collect::<Vec<_>>()
+    );
 }

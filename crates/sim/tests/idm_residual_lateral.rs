@@ -27,9 +27,18 @@ fn zeros_drive_exactly_like_the_idm_driver() {
 #[test]
 fn the_action_has_two_numbers_and_zero_is_its_demonstrator() {
     let a = DriveAction::parse("idm-residual-lateral").expect("known name");
-    assert_eq!((a, a.dim(), a.as_str()), (DriveAction::IdmResidualLateral, 2, "idm-residual-lateral"));
-    assert_eq!(a.demonstrator(Action { ref_speed: 0.3, steer: 0.1, ..Action::default() }), vec![0.0, 0.0]);
-    assert_eq!(act(-0.5, 0.25), Action { idm_accel: Some(-0.5), lateral: Some(0.25), ..Action::default() });
+    assert_eq!(
+        (a, a.dim(), a.as_str()),
+        (DriveAction::IdmResidualLateral, 2, "idm-residual-lateral")
+    );
+    assert_eq!(
+        a.demonstrator(Action { ref_speed: 0.3, steer: 0.1, ..Action::default() }),
+        vec![0.0, 0.0]
+    );
+    assert_eq!(
+        act(-0.5, 0.25),
+        Action { idm_accel: Some(-0.5), lateral: Some(0.25), ..Action::default() }
+    );
     assert!(!a.needs_demo());
 }
 
@@ -53,7 +62,15 @@ const INNER_ROUTE: u32 = 0;
 
 fn one_car(route: u32) -> Case {
     let m = map("bottleneck");
-    Case { id: 0, vehicles: vec![CaseVehicle { spawn: spawn_for(&m, route, 0), route, svo_deg: 45.0, max_speed_mps: None }] }
+    Case {
+        id: 0,
+        vehicles: vec![CaseVehicle {
+            spawn: spawn_for(&m, route, 0),
+            route,
+            svo_deg: 45.0,
+            max_speed_mps: None,
+        }],
+    }
 }
 
 /// A full left target takes the car one lane over (3.5 m) and keeps it there on the straight;
@@ -67,7 +84,10 @@ fn a_full_left_target_changes_one_lane() {
     e.step(&[act(0.0, 1.0)]).expect("step");
     let cfg = SimConfig::default();
     let moved = e.agents()[0].state.y_m - y0;
-    assert!(moved >= 0.0 && moved <= cfg.lateral.rate_mps * cfg.dt_s + 1e-4, "moved {moved} m in one step");
+    assert!(
+        moved >= 0.0 && moved <= cfg.lateral.rate_mps * cfg.dt_s + 1e-4,
+        "moved {moved} m in one step"
+    );
     for _ in 0..20 {
         e.step(&[act(0.0, 1.0)]).expect("step");
     }
@@ -92,7 +112,13 @@ fn crossing_into_the_opposite_lane_is_possible_and_judged() {
         e.step(&[act(0.0, 1.0)]).expect("step");
     }
     let a = &e.agents()[0];
-    assert_eq!(a.termination, Some(Termination::WrongLane), "y = {}, lateral {}", a.state.y_m, a.lateral_m);
+    assert_eq!(
+        a.termination,
+        Some(Termination::WrongLane),
+        "y = {}, lateral {}",
+        a.state.y_m,
+        a.lateral_m
+    );
     assert!(a.state.y_m > 0.0, "ended across the centre line, y = {}", a.state.y_m);
 }
 
@@ -106,8 +132,18 @@ fn a_lane_change_passes_a_stopped_car_that_idm_waits_behind() {
     let case = Case {
         id: 0,
         vehicles: vec![
-            CaseVehicle { spawn: spawn_for(&m, OUTER_ROUTE, 0), route: OUTER_ROUTE, svo_deg: 45.0, max_speed_mps: None },
-            CaseVehicle { spawn: stopped, route: OUTER_ROUTE, svo_deg: 45.0, max_speed_mps: Some(0.0) },
+            CaseVehicle {
+                spawn: spawn_for(&m, OUTER_ROUTE, 0),
+                route: OUTER_ROUTE,
+                svo_deg: 45.0,
+                max_speed_mps: None,
+            },
+            CaseVehicle {
+                spawn: stopped,
+                route: OUTER_ROUTE,
+                svo_deg: 45.0,
+                max_speed_mps: Some(0.0),
+            },
         ],
     };
     let run = |lateral: f32| {
@@ -128,7 +164,10 @@ fn a_lane_change_passes_a_stopped_car_that_idm_waits_behind() {
         (passed, e.agents()[0].termination, e.agents()[0].state.speed_mps)
     };
     let (passed, end, speed) = run(0.0);
-    assert!(!passed && end.is_none() && speed < 0.05, "IDM waits: passed {passed}, end {end:?}, speed {speed}");
+    assert!(
+        !passed && end.is_none() && speed < 0.05,
+        "IDM waits: passed {passed}, end {end:?}, speed {speed}"
+    );
     let (passed, end, _) = run(1.0);
     assert!(passed && end.is_none(), "the lane change passes: passed {passed}, end {end:?}");
 }
@@ -140,24 +179,41 @@ fn slow_leader_cases_put_a_capped_car_ahead_in_the_egos_lane() {
     let m = map("bottleneck");
     let sim = std::sync::Arc::new(SimConfig::default());
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-    let draw = CaseDraw { conflict_share: None, slow_leader: Some(SlowLeader { share: 1.0, speed_mps: 1.5 }) };
+    let draw = CaseDraw {
+        conflict_share: None,
+        slow_leader: Some(SlowLeader { share: 1.0, speed_mps: 1.5 }),
+    };
     for id in 0..50 {
         let c = draw_case(&m, &sim, &mut rng, id, (2, 6), draw);
         c.check(&m).expect("a valid case");
         let (ego, lead) = (&c.vehicles[0], &c.vehicles[1]);
         let (se, sl) = (&m.spawns[ego.spawn as usize], &m.spawns[lead.spawn as usize]);
-        assert_eq!((lead.route, lead.max_speed_mps, ego.max_speed_mps), (ego.route, Some(1.5), None));
+        assert_eq!(
+            (lead.route, lead.max_speed_mps, ego.max_speed_mps),
+            (ego.route, Some(1.5), None)
+        );
         assert_eq!(se.routes, sl.routes, "same lane");
         let ahead = sl.s_m - se.s_m;
         assert!((7.0..=23.0).contains(&ahead), "leader {ahead} m ahead");
         assert!(se.s_m < 50.0, "ego in the first half of an 88 m lane: s = {}", se.s_m);
-        assert!(c.vehicles[2..].iter().all(|v| m.spawns[v.spawn as usize].routes != se.routes && v.max_speed_mps.is_none()));
+        assert!(c.vehicles[2..]
+            .iter()
+            .all(|v| m.spawns[v.spawn as usize].routes != se.routes && v.max_speed_mps.is_none()));
         assert!((2..=6).contains(&c.vehicles.len()));
     }
-    let none = CaseDraw { conflict_share: None, slow_leader: Some(SlowLeader { share: 0.0, speed_mps: 1.5 }) };
-    assert!((0..50).all(|id| draw_case(&m, &sim, &mut rng, id, (2, 6), none).vehicles.iter().all(|v| v.max_speed_mps.is_none())));
+    let none = CaseDraw {
+        conflict_share: None,
+        slow_leader: Some(SlowLeader { share: 0.0, speed_mps: 1.5 }),
+    };
+    assert!((0..50).all(|id| draw_case(&m, &sim, &mut rng, id, (2, 6), none)
+        .vehicles
+        .iter()
+        .all(|v| v.max_speed_mps.is_none())));
     assert!(SlowLeader { share: 1.5, speed_mps: 1.0 }.check(6.0).unwrap_err().contains("share"));
-    assert!(SlowLeader { share: 1.0, speed_mps: 6.0 }.check(6.0).unwrap_err().contains("speed_mps"));
+    assert!(SlowLeader { share: 1.0, speed_mps: 6.0 }
+        .check(6.0)
+        .unwrap_err()
+        .contains("speed_mps"));
 }
 
 /// A case file with a negative speed cap is refused, naming the vehicle's field; files without

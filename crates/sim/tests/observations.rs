@@ -41,19 +41,39 @@ fn check_layout(layout: Layout) {
                 assert!(row.iter().all(|v| v.is_finite()), "{name}: non-finite value");
                 // Own current pose at the origin facing +x; speed normalised.
                 let cur = &row[spec.ego_hist.start + (h - 1) * AGENT_FEATS..][..AGENT_FEATS];
-                assert!(cur[0].abs() < 1e-5 && cur[1].abs() < 1e-5 && cur[2].abs() < 1e-5, "{name}: {cur:?}");
+                assert!(
+                    cur[0].abs() < 1e-5 && cur[1].abs() < 1e-5 && cur[2].abs() < 1e-5,
+                    "{name}: {cur:?}"
+                );
                 assert!((cur[3] - env.agents()[i].state.speed_mps / 6.0).abs() < 1e-5);
                 assert_eq!(row[spec.ego_ctx.start + 1], if i == 0 { 1.0 } else { 0.0 });
                 assert!((row[spec.ego_ctx.start] - env.agents()[i].svo_deg / 90.0).abs() < 1e-6);
                 // Neighbours: masked, within the radius, headings as unit vectors, nearest first.
                 let mask = &row[spec.agents_mask.clone()];
-                let live_near = env.agents().iter().enumerate().filter(|(j, b)| *j != i && b.alive && sf_sim::geom::dist(b.state.pos(), env.agents()[i].state.pos()) <= 50.0).count();
-                assert_eq!(mask.iter().filter(|&&v| v == 1.0).count(), live_near.min(spec.neighbours), "{name}: neighbour count");
+                let live_near = env
+                    .agents()
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, b)| {
+                        *j != i
+                            && b.alive
+                            && sf_sim::geom::dist(b.state.pos(), env.agents()[i].state.pos())
+                                <= 50.0
+                    })
+                    .count();
+                assert_eq!(
+                    mask.iter().filter(|&&v| v == 1.0).count(),
+                    live_near.min(spec.neighbours),
+                    "{name}: neighbour count"
+                );
                 let mut last_d = 0.0;
                 for (slot, &mv) in mask.iter().enumerate() {
                     let c = &row[spec.agents_ctx.start + slot * AGENT_CTX..][..AGENT_CTX];
                     if mv == 0.0 {
-                        assert!(c.iter().all(|&v| v == 0.0), "{name}: masked neighbour carries data");
+                        assert!(
+                            c.iter().all(|&v| v == 0.0),
+                            "{name}: masked neighbour carries data"
+                        );
                         continue;
                     }
                     let d = (c[0] * c[0] + c[1] * c[1]).sqrt();
@@ -62,10 +82,12 @@ fn check_layout(layout: Layout) {
                     assert!((c[2] * c[2] + c[3] * c[3] - 1.0).abs() < 1e-4);
                     if layout == Layout::QueryCentric {
                         // Own-frame history: its current frame is at its own origin.
-                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..][..AGENT_FEATS];
+                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..]
+                            [..AGENT_FEATS];
                         assert!(hc[0].abs() < 1e-5 && hc[1].abs() < 1e-5 && hc[2].abs() < 1e-5);
                     } else {
-                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..][..AGENT_FEATS];
+                        let hc = &row[spec.agents_hist.start + (slot * h + h - 1) * AGENT_FEATS..]
+                            [..AGENT_FEATS];
                         assert!((hc[0] - c[0]).abs() < 1e-5 && (hc[1] - c[1]).abs() < 1e-5);
                     }
                 }
@@ -82,7 +104,9 @@ fn check_layout(layout: Layout) {
                         assert!(n > 0, "{name}: no map segment in reach");
                         for s in 0..n {
                             let id = row[spec.seg_id.start + s];
-                            assert!(id >= 0.0 && (id as usize) < ob.segments.len() && id.fract() == 0.0);
+                            assert!(
+                                id >= 0.0 && (id as usize) < ob.segments.len() && id.fract() == 0.0
+                            );
                             let p = &row[spec.seg_pose.start + s * SEG_POSE..][..SEG_POSE];
                             assert!((p[2] * p[2] + p[3] * p[3] - 1.0).abs() < 1e-4);
                         }
@@ -93,7 +117,10 @@ fn check_layout(layout: Layout) {
                         for (k, &v) in mm.iter().enumerate() {
                             let f = &row[spec.map.start + k * MAP_FEATS..][..MAP_FEATS];
                             if v == 1.0 {
-                                assert!((f[0] * f[0] + f[1] * f[1]).sqrt() <= r, "{name}: map point beyond radius");
+                                assert!(
+                                    (f[0] * f[0] + f[1] * f[1]).sqrt() <= r,
+                                    "{name}: map point beyond radius"
+                                );
                                 assert!(f[2].abs() <= 1.0 + 1e-6);
                             } else {
                                 assert!(f.iter().all(|&x| x == 0.0));
@@ -103,18 +130,33 @@ fn check_layout(layout: Layout) {
                 }
                 // What the learner checks at ingest passes on every real row, and a row with one
                 // mask or segment id out of its range is refused.
-                spec.check_row(&row, ob.segments.len()).unwrap_or_else(|e| panic!("{name}: a real observation refused: {e}"));
+                spec.check_row(&row, ob.segments.len())
+                    .unwrap_or_else(|e| panic!("{name}: a real observation refused: {e}"));
                 let mut bad = row.clone();
                 bad[spec.agents_mask.start] = 0.5;
-                assert!(spec.check_row(&bad, ob.segments.len()).expect_err("fractional mask").to_string().contains("agents_mask[0]"));
+                assert!(spec
+                    .check_row(&bad, ob.segments.len())
+                    .expect_err("fractional mask")
+                    .to_string()
+                    .contains("agents_mask[0]"));
                 if layout == Layout::QueryCentric {
                     let mut bad = row.clone();
                     bad[spec.seg_id.start] = ob.segments.len() as f32;
-                    assert!(spec.check_row(&bad, ob.segments.len()).expect_err("segment id past the map").to_string().contains("seg_id[0]"));
+                    assert!(spec
+                        .check_row(&bad, ob.segments.len())
+                        .expect_err("segment id past the map")
+                        .to_string()
+                        .contains("seg_id[0]"));
                     bad[spec.seg_id.start] = -1.0;
                     assert!(spec.check_row(&bad, ob.segments.len()).is_err());
                 }
-                actions[i] = route_follower(&spec, &row, &cfg.vehicle, 2, if step % 7 == 0 { 0.0 } else { 1.0 });
+                actions[i] = route_follower(
+                    &spec,
+                    &row,
+                    &cfg.vehicle,
+                    2,
+                    if step % 7 == 0 { 0.0 } else { 1.0 },
+                );
             }
             if env.done() {
                 break;
@@ -157,7 +199,10 @@ fn visibility_none_hides_svo() {
     let m = common::map("merge");
     let cfg = Arc::new(SimConfig::default());
     assert_eq!(cfg.obs.svo, SvoVisibility::None);
-    let c = common::case(&[(common::spawn_for(&m, 0, 0), 0, 45.0), (common::spawn_for(&m, 0, 2), 0, 80.0)]);
+    let c = common::case(&[
+        (common::spawn_for(&m, 0, 0), 0, 45.0),
+        (common::spawn_for(&m, 0, 2), 0, 80.0),
+    ]);
     let mut env = Env::new(m.clone(), cfg.clone());
     env.reset(&c, Mode::MultiAgent, None).expect("reset");
     let mut ob = Observer::new(&m, &cfg);
@@ -177,7 +222,16 @@ fn externally_driven_background_rows_are_observed_and_flagged() {
     use sf_sim::Controller;
     let m = common::map("merge");
     let cfg = Arc::new(SimConfig::default());
-    let mut v = VecEnv::new(m.clone(), cfg.clone(), VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::External }, vehicles: (4, 6), seed: 1 });
+    let mut v = VecEnv::new(
+        m.clone(),
+        cfg.clone(),
+        VecEnvConfig {
+            n_envs: 2,
+            mode: Mode::Ego { background: Controller::External },
+            vehicles: (4, 6),
+            seed: 1,
+        },
+    );
     let per = v.max_agents;
     for _ in 0..5 {
         for k in 0..v.n_envs() {
@@ -185,16 +239,40 @@ fn externally_driven_background_rows_are_observed_and_flagged() {
             for i in 0..per {
                 let row = k * per + i;
                 let a = env.agents().get(i);
-                assert_eq!(v.alive()[row] == 1.0, i == 0 && a.is_some_and(|a| a.alive), "ego row {row}");
-                assert_eq!(v.background()[row] == 1.0, i > 0 && a.is_some_and(|a| a.alive), "background row {row}");
-                let filled = v.observations()[row * v.spec.len..(row + 1) * v.spec.len].iter().any(|&x| x != 0.0);
-                assert_eq!(filled, v.alive()[row] == 1.0 || v.background()[row] == 1.0, "row {row} filled iff observed");
+                assert_eq!(
+                    v.alive()[row] == 1.0,
+                    i == 0 && a.is_some_and(|a| a.alive),
+                    "ego row {row}"
+                );
+                assert_eq!(
+                    v.background()[row] == 1.0,
+                    i > 0 && a.is_some_and(|a| a.alive),
+                    "background row {row}"
+                );
+                let filled = v.observations()[row * v.spec.len..(row + 1) * v.spec.len]
+                    .iter()
+                    .any(|&x| x != 0.0);
+                assert_eq!(
+                    filled,
+                    v.alive()[row] == 1.0 || v.background()[row] == 1.0,
+                    "row {row} filled iff observed"
+                );
             }
         }
-        let acts = vec![Action { ref_speed: 0.5, steer: 0.0, ..Action::default() }; v.alive().len()];
+        let acts =
+            vec![Action { ref_speed: 0.5, steer: 0.0, ..Action::default() }; v.alive().len()];
         v.step(&acts);
     }
-    let idm = VecEnv::new(m, cfg, VecEnvConfig { n_envs: 2, mode: Mode::Ego { background: Controller::Idm }, vehicles: (4, 6), seed: 1 });
+    let idm = VecEnv::new(
+        m,
+        cfg,
+        VecEnvConfig {
+            n_envs: 2,
+            mode: Mode::Ego { background: Controller::Idm },
+            vehicles: (4, 6),
+            seed: 1,
+        },
+    );
     assert!(idm.background().iter().all(|&b| b == 0.0), "IDM background is not observed");
 }
 
@@ -211,15 +289,29 @@ fn the_adversary_message_reaches_only_background_agents_near_the_ego_as_the_egos
     sim.obs.ego_flag = true;
     sim.obs.radius_m = 30.0;
     let sim = Arc::new(sim);
-    let mut v = VecEnv::new(m, sim.clone(), VecEnvConfig { n_envs: 3, mode: Mode::Ego { background: Controller::External }, vehicles: (12, 12), seed: 7 });
+    let mut v = VecEnv::new(
+        m,
+        sim.clone(),
+        VecEnvConfig {
+            n_envs: 3,
+            mode: Mode::Ego { background: Controller::External },
+            vehicles: (12, 12),
+            seed: 7,
+        },
+    );
     let (per, len) = (v.max_agents, v.spec.len);
-    let genuine: Vec<Vec<f32>> = (0..3).map(|k| v.env(k).agents().iter().map(|a| a.svo_deg).collect()).collect();
+    let genuine: Vec<Vec<f32>> =
+        (0..3).map(|k| v.env(k).agents().iter().map(|a| a.svo_deg).collect()).collect();
     v.communicate_ego_svo(&[Some(77.0), None, Some(5.0)]);
     let (mut near, mut far) = (0, 0);
     for (k, msg) in [(0, Some(77.0)), (1, None), (2, Some(5.0))] {
         let env = v.env(k);
         let ego = env.agents()[0].state.pos();
-        assert_eq!(env.agents().iter().map(|a| a.svo_deg).collect::<Vec<_>>(), genuine[k], "genuine SVOs untouched");
+        assert_eq!(
+            env.agents().iter().map(|a| a.svo_deg).collect::<Vec<_>>(),
+            genuine[k],
+            "genuine SVOs untouched"
+        );
         for i in 1..env.len() {
             let within = sf_sim::geom::dist(env.agents()[i].state.pos(), ego) <= sim.obs.radius_m;
             let told = env.communicated_svo_deg(i, 0);
@@ -234,7 +326,11 @@ fn the_adversary_message_reaches_only_background_agents_near_the_ego_as_the_egos
                 }
             }
             for j in 1..env.len() {
-                assert_eq!(env.communicated_svo_deg(i, j), genuine[k][j], "others' SVOs as they are");
+                assert_eq!(
+                    env.communicated_svo_deg(i, j),
+                    genuine[k][j],
+                    "others' SVOs as they are"
+                );
             }
             assert_eq!(env.communicated_svo_deg(0, i), genuine[k][i], "the ego is told nothing");
             // The observation row carries it in the ego's neighbour entry (the flagged one).
@@ -242,12 +338,20 @@ fn the_adversary_message_reaches_only_background_agents_near_the_ego_as_the_egos
             for j in 0..v.spec.neighbours {
                 let c = &row[v.spec.agents_ctx.start + j * AGENT_CTX..][..AGENT_CTX];
                 if row[v.spec.agents_mask.start + j] == 1.0 && c[5] == 1.0 {
-                    assert!((c[4] - told / 90.0).abs() < 1e-6, "env {k} agent {i}: row shows {} not {}", c[4] * 90.0, told);
+                    assert!(
+                        (c[4] - told / 90.0).abs() < 1e-6,
+                        "env {k} agent {i}: row shows {} not {}",
+                        c[4] * 90.0,
+                        told
+                    );
                 }
             }
         }
     }
-    assert!(near > 0 && far > 0, "the case must put agents on both sides of the radius ({near} near, {far} far)");
+    assert!(
+        near > 0 && far > 0,
+        "the case must put agents on both sides of the radius ({near} near, {far} far)"
+    );
 }
 
 /// FailMaker draws c from [-90, 90]: a case's stored SVO in [0, 90] maps linearly onto the
@@ -258,7 +362,11 @@ fn the_svo_range_maps_stored_svos_linearly() {
     let mut cfg = SimConfig { svo_range_deg: [-90.0, 90.0], ..SimConfig::default() };
     cfg.obs.svo = SvoVisibility::Own;
     let cfg = Arc::new(cfg);
-    let c = common::case(&[(common::spawn_for(&m, 0, 0), 0, 0.0), (common::spawn_for(&m, 0, 1), 0, 45.0), (common::spawn_for(&m, 0, 2), 0, 90.0)]);
+    let c = common::case(&[
+        (common::spawn_for(&m, 0, 0), 0, 0.0),
+        (common::spawn_for(&m, 0, 1), 0, 45.0),
+        (common::spawn_for(&m, 0, 2), 0, 90.0),
+    ]);
     let mut env = Env::new(m.clone(), cfg.clone());
     env.reset(&c, Mode::MultiAgent, None).expect("reset");
     assert_eq!(env.agents().iter().map(|a| a.svo_deg).collect::<Vec<_>>(), vec![-90.0, 0.0, 90.0]);
@@ -292,8 +400,15 @@ fn blocks_tile_the_row_in_both_layouts() {
         assert_eq!(Layout::parse(layout.as_str()), Ok(layout));
     }
     assert!(Layout::parse("polar").unwrap_err().to_string().contains("ego-frame"));
-    for a in [sf_sim::DriveAction::Direct, sf_sim::DriveAction::IdmResidual, sf_sim::DriveAction::IdmAccelResidual] {
+    for a in [
+        sf_sim::DriveAction::Direct,
+        sf_sim::DriveAction::IdmResidual,
+        sf_sim::DriveAction::IdmAccelResidual,
+    ] {
         assert_eq!(sf_sim::DriveAction::parse(a.as_str()), Ok(a));
     }
-    assert!(sf_sim::DriveAction::parse("fly").unwrap_err().to_string().contains("idm-accel-residual"));
+    assert!(sf_sim::DriveAction::parse("fly")
+        .unwrap_err()
+        .to_string()
+        .contains("idm-accel-residual"));
 }

@@ -22,7 +22,12 @@ fn run_until_end(e: &mut sf_sim::Env, actions: &[Action]) -> (Option<Termination
 fn collision_ends_both_and_nothing_else() {
     let m = map("intersection");
     let mut e = env(&m);
-    e.reset(&case(&[(spawn_for(&m, 0, 0), 0, 0.0), (spawn_for(&m, 2, 0), 2, 0.0)]), Mode::MultiAgent, None).expect("reset");
+    e.reset(
+        &case(&[(spawn_for(&m, 0, 0), 0, 0.0), (spawn_for(&m, 2, 0), 2, 0.0)]),
+        Mode::MultiAgent,
+        None,
+    )
+    .expect("reset");
     // Agent 1 placed just ahead of agent 0 in the same lane, overlapping after one step.
     let p0 = e.agents()[0].state.pos();
     e.place_agent(1, [p0[0], p0[1] + 4.5], std::f32::consts::FRAC_PI_2, 0.0);
@@ -42,7 +47,8 @@ fn off_road_from_steering_into_the_edge() {
     // Outer inbound lane of the south arm (x = 5.25): the road edge is 1.75 m to its right.
     let r = 2;
     e.reset(&case(&[(spawn_for(&m, r, 0), r, 0.0)]), Mode::MultiAgent, None).expect("reset");
-    let (t, _) = run_until_end(&mut e, &[Action { ref_speed: 0.0, steer: -0.5, ..Action::default() }]);
+    let (t, _) =
+        run_until_end(&mut e, &[Action { ref_speed: 0.0, steer: -0.5, ..Action::default() }]);
     assert_eq!(t, Some(Termination::OffRoad));
 }
 
@@ -102,7 +108,10 @@ fn success_only_after_the_zone_is_passed_and_destination_ends() {
                 let inside = sf_sim::geom::point_in_polygon(a.state.pos(), &m.zone);
                 if inside {
                     was_in_zone = true;
-                    assert!(!a.outcome().success, "{name} route {r}: success while still inside the zone");
+                    assert!(
+                        !a.outcome().success,
+                        "{name} route {r}: success while still inside the zone"
+                    );
                 }
             }
             let a = &e.agents()[0];
@@ -129,7 +138,12 @@ fn idm_follower_stops_behind_a_stopped_leader() {
     // Two spawn points on the same lane: the one further along leads.
     let r = 0;
     let (back, front) = (spawn_for(&m, r, 0), spawn_for(&m, r, 4));
-    e.reset(&case(&[(front, r, 0.0), (back, r, 0.0)]), Mode::Ego { background: Controller::Idm }, None).expect("reset");
+    e.reset(
+        &case(&[(front, r, 0.0), (back, r, 0.0)]),
+        Mode::Ego { background: Controller::Idm },
+        None,
+    )
+    .expect("reset");
     let mut min_gap = f32::INFINITY;
     for _ in 0..60 {
         e.step(&[stop(), Action::default()]).expect("step");
@@ -159,7 +173,9 @@ fn rewards_individual_composed_and_failmaker() {
     let c = 60f32.to_radians();
     assert!((r[1].composed - (c.cos() * r[1].individual + c.sin() * r[0].individual)).abs() < 1e-6);
     // FailMaker background: own term plus sin(c) times the ego's reward.
-    assert!((r[1].failmaker - (c.cos() * r[1].individual + c.sin() * r[0].individual)).abs() < 1e-6);
+    assert!(
+        (r[1].failmaker - (c.cos() * r[1].individual + c.sin() * r[0].individual)).abs() < 1e-6
+    );
 
     // A background car that collides gets no collision penalty in its FailMaker reward.
     let mut e = env(&m);
@@ -179,7 +195,8 @@ fn adversary_svo_reaches_only_the_told_observer() {
     let m = map("intersection");
     let mut e = env(&m);
     let (s0, s1, s2) = (spawn_for(&m, 0, 0), spawn_for(&m, 0, 2), spawn_for(&m, 0, 4));
-    e.reset(&case(&[(s0, 0, 10.0), (s1, 0, 20.0), (s2, 0, 30.0)]), Mode::MultiAgent, None).expect("reset");
+    e.reset(&case(&[(s0, 0, 10.0), (s1, 0, 20.0), (s2, 0, 30.0)]), Mode::MultiAgent, None)
+        .expect("reset");
     e.set_seen_ego_svo(1, Some(-45.0));
     assert_eq!(e.communicated_svo_deg(1, 0), -45.0);
     assert_eq!(e.communicated_svo_deg(2, 0), 10.0, "other observers see the genuine SVO");
@@ -198,14 +215,30 @@ fn message_probes_replace_what_observers_are_told() {
     let (s0, s1, s2) = (spawn_for(&m, 0, 0), spawn_for(&m, 0, 2), spawn_for(&m, 0, 4));
     let c = case(&[(s0, 0, 10.0), (s1, 0, 20.0), (s2, 0, 30.0)]);
     e.reset(&c, Mode::MultiAgent, None).expect("reset");
-    assert_eq!((e.communicated_svo_deg(1, 2), e.communicated_svo_deg(2, 0), e.communicated_svo_deg(0, 1)), (45.0, 45.0, 45.0));
-    assert_eq!((e.communicated_svo_deg(1, 1), e.communicated_svo_deg(2, 2)), (20.0, 30.0), "each agent knows its own SVO");
-    cfg.obs.messages = sf_sim::config::MessageProbe { neighbours_deg: None, told_ego_deg: Some(90.0) };
+    assert_eq!(
+        (e.communicated_svo_deg(1, 2), e.communicated_svo_deg(2, 0), e.communicated_svo_deg(0, 1)),
+        (45.0, 45.0, 45.0)
+    );
+    assert_eq!(
+        (e.communicated_svo_deg(1, 1), e.communicated_svo_deg(2, 2)),
+        (20.0, 30.0),
+        "each agent knows its own SVO"
+    );
+    cfg.obs.messages =
+        sf_sim::config::MessageProbe { neighbours_deg: None, told_ego_deg: Some(90.0) };
     let mut e = sf_sim::Env::new(m.clone(), std::sync::Arc::new(cfg.clone()));
     e.reset(&c, Mode::MultiAgent, None).expect("reset");
     e.set_seen_ego_svo(1, Some(-45.0));
-    assert_eq!((e.communicated_svo_deg(1, 0), e.communicated_svo_deg(2, 0)), (90.0, 90.0), "the constant message wins over an adversary's");
-    assert_eq!((e.communicated_svo_deg(0, 0), e.communicated_svo_deg(1, 2)), (10.0, 30.0), "the ego's own and the others' SVOs stay genuine");
+    assert_eq!(
+        (e.communicated_svo_deg(1, 0), e.communicated_svo_deg(2, 0)),
+        (90.0, 90.0),
+        "the constant message wins over an adversary's"
+    );
+    assert_eq!(
+        (e.communicated_svo_deg(0, 0), e.communicated_svo_deg(1, 2)),
+        (10.0, 30.0),
+        "the ego's own and the others' SVOs stay genuine"
+    );
     cfg.obs.messages.told_ego_deg = Some(120.0);
     let err = cfg.validate().expect_err("out of range").to_string();
     assert!(err.contains("obs.messages.told_ego_deg"), "{err}");
@@ -220,10 +253,14 @@ fn the_idm_demonstrator_drives_every_route_and_brakes_for_a_stopped_leader() {
         let m = map(name);
         for r in 0..m.routes.len() as u32 {
             let mut e = env(&m);
-            e.reset(&case(&[(spawn_for(&m, r, 0), r, 0.0)]), Mode::MultiAgent, None).expect("reset");
+            e.reset(&case(&[(spawn_for(&m, r, 0), r, 0.0)]), Mode::MultiAgent, None)
+                .expect("reset");
             while !e.done() {
                 let a = e.demo_action(0);
-                assert!((-1.0..=1.0).contains(&a.ref_speed) && (-1.0..=1.0).contains(&a.steer), "{a:?}");
+                assert!(
+                    (-1.0..=1.0).contains(&a.ref_speed) && (-1.0..=1.0).contains(&a.steer),
+                    "{a:?}"
+                );
                 e.step(&[a]).expect("step");
             }
             let o = e.agents()[0].outcome();
@@ -233,7 +270,12 @@ fn the_idm_demonstrator_drives_every_route_and_brakes_for_a_stopped_leader() {
     }
     let m = map("merge");
     let mut e = env(&m);
-    e.reset(&case(&[(spawn_for(&m, 0, 0), 0, 0.0), (spawn_for(&m, 0, 1), 0, 0.0)]), Mode::MultiAgent, None).expect("reset");
+    e.reset(
+        &case(&[(spawn_for(&m, 0, 0), 0, 0.0), (spawn_for(&m, 0, 1), 0, 0.0)]),
+        Mode::MultiAgent,
+        None,
+    )
+    .expect("reset");
     let (p0, th) = (e.agents()[0].state.pos(), e.agents()[0].state.theta_rad);
     e.place_agent(0, p0, th, 6.0);
     e.place_agent(1, [p0[0] + 500.0, p0[1] + 500.0], th, 0.0);

@@ -11,7 +11,10 @@ use sf_service::auth::Token;
 use crate::LearnerConfig;
 
 #[derive(Parser, Debug, Clone)]
-#[command(name = "socialflow-learner", about = "The socialflow learner: job store, replay, SAC trainer, gRPC APIs")]
+#[command(
+    name = "socialflow-learner",
+    about = "The socialflow learner: job store, replay, SAC trainer, gRPC APIs"
+)]
 pub struct LearnerArgs {
     /// Learner config (TOML); flags and environment variables override its fields.
     #[arg(long, env = "SOCIALFLOW_LEARNER_CONFIG")]
@@ -53,7 +56,8 @@ impl LearnerArgs {
     pub fn resolve(&self) -> anyhow::Result<(LearnerConfig, Token)> {
         let mut cfg = match &self.config {
             Some(p) => {
-                let text = std::fs::read_to_string(p).with_context(|| format!("reading learner config {}", p.display()))?;
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("reading learner config {}", p.display()))?;
                 LearnerConfig::from_toml(&text, &p.display().to_string())?
             }
             None => LearnerConfig::default(),

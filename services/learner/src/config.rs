@@ -63,13 +63,29 @@ impl LearnerConfig {
     }
 
     pub fn validate(&self) -> anyhow::Result<()> {
-        anyhow::ensure!(self.max_message_bytes >= 1 << 16, "field `max_message_bytes`: {} is below 65536", self.max_message_bytes);
+        anyhow::ensure!(
+            self.max_message_bytes >= 1 << 16,
+            "field `max_message_bytes`: {} is below 65536",
+            self.max_message_bytes
+        );
         anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
-        anyhow::ensure!(self.scenarios_dir.is_dir(), "field `scenarios_dir`: {} is not a directory", self.scenarios_dir.display());
-        anyhow::ensure!(self.cases_dir.is_dir(), "field `cases_dir`: {} is not a directory", self.cases_dir.display());
+        anyhow::ensure!(
+            self.scenarios_dir.is_dir(),
+            "field `scenarios_dir`: {} is not a directory",
+            self.scenarios_dir.display()
+        );
+        anyhow::ensure!(
+            self.cases_dir.is_dir(),
+            "field `cases_dir`: {} is not a directory",
+            self.cases_dir.display()
+        );
         match (&self.tls_cert_file, &self.tls_key_file) {
             (Some(c), Some(k)) => {
-                anyhow::ensure!(c.is_file(), "field `tls_cert_file`: {} is not a file", c.display());
+                anyhow::ensure!(
+                    c.is_file(),
+                    "field `tls_cert_file`: {} is not a file",
+                    c.display()
+                );
                 anyhow::ensure!(k.is_file(), "field `tls_key_file`: {} is not a file", k.display());
             }
             (None, None) => {}
@@ -77,7 +93,11 @@ impl LearnerConfig {
         }
         if let Some(ca) = &self.tls_client_ca_file {
             anyhow::ensure!(self.tls_cert_file.is_some(), "field `tls_client_ca_file` needs `tls_cert_file` and `tls_key_file` (mutual TLS is TLS)");
-            anyhow::ensure!(ca.is_file(), "field `tls_client_ca_file`: {} is not a file", ca.display());
+            anyhow::ensure!(
+                ca.is_file(),
+                "field `tls_client_ca_file`: {} is not a file",
+                ca.display()
+            );
         }
         Ok(())
     }

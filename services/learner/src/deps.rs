@@ -38,29 +38,59 @@ pub(crate) struct InitDep {
 impl crate::Inner {
     /// The dependencies of training job `cfg`: every one must have succeeded with a final
     /// policy; the error names the field.
-    pub(crate) async fn job_deps(self: &Arc<Self>, cfg: &JobConfig) -> Result<JobDeps, LearnerError> {
+    pub(crate) async fn job_deps(
+        self: &Arc<Self>,
+        cfg: &JobConfig,
+    ) -> Result<JobDeps, LearnerError> {
         let mut frozen = Vec::new();
         // Each frozen policy's artifact directory, for validation's weights.
         let mut dirs: HashMap<u64, PathBuf> = HashMap::new();
         let mut init = None;
         for (role, dep) in cfg.deps() {
-            let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup { dep, field: role.field(), source })?;
-            if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists() {
-                return Err(LearnerError::NoFinalPolicy { dep, field: role.field(), state: d.state.as_str() });
+            let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup {
+                dep,
+                field: role.field(),
+                source,
+            })?;
+            if d.state != JobState::Succeeded
+                || !Path::new(&d.artifact_dir).join("policy.bpk").exists()
+            {
+                return Err(LearnerError::NoFinalPolicy {
+                    dep,
+                    field: role.field(),
+                    state: d.state.as_str(),
+                });
             }
             match role {
-                DepRole::Init => init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) }),
+                DepRole::Init => {
+                    init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) })
+                }
                 DepRole::Ego => {
                     dirs.insert(dep, PathBuf::from(&d.artifact_dir));
                     frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
                 }
                 DepRole::Background => {
                     let spec = self.spec(&d)?;
-                    let flow_cfg = spec.train().ok_or_else(|| LearnerError::Dependency { field: role.field(), dep, reason: "is an evaluation, not a training job".into() })?.clone();
+                    let flow_cfg = spec
+                        .train()
+                        .ok_or_else(|| LearnerError::Dependency {
+                            field: role.field(),
+                            dep,
+                            reason: "is an evaluation, not a training job".into(),
+                        })?
+                        .clone();
                     let jobs = self.jobs().await?;
                     let fz = {
                         let jobs = jobs.clone();
-                        tokio::task::spawn_blocking(move || flow_frozen(&d, &flow_cfg, |id| jobs.iter().find(|r| r.id == id).cloned().ok_or(LearnerError::JobNotFound { job_id: id }))).await??
+                        tokio::task::spawn_blocking(move || {
+                            flow_frozen(&d, &flow_cfg, |id| {
+                                jobs.iter()
+                                    .find(|r| r.id == id)
+                                    .cloned()
+                                    .ok_or(LearnerError::JobNotFound { job_id: id })
+                            })
+                        })
+                        .await??
                     };
                     for f in &fz {
                         if let Some(r) = jobs.iter().find(|r| r.id == f.job_id) {
@@ -77,7 +107,13 @@ impl crate::Inner {
             for f in &frozen {
                 let job_id = f.job_id;
                 let dir = dirs.get(&job_id).cloned().ok_or(LearnerError::JobNotFound { job_id })?;
-                let bytes = tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk")).await.map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
+                let bytes =
+                    tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk"))
+                        .await
+                        .map_err(|source| LearnerError::Task {
+                            task: "policy reading task",
+                            source,
+                        })?;
                 frozen_weights.push(Arc::new(bytes?));
             }
         }
@@ -90,14 +126,28 @@ impl crate::Inner {
 /// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
 /// coordinator's Gaussians if it has fitted them (Stage 2). `cfg` is `rec`'s parsed config
 /// ([`crate::Inner::spec`]). Blocking file IO (`coordinator.json`).
-pub(crate) fn flow_frozen(rec: &JobRecord, cfg: &JobConfig, find: impl Fn(u64) -> Result<JobRecord, LearnerError>) -> Result<Vec<Frozen>, LearnerError> {
+pub(crate) fn flow_frozen(
+    rec: &JobRecord,
+    cfg: &JobConfig,
+    find: impl Fn(u64) -> Result<JobRecord, LearnerError>,
+) -> Result<Vec<Frozen>, LearnerError> {
     if cfg.kind == JobKind::SocialcommAdv {
-        let flow = cfg.env.background_job.ok_or(LearnerError::NoBackgroundFlow { job_id: rec.id })?;
-        let f = find(flow).map_err(|e| LearnerError::BackgroundFlow { flow, job_id: rec.id, source: Box::new(e) })?;
-        return Ok(vec![Frozen::new(FrozenRole::Background, flow, f.config_toml), Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone())]);
+        let flow =
+            cfg.env.background_job.ok_or(LearnerError::NoBackgroundFlow { job_id: rec.id })?;
+        let f = find(flow).map_err(|e| LearnerError::BackgroundFlow {
+            flow,
+            job_id: rec.id,
+            source: Box::new(e),
+        })?;
+        return Ok(vec![
+            Frozen::new(FrozenRole::Background, flow, f.config_toml),
+            Frozen::new(FrozenRole::Adversary, rec.id, rec.config_toml.clone()),
+        ]);
     }
     let mut f = Frozen::new(FrozenRole::Background, rec.id, rec.config_toml.clone());
-    if let Some(c) = sf_rollout::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir)).map_err(LearnerError::Coordinator)? {
+    if let Some(c) = sf_rollout::coordinator::CoordinatorFile::load(Path::new(&rec.artifact_dir))
+        .map_err(LearnerError::Coordinator)?
+    {
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])
@@ -112,15 +162,27 @@ pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>,
 /// Whether job `dep_id` (config `dep`) can serve `job` in `role`: its kind (`DepRole::accepts`),
 /// for `train.init_job` the same network, and the same observation layout. The error names the
 /// field and the job.
-pub(crate) fn check_dep(job: &JobConfig, role: DepRole, dep_id: u64, dep: &JobConfig) -> Result<(), LearnerError> {
-    let refuse = |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
+pub(crate) fn check_dep(
+    job: &JobConfig,
+    role: DepRole,
+    dep_id: u64,
+    dep: &JobConfig,
+) -> Result<(), LearnerError> {
+    let refuse =
+        |reason: String| LearnerError::Dependency { field: role.field(), dep: dep_id, reason };
     role.accepts(job.kind, dep.kind).map_err(|e| refuse(e.to_string()))?;
     let (mine, theirs) = (setup::resolve(job, None), setup::resolve(dep, None));
     if role == DepRole::Init && !theirs.net.same_network(&mine.net) {
-        return Err(refuse(format!("has network {:?}; a job starts only from one of its own kind and network", theirs.net)));
+        return Err(refuse(format!(
+            "has network {:?}; a job starts only from one of its own kind and network",
+            theirs.net
+        )));
     }
     if theirs.obs.layout != mine.obs.layout {
-        return Err(refuse(format!("observes in the {:?} layout, this job in {:?}", theirs.obs.layout, mine.obs.layout)));
+        return Err(refuse(format!(
+            "observes in the {:?} layout, this job in {:?}",
+            theirs.obs.layout, mine.obs.layout
+        )));
     }
     Ok(())
 }

@@ -54,7 +54,9 @@ pub enum LearnerError {
     // --- Requests: the learner's state, jobs, workers and policies.
     #[error("the learner is shutting down")]
     ShuttingDown,
-    #[error("worker {worker_id} is not registered (the learner may have restarted): register again")]
+    #[error(
+        "worker {worker_id} is not registered (the learner may have restarted): register again"
+    )]
     WorkerNotRegistered { worker_id: u64 },
     #[error("job {job_id} is {state}, not running")]
     NotRunning { job_id: u64, state: &'static str },
@@ -189,10 +191,19 @@ impl LearnerError {
             | L::Dependency { .. }
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
-            L::UnresolvedName { .. } | L::DeviceField(_) | L::ProbeInService { .. } => S::InvalidArgument,
-            L::ShuttingDown | L::StorageFault { .. } | L::Store(crate::store::StoreError::Storage { .. }) => S::Unavailable,
-            L::JobNotFound { .. } | L::WorkerNotRegistered { .. } | L::NoPolicyVersion { .. } | L::VersionGone { .. } => S::NotFound,
-            L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => S::FailedPrecondition,
+            L::UnresolvedName { .. } | L::DeviceField(_) | L::ProbeInService { .. } => {
+                S::InvalidArgument
+            }
+            L::ShuttingDown
+            | L::StorageFault { .. }
+            | L::Store(crate::store::StoreError::Storage { .. }) => S::Unavailable,
+            L::JobNotFound { .. }
+            | L::WorkerNotRegistered { .. }
+            | L::NoPolicyVersion { .. }
+            | L::VersionGone { .. } => S::NotFound,
+            L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => {
+                S::FailedPrecondition
+            }
             L::NoCell { .. } => S::NotFound,
             L::BadCellResults { .. } => S::InvalidArgument,
             L::DependencyLookup { .. } | L::NoFinalPolicy { .. } => S::FailedPrecondition,
@@ -235,7 +246,13 @@ pub enum IngestError {
     #[error("job {job_id} has all its transitions")]
     Complete { job_id: u64 },
     #[error("batch rows are {obs_len} observation floats and {action_dim} actions; job {job_id} expects {want_obs_len} and {want_action_dim}")]
-    Shape { obs_len: usize, action_dim: usize, job_id: u64, want_obs_len: usize, want_action_dim: usize },
+    Shape {
+        obs_len: usize,
+        action_dim: usize,
+        job_id: u64,
+        want_obs_len: usize,
+        want_action_dim: usize,
+    },
     #[error("map id {map_id} out of range: job {job_id} has {maps} scenarios")]
     MapOutOfRange { map_id: u32, job_id: u64, maps: u32 },
     #[error("batch field `steps`: a transition spans {steps} steps; job {job_id} sums at most sac.n_step = {n_step}")]
@@ -260,7 +277,12 @@ impl From<IngestError> for ServiceError {
         use IngestError as I;
         let kind: fn(String) -> ServiceError = match &e {
             I::Stopping { .. } | I::Complete { .. } => ServiceError::FailedPrecondition,
-            I::Shape { .. } | I::MapOutOfRange { .. } | I::Span { .. } | I::BadRow { .. } | I::UnpublishedVersion { .. } | I::Replay(_) => ServiceError::InvalidArgument,
+            I::Shape { .. }
+            | I::MapOutOfRange { .. }
+            | I::Span { .. }
+            | I::BadRow { .. }
+            | I::UnpublishedVersion { .. }
+            | I::Replay(_) => ServiceError::InvalidArgument,
             I::Deadline => ServiceError::DeadlineExceeded,
             I::RateLimit(_) => ServiceError::Internal,
         };
@@ -275,35 +297,78 @@ mod tests {
 
     #[test]
     fn variants_map_to_their_status_and_name_the_field_or_job() {
-        let e = ServiceError::from(LearnerError::BadEvalConfig { field: "egos.job", name: "nope".into(), reason: "job 3 does not exist".into() });
+        let e = ServiceError::from(LearnerError::BadEvalConfig {
+            field: "egos.job",
+            name: "nope".into(),
+            reason: "job 3 does not exist".into(),
+        });
         assert_eq!(e.code(), Code::InvalidArgument);
         assert_eq!(e.to_string(), "eval config field `egos.job` of `nope`: job 3 does not exist");
 
-        let e = ServiceError::from(LearnerError::TooFewCases(sf_job::eval::TooFewCases { field: "cases".into(), cases: 9, stored: 4, scenario: "merge".into() }));
+        let e = ServiceError::from(LearnerError::TooFewCases(sf_job::eval::TooFewCases {
+            field: "cases".into(),
+            cases: 9,
+            stored: 4,
+            scenario: "merge".into(),
+        }));
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.to_string().contains("`cases`"), "{e}");
 
         // A wrapper takes the status of what it wraps.
-        let e = ServiceError::from(LearnerError::Grid { name: "copo".into(), source: Box::new(LearnerError::NotSucceeded { job_id: 7 }) });
+        let e = ServiceError::from(LearnerError::Grid {
+            name: "copo".into(),
+            source: Box::new(LearnerError::NotSucceeded { job_id: 7 }),
+        });
         assert_eq!(e.code(), Code::InvalidArgument);
         assert_eq!(e.to_string(), "`copo`: job 7 has not succeeded");
 
         let e = ServiceError::from(LearnerError::JobNotFound { job_id: 12 });
         assert_eq!((e.code(), e.to_string().as_str()), (Code::NotFound, "job 12 not found"));
 
-        let e = ServiceError::from(LearnerError::Io { action: "writing", path: "/jobs/3-x/meta.json".into(), source: std::io::Error::other("disk full") });
-        assert_eq!((e.code(), e.to_string().as_str()), (Code::Internal, "writing /jobs/3-x/meta.json: disk full"));
+        let e = ServiceError::from(LearnerError::Io {
+            action: "writing",
+            path: "/jobs/3-x/meta.json".into(),
+            source: std::io::Error::other("disk full"),
+        });
+        assert_eq!(
+            (e.code(), e.to_string().as_str()),
+            (Code::Internal, "writing /jobs/3-x/meta.json: disk full")
+        );
 
         // Ingest: the worker moves on (stopping), fixes its batch (shape) or retries (deadline).
         let e = ServiceError::from(IngestError::Stopping { job_id: 4 });
-        assert_eq!((e.code(), e.to_string().as_str()), (Code::FailedPrecondition, "job 4 is stopping"));
-        let e = ServiceError::from(IngestError::Shape { obs_len: 10, action_dim: 2, job_id: 4, want_obs_len: 12, want_action_dim: 2 });
-        assert_eq!((e.code(), e.to_string().as_str()), (Code::InvalidArgument, "batch rows are 10 observation floats and 2 actions; job 4 expects 12 and 2"));
+        assert_eq!(
+            (e.code(), e.to_string().as_str()),
+            (Code::FailedPrecondition, "job 4 is stopping")
+        );
+        let e = ServiceError::from(IngestError::Shape {
+            obs_len: 10,
+            action_dim: 2,
+            job_id: 4,
+            want_obs_len: 12,
+            want_action_dim: 2,
+        });
+        assert_eq!(
+            (e.code(), e.to_string().as_str()),
+            (
+                Code::InvalidArgument,
+                "batch rows are 10 observation floats and 2 actions; job 4 expects 12 and 2"
+            )
+        );
         assert_eq!(ServiceError::from(IngestError::Deadline).code(), Code::DeadlineExceeded);
-        assert_eq!(ServiceError::from(IngestError::UnpublishedVersion { version: 9, latest: 3 }).to_string(), "policy version 9 was never published (latest 3)");
+        assert_eq!(
+            ServiceError::from(IngestError::UnpublishedVersion { version: 9, latest: 3 })
+                .to_string(),
+            "policy version 9 was never published (latest 3)"
+        );
 
         // A handler's own error passes through unchanged.
-        let e = ServiceError::from(LearnerError::from(ServiceError::Unavailable("the learner is shutting down".into())));
-        assert_eq!((e.code(), e.to_string().as_str()), (Code::Unavailable, "the learner is shutting down"));
+        let e = ServiceError::from(LearnerError::from(ServiceError::Unavailable(
+            "the learner is shutting down".into(),
+        )));
+        assert_eq!(
+            (e.code(), e.to_string().as_str()),
+            (Code::Unavailable, "the learner is shutting down")
+        );
     }
 }

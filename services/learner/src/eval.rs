@@ -32,19 +32,31 @@ use sf_service::sync::lock;
 /// id it already names (which must have succeeded). Errors name the field.
 pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), LearnerError> {
     let pin = |field: &'static str, n: &mut sf_job::eval::Named| -> Result<(), LearnerError> {
-        let bad = |reason: String| LearnerError::BadEvalConfig { field, name: n.name.clone(), reason };
+        let bad =
+            |reason: String| LearnerError::BadEvalConfig { field, name: n.name.clone(), reason };
         if n.is_idm() {
             n.job_id = None;
             return Ok(());
         }
         let found = match n.job_id {
-            Some(id) => jobs.iter().find(|r| r.id == id).ok_or_else(|| bad(format!("job {id} does not exist")))?,
-            None => {
-                jobs.iter().filter(|r| r.name == n.job && r.state == JobState::Succeeded).max_by_key(|r| r.id).ok_or_else(|| bad(format!("this learner has no succeeded job named `{}`", n.job)))?
-            }
+            Some(id) => jobs
+                .iter()
+                .find(|r| r.id == id)
+                .ok_or_else(|| bad(format!("job {id} does not exist")))?,
+            None => jobs
+                .iter()
+                .filter(|r| r.name == n.job && r.state == JobState::Succeeded)
+                .max_by_key(|r| r.id)
+                .ok_or_else(|| {
+                    bad(format!("this learner has no succeeded job named `{}`", n.job))
+                })?,
         };
         if found.state != JobState::Succeeded {
-            return Err(bad(format!("job {} is {}, not succeeded", found.id, found.state.as_str())));
+            return Err(bad(format!(
+                "job {} is {}, not succeeded",
+                found.id,
+                found.state.as_str()
+            )));
         }
         n.job_id = Some(found.id);
         Ok(())
@@ -70,13 +82,28 @@ pub type GridPolicies = (BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>
 /// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
 /// the runtime). `spec` gives a stored job's parsed config ([`crate::Inner::spec`]), so nothing
 /// here parses a job's text again. Refuses an ego that is not an ego job and a flow that is.
-pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spec: Specs<'_>) -> Result<GridPolicies, LearnerError> {
-    let find = |id: u64| jobs.iter().find(|r| r.id == id && r.state == JobState::Succeeded).ok_or(LearnerError::NotSucceeded { job_id: id });
+pub fn resolve_policies(
+    cfg: &EvalConfig,
+    jobs: &[JobRecord],
+    weights: bool,
+    spec: Specs<'_>,
+) -> Result<GridPolicies, LearnerError> {
+    let find = |id: u64| {
+        jobs.iter()
+            .find(|r| r.id == id && r.state == JobState::Succeeded)
+            .ok_or(LearnerError::NotSucceeded { job_id: id })
+    };
     // A frozen policy's config: its job's spec, parsed when the job was stored.
     let train_cfg = |rec: &JobRecord| -> Result<sf_job::JobConfig, LearnerError> {
-        spec(rec)?.train().cloned().ok_or_else(|| LearnerError::BadEvalConfig { field: "job", name: rec.name.clone(), reason: format!("job {} is an evaluation, not a policy", rec.id) })
+        spec(rec)?.train().cloned().ok_or_else(|| LearnerError::BadEvalConfig {
+            field: "job",
+            name: rec.name.clone(),
+            reason: format!("job {} is an evaluation, not a policy", rec.id),
+        })
     };
-    let from_frozen = |fz: &[Frozen], w: &[Arc<Vec<u8>>]| sf_rollout::evaluate::from_frozen_with(fz, w, |f| train_cfg(find(f.job_id)?));
+    let from_frozen = |fz: &[Frozen], w: &[Arc<Vec<u8>>]| {
+        sf_rollout::evaluate::from_frozen_with(fz, w, |f| train_cfg(find(f.job_id)?))
+    };
     let pinned = |n: &sf_job::eval::Named| -> Result<&JobRecord, LearnerError> {
         let id = n.job_id.ok_or_else(|| LearnerError::NotPinned { name: n.name.clone() })?;
         find(id).map_err(|e| LearnerError::Grid { name: n.name.clone(), source: Box::new(e) })
@@ -88,7 +115,12 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
                 if !weights {
                     return Ok(Arc::new(Vec::new()));
                 }
-                crate::deps::read_final(Path::new(&find(f.job_id)?.artifact_dir), f.job_id, "policy.bpk").map(Arc::new)
+                crate::deps::read_final(
+                    Path::new(&find(f.job_id)?.artifact_dir),
+                    f.job_id,
+                    "policy.bpk",
+                )
+                .map(Arc::new)
             })
             .collect()
     };
@@ -103,7 +135,11 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
         };
         let (flow, _) = from_frozen(&fz, &load(&fz)?)?;
         if flow.kind() == Some(JobKind::Ego) {
-            return Err(LearnerError::BadEvalConfig { field: "flows.job", name: f.name.clone(), reason: format!("job {} is an ego job, not a flow", fz[0].job_id) });
+            return Err(LearnerError::BadEvalConfig {
+                field: "flows.job",
+                name: f.name.clone(),
+                reason: format!("job {} is an ego job, not a flow", fz[0].job_id),
+            });
         }
         flows.insert(f.name.clone(), fz);
         grid.flows.insert(f.name.clone(), flow);
@@ -120,7 +156,11 @@ pub fn resolve_policies(cfg: &EvalConfig, jobs: &[JobRecord], weights: bool, spe
         let (_, ego) = from_frozen(std::slice::from_ref(&fz), &load(std::slice::from_ref(&fz))?)?;
         let p = ego.ok_or_else(|| LearnerError::NoEgoPolicy { name: e.name.clone() })?;
         if p.cfg.kind != JobKind::Ego {
-            return Err(LearnerError::BadEvalConfig { field: "egos.job", name: e.name.clone(), reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()) });
+            return Err(LearnerError::BadEvalConfig {
+                field: "egos.job",
+                name: e.name.clone(),
+                reason: format!("job {} is a {} job, not an ego policy", r.id, p.cfg.kind.as_str()),
+            });
         }
         egos.insert(e.name.clone(), fz);
         grid.egos.insert(e.name.clone(), EgoDef::Learned(p));
@@ -185,7 +225,13 @@ impl EvalJob {
     /// Builds the job from its pinned config `cfg` (job `rec`'s), the learner's job records and
     /// the cells its `episodes.csv` already holds (a resumed job); writes `meta.json`. Blocking
     /// file IO.
-    pub fn open(rec: &JobRecord, cfg: EvalConfig, jobs: &[JobRecord], spec: Specs<'_>, metrics: LearnerMetrics) -> Result<Self, LearnerError> {
+    pub fn open(
+        rec: &JobRecord,
+        cfg: EvalConfig,
+        jobs: &[JobRecord],
+        spec: Specs<'_>,
+        metrics: LearnerMetrics,
+    ) -> Result<Self, LearnerError> {
         let (flows, egos, grid) = resolve_policies(&cfg, jobs, true, spec)?;
         let cells = cfg.cells();
         grid.check(&cells)?;
@@ -200,11 +246,19 @@ impl EvalJob {
             })
             .collect();
         let dir = PathBuf::from(&rec.artifact_dir);
-        std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
+        std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io {
+            action: "creating",
+            path: dir.clone(),
+            source,
+        })?;
         let meta = serde_json::to_string_pretty(&Meta::of(&cfg))?;
         let write = |name: &str, bytes: &[u8]| {
             let path = dir.join(name);
-            std::fs::write(&path, bytes).map_err(|source| LearnerError::Io { action: "writing", path, source })
+            std::fs::write(&path, bytes).map_err(|source| LearnerError::Io {
+                action: "writing",
+                path,
+                source,
+            })
         };
         write("meta.json", meta.as_bytes())?;
         // The grid as it runs (names pinned to job ids), beside its results.
@@ -218,7 +272,15 @@ impl EvalJob {
         let queued = (0..cells.len()).filter(|&i| !stored[i]).collect::<VecDeque<_>>();
         let writer = EpisodesWriter::open(&path)?;
         metrics.eval_cells_pending.set(queued.len() as i64);
-        let state = State { queued, leased: HashMap::new(), stored, episodes: rows.len() as u64, sums, writer, failed: None };
+        let state = State {
+            queued,
+            leased: HashMap::new(),
+            stored,
+            episodes: rows.len() as u64,
+            sums,
+            writer,
+            failed: None,
+        };
         Ok(Self {
             id: rec.id,
             cfg,
@@ -251,7 +313,11 @@ impl EvalJob {
             learning: sf_job::Learning {
                 env_steps: s.episodes,
                 episodes: s.episodes,
-                scores: sf_job::Scores { success: (s.sums[0] / n) as f32, safety: (s.sums[1] / n) as f32, speed: (s.sums[2] / n) as f32 },
+                scores: sf_job::Scores {
+                    success: (s.sums[0] / n) as f32,
+                    safety: (s.sums[1] / n) as f32,
+                    speed: (s.sums[2] / n) as f32,
+                },
                 wall_s: self.wall_s_before + self.started.elapsed().as_secs_f64(),
                 ..Default::default()
             },
@@ -296,7 +362,12 @@ impl EvalJob {
         if s.failed.is_some() {
             return None;
         }
-        let gone: Vec<usize> = s.leased.iter().filter(|(_, (w, _))| *w == worker || !live.contains(w)).map(|(c, _)| *c).collect();
+        let gone: Vec<usize> = s
+            .leased
+            .iter()
+            .filter(|(_, (w, _))| *w == worker || !live.contains(w))
+            .map(|(c, _)| *c)
+            .collect();
         for c in gone {
             if let Some((w, since)) = s.leased.remove(&c) {
                 tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w, leased_s = since.elapsed().as_secs(), "cell returned to the queue");
@@ -310,14 +381,32 @@ impl EvalJob {
         s.leased.insert(c, (worker, Instant::now()));
         let (cell, ego_idm) = (self.cells[c].clone(), self.idm_ego_cell(c));
         let (cases, seeds) = self.cfg.size_of(&cell);
-        Some(EvalWork { job_id: self.id, cell_id: c as u64, cell, cases, seeds, envs: self.cfg.envs as u32, policies: self.work[c].clone(), ego_idm })
+        Some(EvalWork {
+            job_id: self.id,
+            cell_id: c as u64,
+            cell,
+            cases,
+            seeds,
+            envs: self.cfg.envs as u32,
+            policies: self.work[c].clone(),
+            ego_idm,
+        })
     }
 
     /// Stores a worker's results for cell `cell_id` (blocking file IO). `Ok(false)`: the cell
     /// was already stored. The episodes must be exactly one per stored case and seed of the
     /// cell's size ([`EvalConfig::size_of`]); nothing is written otherwise.
-    pub fn store(&self, worker: u64, cell_id: u64, episodes: &[EvalEpisode], error: &str) -> Result<bool, LearnerError> {
-        let c = usize::try_from(cell_id).ok().filter(|&c| c < self.cells.len()).ok_or(LearnerError::NoCell { job_id: self.id, cell_id })?;
+    pub fn store(
+        &self,
+        worker: u64,
+        cell_id: u64,
+        episodes: &[EvalEpisode],
+        error: &str,
+    ) -> Result<bool, LearnerError> {
+        let c = usize::try_from(cell_id)
+            .ok()
+            .filter(|&c| c < self.cells.len())
+            .ok_or(LearnerError::NoCell { job_id: self.id, cell_id })?;
         let cell = &self.cells[c];
         let mut s = lock(&self.state);
         if s.stored[c] {
@@ -332,7 +421,10 @@ impl EvalJob {
         }
         let (want, n_seeds) = (self.cfg.episodes_of(cell) as usize, self.cfg.size_of(cell).1);
         let seeds: BTreeSet<(u32, u32)> = episodes.iter().map(|e| (e.case, e.seed)).collect();
-        if episodes.len() != want || seeds.len() != want || episodes.iter().any(|e| e.seed >= n_seeds) {
+        if episodes.len() != want
+            || seeds.len() != want
+            || episodes.iter().any(|e| e.seed >= n_seeds)
+        {
             let reason = format!("{} episodes, expected {want} distinct (case, seed) pairs with seeds below {n_seeds}", episodes.len());
             return Err(LearnerError::BadCellResults { cell_id, reason });
         }
@@ -362,25 +454,38 @@ impl EvalJob {
 
 /// Loads the map and stored cases of every scenario the grid runs in (blocking file IO); each
 /// cell's cases must be stored ([`EvalConfig::check_stored_cases`]).
-pub fn load_maps(cfg: &EvalConfig, scenarios_dir: &Path, cases_dir: &Path) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
+pub fn load_maps(
+    cfg: &EvalConfig,
+    scenarios_dir: &Path,
+    cases_dir: &Path,
+) -> Result<BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>, LearnerError> {
     let mut maps = BTreeMap::new();
     for s in cfg.all_scenarios() {
         let (map, cases) = sf_rollout::evaluate::load_scenario(scenarios_dir, cases_dir, &s)?;
         maps.insert(s, (map, cases));
     }
-    cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c): &(_, sf_sim::CaseFile)| c.cases.len()))?;
+    cfg.check_stored_cases(|s| {
+        maps.get(s).map_or(0, |(_, c): &(_, sf_sim::CaseFile)| c.cases.len())
+    })?;
     Ok(maps)
 }
 
 /// Runs `f` on a blocking thread.
-async fn blocking_task<T: Send + 'static>(f: impl FnOnce() -> Result<T, LearnerError> + Send + 'static) -> Result<T, LearnerError> {
-    tokio::task::spawn_blocking(f).await.map_err(|source| LearnerError::Task { task: "blocking task", source })?
+async fn blocking_task<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, LearnerError> + Send + 'static,
+) -> Result<T, LearnerError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|source| LearnerError::Task { task: "blocking task", source })?
 }
 
 impl crate::Inner {
     /// Validates an evaluation grid, pins its names to this learner's succeeded jobs, checks
     /// every cell's ego and flow fit and that the cases exist, and queues it.
-    pub(crate) async fn submit_eval(self: &std::sync::Arc<Self>, mut cfg: EvalConfig) -> Result<JobRecord, ServiceError> {
+    pub(crate) async fn submit_eval(
+        self: &std::sync::Arc<Self>,
+        mut cfg: EvalConfig,
+    ) -> Result<JobRecord, ServiceError> {
         // A probe changes what a flow's observers are told or who sits in the ego's seat; the
         // workers' cells carry neither, so the learner refuses it rather than run it unprobed.
         if let Some(n) = cfg.flows.iter().chain(&cfg.egos).find(|n| n.is_probe()) {
@@ -410,10 +515,16 @@ impl crate::Inner {
 
     /// Opens the evaluation (resuming from its stored cells), marks it RUNNING and follows it
     /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
-    pub(crate) async fn start_eval(self: &Arc<Self>, rec: &JobRecord, cfg: EvalConfig) -> Result<(), LearnerError> {
+    pub(crate) async fn start_eval(
+        self: &Arc<Self>,
+        rec: &JobRecord,
+        cfg: EvalConfig,
+    ) -> Result<(), LearnerError> {
         let jobs = self.jobs().await?;
         let (r2, m2, me) = (rec.clone(), self.metrics.clone(), Arc::clone(self));
-        let job = Arc::new(blocking_task(move || EvalJob::open(&r2, cfg, &jobs, &|r| me.spec(r), m2)).await?);
+        let job = Arc::new(
+            blocking_task(move || EvalJob::open(&r2, cfg, &jobs, &|r| me.spec(r), m2)).await?,
+        );
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
@@ -430,9 +541,15 @@ impl crate::Inner {
             job.request_stop(StopReason::Cancelled);
             self.slot.clear();
             self.wake.notify_one();
-            return started.map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
+            return started
+                .map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
         }
-        tracing::info!(job_id = id, cells = job.cells(), stored = job.progress().learning.episodes, "evaluation started");
+        tracing::info!(
+            job_id = id,
+            cells = job.cells(),
+            stored = job.progress().learning.episodes,
+            "evaluation started"
+        );
         let me = Arc::clone(self);
         tokio::spawn(async move {
             let out = loop {
@@ -457,8 +574,11 @@ impl crate::Inner {
 
     /// Every cell is stored: draws the grid's GIFs into the job's directory.
     async fn finish_eval(&self, job: &Arc<EvalJob>) -> crate::trainer::Outcome {
-        let Some(g) = job.cfg.experiments.gifs.clone() else { return crate::trainer::Outcome::Succeeded };
-        let (j, scen, cases) = (Arc::clone(job), self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
+        let Some(g) = job.cfg.experiments.gifs.clone() else {
+            return crate::trainer::Outcome::Succeeded;
+        };
+        let (j, scen, cases) =
+            (Arc::clone(job), self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
         let r = blocking_task(move || {
             let maps = load_maps(&j.cfg, &scen, &cases)?;
             let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
@@ -471,7 +591,9 @@ impl crate::Inner {
                 tracing::info!(job_id = job.id, gifs = paths.len(), "evaluation finished");
                 crate::trainer::Outcome::Succeeded
             }
-            Err(e) => crate::trainer::Outcome::Failed(format!("every cell is stored, but the GIFs failed: {e}")),
+            Err(e) => crate::trainer::Outcome::Failed(format!(
+                "every cell is stored, but the GIFs failed: {e}"
+            )),
         }
     }
 
@@ -482,16 +604,28 @@ impl crate::Inner {
     }
 
     /// A worker's results for one cell of the running evaluation `job_id`.
-    pub(crate) async fn eval_results(self: &Arc<Self>, job_id: u64, worker: u64, cell_id: u64, episodes: Vec<EvalEpisode>, error: String) -> Result<bool, ServiceError> {
+    pub(crate) async fn eval_results(
+        self: &Arc<Self>,
+        job_id: u64,
+        worker: u64,
+        cell_id: u64,
+        episodes: Vec<EvalEpisode>,
+        error: String,
+    ) -> Result<bool, ServiceError> {
         self.touch_worker(worker)?;
         let job = match self.evaluating() {
             Some(e) if e.id == job_id && e.stop_reason().is_none() => e,
             _ => {
                 let rec = self.job(job_id).await?;
-                return Err(LearnerError::NotEvaluating { job_id, state: rec.state.as_str() }.into());
+                return Err(
+                    LearnerError::NotEvaluating { job_id, state: rec.state.as_str() }.into()
+                );
             }
         };
-        match tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error)).await.map_err(LearnerError::from)? {
+        match tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error))
+            .await
+            .map_err(LearnerError::from)?
+        {
             Ok(stored) => Ok(stored),
             // The cell stays unstored (the worker sends it again); jobs wait for the disk.
             Err(e) if crate::storage::is_storage_fault(&e) => {

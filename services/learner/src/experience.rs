@@ -21,7 +21,10 @@ impl Inner {
     /// Validates and stores one batch, in one blocking hop for decoding (every value of up to a
     /// few MiB is checked) and storing (which may wait on the rate limiter). As before, a batch
     /// that does not decode is refused as such before anything about its worker or job.
-    pub(crate) async fn ingest(self: &Arc<Self>, msg: pb::TransitionBatch) -> Result<crate::job::Ack, ServiceError> {
+    pub(crate) async fn ingest(
+        self: &Arc<Self>,
+        msg: pb::TransitionBatch,
+    ) -> Result<crate::job::Ack, ServiceError> {
         let task = |e| ServiceError::from(LearnerError::Join(e));
         let touched = self.touch_worker(msg.worker_id);
         let job = match touched {
@@ -31,16 +34,25 @@ impl Inner {
         let job = match job {
             Ok(job) => job,
             Err(e) => {
-                tokio::task::spawn_blocking(move || sf_proto::batch_from_wire(msg)).await.map_err(task)??;
+                tokio::task::spawn_blocking(move || sf_proto::batch_from_wire(msg))
+                    .await
+                    .map_err(task)??;
                 return Err(e);
             }
         };
         let deadline = Instant::now() + INGEST_DEADLINE;
-        tokio::task::spawn_blocking(move || -> Result<crate::job::Ack, ServiceError> { Ok(job.ingest(&sf_proto::batch_from_wire(msg)?, deadline)?) }).await.map_err(task)?
+        tokio::task::spawn_blocking(move || -> Result<crate::job::Ack, ServiceError> {
+            Ok(job.ingest(&sf_proto::batch_from_wire(msg)?, deadline)?)
+        })
+        .await
+        .map_err(task)?
     }
 
     /// The running job with this id; NOT_FOUND for unknown ids, FAILED_PRECONDITION otherwise.
-    pub(crate) async fn running(self: &Arc<Self>, id: u64) -> Result<Arc<crate::job::ActiveJob>, LearnerError> {
+    pub(crate) async fn running(
+        self: &Arc<Self>,
+        id: u64,
+    ) -> Result<Arc<crate::job::ActiveJob>, LearnerError> {
         if let Some(j) = self.active() {
             if j.id == id {
                 return Ok(j);
@@ -52,14 +64,19 @@ impl Inner {
 
     /// Policy weights (the latest or one version) of the running job, or the final policy of a
     /// succeeded one.
-    pub(crate) async fn policy(self: &Arc<Self>, job_id: u64, which: PolicyRequest) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
+    pub(crate) async fn policy(
+        self: &Arc<Self>,
+        job_id: u64,
+        which: PolicyRequest,
+    ) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
         match self.running(job_id).await {
             Ok(j) => {
                 let p = match which {
                     PolicyRequest::Latest => j.latest(),
                     PolicyRequest::Version(v) => j.version(v.get()),
                 };
-                p.map(|p| (p.version, p.weights)).ok_or(LearnerError::NoPolicyVersion { job_id, version: which })
+                p.map(|p| (p.version, p.weights))
+                    .ok_or(LearnerError::NoPolicyVersion { job_id, version: which })
             }
             Err(not_running @ LearnerError::NotRunning { .. }) => {
                 let rec = self.job(job_id).await?;
@@ -67,14 +84,20 @@ impl Inner {
                     return Err(not_running);
                 }
                 let dir = std::path::PathBuf::from(&rec.artifact_dir);
-                let (final_version, weights) = tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), LearnerError> {
-                    let weights = crate::deps::read_final(&dir, job_id, "policy.bpk")?;
-                    let meta: serde_json::Value = serde_json::from_slice(&crate::deps::read_final(&dir, job_id, "policy.json")?).map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
-                    Ok((meta["version"].as_u64().unwrap_or(0), weights))
-                })
-                .await??;
+                let (final_version, weights) =
+                    tokio::task::spawn_blocking(move || -> Result<(u64, Vec<u8>), LearnerError> {
+                        let weights = crate::deps::read_final(&dir, job_id, "policy.bpk")?;
+                        let meta: serde_json::Value = serde_json::from_slice(
+                            &crate::deps::read_final(&dir, job_id, "policy.json")?,
+                        )
+                        .map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
+                        Ok((meta["version"].as_u64().unwrap_or(0), weights))
+                    })
+                    .await??;
                 match which {
-                    PolicyRequest::Version(v) if v.get() != final_version => Err(LearnerError::VersionGone { job_id, final_version, version: v.get() }),
+                    PolicyRequest::Version(v) if v.get() != final_version => {
+                        Err(LearnerError::VersionGone { job_id, final_version, version: v.get() })
+                    }
                     _ => Ok((final_version, Arc::new(weights))),
                 }
             }
@@ -82,14 +105,23 @@ impl Inner {
         }
     }
 
-    pub(crate) fn assignment(self: &Arc<Self>, worker_id: u64) -> Result<Option<Assignment>, ServiceError> {
+    pub(crate) fn assignment(
+        self: &Arc<Self>,
+        worker_id: u64,
+    ) -> Result<Option<Assignment>, ServiceError> {
         self.touch_worker(worker_id)?;
         let Some(j) = self.active() else { return Ok(None) };
         if j.stop_reason().is_some() || j.is_complete() || j.latest().is_none() {
             return Ok(None);
         }
         let scenario_index = j.next_scenario();
-        let seed = j.cfg.sac.seed.wrapping_mul(1_000_003).wrapping_add(worker_id.wrapping_mul(7919)).wrapping_add(self.assignments.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
+        let seed = j
+            .cfg
+            .sac
+            .seed
+            .wrapping_mul(1_000_003)
+            .wrapping_add(worker_id.wrapping_mul(7919))
+            .wrapping_add(self.assignments.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
         Ok(Some(Assignment {
             job_id: j.id,
             config_toml: j.cfg.to_toml(),

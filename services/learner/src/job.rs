@@ -124,7 +124,16 @@ impl ActiveJob {
             latest: RwLock::new(None),
             recent: Mutex::new(VecDeque::new()),
             versions: watch::channel(0).0,
-            stats: Mutex::new(Stats { reserved: restored.env_steps, c: restored, window: VecDeque::new(), losses: Losses::default(), updates: 0, rate: VecDeque::new(), lag_sum: 0, lag_batches: 0 }),
+            stats: Mutex::new(Stats {
+                reserved: restored.env_steps,
+                c: restored,
+                window: VecDeque::new(),
+                losses: Losses::default(),
+                updates: 0,
+                rate: VecDeque::new(),
+                lag_sum: 0,
+                lag_batches: 0,
+            }),
             stop: Mutex::new(None),
             stopping: AtomicBool::new(false),
             complete: AtomicBool::new(complete),
@@ -158,7 +167,8 @@ impl ActiveJob {
 
     /// The scenario index for the next worker assignment (round robin).
     pub fn next_scenario(&self) -> u32 {
-        (self.next_scenario.fetch_add(1, Ordering::Relaxed) % self.cfg.env.scenarios.len() as u64) as u32
+        (self.next_scenario.fetch_add(1, Ordering::Relaxed) % self.cfg.env.scenarios.len() as u64)
+            as u32
     }
 
     pub fn latest(&self) -> Option<Published> {
@@ -204,10 +214,18 @@ impl ActiveJob {
             return Err(IngestError::UnpublishedVersion { version, latest });
         }
         let warm = self.in_warmup();
-        let ack = |accepted: usize, dropped: usize| Ack { accepted: accepted as u32, dropped_stale: dropped as u32, latest_policy_version: latest, warmup: warm };
+        let ack = |accepted: usize, dropped: usize| Ack {
+            accepted: accepted as u32,
+            dropped_stale: dropped as u32,
+            latest_policy_version: latest,
+            warmup: warm,
+        };
         if self.is_stale(b.acted_by, latest, warm) {
             lock(&self.stats).c.dropped_stale += b.count as u64;
-            self.metrics.transitions_dropped.get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() }).inc_by(b.count as u64);
+            self.metrics
+                .transitions_dropped
+                .get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() })
+                .inc_by(b.count as u64);
             return Ok(ack(0, b.count));
         }
         let take = self.reserve(b.count)?;
@@ -225,7 +243,13 @@ impl ActiveJob {
             return Err(IngestError::Stopping { job_id: self.id });
         }
         if b.obs_len != self.obs_len || b.action_dim != self.action_dim {
-            return Err(IngestError::Shape { obs_len: b.obs_len, action_dim: b.action_dim, job_id: self.id, want_obs_len: self.obs_len, want_action_dim: self.action_dim });
+            return Err(IngestError::Shape {
+                obs_len: b.obs_len,
+                action_dim: b.action_dim,
+                job_id: self.id,
+                want_obs_len: self.obs_len,
+                want_action_dim: self.action_dim,
+            });
         }
         let n_maps = self.cfg.env.scenarios.len() as u32;
         if let Some(&m) = b.map_ids.iter().find(|&&m| m >= n_maps) {
@@ -238,7 +262,9 @@ impl ActiveJob {
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                self.spec.check_row(&rows[i * ol..(i + 1) * ol], segments).map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
+                self.spec
+                    .check_row(&rows[i * ol..(i + 1) * ol], segments)
+                    .map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
             }
         }
         Ok(())
@@ -277,7 +303,8 @@ impl ActiveJob {
                 self.unreserve(take);
                 return Err(IngestError::Deadline);
             }
-            match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250))) {
+            match self.limiter.insert(take as u64, (deadline - now).min(Duration::from_millis(250)))
+            {
                 Ok(()) => return Ok(()),
                 Err(RateLimitError::Timeout(_)) => continue,
                 Err(RateLimitError::Closed) => {
@@ -324,7 +351,13 @@ impl ActiveJob {
         self.metrics.transitions_received.inc_by(take as u64);
         self.metrics.env_steps.inc_by(b.sim_steps);
         for e in &b.episodes {
-            let scenario = self.cfg.env.scenarios.get(e.scenario_index as usize).cloned().unwrap_or_else(|| "unknown".into());
+            let scenario = self
+                .cfg
+                .env
+                .scenarios
+                .get(e.scenario_index as usize)
+                .cloned()
+                .unwrap_or_else(|| "unknown".into());
             self.metrics.episodes.get_or_create(&crate::metrics::ScenarioLabel { scenario }).inc();
         }
         let mut s = lock(&self.stats);
@@ -405,7 +438,9 @@ impl ActiveJob {
         let s = lock(&self.stats);
         let scores = means(&s.window);
         let env_steps_per_s = match (s.rate.front(), s.rate.back()) {
-            (Some(a), Some(b)) if b.0 > a.0 => (b.1 - a.1) as f64 / b.0.duration_since(a.0).as_secs_f64(),
+            (Some(a), Some(b)) if b.0 > a.0 => {
+                (b.1 - a.1) as f64 / b.0.duration_since(a.0).as_secs_f64()
+            }
             _ => 0.0,
         };
         Progress {

@@ -80,7 +80,9 @@ pub struct Inner {
     storage: storage::StorageHealth,
 }
 
-async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, store::StoreError> + Send + 'static) -> Result<T, ServiceError> {
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, store::StoreError> + Send + 'static,
+) -> Result<T, ServiceError> {
     match tokio::task::spawn_blocking(f).await {
         Ok(Ok(v)) => Ok(v),
         Ok(Err(e)) => Err(LearnerError::Store(e).into()),
@@ -109,7 +111,10 @@ impl Inner {
         if let Some(s) = lock(&self.specs).get(&rec.id) {
             return Ok(Arc::clone(s));
         }
-        let s = Arc::new(JobSpec::from_toml(&rec.config_toml).map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source })?);
+        let s = Arc::new(
+            JobSpec::from_toml(&rec.config_toml)
+                .map_err(|source| LearnerError::StoredConfig { job_id: rec.id, source })?,
+        );
         lock(&self.specs).insert(rec.id, Arc::clone(&s));
         Ok(s)
     }
@@ -129,7 +134,14 @@ impl Inner {
         let dir = self.cfg.scenarios_dir.clone();
         let names = names.to_vec();
         tokio::task::spawn_blocking(move || {
-            names.iter().map(|name| Map::load(&dir.join(format!("{name}.json"))).map(Arc::new).map_err(|source| LearnerError::Scenario { name: name.clone(), source })).collect::<Result<Vec<_>, _>>()
+            names
+                .iter()
+                .map(|name| {
+                    Map::load(&dir.join(format!("{name}.json")))
+                        .map(Arc::new)
+                        .map_err(|source| LearnerError::Scenario { name: name.clone(), source })
+                })
+                .collect::<Result<Vec<_>, _>>()
         })
         .await
         .map_err(|source| LearnerError::Task { task: "scenario loading task", source })?
@@ -148,13 +160,15 @@ impl Inner {
             JobSpec::Train(cfg) => cfg,
         };
         self.load_maps(&cfg.env.scenarios).await?;
-        sf_nn::device::device(sf_sac::device_kind(cfg.sac.device)).map_err(LearnerError::DeviceField)?;
+        sf_nn::device::device(sf_sac::device_kind(cfg.sac.device))
+            .map_err(LearnerError::DeviceField)?;
         if let Some((_, name)) = cfg.deps_by_name().first() {
             return Err(LearnerError::UnresolvedName { name: name.to_string() }.into());
         }
         for (role, dep) in cfg.deps() {
             let field = role.field();
-            let refuse = |reason: &str| LearnerError::Dependency { field, dep, reason: reason.into() };
+            let refuse =
+                |reason: &str| LearnerError::Dependency { field, dep, reason: reason.into() };
             let rec = self.job(dep).await.map_err(|_| refuse("does not exist"))?;
             let dep_spec = self.spec(&rec)?;
             let Some(dep_cfg) = dep_spec.train() else {
@@ -178,7 +192,9 @@ impl Inner {
     /// A job with live progress if it is running.
     pub async fn job(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
         let store = Arc::clone(&self.store);
-        let mut rec = blocking(move || store.get(id)).await?.ok_or(LearnerError::JobNotFound { job_id: id })?;
+        let mut rec = blocking(move || store.get(id))
+            .await?
+            .ok_or(LearnerError::JobNotFound { job_id: id })?;
         if let Some(p) = self.live_progress(id).filter(|_| !rec.state.is_final()) {
             rec.progress = p;
             rec.state = JobState::Running;
@@ -235,7 +251,8 @@ impl Inner {
 
     /// Starts the next job if none is running.
     async fn schedule_once(self: &Arc<Self>) {
-        if self.slot.busy() || self.shutting_down.load(Ordering::Acquire) || !self.storage.healthy() {
+        if self.slot.busy() || self.shutting_down.load(Ordering::Acquire) || !self.storage.healthy()
+        {
             return;
         }
         let all = match self.jobs().await {
@@ -249,7 +266,9 @@ impl Inner {
         // (An evaluation's jobs succeeded before it was accepted: it has none to wait for.)
         let dep_state = |r: &JobRecord| -> Option<(u64, JobState)> {
             let deps = self.spec(r).ok()?.deps();
-            let states = deps.iter().map(|&(_, dep)| (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state)));
+            let states = deps.iter().map(|&(_, dep)| {
+                (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state))
+            });
             // The worst: a failed one, else an unfinished one, else succeeded.
             states.max_by_key(|(_, s)| match s {
                 JobState::Succeeded => 0,
@@ -263,13 +282,19 @@ impl Inner {
                 self.finish(r.id, Outcome::Failed(msg), None).await;
             }
         }
-        let ready = |r: &&JobRecord| r.state == JobState::Queued && dep_state(r).is_none_or(|(_, s)| s == JobState::Succeeded);
-        let next = all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
+        let ready = |r: &&JobRecord| {
+            r.state == JobState::Queued
+                && dep_state(r).is_none_or(|(_, s)| s == JobState::Succeeded)
+        };
+        let next =
+            all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
         if let Some(rec) = next.cloned() {
             match self.start_job(&rec).await {
                 Ok(()) => {}
                 // The job waits, as it is, until the disk takes writes again.
-                Err(e) if storage::is_storage_fault(&e) => self.storage.fault(&format!("starting job {}: {e}", rec.id)),
+                Err(e) if storage::is_storage_fault(&e) => {
+                    self.storage.fault(&format!("starting job {}: {e}", rec.id))
+                }
                 Err(e) => {
                     tracing::error!(job_id = rec.id, error = %e, "job failed to start");
                     self.finish(rec.id, Outcome::Failed(e.to_string()), None).await;
@@ -289,16 +314,37 @@ impl Inner {
         let dir2 = dir.clone();
         let resume = tokio::task::spawn_blocking(move || trainer::load_state(&dir2)).await??;
         let capacity = cfg.train.replay_capacity as u64;
-        let fill = if resume.is_some() { 4 * cfg.sac.batch_size as u64 } else { cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64) };
+        let fill = if resume.is_some() {
+            4 * cfg.sac.batch_size as u64
+        } else {
+            cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64)
+        };
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity)?;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
         let deps::JobDeps { frozen, frozen_weights, init } = self.job_deps(&cfg).await?;
         let r = setup::resolve(&cfg, None);
-        let (action_dim, spec, segment_points) = (r.net.action_dim, r.obs, r.sim.obs.segment_points);
+        let (action_dim, spec, segment_points) =
+            (r.net.action_dim, r.obs, r.sim.obs.segment_points);
         let maps2 = maps.clone();
-        let segs = tokio::task::spawn_blocking(move || maps2.iter().map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points))).collect::<Vec<_>>()).await?;
+        let segs = tokio::task::spawn_blocking(move || {
+            maps2
+                .iter()
+                .map(|m| Arc::new(sf_sim::obs::MapSegments::build(m, segment_points)))
+                .collect::<Vec<_>>()
+        })
+        .await?;
         let counts = segs.iter().map(|s| s.len()).collect();
-        let job = Arc::new(ActiveJob::new(rec.id, cfg, frozen, spec, counts, action_dim, limiter, counters, self.metrics.clone()));
+        let job = Arc::new(ActiveJob::new(
+            rec.id,
+            cfg,
+            frozen,
+            spec,
+            counts,
+            action_dim,
+            limiter,
+            counters,
+            self.metrics.clone(),
+        ));
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // Active first, then RUNNING only if not cancelled meanwhile: a CancelJob either sees
@@ -327,21 +373,36 @@ impl Inner {
         }
         tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
         let (tx, rx) = oneshot::channel();
-        let input = trainer::TrainerInput { job: Arc::clone(&job), maps, segs, dir, resume, init, frozen_weights };
+        let input = trainer::TrainerInput {
+            job: Arc::clone(&job),
+            maps,
+            segs,
+            dir,
+            resume,
+            init,
+            frozen_weights,
+        };
         std::thread::Builder::new()
             .name(format!("trainer-{id}"))
             .spawn(move || {
                 // A panic is a defect, but it must not leave the job without its cause.
-                let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| trainer::run(input))).unwrap_or_else(|p| {
-                    let why = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "no message".into());
-                    Outcome::Failed(format!("the trainer panicked: {why}"))
-                });
+                let out =
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| trainer::run(input)))
+                        .unwrap_or_else(|p| {
+                            let why = p
+                                .downcast_ref::<String>()
+                                .cloned()
+                                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                                .unwrap_or_else(|| "no message".into());
+                            Outcome::Failed(format!("the trainer panicked: {why}"))
+                        });
                 let _ = tx.send(out);
             })
             .map_err(LearnerError::SpawnTrainer)?;
         let me = Arc::clone(self);
         tokio::spawn(async move {
-            let out = rx.await.unwrap_or_else(|_| Outcome::Failed("the trainer thread panicked".into()));
+            let out =
+                rx.await.unwrap_or_else(|_| Outcome::Failed("the trainer thread panicked".into()));
             me.finish(id, out, Some(job.progress())).await;
         });
         Ok(())
@@ -370,7 +431,9 @@ impl Inner {
             match r {
                 Ok(_) => {}
                 // Unrecorded, the job stays RUNNING and resumes (and ends again) after recovery.
-                Err(e) if storage::is_storage_fault(&e) => self.storage.fault(&format!("recording the end of job {id}: {e}")),
+                Err(e) if storage::is_storage_fault(&e) => {
+                    self.storage.fault(&format!("recording the end of job {id}: {e}"))
+                }
                 Err(e) => tracing::error!(job_id = id, error = %e, "recording the job's end"),
             }
         }
@@ -408,7 +471,12 @@ pub struct RunningLearner {
 fn size_status<B>(mut res: http::Response<B>) -> http::Response<B> {
     let h = res.headers_mut();
     let oversized = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11")
-        && h.get("grpc-message").is_some_and(|m| m.to_str().is_ok_and(|m| m.contains("message%20length%20too%20large") || m.contains("message length too large")));
+        && h.get("grpc-message").is_some_and(|m| {
+            m.to_str().is_ok_and(|m| {
+                m.contains("message%20length%20too%20large")
+                    || m.contains("message length too large")
+            })
+        });
     if oversized {
         h.insert("grpc-status", http::HeaderValue::from_static("8"));
     }
@@ -418,15 +486,24 @@ fn size_status<B>(mut res: http::Response<B>) -> http::Response<B> {
 /// Opens the store, binds both ports and starts serving and scheduling.
 pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLearner> {
     cfg.validate()?;
-    std::fs::create_dir_all(cfg.data_dir.join("jobs")).with_context(|| format!("creating {}", cfg.data_dir.display()))?;
+    std::fs::create_dir_all(cfg.data_dir.join("jobs"))
+        .with_context(|| format!("creating {}", cfg.data_dir.display()))?;
     let store = Arc::new(Store::open(&cfg.data_dir.join("jobs.redb"), &cfg.data_dir)?);
     let mut registry = Registry::default();
     let metrics = LearnerMetrics::register(&mut registry);
-    let grpc = tokio::net::TcpListener::bind(cfg.grpc_addr).await.with_context(|| format!("binding gRPC port {}", cfg.grpc_addr))?;
+    let grpc = tokio::net::TcpListener::bind(cfg.grpc_addr)
+        .await
+        .with_context(|| format!("binding gRPC port {}", cfg.grpc_addr))?;
     let grpc_addr = grpc.local_addr()?;
     let ready = Arc::new(AtomicBool::new(false));
     let m2 = metrics.clone();
-    let admin_addr = sf_service::admin::serve(cfg.admin_addr, Arc::new(registry), Arc::clone(&ready), Arc::new(move || m2.common.refresh())).await?;
+    let admin_addr = sf_service::admin::serve(
+        cfg.admin_addr,
+        Arc::new(registry),
+        Arc::clone(&ready),
+        Arc::new(move || m2.common.refresh()),
+    )
+    .await?;
     let first_worker = (sf_job::now_unix_ms() % 1_000_000_000) * 1000;
     let inner = Arc::new(Inner {
         cfg: cfg.clone(),
@@ -435,38 +512,59 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         slot: Slot::default(),
         wake: Notify::new(),
         idle: Notify::new(),
-        workers: Workers::new(first_worker, Duration::from_secs(cfg.worker_timeout_s), metrics.workers.clone()),
+        workers: Workers::new(
+            first_worker,
+            Duration::from_secs(cfg.worker_timeout_s),
+            metrics.workers.clone(),
+        ),
         assignments: AtomicU64::new(0),
         shutting_down: AtomicBool::new(false),
         specs: Mutex::new(BTreeMap::new()),
-        storage: storage::StorageHealth::new(Arc::clone(&ready), metrics.storage_ok.clone(), metrics.storage_faults.clone()),
+        storage: storage::StorageHealth::new(
+            Arc::clone(&ready),
+            metrics.storage_ok.clone(),
+            metrics.storage_faults.clone(),
+        ),
     });
     let m3 = metrics.clone();
     let transport = match (cfg.tls_cert_file.is_some(), cfg.allow_plaintext_token) {
         (true, _) => Transport::Tls,
         (false, allow_remote) => Transport::Plaintext { allow_remote },
     };
-    if transport == (Transport::Plaintext { allow_remote: false }) && !cfg.grpc_addr.ip().is_loopback() {
+    if transport == (Transport::Plaintext { allow_remote: false })
+        && !cfg.grpc_addr.ip().is_loopback()
+    {
         tracing::warn!(%grpc_addr, "serving plaintext: tokens from peers off loopback are refused (serve TLS, or set allow_plaintext_token on a trusted network)");
     }
-    let auth = RequireToken::new(&token, move || m3.common.rpc("any", tonic::Code::Unauthenticated)).transport(transport);
+    let auth =
+        RequireToken::new(&token, move || m3.common.rpc("any", tonic::Code::Unauthenticated))
+            .transport(transport);
     let max = cfg.max_message_bytes;
-    let jobs = JobServiceServer::new(service::Jobs(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
-    let exp = ExperienceServiceServer::new(service::Experience(Arc::clone(&inner))).max_decoding_message_size(max).max_encoding_message_size(max);
+    let jobs = JobServiceServer::new(service::Jobs(Arc::clone(&inner)))
+        .max_decoding_message_size(max)
+        .max_encoding_message_size(max);
+    let exp = ExperienceServiceServer::new(service::Experience(Arc::clone(&inner)))
+        .max_decoding_message_size(max)
+        .max_encoding_message_size(max);
     let (health_reporter, health) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<JobServiceServer<service::Jobs>>().await;
     health_reporter.set_serving::<ExperienceServiceServer<service::Experience>>().await;
     // Reflection in both versions: `v1alpha` is what older clients (and some GUI clients) ask.
     let reflection_builder = || {
-        tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(sf_proto::FILE_DESCRIPTOR_SET).register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(sf_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
     let reflection = reflection_builder().build_v1().context("gRPC reflection service (v1)")?;
-    let reflection_v1alpha = reflection_builder().build_v1alpha().context("gRPC reflection service (v1alpha)")?;
+    let reflection_v1alpha =
+        reflection_builder().build_v1alpha().context("gRPC reflection service (v1alpha)")?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
     let mut builder = tonic::transport::Server::builder();
     if let (Some(c), Some(k)) = (&cfg.tls_cert_file, &cfg.tls_key_file) {
-        builder = builder.tls_config(sf_service::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?).context("TLS server configuration")?;
+        builder = builder
+            .tls_config(sf_service::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?)
+            .context("TLS server configuration")?;
     }
     let server = tokio::spawn(
         builder
@@ -514,7 +612,11 @@ async fn recover_storage(inner: Arc<Inner>) {
         }
         let (dir, store) = (inner.cfg.data_dir.clone(), Arc::clone(&inner.store));
         let r = tokio::task::spawn_blocking(move || {
-            storage::probe(&dir).map_err(|source| LearnerError::Io { action: "probing", path: dir.clone(), source })?;
+            storage::probe(&dir).map_err(|source| LearnerError::Io {
+                action: "probing",
+                path: dir.clone(),
+                source,
+            })?;
             store.reopen().map_err(LearnerError::Store)
         })
         .await;
@@ -545,10 +647,17 @@ impl RunningLearner {
         }
         if let Some(e) = inner.evaluating() {
             // Stored cells stay stored; the job stays RUNNING and resumes with the rest.
-            tracing::info!(job_id = e.id, "shutting down: the evaluation resumes on the next start");
+            tracing::info!(
+                job_id = e.id,
+                "shutting down: the evaluation resumes on the next start"
+            );
             let idle = inner.idle.notified();
             e.request_stop(StopReason::Shutdown);
-            if inner.evaluating().is_some() && tokio::time::timeout(Duration::from_secs(inner.cfg.shutdown_grace_s), idle).await.is_err() {
+            if inner.evaluating().is_some()
+                && tokio::time::timeout(Duration::from_secs(inner.cfg.shutdown_grace_s), idle)
+                    .await
+                    .is_err()
+            {
                 tracing::warn!("the evaluation did not stop within the grace period");
             }
         }
@@ -573,17 +682,31 @@ mod tests {
     #[test]
     fn every_shipped_config_file_is_valid() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let mut files: Vec<PathBuf> =
-            std::fs::read_dir(root.join("configs")).expect("configs/").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+        let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("configs"))
+            .expect("configs/")
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .collect();
         files.push(root.join("deploy/smoke-job.toml"));
-        for sub in ["configs/paper-small", "configs/paper", "configs/ladder/jobs", "configs/ladder/l7-steering-adversary"] {
-            files.extend(std::fs::read_dir(root.join(sub)).expect("pipeline dir").filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x == "toml")));
+        for sub in [
+            "configs/paper-small",
+            "configs/paper",
+            "configs/ladder/jobs",
+            "configs/ladder/l7-steering-adversary",
+        ] {
+            files.extend(
+                std::fs::read_dir(root.join(sub))
+                    .expect("pipeline dir")
+                    .filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.extension().is_some_and(|x| x == "toml")),
+            );
         }
         assert!(files.len() >= 3, "{files:?}");
         for f in files {
             let text = std::fs::read_to_string(&f).expect("readable");
             if f.file_name().is_some_and(|n| n == "learner.toml") {
-                let c: LearnerConfig = toml::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+                let c: LearnerConfig =
+                    toml::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
                 assert!(c.max_message_bytes >= 1 << 16);
             } else {
                 JobConfig::from_toml(&text).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
@@ -620,9 +743,16 @@ mod tests {
             let c = cancel.join().expect("cancel thread").expect("cancel").expect("job");
             let e = end.join().expect("end thread").expect("end").expect("job");
             let stored = store.get(id).expect("get").expect("job");
-            assert_eq!(c.state, e.state, "the cancel answered {:?}, the end recorded {:?}", c.state, e.state);
+            assert_eq!(
+                c.state, e.state,
+                "the cancel answered {:?}, the end recorded {:?}",
+                c.state, e.state
+            );
             assert_eq!(stored.state, c.state);
-            assert_eq!(stored.message.as_str(), if stored.state == JobState::Cancelled { CANCELLED_BY_REQUEST } else { "" });
+            assert_eq!(
+                stored.message.as_str(),
+                if stored.state == JobState::Cancelled { CANCELLED_BY_REQUEST } else { "" }
+            );
             cancelled += usize::from(stored.state == JobState::Cancelled);
         }
         eprintln!("the cancel came first in {cancelled} of 40 races");

@@ -61,8 +61,15 @@ impl JobService for Jobs {
         let r = self.0.jobs().await;
         // Summaries: configs can be megabytes each, and a list of them would outgrow a default
         // client's 4 MiB receive limit. GetJob carries the config.
-        let summary = |j: &sf_job::JobRecord| pb::Job { config_toml: String::new(), ..sf_proto::job_to_wire(j) };
-        done(&self.0, "ListJobs", r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(summary).collect() }))
+        let summary = |j: &sf_job::JobRecord| pb::Job {
+            config_toml: String::new(),
+            ..sf_proto::job_to_wire(j)
+        };
+        done(
+            &self.0,
+            "ListJobs",
+            r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(summary).collect() }),
+        )
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Res<pb::Job> {
@@ -113,7 +120,11 @@ impl ExperienceService for Experience {
     async fn register(&self, req: Request<pb::RegisterRequest>) -> Res<pb::RegisterResponse> {
         let r = req.into_inner();
         let id = self.0.register_worker(&r.name, r.runs_idm_ego);
-        done(&self.0, "Register", Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }))
+        done(
+            &self.0,
+            "Register",
+            Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }),
+        )
     }
 
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Res<pb::HeartbeatResponse> {
@@ -121,7 +132,10 @@ impl ExperienceService for Experience {
         done(&self.0, "Heartbeat", r.map(|()| pb::HeartbeatResponse {}))
     }
 
-    async fn get_assignment(&self, req: Request<pb::GetAssignmentRequest>) -> Res<pb::GetAssignmentResponse> {
+    async fn get_assignment(
+        &self,
+        req: Request<pb::GetAssignmentRequest>,
+    ) -> Res<pb::GetAssignmentResponse> {
         let worker = req.into_inner().worker_id;
         // A cell is leased only when there is no training assignment to give.
         let r = self.0.assignment(worker).map(|a| {
@@ -129,17 +143,36 @@ impl ExperienceService for Experience {
             (a, eval)
         });
         let r = r.map(|pair| match pair {
-            (Some(a), _) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: Some(sf_proto::assignment_to_wire(&a)), eval: None },
-            (None, Some(w)) => pb::GetAssignmentResponse { has_assignment: true, retry_after_ms: 0, assignment: None, eval: Some(sf_proto::eval_work_to_wire(&w)) },
+            (Some(a), _) => pb::GetAssignmentResponse {
+                has_assignment: true,
+                retry_after_ms: 0,
+                assignment: Some(sf_proto::assignment_to_wire(&a)),
+                eval: None,
+            },
+            (None, Some(w)) => pb::GetAssignmentResponse {
+                has_assignment: true,
+                retry_after_ms: 0,
+                assignment: None,
+                eval: Some(sf_proto::eval_work_to_wire(&w)),
+            },
             // An evaluation's last cells are leased to others: ask again soon, one may come back.
-            (None, None) => pb::GetAssignmentResponse { has_assignment: false, retry_after_ms: if self.0.evaluating().is_some() { 250 } else { 1000 }, assignment: None, eval: None },
+            (None, None) => pb::GetAssignmentResponse {
+                has_assignment: false,
+                retry_after_ms: if self.0.evaluating().is_some() { 250 } else { 1000 },
+                assignment: None,
+                eval: None,
+            },
         });
         done(&self.0, "GetAssignment", r)
     }
 
     async fn push_eval_results(&self, req: Request<pb::EvalResults>) -> Res<pb::EvalAck> {
         let m = req.into_inner();
-        let episodes = m.episodes.iter().map(sf_proto::eval_episode_from_wire).collect::<Result<Vec<_>, WireError>>();
+        let episodes = m
+            .episodes
+            .iter()
+            .map(sf_proto::eval_episode_from_wire)
+            .collect::<Result<Vec<_>, WireError>>();
         let r = match episodes {
             Ok(eps) => self.0.eval_results(m.job_id, m.worker_id, m.cell_id, eps, m.error).await,
             Err(e) => Err(e.into()),
@@ -149,7 +182,10 @@ impl ExperienceService for Experience {
 
     type PushTransitionsStream = BoxStream<pb::PushAck>;
 
-    async fn push_transitions(&self, req: Request<Streaming<pb::TransitionBatch>>) -> Res<Self::PushTransitionsStream> {
+    async fn push_transitions(
+        &self,
+        req: Request<Streaming<pb::TransitionBatch>>,
+    ) -> Res<Self::PushTransitionsStream> {
         let mut inbound = req.into_inner();
         let (tx, rx) = mpsc::channel(2);
         let inner = Arc::clone(&self.0);
@@ -161,7 +197,11 @@ impl ExperienceService for Experience {
                     Some(Err(s)) => {
                         // tonic reports an oversized message as OUT_OF_RANGE; the protocol says
                         // RESOURCE_EXHAUSTED.
-                        let s = if s.code() == Code::OutOfRange { Status::resource_exhausted(s.message().to_string()) } else { s };
+                        let s = if s.code() == Code::OutOfRange {
+                            Status::resource_exhausted(s.message().to_string())
+                        } else {
+                            s
+                        };
                         inner.metrics.common.rpc("PushTransitions", s.code());
                         let _ = tx.send(Err(s)).await;
                         return;
@@ -172,7 +212,12 @@ impl ExperienceService for Experience {
                 let item = match r {
                     Ok(a) => {
                         inner.metrics.common.rpc("PushTransitions", Code::Ok);
-                        Ok(pb::PushAck { accepted: a.accepted, dropped_stale: a.dropped_stale, latest_policy_version: a.latest_policy_version, warmup: a.warmup })
+                        Ok(pb::PushAck {
+                            accepted: a.accepted,
+                            dropped_stale: a.dropped_stale,
+                            latest_policy_version: a.latest_policy_version,
+                            warmup: a.warmup,
+                        })
                     }
                     Err(e) => {
                         inner.metrics.common.rpc("PushTransitions", e.code());
@@ -189,7 +234,15 @@ impl ExperienceService for Experience {
 
     async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
         let r = req.into_inner();
-        let out = self.0.policy(r.job_id, sf_proto::policy_request_from_wire(r.version)).await.map_err(ServiceError::from);
-        done(&self.0, "GetPolicy", out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }))
+        let out = self
+            .0
+            .policy(r.job_id, sf_proto::policy_request_from_wire(r.version))
+            .await
+            .map_err(ServiceError::from);
+        done(
+            &self.0,
+            "GetPolicy",
+            out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }),
+        )
     }
 }

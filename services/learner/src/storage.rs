@@ -31,14 +31,22 @@ const STORAGE_ERRNOS: [i32; 4] = [5, 28, 30, 122];
 
 /// Messages of storage faults whose `io::Error` did not survive as a source (flattened into a
 /// string by a library on the way).
-const STORAGE_MESSAGES: [&str; 5] = ["No space left on device", "Disk quota exceeded", "Read-only file system", "Input/output error", "Previous I/O error"];
+const STORAGE_MESSAGES: [&str; 5] = [
+    "No space left on device",
+    "Disk quota exceeded",
+    "Read-only file system",
+    "Input/output error",
+    "Previous I/O error",
+];
 
 /// Whether `e` (or any error in its source chain) is the disk refusing reads or writes, as
 /// opposed to a defect or bad input: such a job pauses instead of failing.
 pub fn is_storage_fault(e: &(dyn std::error::Error + 'static)) -> bool {
     let mut cur = Some(e);
     while let Some(err) = cur {
-        if err.downcast_ref::<io::Error>().is_some_and(is_storage_io) || matches!(err.downcast_ref::<StoreError>(), Some(StoreError::Storage { .. })) {
+        if err.downcast_ref::<io::Error>().is_some_and(is_storage_io)
+            || matches!(err.downcast_ref::<StoreError>(), Some(StoreError::Storage { .. }))
+        {
             return true;
         }
         cur = err.source();
@@ -48,7 +56,12 @@ pub fn is_storage_fault(e: &(dyn std::error::Error + 'static)) -> bool {
 }
 
 fn is_storage_io(e: &io::Error) -> bool {
-    matches!(e.kind(), io::ErrorKind::StorageFull | io::ErrorKind::ReadOnlyFilesystem | io::ErrorKind::QuotaExceeded) || e.raw_os_error().is_some_and(|n| STORAGE_ERRNOS.contains(&n))
+    matches!(
+        e.kind(),
+        io::ErrorKind::StorageFull
+            | io::ErrorKind::ReadOnlyFilesystem
+            | io::ErrorKind::QuotaExceeded
+    ) || e.raw_os_error().is_some_and(|n| STORAGE_ERRNOS.contains(&n))
 }
 
 /// Whether `dir` takes a write: 1 MiB written, synced and removed.
@@ -111,13 +124,24 @@ impl StorageHealth {
         match &mut *f {
             None => {
                 tracing::error!(cause, "the data directory refuses writes: no job starts, the running one stops at its last checkpoint and resumes when the disk takes writes again");
-                *f = Some(Fault { cause: cause.to_string(), since: now, next_log: now + FIRST_LOG_EVERY, log_every: FIRST_LOG_EVERY, unlogged: 0 });
+                *f = Some(Fault {
+                    cause: cause.to_string(),
+                    since: now,
+                    next_log: now + FIRST_LOG_EVERY,
+                    log_every: FIRST_LOG_EVERY,
+                    unlogged: 0,
+                });
             }
             Some(x) => {
                 x.unlogged += 1;
                 x.cause = cause.to_string();
                 if now >= x.next_log {
-                    tracing::warn!(cause, for_s = x.since.elapsed().as_secs(), repeats = x.unlogged, "the data directory still refuses writes");
+                    tracing::warn!(
+                        cause,
+                        for_s = x.since.elapsed().as_secs(),
+                        repeats = x.unlogged,
+                        "the data directory still refuses writes"
+                    );
                     x.log_every = (x.log_every * 2).min(MAX_LOG_EVERY);
                     x.next_log = now + x.log_every;
                     x.unlogged = 0;
@@ -129,7 +153,10 @@ impl StorageHealth {
     /// The disk takes writes again (a probe succeeded and the store reopened).
     pub fn recovered(&self) {
         if let Some(f) = lock(&self.fault).take() {
-            tracing::info!(after_s = f.since.elapsed().as_secs(), "the data directory takes writes again: jobs resume");
+            tracing::info!(
+                after_s = f.since.elapsed().as_secs(),
+                "the data directory takes writes again: jobs resume"
+            );
         }
         self.ok.set(1);
         self.ready.store(true, Ordering::Release);
@@ -148,11 +175,21 @@ mod tests {
         assert!(!is_storage_fault(&io::Error::from(io::ErrorKind::NotFound)));
         assert!(!is_storage_fault(&io::Error::from(io::ErrorKind::PermissionDenied)));
         // Through a chain of sources, and as a poisoned store.
-        let wrapped = crate::LearnerError::Io { action: "writing", path: "x".into(), source: io::Error::from_raw_os_error(28) };
+        let wrapped = crate::LearnerError::Io {
+            action: "writing",
+            path: "x".into(),
+            source: io::Error::from_raw_os_error(28),
+        };
         assert!(is_storage_fault(&wrapped));
-        let store = crate::LearnerError::Store(StoreError::Storage { path: "jobs.redb".into(), reason: "Previous I/O error occurred".into() });
+        let store = crate::LearnerError::Store(StoreError::Storage {
+            path: "jobs.redb".into(),
+            reason: "Previous I/O error occurred".into(),
+        });
         assert!(is_storage_fault(&store));
-        let other = crate::LearnerError::Store(StoreError::Db { path: "jobs.redb".into(), reason: "table missing".into() });
+        let other = crate::LearnerError::Store(StoreError::Db {
+            path: "jobs.redb".into(),
+            reason: "table missing".into(),
+        });
         assert!(!is_storage_fault(&other));
     }
 

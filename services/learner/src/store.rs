@@ -53,7 +53,12 @@ impl Store {
     /// Opens (or creates) the database file `path` of data directory `data_dir` and reads every
     /// record.
     pub fn open(path: &Path, data_dir: &Path) -> Result<Self, StoreError> {
-        let s = Self { db: RwLock::new(None), path: path.to_path_buf(), data_dir: data_dir.to_path_buf(), records: Mutex::new(BTreeMap::new()) };
+        let s = Self {
+            db: RwLock::new(None),
+            path: path.to_path_buf(),
+            data_dir: data_dir.to_path_buf(),
+            records: Mutex::new(BTreeMap::new()),
+        };
         s.reopen()?;
         Ok(s)
     }
@@ -90,7 +95,9 @@ impl Store {
     fn err(&self, e: impl Into<redb::Error>) -> StoreError {
         let (path, e) = (self.path.display().to_string(), e.into());
         match e {
-            redb::Error::Io(_) | redb::Error::PreviousIo | redb::Error::DatabaseClosed => StoreError::Storage { path, reason: e.to_string() },
+            redb::Error::Io(_) | redb::Error::PreviousIo | redb::Error::DatabaseClosed => {
+                StoreError::Storage { path, reason: e.to_string() }
+            }
             _ => StoreError::Db { path, reason: e.to_string() },
         }
     }
@@ -99,26 +106,40 @@ impl Store {
     fn begin_write(&self) -> Result<redb::WriteTransaction, StoreError> {
         match &*read(&self.db) {
             Some(db) => db.begin_write().map_err(|e| self.err(e)),
-            None => Err(StoreError::Storage { path: self.path.display().to_string(), reason: "closed after a storage error; it reopens when the disk takes writes".into() }),
+            None => Err(StoreError::Storage {
+                path: self.path.display().to_string(),
+                reason: "closed after a storage error; it reopens when the disk takes writes"
+                    .into(),
+            }),
         }
     }
 
     /// A stored record with its artifact directory under this store's data directory, whatever
     /// the record says (a relative path, or an absolute one from where the data lived before).
     fn decode(&self, id: u64, bytes: &[u8]) -> Result<JobRecord, StoreError> {
-        let mut rec: JobRecord = serde_json::from_slice(bytes).map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?;
-        rec.artifact_dir = self.data_dir.join(relative_artifact_dir(rec.id, &rec.name)).display().to_string();
+        let mut rec: JobRecord = serde_json::from_slice(bytes)
+            .map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?;
+        rec.artifact_dir =
+            self.data_dir.join(relative_artifact_dir(rec.id, &rec.name)).display().to_string();
         Ok(rec)
     }
 
     /// The bytes stored for `rec`: its artifact directory relative to the data directory.
     fn encode(rec: &JobRecord) -> Vec<u8> {
-        let stored = JobRecord { artifact_dir: relative_artifact_dir(rec.id, &rec.name).display().to_string(), ..rec.clone() };
+        let stored = JobRecord {
+            artifact_dir: relative_artifact_dir(rec.id, &rec.name).display().to_string(),
+            ..rec.clone()
+        };
         serde_json::to_vec(&stored).expect("job records serialise")
     }
 
     /// Creates a queued job with the next id, its artifact directory `<data dir>/jobs/<id>-<name>`.
-    pub fn create(&self, name: &str, config_toml: &str, target_env_steps: u64) -> Result<JobRecord, StoreError> {
+    pub fn create(
+        &self,
+        name: &str,
+        config_toml: &str,
+        target_env_steps: u64,
+    ) -> Result<JobRecord, StoreError> {
         // The records' lock is held across the transaction: writes happen one at a time and
         // the kept records are always the committed ones.
         let mut records = lock(&self.records);
@@ -138,10 +159,17 @@ impl Store {
                 created_unix_ms: now,
                 updated_unix_ms: now,
                 progress: Progress { target_env_steps, ..Progress::default() },
-                artifact_dir: self.data_dir.join(relative_artifact_dir(id, name)).display().to_string(),
+                artifact_dir: self
+                    .data_dir
+                    .join(relative_artifact_dir(id, name))
+                    .display()
+                    .to_string(),
             };
             let bytes = Self::encode(&rec);
-            w.open_table(JOBS).map_err(|e| self.err(e))?.insert(id, bytes.as_slice()).map_err(|e| self.err(e))?;
+            w.open_table(JOBS)
+                .map_err(|e| self.err(e))?
+                .insert(id, bytes.as_slice())
+                .map_err(|e| self.err(e))?;
         }
         w.commit().map_err(|e| self.err(e))?;
         records.insert(rec.id, rec.clone());
@@ -159,7 +187,11 @@ impl Store {
 
     /// Applies `f` to the stored record in one transaction and returns the result; `None` if
     /// the job does not exist. `updated_unix_ms` is set. On error nothing changed.
-    pub fn update(&self, id: u64, f: impl FnOnce(&mut JobRecord)) -> Result<Option<JobRecord>, StoreError> {
+    pub fn update(
+        &self,
+        id: u64,
+        f: impl FnOnce(&mut JobRecord),
+    ) -> Result<Option<JobRecord>, StoreError> {
         let mut records = lock(&self.records);
         let Some(mut rec) = records.get(&id).cloned() else {
             return Ok(None);
@@ -168,7 +200,10 @@ impl Store {
         f(&mut rec);
         rec.updated_unix_ms = now_unix_ms();
         let bytes = Self::encode(&rec);
-        w.open_table(JOBS).map_err(|e| self.err(e))?.insert(id, bytes.as_slice()).map_err(|e| self.err(e))?;
+        w.open_table(JOBS)
+            .map_err(|e| self.err(e))?
+            .insert(id, bytes.as_slice())
+            .map_err(|e| self.err(e))?;
         w.commit().map_err(|e| self.err(e))?;
         records.insert(id, rec.clone());
         Ok(Some(rec))
@@ -220,21 +255,32 @@ mod tests {
             let s = Store::open(&old.join("jobs.redb"), &old).expect("open");
             s.create("kept", "cfg", 10).expect("create");
             // A record as stores wrote it before: the absolute path of the old directory.
-            let legacy = JobRecord { artifact_dir: old.join("jobs/2-legacy").display().to_string(), ..s.create("legacy", "cfg", 10).expect("create") };
+            let legacy = JobRecord {
+                artifact_dir: old.join("jobs/2-legacy").display().to_string(),
+                ..s.create("legacy", "cfg", 10).expect("create")
+            };
             let w = s.begin_write().expect("write");
-            w.open_table(JOBS).expect("table").insert(2, serde_json::to_vec(&legacy).expect("json").as_slice()).expect("insert");
+            w.open_table(JOBS)
+                .expect("table")
+                .insert(2, serde_json::to_vec(&legacy).expect("json").as_slice())
+                .expect("insert");
             w.commit().expect("commit");
         }
         std::fs::rename(&old, &new).expect("move the data directory");
         let s = Store::open(&new.join("jobs.redb"), &new).expect("open the moved store");
-        let dirs: Vec<PathBuf> = s.list().expect("list").iter().map(|r| PathBuf::from(&r.artifact_dir)).collect();
+        let dirs: Vec<PathBuf> =
+            s.list().expect("list").iter().map(|r| PathBuf::from(&r.artifact_dir)).collect();
         assert_eq!(dirs, vec![new.join("jobs/1-kept"), new.join("jobs/2-legacy")]);
-        let updated = s.update(2, |r| r.message = "touched".into()).expect("update").expect("job 2");
+        let updated =
+            s.update(2, |r| r.message = "touched".into()).expect("update").expect("job 2");
         assert_eq!(Path::new(&updated.artifact_dir), new.join("jobs/2-legacy"));
         // What is stored now is relative to the data directory.
         let db = read(&s.db);
         let r = db.as_ref().expect("open").begin_read().expect("read");
-        let raw: JobRecord = serde_json::from_slice(r.open_table(JOBS).expect("table").get(2).expect("get").expect("job 2").value()).expect("json");
+        let raw: JobRecord = serde_json::from_slice(
+            r.open_table(JOBS).expect("table").get(2).expect("get").expect("job 2").value(),
+        )
+        .expect("json");
         assert_eq!(raw.artifact_dir, "jobs/2-legacy");
         let _ = std::fs::remove_dir_all(&base);
     }

@@ -74,14 +74,28 @@ pub fn load_state(dir: &Path) -> Result<Option<JobState>, LearnerError> {
     if !p.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(&p).map_err(|source| LearnerError::Io { action: "reading", path: p.clone(), source })?;
-    serde_json::from_str(&text).map(Some).map_err(|source| LearnerError::StateFile { path: p, source })
+    let text = std::fs::read_to_string(&p).map_err(|source| LearnerError::Io {
+        action: "reading",
+        path: p.clone(),
+        source,
+    })?;
+    serde_json::from_str(&text)
+        .map(Some)
+        .map_err(|source| LearnerError::StateFile { path: p, source })
 }
 
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).map_err(|source| LearnerError::Io { action: "writing", path: tmp.clone(), source })?;
-    std::fs::rename(&tmp, path).map_err(|source| LearnerError::Io { action: "renaming", path: path.to_path_buf(), source })
+    std::fs::write(&tmp, bytes).map_err(|source| LearnerError::Io {
+        action: "writing",
+        path: tmp.clone(),
+        source,
+    })?;
+    std::fs::rename(&tmp, path).map_err(|source| LearnerError::Io {
+        action: "renaming",
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 pub struct TrainerInput {
@@ -113,18 +127,38 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     let cfg = &job.cfg;
     let resolved = setup::resolve(cfg, None);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
-    let mut sac = Sac::new(resolved.sac.clone(), resolved.net.clone(), resolved.obs.clone(), resolved.sim.dt_s, &seg_refs).map_err(LearnerError::BuildSac)?;
+    let mut sac = Sac::new(
+        resolved.sac.clone(),
+        resolved.net.clone(),
+        resolved.obs.clone(),
+        resolved.sim.dt_s,
+        &seg_refs,
+    )
+    .map_err(LearnerError::BuildSac)?;
     let mut st = resume.unwrap_or_default();
     let resumed = start_state(&job, &mut sac, &dir, init.as_ref(), &st)?;
-    std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io { action: "creating", path: dir.clone(), source })?;
+    std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io {
+        action: "creating",
+        path: dir.clone(),
+        source,
+    })?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
     // The replay comes back before the first policy is published, i.e. before any worker
     // can push.
-    let mut persist = if cfg.train.persist_replay { Some(restore_replay(&job, &dir, resumed, &st)?) } else { None };
+    let mut persist = if cfg.train.persist_replay {
+        Some(restore_replay(&job, &dir, resumed, &st)?)
+    } else {
+        None
+    };
     // TensorBoard scalars beside curve.csv (a new event file per start; TensorBoard reads all).
-    let mut tb = EventWriter::create(&dir.join("tensorboard")).map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file")).ok();
+    let mut tb = EventWriter::create(&dir.join("tensorboard"))
+        .map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file"))
+        .ok();
     let mut validator = match &cfg.validation {
-        Some(v) => Some((Validator::new(v.clone(), cfg, &maps, &job.frozen, &frozen_weights)?, BestPolicy::load(&dir)?)),
+        Some(v) => Some((
+            Validator::new(v.clone(), cfg, &maps, &job.frozen, &frozen_weights)?,
+            BestPolicy::load(&dir)?,
+        )),
         None => None,
     };
     let mut publisher = Publisher::new(&job, &dir, st.policy_version);
@@ -153,7 +187,9 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
                     // The cloning updates of `sac.bc_from_warmup` draw from the warm-up's rows
                     // (the whole replay once those are evicted).
                     match cfg.sac.sample_before(sac.updates) {
-                        Some(before) => r.sample_before_into(&mut rng, cfg.sac.batch_size, before, &mut batch).or_else(|_| r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)),
+                        Some(before) => r
+                            .sample_before_into(&mut rng, cfg.sac.batch_size, before, &mut batch)
+                            .or_else(|_| r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)),
                         None => r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch),
                     }
                 };
@@ -164,7 +200,10 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
                     if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
                         publisher.publish(&sac)?;
                     }
-                    if let Some((v, best)) = validator.as_mut().filter(|(v, _)| sac.updates.is_multiple_of(v.section.every_updates)) {
+                    if let Some((v, best)) = validator
+                        .as_mut()
+                        .filter(|(v, _)| sac.updates.is_multiple_of(v.section.every_updates))
+                    {
                         validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
                     }
                 }
@@ -181,7 +220,10 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     };
     if outcome == Outcome::Succeeded {
         // The last actor is a candidate too.
-        if let Some((v, best)) = validator.as_mut().filter(|_| st.validation.last().is_none_or(|p| p.updates < sac.updates)) {
+        if let Some((v, best)) = validator
+            .as_mut()
+            .filter(|_| st.validation.last().is_none_or(|p| p.updates < sac.updates))
+        {
             validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
         }
         publisher.publish(&sac)?;
@@ -204,17 +246,34 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
 /// returns true), else `train.init_job`'s last checkpoint with its final policy as the actor
 /// (the actor its adversary attacked: `sf_sac::checkpoint::warm_start`) when it names one, else
 /// fresh weights.
-fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init: Option<&InitDep>, st: &JobState) -> Result<bool, LearnerError> {
+fn start_state(
+    job: &ActiveJob,
+    sac: &mut Sac,
+    dir: &Path,
+    init: Option<&InitDep>,
+    st: &JobState,
+) -> Result<bool, LearnerError> {
     let ckpt = dir.join("checkpoint");
     if ckpt.exists() {
-        checkpoint::restore(sac, &ckpt).map_err(|source| LearnerError::Checkpoint { action: "restoring", path: ckpt.clone(), source })?;
-        tracing::info!(job_id = job.id, updates = sac.updates, env_steps = st.counters.env_steps, "resumed from checkpoint");
+        checkpoint::restore(sac, &ckpt).map_err(|source| LearnerError::Checkpoint {
+            action: "restoring",
+            path: ckpt.clone(),
+            source,
+        })?;
+        tracing::info!(
+            job_id = job.id,
+            updates = sac.updates,
+            env_steps = st.counters.env_steps,
+            "resumed from checkpoint"
+        );
         return Ok(true);
     }
     if let Some(InitDep { job_id, dir: init }) = init {
         let kept = crate::deps::read_final(init, *job_id, "policy.bpk")?;
         let ckpt = init.join("checkpoint");
-        checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source })?;
+        checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| {
+            LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source }
+        })?;
         tracing::info!(job_id = job.id, from = %init.display(), "started from another job's critic and final policy");
     }
     Ok(false)
@@ -222,14 +281,26 @@ fn start_state(job: &ActiveJob, sac: &mut Sac, dir: &Path, init: Option<&InitDep
 
 /// `train.persist_replay`: the replay's segment store, with a resumed job's replay read back
 /// into the job (up to the transitions its counters say were on disk).
-fn restore_replay(job: &ActiveJob, dir: &Path, resumed: bool, st: &JobState) -> Result<(ReplayStore, u64), LearnerError> {
+fn restore_replay(
+    job: &ActiveJob,
+    dir: &Path,
+    resumed: bool,
+    st: &JobState,
+) -> Result<(ReplayStore, u64), LearnerError> {
     let store = ReplayStore::new(dir.join("replay"));
     if !resumed {
         return Ok((store, 0));
     }
     let t = Instant::now();
-    let (r, next) = store.restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps).map_err(|source| LearnerError::Replay { action: "restoring", source })?;
-    tracing::info!(job_id = job.id, transitions = r.len(), ms = t.elapsed().as_millis() as u64, "replay restored");
+    let (r, next) = store
+        .restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps)
+        .map_err(|source| LearnerError::Replay { action: "restoring", source })?;
+    tracing::info!(
+        job_id = job.id,
+        transitions = r.len(),
+        ms = t.elapsed().as_millis() as u64,
+        "replay restored"
+    );
     job.metrics.replay_size.set(r.len() as i64);
     *lock(&job.replay) = r;
     Ok((store, next))
@@ -248,13 +319,18 @@ struct Publisher<'a> {
 impl<'a> Publisher<'a> {
     fn new(job: &'a ActiveJob, dir: &Path, saved_version: u64) -> Self {
         let file = dir.join("published_version");
-        let issued = std::fs::read_to_string(&file).ok().and_then(|s| s.trim().parse::<u64>().ok()).unwrap_or(0);
+        let issued = std::fs::read_to_string(&file)
+            .ok()
+            .and_then(|s| s.trim().parse::<u64>().ok())
+            .unwrap_or(0);
         Self { job, file, version: saved_version.max(issued) }
     }
 
     fn publish(&mut self, sac: &Sac) -> Result<(), LearnerError> {
         self.version += 1;
-        let bytes = sac.acting_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
+        let bytes = sac
+            .acting_actor_bytes()
+            .map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
         write_atomic(&self.file, self.version.to_string().as_bytes())?;
         self.job.publish(self.version, bytes);
         Ok(())
@@ -276,7 +352,13 @@ struct CurveRecorder {
 
 impl CurveRecorder {
     fn new(every: u64, env_steps: u64) -> Self {
-        Self { every, next_point: (env_steps / every + 1) * every, recent_losses: Vec::new(), recent_q: 0.0, last_rates: None }
+        Self {
+            every,
+            next_point: (env_steps / every + 1) * every,
+            recent_losses: Vec::new(),
+            recent_q: 0.0,
+            last_rates: None,
+        }
     }
 
     fn after_update(&mut self, loss: &Losses) {
@@ -302,14 +384,24 @@ impl CurveRecorder {
     }
 
     /// Adds the points the job's progress has passed (none most of the time).
-    fn record(&mut self, job: &ActiveJob, last_loss: &Losses, version: u64, st: &mut JobState, tb: &mut Option<EventWriter>) {
+    fn record(
+        &mut self,
+        job: &ActiveJob,
+        last_loss: &Losses,
+        version: u64,
+        st: &mut JobState,
+        tb: &mut Option<EventWriter>,
+    ) {
         let progress = job.progress();
         let p = progress.learning;
         if !self.due(p.env_steps, job.window_episodes()) {
             return;
         }
         let n = self.recent_losses.len().max(1);
-        let (mean, q) = (self.recent_losses.iter().map(|&l| l as f64).sum::<f64>() / n as f64, self.recent_q / n as f64);
+        let (mean, q) = (
+            self.recent_losses.iter().map(|&l| l as f64).sum::<f64>() / n as f64,
+            self.recent_q / n as f64,
+        );
         self.recent_losses.sort_by(f32::total_cmp);
         let median = self.recent_losses.get(self.recent_losses.len() / 2).copied().unwrap_or(0.0);
         let ends = job.ends();
@@ -317,7 +409,13 @@ impl CurveRecorder {
         self.recent_q = 0.0;
         while p.env_steps >= self.next_point {
             st.curve.push(CurvePoint {
-                learning: sf_job::Learning { env_steps: self.next_point.min(p.env_steps), critic_loss: last_loss.critic, actor_loss: last_loss.actor, alpha: last_loss.alpha, ..p },
+                learning: sf_job::Learning {
+                    env_steps: self.next_point.min(p.env_steps),
+                    critic_loss: last_loss.critic,
+                    actor_loss: last_loss.actor,
+                    alpha: last_loss.alpha,
+                    ..p
+                },
                 entropy: last_loss.entropy,
                 ends,
                 critic_loss_mean: mean as f32,
@@ -328,7 +426,9 @@ impl CurveRecorder {
         }
         let Some(w) = tb.as_mut() else { return };
         let (updates_per_s, transitions_per_s) = match self.last_rates {
-            Some((t, u, e)) if p.wall_s > t => ((p.updates - u) as f64 / (p.wall_s - t), (p.env_steps - e) as f64 / (p.wall_s - t)),
+            Some((t, u, e)) if p.wall_s > t => {
+                ((p.updates - u) as f64 / (p.wall_s - t), (p.env_steps - e) as f64 / (p.wall_s - t))
+            }
             _ => (f64::NAN, f64::NAN),
         };
         self.last_rates = Some((p.wall_s, p.updates, p.env_steps));
@@ -366,22 +466,50 @@ impl CurveRecorder {
 /// as `idm`, the IDM driver's on the same held-out cases), else the averaged actor with
 /// `sac.actor_average_tau`, else the version just published. `policy.json`'s `version` names
 /// the job's final policy either way.
-fn write_final_policy(job: &ActiveJob, sac: &Sac, validator: Option<&mut (Validator, BestPolicy)>, dir: &Path) -> Result<Vec<u8>, LearnerError> {
-    let last = job.latest().ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: PolicyRequest::Latest })?;
+fn write_final_policy(
+    job: &ActiveJob,
+    sac: &Sac,
+    validator: Option<&mut (Validator, BestPolicy)>,
+    dir: &Path,
+) -> Result<Vec<u8>, LearnerError> {
+    let last = job
+        .latest()
+        .ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: PolicyRequest::Latest })?;
     let validated = match validator {
-        Some((v, best)) => best.take()?.map(|kept| Ok::<_, LearnerError>((kept, v.score_idm()?))).transpose()?,
+        Some((v, best)) => {
+            best.take()?.map(|kept| Ok::<_, LearnerError>((kept, v.score_idm()?))).transpose()?
+        }
         None => None,
     };
     let (weights, meta) = match validated {
         Some(((bytes, p), idm)) => {
-            tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, idm_success = idm.scores.success, last_updates = sac.updates, "final policy: the best validated actor");
-            (bytes, serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p, "idm": idm}))
+            tracing::info!(
+                job_id = job.id,
+                updates = p.updates,
+                success = p.scores.success,
+                idm_success = idm.scores.success,
+                last_updates = sac.updates,
+                "final policy: the best validated actor"
+            );
+            (
+                bytes,
+                serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p, "idm": idm}),
+            )
         }
         None if sac.actor_avg.is_some() => {
-            let bytes = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the averaged actor", source })?;
-            (bytes, serde_json::json!({"version": last.version, "updates": sac.updates, "selected_by": "average"}))
+            let bytes = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights {
+                action: "serialising the averaged actor",
+                source,
+            })?;
+            (
+                bytes,
+                serde_json::json!({"version": last.version, "updates": sac.updates, "selected_by": "average"}),
+            )
         }
-        None => (last.weights.to_vec(), serde_json::json!({"version": last.version, "updates": sac.updates})),
+        None => (
+            last.weights.to_vec(),
+            serde_json::json!({"version": last.version, "updates": sac.updates}),
+        ),
     };
     write_atomic(&dir.join("policy.bpk"), &weights)?;
     write_atomic(&dir.join("policy.json"), meta.to_string().as_bytes())?;
@@ -390,14 +518,36 @@ fn write_final_policy(job: &ActiveJob, sac: &Sac, validator: Option<&mut (Valida
 
 /// Scores the current actor on the validation cases, keeps it if it is the best so far and
 /// records the point (curve, TensorBoard, log).
-fn validate(job: &ActiveJob, sac: &Sac, v: &mut Validator, best: &mut BestPolicy, st: &mut JobState, tb: Option<&mut EventWriter>) -> Result<(), LearnerError> {
-    let weights = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
+fn validate(
+    job: &ActiveJob,
+    sac: &Sac,
+    v: &mut Validator,
+    best: &mut BestPolicy,
+    st: &mut JobState,
+    tb: Option<&mut EventWriter>,
+) -> Result<(), LearnerError> {
+    let weights = sac
+        .selected_actor_bytes()
+        .map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
     let p = v.score(&weights, sac.updates, job.progress().learning.env_steps)?;
     let kept = best.offer(&p, &weights)?;
-    tracing::info!(job_id = job.id, updates = p.updates, success = p.scores.success, safety = p.scores.safety, collision = p.collision, took_s = p.took_s, best = kept, "validation");
+    tracing::info!(
+        job_id = job.id,
+        updates = p.updates,
+        success = p.scores.success,
+        safety = p.scores.safety,
+        collision = p.collision,
+        took_s = p.took_s,
+        best = kept,
+        "validation"
+    );
     if let Some(w) = tb {
-        let scalars =
-            [("validation/success", p.scores.success as f64), ("validation/safety", p.scores.safety as f64), ("validation/collision", p.collision as f64), ("validation/speed", p.scores.speed as f64)];
+        let scalars = [
+            ("validation/success", p.scores.success as f64),
+            ("validation/safety", p.scores.safety as f64),
+            ("validation/collision", p.collision as f64),
+            ("validation/speed", p.scores.speed as f64),
+        ];
         if let Err(e) = w.scalars(p.env_steps, &scalars) {
             tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events");
         }
@@ -425,8 +575,16 @@ fn fit_coordinator(
     let mut fits = Vec::new();
     for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
         let scenario = &cfg.env.scenarios[k];
-        let runner = sf_rollout::inference::PolicyRunner::from_bytes(&resolved.net, &resolved.obs, sim.dt_s, &[&**seg], weights, 0, &device)
-            .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
+        let runner = sf_rollout::inference::PolicyRunner::from_bytes(
+            &resolved.net,
+            &resolved.obs,
+            sim.dt_s,
+            &[&**seg],
+            weights,
+            0,
+            &device,
+        )
+        .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
         let settings = FitSettings {
             iterations: c.iterations,
             population: c.population,
@@ -443,8 +601,15 @@ fn fit_coordinator(
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
     }
     let file = CoordinatorFile { scenarios: fits };
-    write_atomic(&dir.join(CoordinatorFile::FILE), serde_json::to_string_pretty(&file)?.as_bytes())?;
-    tracing::info!(job_id = job.id, s = t.elapsed().as_secs_f32(), "CoPO Stage 2: coordinator fitted");
+    write_atomic(
+        &dir.join(CoordinatorFile::FILE),
+        serde_json::to_string_pretty(&file)?.as_bytes(),
+    )?;
+    tracing::info!(
+        job_id = job.id,
+        s = t.elapsed().as_secs_f32(),
+        "CoPO Stage 2: coordinator fitted"
+    );
     Ok(())
 }
 
@@ -463,7 +628,14 @@ fn csv(header: &str, rows: impl Iterator<Item = String>) -> String {
 /// The replay's segment directory and the insertion number its next segment starts at.
 type Persist = Option<(ReplayStore, u64)>;
 
-fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64, persist: &mut Persist) -> Result<(), LearnerError> {
+fn save(
+    job: &ActiveJob,
+    sac: &Sac,
+    dir: &Path,
+    st: &mut JobState,
+    version: u64,
+    persist: &mut Persist,
+) -> Result<(), LearnerError> {
     let t = Instant::now();
     st.counters = job.counters();
     st.policy_version = version;
@@ -476,25 +648,58 @@ fn save(job: &ActiveJob, sac: &Sac, dir: &Path, st: &mut JobState, version: u64,
             let r = lock(&job.replay);
             (Segment::snapshot(&r, *next), r.oldest())
         };
-        replay_bytes = store.append(&seg, oldest).map_err(|source| LearnerError::Replay { action: "writing", source })?;
+        replay_bytes = store
+            .append(&seg, oldest)
+            .map_err(|source| LearnerError::Replay { action: "writing", source })?;
         *next = seg.first + seg.len() as u64;
     }
     write_atomic(&state_path(dir), serde_json::to_string(st)?.as_bytes())?;
-    write_atomic(&dir.join("curve.csv"), csv(CurvePoint::CSV_HEADER, st.curve.iter().map(CurvePoint::csv_row)).as_bytes())?;
+    write_atomic(
+        &dir.join("curve.csv"),
+        csv(CurvePoint::CSV_HEADER, st.curve.iter().map(CurvePoint::csv_row)).as_bytes(),
+    )?;
     if !st.validation.is_empty() {
-        write_atomic(&dir.join("validation.csv"), csv(ValidationPoint::CSV_HEADER, st.validation.iter().map(ValidationPoint::csv_row)).as_bytes())?;
+        write_atomic(
+            &dir.join("validation.csv"),
+            csv(ValidationPoint::CSV_HEADER, st.validation.iter().map(ValidationPoint::csv_row))
+                .as_bytes(),
+        )?;
     }
     if st.curve.len() >= 2 {
-        let pts: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.learning.env_steps as f64, p.learning.scores.success as f64)).collect();
-        let safety: Vec<(f64, f64)> = st.curve.iter().map(|p| (p.learning.env_steps as f64, p.learning.scores.safety as f64)).collect();
-        let series = [Series { name: "success", points: pts }, Series { name: "safety", points: safety }];
+        let pts: Vec<(f64, f64)> = st
+            .curve
+            .iter()
+            .map(|p| (p.learning.env_steps as f64, p.learning.scores.success as f64))
+            .collect();
+        let safety: Vec<(f64, f64)> = st
+            .curve
+            .iter()
+            .map(|p| (p.learning.env_steps as f64, p.learning.scores.safety as f64))
+            .collect();
+        let series =
+            [Series { name: "success", points: pts }, Series { name: "safety", points: safety }];
         let title = format!("job {} ({})", job.id, job.cfg.name);
-        if let Err(e) = line_chart(&dir.join("curve.png"), &title, "learner transitions", "rolling fraction of episodes", &series, Some((0.0, 1.0)), (800, 500)) {
+        if let Err(e) = line_chart(
+            &dir.join("curve.png"),
+            &title,
+            "learner transitions",
+            "rolling fraction of episodes",
+            &series,
+            Some((0.0, 1.0)),
+            (800, 500),
+        ) {
             tracing::warn!(error = %e, "could not draw curve.png");
         }
     }
     job.metrics.checkpoints.inc();
-    tracing::info!(job_id = job.id, updates = sac.updates, policy_version = version, replay_bytes, ms = t.elapsed().as_millis() as u64, "checkpoint written");
+    tracing::info!(
+        job_id = job.id,
+        updates = sac.updates,
+        policy_version = version,
+        replay_bytes,
+        ms = t.elapsed().as_millis() as u64,
+        "checkpoint written"
+    );
     Ok(())
 }
 

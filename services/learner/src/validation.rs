@@ -35,15 +35,28 @@ pub struct ValidationPoint {
 }
 
 impl ValidationPoint {
-    pub const CSV_HEADER: &'static str = "updates,env_steps,episodes,success,safety,collision,speed,took_s";
+    pub const CSV_HEADER: &'static str =
+        "updates,env_steps,episodes,success,safety,collision,speed,took_s";
 
     pub fn csv_row(&self) -> String {
-        format!("{},{},{},{},{},{},{},{:.2}", self.updates, self.env_steps, self.episodes, self.scores.success, self.scores.safety, self.collision, self.scores.speed, self.took_s)
+        format!(
+            "{},{},{},{},{},{},{},{:.2}",
+            self.updates,
+            self.env_steps,
+            self.episodes,
+            self.scores.success,
+            self.scores.safety,
+            self.collision,
+            self.scores.speed,
+            self.took_s
+        )
     }
 
     /// Higher success, then higher safety; a tie keeps the earlier point.
     pub fn better_than(&self, other: &Self) -> bool {
-        self.scores.success > other.scores.success || (self.scores.success == other.scores.success && self.scores.safety > other.scores.safety)
+        self.scores.success > other.scores.success
+            || (self.scores.success == other.scores.success
+                && self.scores.safety > other.scores.safety)
     }
 }
 
@@ -63,7 +76,10 @@ impl BestPolicy {
     pub fn load(dir: &Path) -> Result<Self, LearnerError> {
         let p = dir.join(Self::POINT);
         let point = match std::fs::read_to_string(&p) {
-            Ok(text) if dir.join(Self::WEIGHTS).exists() => Some(serde_json::from_str(&text).map_err(|source| LearnerError::StateFile { path: p, source })?),
+            Ok(text) if dir.join(Self::WEIGHTS).exists() => Some(
+                serde_json::from_str(&text)
+                    .map_err(|source| LearnerError::StateFile { path: p, source })?,
+            ),
             Ok(_) => None,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
             Err(source) => return Err(LearnerError::Io { action: "reading", path: p, source }),
@@ -77,7 +93,10 @@ impl BestPolicy {
             return Ok(false);
         }
         crate::trainer::write_atomic(&self.dir.join(Self::WEIGHTS), weights)?;
-        crate::trainer::write_atomic(&self.dir.join(Self::POINT), serde_json::to_string(point)?.as_bytes())?;
+        crate::trainer::write_atomic(
+            &self.dir.join(Self::POINT),
+            serde_json::to_string(point)?.as_bytes(),
+        )?;
         self.point = Some(point.clone());
         Ok(true)
     }
@@ -86,7 +105,11 @@ impl BestPolicy {
     pub fn take(&self) -> Result<Option<(Vec<u8>, ValidationPoint)>, LearnerError> {
         let Some(point) = self.point.clone() else { return Ok(None) };
         let p = self.dir.join(Self::WEIGHTS);
-        let bytes = std::fs::read(&p).map_err(|source| LearnerError::Io { action: "reading", path: p, source })?;
+        let bytes = std::fs::read(&p).map_err(|source| LearnerError::Io {
+            action: "reading",
+            path: p,
+            source,
+        })?;
         Ok(Some((bytes, point)))
     }
 }
@@ -105,8 +128,15 @@ pub struct Validator {
 impl Validator {
     /// `frozen` and `weights`: the policies the job acts with (an ego job's background flow),
     /// `weights[i]` belonging to `frozen[i]`.
-    pub fn new(section: ValidationSection, cfg: &JobConfig, maps: &[Arc<Map>], frozen: &[Frozen], weights: &[Arc<Vec<u8>>]) -> Result<Self, LearnerError> {
-        let flow = if cfg.kind.is_flow() { None } else { Some(evaluate::from_frozen(frozen, weights)?.0) };
+    pub fn new(
+        section: ValidationSection,
+        cfg: &JobConfig,
+        maps: &[Arc<Map>],
+        frozen: &[Frozen],
+        weights: &[Arc<Vec<u8>>],
+    ) -> Result<Self, LearnerError> {
+        let flow =
+            if cfg.kind.is_flow() { None } else { Some(evaluate::from_frozen(frozen, weights)?.0) };
         let sim = Arc::new(setup::resolve(cfg, flow.as_ref().and_then(FlowDef::kind)).sim);
         let vehicles = (cfg.env.vehicles_min, cfg.env.vehicles_max);
         let cases = maps
@@ -114,7 +144,18 @@ impl Validator {
             .enumerate()
             .map(|(k, map)| {
                 let mut rng = ChaCha8Rng::seed_from_u64(section.seed ^ ((k as u64) << 32));
-                let cases = (0..section.episodes).map(|id| sf_sim::vec_env::draw_case(map, &sim, &mut rng, id, vehicles, cfg.case_draw())).collect();
+                let cases = (0..section.episodes)
+                    .map(|id| {
+                        sf_sim::vec_env::draw_case(
+                            map,
+                            &sim,
+                            &mut rng,
+                            id,
+                            vehicles,
+                            cfg.case_draw(),
+                        )
+                    })
+                    .collect();
                 (Arc::clone(map), cases)
             })
             .collect();
@@ -123,8 +164,18 @@ impl Validator {
     }
 
     /// Scores the actor `weights` (mean action) on every scenario's cases.
-    pub fn score(&mut self, weights: &[u8], updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
-        let policy = Policy { key: format!("validation@{updates}"), cfg: self.cfg.clone(), weights: Arc::new(weights.to_vec()), svo_gaussians: Vec::new() };
+    pub fn score(
+        &mut self,
+        weights: &[u8],
+        updates: u64,
+        env_steps: u64,
+    ) -> Result<ValidationPoint, LearnerError> {
+        let policy = Policy {
+            key: format!("validation@{updates}"),
+            cfg: self.cfg.clone(),
+            weights: Arc::new(weights.to_vec()),
+            svo_gaussians: Vec::new(),
+        };
         let (flow, ego) = match &self.flow {
             Some(flow) => (flow.clone(), Some(EgoDef::Learned(policy.clone()))),
             None => (FlowDef::learned(policy.clone(), None), None),
@@ -144,11 +195,25 @@ impl Validator {
         self.run(&flow, ego.as_ref(), 0, 0)
     }
 
-    fn run(&mut self, flow: &FlowDef, ego: Option<&EgoDef>, updates: u64, env_steps: u64) -> Result<ValidationPoint, LearnerError> {
+    fn run(
+        &mut self,
+        flow: &FlowDef,
+        ego: Option<&EgoDef>,
+        updates: u64,
+        env_steps: u64,
+    ) -> Result<ValidationPoint, LearnerError> {
         let t = std::time::Instant::now();
         let mut rows = Vec::new();
         for (map, cases) in &self.cases {
-            rows.extend(evaluate::run_cases(map, cases, 1, self.section.envs, flow, ego, &mut self.runners)?);
+            rows.extend(evaluate::run_cases(
+                map,
+                cases,
+                1,
+                self.section.envs,
+                flow,
+                ego,
+                &mut self.runners,
+            )?);
         }
         let n = rows.len().max(1) as f32;
         let mean = |f: fn(&sf_job::eval::EvalEpisode) -> f32| rows.iter().map(f).sum::<f32>() / n;
@@ -168,7 +233,11 @@ mod tests {
     use super::*;
 
     fn pt(updates: u64, success: f32, safety: f32) -> ValidationPoint {
-        ValidationPoint { updates, scores: sf_job::Scores { success, safety, speed: 0.0 }, ..Default::default() }
+        ValidationPoint {
+            updates,
+            scores: sf_job::Scores { success, safety, speed: 0.0 },
+            ..Default::default()
+        }
     }
 
     #[test]

@@ -36,13 +36,21 @@ impl Workers {
     /// Ids start at `first_id` (distinct across learner starts, so a worker registered with an
     /// earlier learner is not mistaken for a new one).
     pub fn new(first_id: u64, timeout: Duration, gauge: Gauge) -> Self {
-        Self { map: Mutex::new(HashMap::new()), next: AtomicU64::new(first_id.max(1)), timeout, gauge }
+        Self {
+            map: Mutex::new(HashMap::new()),
+            next: AtomicU64::new(first_id.max(1)),
+            timeout,
+            gauge,
+        }
     }
 
     pub fn register(&self, name: &str, runs_idm_ego: bool) -> u64 {
         let id = self.next.fetch_add(1, Ordering::Relaxed);
         let mut w = lock(&self.map);
-        w.insert(id, WorkerInfo { name: name.to_string(), last_seen: Instant::now(), runs_idm_ego });
+        w.insert(
+            id,
+            WorkerInfo { name: name.to_string(), last_seen: Instant::now(), runs_idm_ego },
+        );
         self.gauge.set(w.len() as i64);
         tracing::info!(worker_id = id, name, "worker registered");
         id

@@ -20,17 +20,28 @@ use crate::membership::Heartbeats;
 use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
 
 /// A training job's assignment; evaluation cells handed out before it are run on the way.
-pub async fn next_assignment(client: &mut Client, cfg: &WorkerConfig, worker_id: u64, heartbeats: &mut Heartbeats, metrics: &WorkerMetrics) -> anyhow::Result<Assignment> {
+pub async fn next_assignment(
+    client: &mut Client,
+    cfg: &WorkerConfig,
+    worker_id: u64,
+    heartbeats: &mut Heartbeats,
+    metrics: &WorkerMetrics,
+) -> anyhow::Result<Assignment> {
     let t = cfg.rpc_timeout;
     let mut cells = Cells::new(cfg);
     loop {
-        let r = client.get_assignment(req(pb::GetAssignmentRequest { worker_id }, t)).await.map_err(|s| status_err("GetAssignment", s, metrics))?.into_inner();
+        let r = client
+            .get_assignment(req(pb::GetAssignmentRequest { worker_id }, t))
+            .await
+            .map_err(|s| status_err("GetAssignment", s, metrics))?
+            .into_inner();
         metrics.common.rpc("GetAssignment", Code::Ok);
         if let (true, Some(a)) = (r.has_assignment, r.assignment) {
             return sf_proto::assignment_from_wire(&a).context("assignment from the learner");
         }
         if let (true, Some(w)) = (r.has_assignment, r.eval) {
-            let work = sf_proto::eval_work_from_wire(&w).context("evaluation cell from the learner")?;
+            let work =
+                sf_proto::eval_work_from_wire(&w).context("evaluation cell from the learner")?;
             tokio::select! {
                 r = cells.run(client, worker_id, work, t, metrics) => r?,
                 _ = heartbeats.failed() => anyhow::bail!("heartbeats failed while running an evaluation cell"),
@@ -45,10 +56,22 @@ pub async fn next_assignment(client: &mut Client, cfg: &WorkerConfig, worker_id:
 }
 
 /// The assignment's job config and its scenarios' maps in config order (index = map id).
-pub fn load_job(cfg: &WorkerConfig, worker_id: u64, asg: &Assignment) -> anyhow::Result<(JobConfig, Vec<Arc<Map>>)> {
+pub fn load_job(
+    cfg: &WorkerConfig,
+    worker_id: u64,
+    asg: &Assignment,
+) -> anyhow::Result<(JobConfig, Vec<Arc<Map>>)> {
     let job = JobConfig::from_toml(&asg.config_toml).context("job config in the assignment")?;
     tracing::info!(worker_id, job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
-    let maps =
-        job.env.scenarios.iter().map(|s| Map::load(&cfg.scenarios_dir.join(format!("{s}.json"))).map(Arc::new).with_context(|| format!("scenario `{s}`"))).collect::<anyhow::Result<Vec<_>>>()?;
+    let maps = job
+        .env
+        .scenarios
+        .iter()
+        .map(|s| {
+            Map::load(&cfg.scenarios_dir.join(format!("{s}.json")))
+                .map(Arc::new)
+                .with_context(|| format!("scenario `{s}`"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
     Ok((job, maps))
 }

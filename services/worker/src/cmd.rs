@@ -42,13 +42,29 @@ pub struct WorkerArgs {
 
 impl WorkerArgs {
     pub fn resolve(&self) -> anyhow::Result<WorkerConfig> {
-        anyhow::ensure!(self.conn.learner.starts_with("http://") || self.conn.learner.starts_with("https://"), "--learner `{}` must start with http:// or https://", self.conn.learner);
-        anyhow::ensure!(self.scenarios_dir.is_dir(), "--scenarios-dir {} is not a directory", self.scenarios_dir.display());
-        anyhow::ensure!(self.eval_cases_dir.is_dir(), "--eval-cases-dir {} is not a directory", self.eval_cases_dir.display());
+        anyhow::ensure!(
+            self.conn.learner.starts_with("http://") || self.conn.learner.starts_with("https://"),
+            "--learner `{}` must start with http:// or https://",
+            self.conn.learner
+        );
+        anyhow::ensure!(
+            self.scenarios_dir.is_dir(),
+            "--scenarios-dir {} is not a directory",
+            self.scenarios_dir.display()
+        );
+        anyhow::ensure!(
+            self.eval_cases_dir.is_dir(),
+            "--eval-cases-dir {} is not a directory",
+            self.eval_cases_dir.display()
+        );
         anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
         let token = self.conn.token()?;
-        let name =
-            self.name.clone().or_else(|| std::env::var("HOSTNAME").ok()).or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string())).unwrap_or_else(|| "worker".into());
+        let name = self
+            .name
+            .clone()
+            .or_else(|| std::env::var("HOSTNAME").ok())
+            .or_else(|| std::fs::read_to_string("/etc/hostname").ok().map(|s| s.trim().to_string()))
+            .unwrap_or_else(|| "worker".into());
         Ok(WorkerConfig {
             learner_url: self.conn.learner.clone(),
             name,
@@ -70,7 +86,13 @@ pub async fn run(args: WorkerArgs) -> anyhow::Result<()> {
     let metrics = WorkerMetrics::register(&mut reg);
     if let Some(addr) = args.admin_addr {
         let m = metrics.clone();
-        let bound = sf_service::admin::serve(addr, Arc::new(reg), Arc::new(AtomicBool::new(true)), Arc::new(move || m.common.refresh())).await?;
+        let bound = sf_service::admin::serve(
+            addr,
+            Arc::new(reg),
+            Arc::new(AtomicBool::new(true)),
+            Arc::new(move || m.common.refresh()),
+        )
+        .await?;
         tracing::info!(admin = %bound, "admin server");
     }
     let (stop_tx, stop_rx) = watch::channel(false);

@@ -34,16 +34,35 @@ pub struct Cells {
 
 impl Cells {
     pub fn new(cfg: &WorkerConfig) -> Self {
-        Self { scenarios_dir: cfg.scenarios_dir.clone(), cases_dir: cfg.cases_dir.clone(), weights: HashMap::new(), state: None }
+        Self {
+            scenarios_dir: cfg.scenarios_dir.clone(),
+            cases_dir: cfg.cases_dir.clone(),
+            weights: HashMap::new(),
+            state: None,
+        }
     }
 
     /// Runs one cell and pushes its episodes (or why it could not run).
-    pub async fn run(&mut self, client: &mut Client, worker_id: u64, w: EvalWork, t: Duration, metrics: &WorkerMetrics) -> anyhow::Result<()> {
+    pub async fn run(
+        &mut self,
+        client: &mut Client,
+        worker_id: u64,
+        w: EvalWork,
+        t: Duration,
+        metrics: &WorkerMetrics,
+    ) -> anyhow::Result<()> {
         let started = Instant::now();
         let mut weights = Vec::with_capacity(w.policies.len());
         for p in &w.policies {
             if let std::collections::hash_map::Entry::Vacant(slot) = self.weights.entry(p.job_id) {
-                let got = client.get_policy(req(sf_proto::get_policy_to_wire(p.job_id, PolicyRequest::Latest), t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
+                let got = client
+                    .get_policy(req(
+                        sf_proto::get_policy_to_wire(p.job_id, PolicyRequest::Latest),
+                        t,
+                    ))
+                    .await
+                    .map_err(|s| status_err("GetPolicy", s, metrics))?
+                    .into_inner();
                 metrics.common.rpc("GetPolicy", Code::Ok);
                 metrics.policy_fetches.inc();
                 slot.insert(Arc::new(got.weights));
@@ -52,12 +71,22 @@ impl Cells {
         }
         let (mut runners, mut maps) = match self.state.take() {
             Some(s) => s,
-            None => (Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(|e| anyhow!("{e}"))?), Maps::new()),
+            None => (
+                Runners::new(
+                    sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)
+                        .map_err(|e| anyhow!("{e}"))?,
+                ),
+                Maps::new(),
+            ),
         };
         if !maps.contains_key(&w.cell.scenario) {
             let (dir, cases) = (self.scenarios_dir.clone(), self.cases_dir.clone());
             let name = w.cell.scenario.clone();
-            let loaded = tokio::task::spawn_blocking(move || evaluate::load_scenario(&dir, &cases, &name)).await.context("scenario loading task")?.map_err(|e| anyhow!("{e}"))?;
+            let loaded =
+                tokio::task::spawn_blocking(move || evaluate::load_scenario(&dir, &cases, &name))
+                    .await
+                    .context("scenario loading task")?
+                    .map_err(|e| anyhow!("{e}"))?;
             maps.insert(w.cell.scenario.clone(), loaded);
         }
         let work = w.clone();
@@ -65,8 +94,11 @@ impl Cells {
             let r = (|| {
                 let (flow, ego) = evaluate::from_frozen(&work.policies, &weights)?;
                 let ego = evaluate::EgoDef::of_work(ego, work.ego_idm)?;
-                let (map, cases) = maps.get(&work.cell.scenario).ok_or_else(|| evaluate::EvalError::Misfit("scenario not loaded".into()))?;
-                let size = CellSize { cases: work.cases, seeds: work.seeds, envs: work.envs as usize };
+                let (map, cases) = maps
+                    .get(&work.cell.scenario)
+                    .ok_or_else(|| evaluate::EvalError::Misfit("scenario not loaded".into()))?;
+                let size =
+                    CellSize { cases: work.cases, seeds: work.seeds, envs: work.envs as usize };
                 evaluate::run_cell(&work.cell, size, map, cases, &flow, ego.as_ref(), &mut runners)
             })();
             ((runners, maps), r)
@@ -75,14 +107,17 @@ impl Cells {
         .context("evaluation task")?;
         self.state = Some(state);
         let (episodes, error) = match result {
-            Ok(eps) => (eps.iter().map(sf_proto::eval_episode_to_wire).collect::<Vec<_>>(), String::new()),
+            Ok(eps) => {
+                (eps.iter().map(sf_proto::eval_episode_to_wire).collect::<Vec<_>>(), String::new())
+            }
             Err(e) => {
                 tracing::error!(job_id = w.job_id, cell = %w.cell.key(), error = %e, "evaluation cell could not run");
                 (Vec::new(), e.to_string())
             }
         };
         let n = episodes.len() as u64;
-        let msg = pb::EvalResults { job_id: w.job_id, worker_id, cell_id: w.cell_id, episodes, error };
+        let msg =
+            pb::EvalResults { job_id: w.job_id, worker_id, cell_id: w.cell_id, episodes, error };
         let ack = match client.push_eval_results(req(msg, t)).await {
             Ok(a) => a.into_inner(),
             // The job ended (finished by others, cancelled, failed): ask for the next assignment.

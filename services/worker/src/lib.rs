@@ -92,16 +92,52 @@ impl WorkerMetrics {
             inference_seconds: Counter::default(),
             eval_cells: Counter::default(),
         };
-        reg.register("socialflow_worker_env_steps", "Environment decision steps simulated", m.env_steps.clone());
-        reg.register("socialflow_worker_transitions_sent", "Learner transitions sent", m.transitions_sent.clone());
-        reg.register("socialflow_worker_batches_sent", "Transition batches sent", m.batches_sent.clone());
+        reg.register(
+            "socialflow_worker_env_steps",
+            "Environment decision steps simulated",
+            m.env_steps.clone(),
+        );
+        reg.register(
+            "socialflow_worker_transitions_sent",
+            "Learner transitions sent",
+            m.transitions_sent.clone(),
+        );
+        reg.register(
+            "socialflow_worker_batches_sent",
+            "Transition batches sent",
+            m.batches_sent.clone(),
+        );
         reg.register("socialflow_worker_episodes", "Episodes finished", m.episodes.clone());
-        reg.register("socialflow_worker_policy_version", "Policy version acting now (0 = warm-up actions)", m.policy_version.clone());
-        reg.register("socialflow_worker_policy_fetches", "Policy weights fetched", m.policy_fetches.clone());
-        reg.register("socialflow_worker_sessions", "Sessions started (register + assignment); more than one means reconnects", m.sessions.clone());
-        reg.register("socialflow_worker_inference_observations", "Observations run through the actor", m.inference_obs.clone());
-        reg.register("socialflow_worker_inference_seconds", "Time spent in actor inference", m.inference_seconds.clone());
-        reg.register("socialflow_worker_eval_cells", "Evaluation cells run and pushed", m.eval_cells.clone());
+        reg.register(
+            "socialflow_worker_policy_version",
+            "Policy version acting now (0 = warm-up actions)",
+            m.policy_version.clone(),
+        );
+        reg.register(
+            "socialflow_worker_policy_fetches",
+            "Policy weights fetched",
+            m.policy_fetches.clone(),
+        );
+        reg.register(
+            "socialflow_worker_sessions",
+            "Sessions started (register + assignment); more than one means reconnects",
+            m.sessions.clone(),
+        );
+        reg.register(
+            "socialflow_worker_inference_observations",
+            "Observations run through the actor",
+            m.inference_obs.clone(),
+        );
+        reg.register(
+            "socialflow_worker_inference_seconds",
+            "Time spent in actor inference",
+            m.inference_seconds.clone(),
+        );
+        reg.register(
+            "socialflow_worker_eval_cells",
+            "Evaluation cells run and pushed",
+            m.eval_cells.clone(),
+        );
         m
     }
 }
@@ -124,7 +160,11 @@ enum SessionEnd {
 }
 
 /// Runs sessions until `stop` turns true. Errors are logged and retried with backoff.
-pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Receiver<bool>) -> anyhow::Result<()> {
+pub async fn run(
+    cfg: WorkerConfig,
+    metrics: WorkerMetrics,
+    mut stop: watch::Receiver<bool>,
+) -> anyhow::Result<()> {
     let mut backoff = Backoff::new(Duration::from_millis(200), cfg.max_backoff);
     // Registered id and heartbeat interval, kept from one job to the next (a new registration
     // per job would leave the learner a stale worker to time out); dropped after an error.
@@ -155,7 +195,10 @@ pub async fn run(cfg: WorkerConfig, metrics: WorkerMetrics, mut stop: watch::Rec
 }
 
 async fn connect(cfg: &WorkerConfig) -> anyhow::Result<Client> {
-    let ch = sf_service::tls::endpoint(&cfg.learner_url, &cfg.tls)?.connect().await.with_context(|| format!("connecting to {}", cfg.learner_url))?;
+    let ch = sf_service::tls::endpoint(&cfg.learner_url, &cfg.tls)?
+        .connect()
+        .await
+        .with_context(|| format!("connecting to {}", cfg.learner_url))?;
     Ok(ExperienceServiceClient::with_interceptor(ch, AttachToken::new(cfg.token.clone()))
         .max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES)
         .max_encoding_message_size(sf_service::MAX_MESSAGE_BYTES))
@@ -168,7 +211,11 @@ fn status_err(what: &str, s: tonic::Status, metrics: &WorkerMetrics) -> anyhow::
 
 /// One session: who this worker is, what to work on, the policies to act with, then the
 /// transition stream until the job or the connection ends.
-async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut Option<Registration>) -> anyhow::Result<SessionEnd> {
+async fn session(
+    cfg: &WorkerConfig,
+    metrics: &WorkerMetrics,
+    registration: &mut Option<Registration>,
+) -> anyhow::Result<SessionEnd> {
     let mut client = connect(cfg).await?;
     let me = match *registration {
         Some(r) => r,
@@ -177,10 +224,13 @@ async fn session(cfg: &WorkerConfig, metrics: &WorkerMetrics, registration: &mut
     let mut heartbeats = Heartbeats::spawn(cfg, me, metrics).await?;
     let asg = next_assignment(&mut client, cfg, me.worker_id, &mut heartbeats, metrics).await?;
     let (job, maps) = load_job(cfg, me.worker_id, &asg)?;
-    let frozen = FrozenPolicies::fetch(&client, me.worker_id, &asg.frozen, cfg.rpc_timeout, metrics).await?;
-    let mut policy = PolicyClient::new(&client, asg.job_id, asg.policy_version, cfg.rpc_timeout, metrics);
+    let frozen =
+        FrozenPolicies::fetch(&client, me.worker_id, &asg.frozen, cfg.rpc_timeout, metrics).await?;
+    let mut policy =
+        PolicyClient::new(&client, asg.job_id, asg.policy_version, cfg.rpc_timeout, metrics);
     let first = if asg.warmup { None } else { Some(policy.latest().await?) };
-    let spec = RolloutSpec::for_assignment(&asg, job, frozen.into_vec(), maps, me.worker_id, cfg.threads);
+    let spec =
+        RolloutSpec::for_assignment(&asg, job, frozen.into_vec(), maps, me.worker_id, cfg.threads);
     let (rollout, batches) = Rollout::start(spec, asg.warmup, first, metrics)?;
     stream(&mut client, batches, &rollout, &mut policy, &mut heartbeats, metrics).await
 }

@@ -26,11 +26,25 @@ pub struct Registration {
 }
 
 /// Registers this worker under `cfg.name`.
-pub async fn register(client: &mut Client, cfg: &WorkerConfig, metrics: &WorkerMetrics) -> anyhow::Result<Registration> {
-    let reg = client.register(req(pb::RegisterRequest { name: cfg.name.clone(), runs_idm_ego: true }, cfg.rpc_timeout)).await.map_err(|s| status_err("Register", s, metrics))?.into_inner();
+pub async fn register(
+    client: &mut Client,
+    cfg: &WorkerConfig,
+    metrics: &WorkerMetrics,
+) -> anyhow::Result<Registration> {
+    let reg = client
+        .register(req(
+            pb::RegisterRequest { name: cfg.name.clone(), runs_idm_ego: true },
+            cfg.rpc_timeout,
+        ))
+        .await
+        .map_err(|s| status_err("Register", s, metrics))?
+        .into_inner();
     metrics.common.rpc("Register", Code::Ok);
     tracing::info!(worker_id = reg.worker_id, learner = %cfg.learner_url, "registered");
-    Ok(Registration { worker_id: reg.worker_id, heartbeat_every: Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64) })
+    Ok(Registration {
+        worker_id: reg.worker_id,
+        heartbeat_every: Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64),
+    })
 }
 
 /// Heartbeats on the side of a session. Dropping it stops them.
@@ -42,7 +56,11 @@ pub struct Heartbeats {
 
 impl Heartbeats {
     /// Connects and starts sending heartbeats for `me`.
-    pub async fn spawn(cfg: &WorkerConfig, me: Registration, metrics: &WorkerMetrics) -> anyhow::Result<Self> {
+    pub async fn spawn(
+        cfg: &WorkerConfig,
+        me: Registration,
+        metrics: &WorkerMetrics,
+    ) -> anyhow::Result<Self> {
         let (failed_tx, failed) = watch::channel(false);
         let mut client = connect(cfg).await?;
         let (worker_id, every, t) = (me.worker_id, me.heartbeat_every, cfg.rpc_timeout);

@@ -22,12 +22,23 @@ pub struct FrozenPolicies(Vec<(FrozenRole, JobConfig, Vec<u8>)>);
 
 impl FrozenPolicies {
     /// Each frozen job's config, then its final weights, in the assignment's order.
-    pub async fn fetch(client: &Client, worker_id: u64, frozen: &[Frozen], t: Duration, metrics: &WorkerMetrics) -> anyhow::Result<Self> {
+    pub async fn fetch(
+        client: &Client,
+        worker_id: u64,
+        frozen: &[Frozen],
+        t: Duration,
+        metrics: &WorkerMetrics,
+    ) -> anyhow::Result<Self> {
         let mut policies = Vec::with_capacity(frozen.len());
         for f in frozen {
-            let fj = JobConfig::from_toml(&f.config_toml).with_context(|| format!("config of frozen job {}", f.job_id))?;
+            let fj = JobConfig::from_toml(&f.config_toml)
+                .with_context(|| format!("config of frozen job {}", f.job_id))?;
             let mut c = client.clone();
-            let p = c.get_policy(req(sf_proto::get_policy_to_wire(f.job_id, PolicyRequest::Latest), t)).await.map_err(|s| status_err("GetPolicy", s, metrics))?.into_inner();
+            let p = c
+                .get_policy(req(sf_proto::get_policy_to_wire(f.job_id, PolicyRequest::Latest), t))
+                .await
+                .map_err(|s| status_err("GetPolicy", s, metrics))?
+                .into_inner();
             metrics.common.rpc("GetPolicy", Code::Ok);
             tracing::info!(worker_id, frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
             policies.push((f.role, fj, p.weights));
@@ -51,7 +62,13 @@ pub struct PolicyClient<'a> {
 }
 
 impl<'a> PolicyClient<'a> {
-    pub fn new(client: &Client, job_id: u64, held_version: u64, rpc_timeout: Duration, metrics: &'a WorkerMetrics) -> Self {
+    pub fn new(
+        client: &Client,
+        job_id: u64,
+        held_version: u64,
+        rpc_timeout: Duration,
+        metrics: &'a WorkerMetrics,
+    ) -> Self {
         Self { client: client.clone(), job_id, held_version, rpc_timeout, metrics }
     }
 
@@ -62,7 +79,14 @@ impl<'a> PolicyClient<'a> {
     /// The latest weights `(version, bytes)`. Does not change the held version.
     pub async fn latest(&self) -> anyhow::Result<(u64, Vec<u8>)> {
         let mut c = self.client.clone();
-        let p = c.get_policy(req(sf_proto::get_policy_to_wire(self.job_id, PolicyRequest::Latest), self.rpc_timeout)).await.map_err(|s| status_err("GetPolicy", s, self.metrics))?.into_inner();
+        let p = c
+            .get_policy(req(
+                sf_proto::get_policy_to_wire(self.job_id, PolicyRequest::Latest),
+                self.rpc_timeout,
+            ))
+            .await
+            .map_err(|s| status_err("GetPolicy", s, self.metrics))?
+            .into_inner();
         self.metrics.common.rpc("GetPolicy", Code::Ok);
         self.metrics.policy_fetches.inc();
         Ok((p.version, p.weights))
@@ -72,7 +96,8 @@ impl<'a> PolicyClient<'a> {
     /// first weights) is fetched and acts at once; otherwise the weights the rollout holds act.
     pub async fn follow(&mut self, ack: &pb::PushAck, rollout: &Rollout) -> anyhow::Result<()> {
         let warm = ack.warmup;
-        let need = !warm && (ack.latest_policy_version > self.held_version || !rollout.has_policy());
+        let need =
+            !warm && (ack.latest_policy_version > self.held_version || !rollout.has_policy());
         if need {
             let (v, w) = self.latest().await?;
             self.held_version = v;

@@ -65,14 +65,32 @@ pub struct RolloutSpec {
 impl RolloutSpec {
     /// What an assignment's rollout runs: its job, frozen policies and maps, and (CoPO Stage 2
     /// in the background) each scenario's coordinator Gaussian, if it has one.
-    pub fn for_assignment(asg: &Assignment, job: JobConfig, frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>, maps: Vec<Arc<Map>>, worker_id: u64, threads: usize) -> Self {
+    pub fn for_assignment(
+        asg: &Assignment,
+        job: JobConfig,
+        frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>,
+        maps: Vec<Arc<Map>>,
+        worker_id: u64,
+        threads: usize,
+    ) -> Self {
         let bg = asg.frozen.iter().find(|f| f.role == FrozenRole::Background);
-        let svo_gaussians: Vec<_> = job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
+        let svo_gaussians: Vec<_> =
+            job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
         let redrawn = svo_gaussians.iter().flatten().count();
         if redrawn > 0 {
             tracing::info!(worker_id, "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
         }
-        Self { job, frozen, svo_gaussians, maps, worker_id, job_id: asg.job_id, seed: asg.seed, obs_len: asg.obs_len as usize, threads }
+        Self {
+            job,
+            frozen,
+            svo_gaussians,
+            maps,
+            worker_id,
+            job_id: asg.job_id,
+            seed: asg.seed,
+            obs_len: asg.obs_len as usize,
+            threads,
+        }
     }
 }
 
@@ -86,11 +104,17 @@ pub struct Rollout {
 impl Rollout {
     /// Starts the thread acting with `policy` (`None`: warm-up actions until weights come) and
     /// two credits; returns the batches it sends.
-    pub fn start(spec: RolloutSpec, warmup: bool, policy: Option<(u64, Vec<u8>)>, metrics: &WorkerMetrics) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
+    pub fn start(
+        spec: RolloutSpec,
+        warmup: bool,
+        policy: Option<(u64, Vec<u8>)>,
+        metrics: &WorkerMetrics,
+    ) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
         let control = Arc::new(Mutex::new(Control { warmup, policy, stop: false }));
         let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
         let credits = Arc::new(Credits::new(2));
-        let thread = spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
+        let thread =
+            spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
         Ok((Self { control, credits, thread }, batch_rx))
     }
 
@@ -128,11 +152,22 @@ impl Drop for Rollout {
 }
 
 /// Starts the rollout thread. It ends when `control.stop` is set or the channel closes.
-pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<std::thread::JoinHandle<()>> {
-    let bg_kind = spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
+pub fn spawn(
+    spec: RolloutSpec,
+    control: Arc<Mutex<Control>>,
+    credits: Arc<Credits>,
+    tx: mpsc::Sender<pb::TransitionBatch>,
+    metrics: WorkerMetrics,
+) -> anyhow::Result<std::thread::JoinHandle<()>> {
+    let bg_kind =
+        spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
     let resolved = setup::resolve(&spec.job, bg_kind);
     if resolved.obs.len != spec.obs_len {
-        bail!("the learner expects {}-float observations; this worker's build makes {}", spec.obs_len, resolved.obs.len);
+        bail!(
+            "the learner expects {}-float observations; this worker's build makes {}",
+            spec.obs_len,
+            resolved.obs.len
+        );
     }
     std::thread::Builder::new()
         .name(format!("rollout-{}", spec.worker_id))
@@ -151,12 +186,21 @@ pub fn spawn(spec: RolloutSpec, control: Arc<Mutex<Control>>, credits: Arc<Credi
 }
 
 /// The environment loop: act, step, hand the job's transitions to the writer.
-fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<Control>>, credits: Arc<Credits>, tx: mpsc::Sender<pb::TransitionBatch>, metrics: WorkerMetrics) -> anyhow::Result<()> {
+fn rollout(
+    spec: RolloutSpec,
+    resolved: setup::ResolvedJob,
+    control: Arc<Mutex<Control>>,
+    credits: Arc<Credits>,
+    tx: mpsc::Sender<pb::TransitionBatch>,
+    metrics: WorkerMetrics,
+) -> anyhow::Result<()> {
     let job = &spec.job;
     let setup::ResolvedJob { sim, net, obs: obs_spec, mode, .. } = resolved;
     let sim = Arc::new(sim);
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
-    let segs: Vec<MapSegments> = spec.maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
+    let device =
+        sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).context("inference device")?;
+    let segs: Vec<MapSegments> =
+        spec.maps.iter().map(|m| MapSegments::build(m, sim.obs.segment_points)).collect();
     let seg_refs: Vec<&MapSegments> = segs.iter().collect();
     let mut venvs = envs(&spec, &sim, mode);
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed ^ 0x726f_6c6c);
@@ -164,18 +208,30 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
     let frozen = FrozenRunners::load(&spec.frozen, &obs_spec, sim.dt_s, &seg_refs, &device)?;
     let kind = job.kind;
     if kind == JobKind::Failmaker || kind == JobKind::SocialcommAdv {
-        anyhow::ensure!(frozen.ego.is_some(), "a {} job needs its frozen ego policy", kind.as_str());
+        anyhow::ensure!(
+            frozen.ego.is_some(),
+            "a {} job needs its frozen ego policy",
+            kind.as_str()
+        );
     }
     let act_dim = job.action_dim();
     let seat = drive::Seat::for_job(kind);
     // Who plays the job's own role until the warm-up ends.
     let warm_actor = match job.sac.warmup_policy {
-        WarmupPolicy::Idm if kind.drives() => Actor::Demo { noise: job.sac.warmup_noise, action: net.action },
+        WarmupPolicy::Idm if kind.drives() => {
+            Actor::Demo { noise: job.sac.warmup_noise, action: net.action }
+        }
         _ => Actor::Random { dim: act_dim },
     };
     // Braking and lane-change segments overlay the warm-up actions of the rows the job drives.
-    let mut brakes = ((job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0) && kind.drives()).then(|| {
-        let segments = drive::WarmupSegments::new(job.sac.warmup_brake_prob, job.sac.warmup_lane_change_prob, &venvs);
+    let mut brakes = ((job.sac.warmup_brake_prob > 0.0 || job.sac.warmup_lane_change_prob > 0.0)
+        && kind.drives())
+    .then(|| {
+        let segments = drive::WarmupSegments::new(
+            job.sac.warmup_brake_prob,
+            job.sac.warmup_lane_change_prob,
+            &venvs,
+        );
         // FailMaker drives the background: its own vehicles brake and change lanes.
         if kind == JobKind::Failmaker {
             segments.on_background()
@@ -185,18 +241,33 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
     });
     let mut runner: Option<PolicyRunner> = None;
     let nstep = nstep::NStep::new(job.sac.n_step, job.sac.gamma);
-    let mut writer = TransitionWriter::new(TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim), nstep, job.worker.batch_transitions, Arc::clone(&control), credits, tx, metrics.clone());
+    let mut writer = TransitionWriter::new(
+        TransitionBatch::new(spec.job_id, spec.worker_id, len, act_dim),
+        nstep,
+        job.worker.batch_transitions,
+        Arc::clone(&control),
+        credits,
+        tx,
+        metrics.clone(),
+    );
     loop {
         let (stop, warmup, new_policy) = {
             let c = lock(&control);
-            let newer = c.policy.as_ref().filter(|(v, _)| runner.as_ref().is_none_or(|r| r.version != *v)).cloned();
+            let newer = c
+                .policy
+                .as_ref()
+                .filter(|(v, _)| runner.as_ref().is_none_or(|r| r.version != *v))
+                .cloned();
             (c.stop, c.warmup, newer)
         };
         if stop {
             return Ok(());
         }
         if let Some((v, bytes)) = new_policy {
-            runner = Some(PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &seg_refs, &bytes, v, &device).with_context(|| format!("loading policy version {v}"))?);
+            runner = Some(
+                PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &seg_refs, &bytes, v, &device)
+                    .with_context(|| format!("loading policy version {v}"))?,
+            );
             metrics.policy_version.set(v as i64);
         }
         let acting = match (&runner, warmup) {
@@ -205,7 +276,8 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         };
         // The job's own policy plays its role (in the warm-up too with `warmup_policy =
         // "policy"`); frozen policies the others.
-        let Some(own) = own_actor(job.sac.warmup_policy, acting, runner.as_ref(), warm_actor) else {
+        let Some(own) = own_actor(job.sac.warmup_policy, acting, runner.as_ref(), warm_actor)
+        else {
             // A continuation's warm-up waits for its policy rather than act otherwise.
             std::thread::sleep(Duration::from_millis(20));
             continue;
@@ -214,7 +286,11 @@ fn rollout(spec: RolloutSpec, resolved: setup::ResolvedJob, control: Arc<Mutex<C
         if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
-        let (f_bg, f_ego, f_adv) = (frozen.background.as_ref().map(Actor::sampled), frozen.ego.as_ref().map(Actor::sampled), frozen.adversary.as_ref().map(Actor::sampled));
+        let (f_bg, f_ego, f_adv) = (
+            frozen.background.as_ref().map(Actor::sampled),
+            frozen.ego.as_ref().map(Actor::sampled),
+            frozen.adversary.as_ref().map(Actor::sampled),
+        );
         let drivers = seat.drivers(own, f_bg, f_ego, f_adv);
         let before: Vec<Vec<f32>> = venvs.iter().map(|v| v.observations().to_vec()).collect();
         let t = Instant::now();
@@ -252,7 +328,16 @@ fn envs(spec: &RolloutSpec, sim: &Arc<SimConfig>, mode: Mode) -> Vec<VecEnv> {
         .enumerate()
         .map(|(k, m)| {
             let seed = spec.seed.wrapping_add(k as u64 * 0x9e37_79b9);
-            VecEnv::new(Arc::clone(m), Arc::clone(sim), VecEnvConfig { n_envs: per_map, mode, vehicles: (job.env.vehicles_min, job.env.vehicles_max), seed })
+            VecEnv::new(
+                Arc::clone(m),
+                Arc::clone(sim),
+                VecEnvConfig {
+                    n_envs: per_map,
+                    mode,
+                    vehicles: (job.env.vehicles_min, job.env.vehicles_max),
+                    seed,
+                },
+            )
         })
         .collect();
     if let Some(share) = job.env.conflict_share {
@@ -271,7 +356,12 @@ fn envs(spec: &RolloutSpec, sim: &Arc<SimConfig>, mode: Mode) -> Vec<VecEnv> {
 /// the warm-up `warm` (the IDM demonstrator, or random actions), or with `warmup_policy =
 /// "policy"` the policy itself, and `None` (wait) while that policy has not arrived: its
 /// warm-up must not fall back to actions of another kind.
-fn own_actor<'a>(warmup_policy: WarmupPolicy, acting: Option<&'a PolicyRunner>, runner: Option<&'a PolicyRunner>, warm: Actor<'a>) -> Option<Actor<'a>> {
+fn own_actor<'a>(
+    warmup_policy: WarmupPolicy,
+    acting: Option<&'a PolicyRunner>,
+    runner: Option<&'a PolicyRunner>,
+    warm: Actor<'a>,
+) -> Option<Actor<'a>> {
     match (acting, runner, warmup_policy) {
         (Some(r), _, _) | (None, Some(r), WarmupPolicy::Policy) => Some(Actor::sampled(r)),
         (None, None, WarmupPolicy::Policy) => None,
@@ -287,13 +377,25 @@ struct FrozenRunners {
 }
 
 impl FrozenRunners {
-    fn load(frozen: &[(FrozenRole, JobConfig, Vec<u8>)], obs_spec: &ObsSpec, dt_s: f32, seg_refs: &[&MapSegments], device: &Device) -> anyhow::Result<Self> {
+    fn load(
+        frozen: &[(FrozenRole, JobConfig, Vec<u8>)],
+        obs_spec: &ObsSpec,
+        dt_s: f32,
+        seg_refs: &[&MapSegments],
+        device: &Device,
+    ) -> anyhow::Result<Self> {
         let len = obs_spec.len;
         let mut runners = Self { background: None, ego: None, adversary: None };
         for (role, cfg, bytes) in frozen {
             let fz = setup::resolve(cfg, None);
-            anyhow::ensure!(fz.obs.len == len, "frozen {role:?} policy observations are {} floats, the job's {len}", fz.obs.len);
-            let runner = PolicyRunner::from_bytes(&fz.net, obs_spec, dt_s, seg_refs, bytes, 0, device).with_context(|| format!("loading the frozen {role:?} policy"))?;
+            anyhow::ensure!(
+                fz.obs.len == len,
+                "frozen {role:?} policy observations are {} floats, the job's {len}",
+                fz.obs.len
+            );
+            let runner =
+                PolicyRunner::from_bytes(&fz.net, obs_spec, dt_s, seg_refs, bytes, 0, device)
+                    .with_context(|| format!("loading the frozen {role:?} policy"))?;
             *match role {
                 FrozenRole::Background => &mut runners.background,
                 FrozenRole::Ego => &mut runners.ego,
@@ -316,6 +418,9 @@ mod tests {
         let demo = Actor::Demo { noise: 0.1, action: sf_sim::DriveAction::IdmAccelResidual };
         assert!(own_actor(WarmupPolicy::Policy, None, None, demo).is_none());
         assert!(matches!(own_actor(WarmupPolicy::Idm, None, None, demo), Some(Actor::Demo { .. })));
-        assert!(matches!(own_actor(WarmupPolicy::Random, None, None, Actor::Random { dim: 2 }), Some(Actor::Random { dim: 2 })));
+        assert!(matches!(
+            own_actor(WarmupPolicy::Random, None, None, Actor::Random { dim: 2 }),
+            Some(Actor::Random { dim: 2 })
+        ));
     }
 }

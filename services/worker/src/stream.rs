@@ -26,7 +26,11 @@ pub async fn stream(
     heartbeats: &mut Heartbeats,
     metrics: &WorkerMetrics,
 ) -> anyhow::Result<SessionEnd> {
-    let mut acks = client.push_transitions(ReceiverStream::new(batches)).await.map_err(|s| status_err("PushTransitions", s, metrics))?.into_inner();
+    let mut acks = client
+        .push_transitions(ReceiverStream::new(batches))
+        .await
+        .map_err(|s| status_err("PushTransitions", s, metrics))?
+        .into_inner();
     loop {
         let ack = tokio::select! {
             a = acks.message() => a,

@@ -5,7 +5,10 @@
 use std::collections::BTreeMap;
 
 use super::units::{paired, paired_across_flows, summary, unit_columns};
-use super::{by, fmt_p, holm_family, order, p_holm, p_is, paper_adversary, pct, stars, Ctx, Doc, Findings, ReportError, METRICS};
+use super::{
+    by, fmt_p, holm_family, order, p_holm, p_is, paper_adversary, pct, stars, Ctx, Doc, Findings,
+    ReportError, METRICS,
+};
 use crate::episodes::EpisodeRow;
 use crate::findings::Check;
 use crate::inference;
@@ -37,16 +40,36 @@ pub(super) fn adversary(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
         let mut tests = Vec::new();
         for e in &egos {
             for s in &scen {
-                let cell = |f: &String| by(rows, |r| r.cell.experiment == "adversary" && &r.cell.ego == e && &r.cell.flow == f && &r.cell.scenario == s);
+                let cell = |f: &String| {
+                    by(rows, |r| {
+                        r.cell.experiment == "adversary"
+                            && &r.cell.ego == e
+                            && &r.cell.flow == f
+                            && &r.cell.scenario == s
+                    })
+                };
                 let base = flows.first().map(|f| summary(&cell(f), m).mean).unwrap_or(f64::NAN);
                 let mut row = vec![e.clone(), s.clone()];
                 for (k, f) in flows.iter().enumerate() {
                     let v = summary(&cell(f), m);
-                    row.push(if k == 0 { pct(v) } else { format!("{} ({:+.1})", pct(v), 100.0 * (v.mean - base)) });
+                    row.push(if k == 0 {
+                        pct(v)
+                    } else {
+                        format!("{} ({:+.1})", pct(v), 100.0 * (v.mean - base))
+                    });
                 }
-                tests.push(if flows.len() >= 2 { paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| t.p_value) } else { None });
+                tests.push(if flows.len() >= 2 {
+                    paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| t.p_value)
+                } else {
+                    None
+                });
                 row.push(String::new());
-                row.push(paper.get(&(e.as_str(), s.as_str())).map(|v| format!("{:.1} / {:.1} / {:.1}", v[0], v[1], v[2])).unwrap_or_else(|| "-".into()));
+                row.push(
+                    paper
+                        .get(&(e.as_str(), s.as_str()))
+                        .map(|v| format!("{:.1} / {:.1} / {:.1}", v[0], v[1], v[2]))
+                        .unwrap_or_else(|| "-".into()),
+                );
                 table.push(row);
             }
         }
@@ -71,24 +94,39 @@ pub(super) fn adversary(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
 /// what the grid can detect against the paper's effects.
 fn adversary_findings(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, flows: &[String]) {
     let success = METRICS[0].1;
-    let pooled = |f: &String| by(ctx.rows, |r| r.cell.experiment == "adversary" && &r.cell.flow == f);
+    let pooled =
+        |f: &String| by(ctx.rows, |r| r.cell.experiment == "adversary" && &r.cell.flow == f);
     let (base, first, second) = (pooled(&flows[0]), pooled(&flows[1]), pooled(&flows[2]));
     let mean = |rows: &[&EpisodeRow]| 100.0 * summary(rows, success).mean;
     let (sc, sca, fm) = (mean(&base), mean(&first), mean(&second));
     let first_drop = paired_across_flows(&base, &first, success);
     if let Some(t) = &first_drop {
-        found.checks.push(Check::from_paired(format!("Egos succeed less in {} than in {} (pooled)", flows[1], flows[0]), &format!("success, {} - {}", flows[0], flows[1]), t));
+        found.checks.push(Check::from_paired(
+            format!("Egos succeed less in {} than in {} (pooled)", flows[1], flows[0]),
+            &format!("success, {} - {}", flows[0], flows[1]),
+            t,
+        ));
     }
     if let Some(t) = paired_across_flows(&first, &second, success) {
-        let claim = format!("{} degrades egos more than {} (pooled success {} {sc:.1}, {} {sca:.1}, {} {fm:.1})", flows[2], flows[1], flows[0], flows[1], flows[2]);
+        let claim = format!(
+            "{} degrades egos more than {} (pooled success {} {sc:.1}, {} {sca:.1}, {} {fm:.1})",
+            flows[2], flows[1], flows[0], flows[1], flows[2]
+        );
         let key = format!("{} degrades egos more than {}", flows[2], flows[1]);
-        found.checks.push(Check::from_paired(claim, &format!("success, {} - {}", flows[1], flows[2]), &t).keyed(key));
+        found.checks.push(
+            Check::from_paired(claim, &format!("success, {} - {}", flows[1], flows[2]), &t)
+                .keyed(key),
+        );
     }
     // The paper: FailMaker costs egos about ten times what SocialCommAdv costs them. A ratio is
     // only given where its denominator, the first drop, is significantly positive.
     let second_drop = paired_across_flows(&base, &second, success);
-    let drop = |t: &Option<crate::PairedT>| t.map(|t| format!("{:+.1} points (p {})", 100.0 * t.mean_diff, fmt_p(t.p_value))).unwrap_or_else(|| "-".into());
-    let denominator_holds = first_drop.is_some_and(|t| t.mean_diff > 0.0 && t.p_value < crate::findings::ALPHA);
+    let drop = |t: &Option<crate::PairedT>| {
+        t.map(|t| format!("{:+.1} points (p {})", 100.0 * t.mean_diff, fmt_p(t.p_value)))
+            .unwrap_or_else(|| "-".into())
+    };
+    let denominator_holds =
+        first_drop.is_some_and(|t| t.mean_diff > 0.0 && t.p_value < crate::findings::ALPHA);
     let units = unit_columns([&base[..], &first[..], &second[..]], success);
     let ratio = match inference::bootstrap_ratio(&units, RATIO_DRAWS, RATIO_SEED) {
         Some(r) if denominator_holds => format!(
@@ -112,7 +150,8 @@ fn adversary_findings(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, flows: &[S
     ));
     // Power: the starts a paired test of this grid's spread needs to see the paper's effects.
     let paper = paper_adversary("Success");
-    let paper_mean = |k: usize| paper.values().map(|v| v[k]).sum::<f64>() / paper.len().max(1) as f64;
+    let paper_mean =
+        |k: usize| paper.values().map(|v| v[k]).sum::<f64>() / paper.len().max(1) as f64;
     let lines: Vec<String> = [(&first_drop, paper_mean(0) - paper_mean(1), flows[1].as_str()), (&second_drop, paper_mean(0) - paper_mean(2), flows[2].as_str())]
         .iter()
         .filter_map(|(t, effect, name)| {
@@ -148,11 +187,34 @@ pub(super) fn cross(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<()
         for (mname, m) in [METRICS[0], METRICS[2]] {
             let values: Vec<Vec<f64>> = egos
                 .iter()
-                .map(|e| flows.iter().map(|f| summary(&by(rows, |r| r.cell.experiment == "cross" && &r.cell.ego == e && &r.cell.flow == f && &r.cell.scenario == s), m).mean).collect())
+                .map(|e| {
+                    flows
+                        .iter()
+                        .map(|f| {
+                            summary(
+                                &by(rows, |r| {
+                                    r.cell.experiment == "cross"
+                                        && &r.cell.ego == e
+                                        && &r.cell.flow == f
+                                        && &r.cell.scenario == s
+                                }),
+                                m,
+                            )
+                            .mean
+                        })
+                        .collect()
+                })
                 .collect();
             let marks = medals(&egos, &flows, &values, &meta.trained_in, meta.idm_ego.as_ref());
             let file = format!("cross-{}-{s}.png", mname.to_lowercase());
-            plot::heatmap(&ctx.out.join(&file), &format!("{mname}, {s}"), &egos, &flows, &values, &marks)?;
+            plot::heatmap(
+                &ctx.out.join(&file),
+                &format!("{mname}, {s}"),
+                &egos,
+                &flows,
+                &values,
+                &marks,
+            )?;
             doc.figure(&file, &format!("Cross-validation {mname} in {s}"))?;
         }
     }
@@ -166,7 +228,13 @@ pub(super) fn cross(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<()
 /// Zero-shot bars: each ego pooled over the evaluation flows, per scenario; ours against every
 /// other trained ego (one family per metric), and "ours transfers best" as the claim that it
 /// beats each of them.
-fn zero_shot(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, egos: &[String], scen: &[String]) -> Result<(), ReportError> {
+fn zero_shot(
+    ctx: &Ctx,
+    doc: &mut Doc,
+    found: &mut Findings,
+    egos: &[String],
+    scen: &[String],
+) -> Result<(), ReportError> {
     let meta = ctx.meta;
     doc.h(2, "Zero-shot transfer");
     for (mname, m) in [METRICS[0], METRICS[2]] {
@@ -174,7 +242,11 @@ fn zero_shot(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, egos: &[String], sc
         // (scenario, other ego, test) for every comparison of ours.
         let mut tests = Vec::new();
         for s in scen {
-            let pooled = |e: &String| by(ctx.rows, |r| r.cell.experiment == "cross" && &r.cell.ego == e && &r.cell.scenario == s);
+            let pooled = |e: &String| {
+                by(ctx.rows, |r| {
+                    r.cell.experiment == "cross" && &r.cell.ego == e && &r.cell.scenario == s
+                })
+            };
             groups.push(
                 egos.iter()
                     .map(|e| {
@@ -196,24 +268,52 @@ fn zero_shot(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, egos: &[String], sc
         let mut lines = Vec::new();
         for ((s, e, t), a) in tests.iter().zip(&adj) {
             let a = a.unwrap_or(f64::NAN);
-            let (si, k) = (scen.iter().position(|x| x == s).unwrap_or(0), egos.iter().position(|x| x == e).unwrap_or(0));
+            let (si, k) = (
+                scen.iter().position(|x| x == s).unwrap_or(0),
+                egos.iter().position(|x| x == e).unwrap_or(0),
+            );
             groups[si][k].stars = stars(a).to_string();
-            lines.push(format!("{s}: ours - {e} {mname} = {:+.1} points ({} starts), p {} {}", 100.0 * t.mean_diff, t.n, p_holm(t.p_value, a), stars(a)));
+            lines.push(format!(
+                "{s}: ours - {e} {mname} = {:+.1} points ({} starts), p {} {}",
+                100.0 * t.mean_diff,
+                t.n,
+                p_holm(t.p_value, a),
+                stars(a)
+            ));
         }
         if let (Some(ours), "Success") = (meta.ours.as_ref(), mname) {
             for s in scen {
                 let parts: Vec<(String, Check)> = tests
                     .iter()
                     .filter(|(ts, _, _)| ts == s)
-                    .map(|(_, e, t)| (format!("vs {e}"), Check::from_paired("", &format!("success, {ours} - {e}, pooled over evaluation flows"), t)))
+                    .map(|(_, e, t)| {
+                        (
+                            format!("vs {e}"),
+                            Check::from_paired(
+                                "",
+                                &format!("success, {ours} - {e}, pooled over evaluation flows"),
+                                t,
+                            ),
+                        )
+                    })
                     .collect();
-                if let Some(c) = Check::all_of(format!("{ours} transfers best in {s} (success above every other trained ego)"), &parts) {
+                if let Some(c) = Check::all_of(
+                    format!("{ours} transfers best in {s} (success above every other trained ego)"),
+                    &parts,
+                ) {
                     found.checks.push(c);
                 }
             }
         }
         let file = format!("zero-shot-{}.png", mname.to_lowercase());
-        plot::grouped_bars(&ctx.out.join(&file), &format!("Zero-shot {mname} (pooled over evaluation flows)"), &mname.to_lowercase(), scen, egos, &groups)?;
+        plot::grouped_bars(
+            &ctx.out.join(&file),
+            &format!("Zero-shot {mname} (pooled over evaluation flows)"),
+            &mname.to_lowercase(),
+            scen,
+            egos,
+            &groups,
+        )?;
         doc.figure(&file, &format!("{mname} of each ego pooled over the evaluation flows, 95 % intervals; stars: paired t-test of ours against each other trained ego, Holm over the figure's tests"))?;
         for l in lines {
             doc.p(&l);
@@ -224,9 +324,22 @@ fn zero_shot(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, egos: &[String], sc
 
 /// Every trained ego against the IDM driver in its seat, on the same cross-validation episode
 /// starts (flow, scenario, case, seed): per scenario and pooled, with one check per ego.
-fn against_idm_ego(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, idm: &String, egos: &[String], scen: &[String]) {
+fn against_idm_ego(
+    ctx: &Ctx,
+    doc: &mut Doc,
+    found: &mut Findings,
+    idm: &String,
+    egos: &[String],
+    scen: &[String],
+) {
     let success = METRICS[0].1;
-    let cells = |e: &String, s: Option<&String>| by(ctx.rows, |r| r.cell.experiment == "cross" && &r.cell.ego == e && s.is_none_or(|s| &r.cell.scenario == s));
+    let cells = |e: &String, s: Option<&String>| {
+        by(ctx.rows, |r| {
+            r.cell.experiment == "cross"
+                && &r.cell.ego == e
+                && s.is_none_or(|s| &r.cell.scenario == s)
+        })
+    };
     doc.h(2, "Trained egos against the IDM driver in their seat");
     doc.p(&format!(
         "Success in percent over the cross-validation cells (every evaluation flow); in brackets the paired difference to `{idm}` (the IDM driver, the zero residual every trained ego starts from) on the same episode starts, its p-value and the Holm-adjusted p over this table's tests. The last column pools every scenario."
@@ -235,8 +348,16 @@ fn against_idm_ego(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, idm: &String,
     head.extend(scen.iter().cloned());
     head.push("all scenarios".into());
     let scopes: Vec<Option<&String>> = scen.iter().map(Some).chain([None]).collect();
-    let mean = |rows: &[&EpisodeRow]| if rows.is_empty() { "-".to_string() } else { format!("{:.1}", 100.0 * summary(rows, success).mean) };
-    let mut table = vec![std::iter::once(idm.clone()).chain(scopes.iter().map(|s| mean(&cells(idm, *s)))).collect::<Vec<_>>()];
+    let mean = |rows: &[&EpisodeRow]| {
+        if rows.is_empty() {
+            "-".to_string()
+        } else {
+            format!("{:.1}", 100.0 * summary(rows, success).mean)
+        }
+    };
+    let mut table = vec![std::iter::once(idm.clone())
+        .chain(scopes.iter().map(|s| mean(&cells(idm, *s))))
+        .collect::<Vec<_>>()];
     // (row, column, test) of every cell, corrected together.
     let mut tests = Vec::new();
     for e in egos.iter().filter(|e| *e != idm) {
@@ -260,14 +381,26 @@ fn against_idm_ego(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, idm: &String,
     let adj = holm_family(&tests.iter().map(|(_, _, t)| Some(t.p_value)).collect::<Vec<_>>());
     for ((r, c, t), a) in tests.iter().zip(adj) {
         let a = a.unwrap_or(f64::NAN);
-        table[*r][*c] = format!("{} ({:+.1}, p {}, Holm {})", table[*r][*c], 100.0 * t.mean_diff, p_is(t.p_value), fmt_p(a));
+        table[*r][*c] = format!(
+            "{} ({:+.1}, p {}, Holm {})",
+            table[*r][*c],
+            100.0 * t.mean_diff,
+            p_is(t.p_value),
+            fmt_p(a)
+        );
     }
     doc.table(&head, &table);
 }
 
 /// Grey for an ego's own training flow; gold, silver, copper for the best three of each column,
 /// `unranked` (a baseline) left out of the ranking.
-pub fn medals(egos: &[String], flows: &[String], values: &[Vec<f64>], trained_in: &BTreeMap<String, String>, unranked: Option<&String>) -> Vec<Vec<Mark>> {
+pub fn medals(
+    egos: &[String],
+    flows: &[String],
+    values: &[Vec<f64>],
+    trained_in: &BTreeMap<String, String>,
+    unranked: Option<&String>,
+) -> Vec<Vec<Mark>> {
     let mut marks = vec![vec![Mark::None; flows.len()]; egos.len()];
     for (c, f) in flows.iter().enumerate() {
         let mut ranked: Vec<(usize, f64)> = Vec::new();
@@ -276,7 +409,9 @@ pub fn medals(egos: &[String], flows: &[String], values: &[Vec<f64>], trained_in
                 marks[r][c] = Mark::Diagonal;
             } else if Some(e) == unranked {
                 // A baseline (the IDM driver in the ego's seat) is shown, not ranked.
-            } else if let Some(v) = values.get(r).and_then(|row| row.get(c)).filter(|v| v.is_finite()) {
+            } else if let Some(v) =
+                values.get(r).and_then(|row| row.get(c)).filter(|v| v.is_finite())
+            {
                 ranked.push((r, *v));
             }
         }

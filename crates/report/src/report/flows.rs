@@ -9,7 +9,11 @@ use crate::findings::Check;
 use crate::plot::{self, Series};
 
 /// Flow quality: a table and a radar chart per scenario; SocialComm against every other flow.
-pub(super) fn flow_quality(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<(), ReportError> {
+pub(super) fn flow_quality(
+    ctx: &Ctx,
+    doc: &mut Doc,
+    found: &mut Findings,
+) -> Result<(), ReportError> {
     let (rows, meta) = (ctx.rows, ctx.meta);
     let fq = by(rows, |r| r.cell.experiment == "flow_quality");
     if !fq.is_empty() {
@@ -22,7 +26,11 @@ pub(super) fn flow_quality(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Re
         let mut table = Vec::new();
         for f in &flows {
             for s in &scen {
-                let cell = by(rows, |r| r.cell.experiment == "flow_quality" && &r.cell.flow == f && &r.cell.scenario == s);
+                let cell = by(rows, |r| {
+                    r.cell.experiment == "flow_quality"
+                        && &r.cell.flow == f
+                        && &r.cell.scenario == s
+                });
                 let mut row = vec![f.clone(), s.clone()];
                 row.extend(METRICS.iter().map(|(_, m)| pct(summary(&cell, *m))));
                 table.push(row);
@@ -33,26 +41,62 @@ pub(super) fn flow_quality(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Re
             let series: Vec<(String, Vec<(f64, f64)>)> = flows
                 .iter()
                 .map(|f| {
-                    let cell = by(rows, |r| r.cell.experiment == "flow_quality" && &r.cell.flow == f && &r.cell.scenario == s);
-                    (f.clone(), METRICS.iter().enumerate().map(|(k, (_, m))| (k as f64, summary(&cell, *m).mean)).collect())
+                    let cell = by(rows, |r| {
+                        r.cell.experiment == "flow_quality"
+                            && &r.cell.flow == f
+                            && &r.cell.scenario == s
+                    });
+                    (
+                        f.clone(),
+                        METRICS
+                            .iter()
+                            .enumerate()
+                            .map(|(k, (_, m))| (k as f64, summary(&cell, *m).mean))
+                            .collect(),
+                    )
                 })
                 .collect();
             let file = format!("flow-quality-{s}.png");
-            let ser: Vec<Series> = series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
-            plot::radar(&ctx.out.join(&file), &format!("Flow quality, {s}"), &METRICS.iter().map(|(n, _)| n.to_string()).collect::<Vec<_>>(), &ser)?;
-            doc.figure(&file, &format!("Success, Safety and Speed of each flow in {s} (radar; 1 = 100 %)"))?;
+            let ser: Vec<Series> =
+                series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
+            plot::radar(
+                &ctx.out.join(&file),
+                &format!("Flow quality, {s}"),
+                &METRICS.iter().map(|(n, _)| n.to_string()).collect::<Vec<_>>(),
+                &ser,
+            )?;
+            doc.figure(
+                &file,
+                &format!("Success, Safety and Speed of each flow in {s} (radar; 1 = 100 %)"),
+            )?;
         }
         // The paper: SocialComm beats CoPO, MACAD and IDM as a flow, most in dense merge.
         if flows.iter().any(|f| f == "SocialComm") {
             // A flow's rows, in merge (`Some(true)`) or everywhere.
-            let fq = |flow: &str, merge: Option<bool>| by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == flow && merge.is_none_or(|m| (r.cell.scenario == "merge") == m));
+            let fq = |flow: &str, merge: Option<bool>| {
+                by(rows, |r| {
+                    r.cell.experiment == "flow_quality"
+                        && r.cell.flow == flow
+                        && merge.is_none_or(|m| (r.cell.scenario == "merge") == m)
+                })
+            };
             for other in flows.iter().filter(|f| *f != "SocialComm") {
-                if let Some(t) = paired_across_flows(&fq("SocialComm", None), &fq(other, None), |r| r.ep.scores.success) {
+                if let Some(t) =
+                    paired_across_flows(&fq("SocialComm", None), &fq(other, None), |r| {
+                        r.ep.scores.success
+                    })
+                {
                     found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} (flow quality, all scenarios)"), &format!("success, SocialComm - {other}"), &t));
                 }
                 let (sc_merge, other_merge) = (fq("SocialComm", Some(true)), fq(other, Some(true)));
-                if let Some(t) = paired_across_flows(&sc_merge, &other_merge, |r| r.ep.scores.success) {
-                    found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} in merge"), &format!("success, SocialComm - {other}"), &t));
+                if let Some(t) =
+                    paired_across_flows(&sc_merge, &other_merge, |r| r.ep.scores.success)
+                {
+                    found.checks.push(Check::from_paired(
+                        format!("SocialComm flow succeeds more often than {other} in merge"),
+                        &format!("success, SocialComm - {other}"),
+                        &t,
+                    ));
                 }
                 // "Most in dense merge": SocialComm's per-start advantage in merge against its
                 // advantage in each other scenario (their starts are different episodes, so
@@ -91,14 +135,27 @@ pub(super) fn svo_sweep(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
             let series: Vec<(String, Vec<(f64, f64)>)> = flows
                 .iter()
                 .map(|f| {
-                    let svos: BTreeSet<u32> = sw.iter().filter(|r| &r.cell.flow == f && &r.cell.scenario == s).filter_map(|r| r.cell.svo_deg).collect();
+                    let svos: BTreeSet<u32> = sw
+                        .iter()
+                        .filter(|r| &r.cell.flow == f && &r.cell.scenario == s)
+                        .filter_map(|r| r.cell.svo_deg)
+                        .collect();
                     (
                         f.clone(),
                         svos.into_iter()
                             .map(|v| {
                                 (
                                     v as f64,
-                                    summary(&by(rows, |r| r.cell.experiment == "svo_sweep" && &r.cell.flow == f && &r.cell.scenario == s && r.cell.svo_deg == Some(v)), |r| r.ep.scores.success).mean,
+                                    summary(
+                                        &by(rows, |r| {
+                                            r.cell.experiment == "svo_sweep"
+                                                && &r.cell.flow == f
+                                                && &r.cell.scenario == s
+                                                && r.cell.svo_deg == Some(v)
+                                        }),
+                                        |r| r.ep.scores.success,
+                                    )
+                                    .mean,
                                 )
                             })
                             .collect(),
@@ -106,12 +163,32 @@ pub(super) fn svo_sweep(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
                 })
                 .collect();
             let file = format!("svo-sweep-{s}.png");
-            let ser: Vec<Series> = series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
-            plot::line_chart(&ctx.out.join(&file), &format!("Success vs SVO, {s}"), "SVO (deg)", "success", &ser, Some((0.0, 1.0)), (640, 400))?;
-            doc.figure(&file, &format!("Flow success rate when every agent has the same SVO, {s}"))?;
+            let ser: Vec<Series> =
+                series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
+            plot::line_chart(
+                &ctx.out.join(&file),
+                &format!("Success vs SVO, {s}"),
+                "SVO (deg)",
+                "success",
+                &ser,
+                Some((0.0, 1.0)),
+                (640, 400),
+            )?;
+            doc.figure(
+                &file,
+                &format!("Flow success rate when every agent has the same SVO, {s}"),
+            )?;
             if flows.len() == 2 {
-                let a = by(rows, |r| r.cell.experiment == "svo_sweep" && r.cell.flow == flows[1] && &r.cell.scenario == s);
-                let b = by(rows, |r| r.cell.experiment == "svo_sweep" && r.cell.flow == flows[0] && &r.cell.scenario == s);
+                let a = by(rows, |r| {
+                    r.cell.experiment == "svo_sweep"
+                        && r.cell.flow == flows[1]
+                        && &r.cell.scenario == s
+                });
+                let b = by(rows, |r| {
+                    r.cell.experiment == "svo_sweep"
+                        && r.cell.flow == flows[0]
+                        && &r.cell.scenario == s
+                });
                 if let Some(t) = paired_across_flows(&a, &b, |r| r.ep.scores.success) {
                     tests.push((s.clone(), t));
                 }
@@ -121,9 +198,21 @@ pub(super) fn svo_sweep(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
         let adj = holm_family(&tests.iter().map(|(_, t)| Some(t.p_value)).collect::<Vec<_>>());
         for ((s, t), a) in tests.iter().zip(adj) {
             let a = a.unwrap_or(f64::NAN);
-            doc.p(&format!("{s}: {} - {} success = {:+.1} points over all SVOs ({} starts), p = {} {}", flows[1], flows[0], 100.0 * t.mean_diff, t.n, super::p_holm(t.p_value, a), stars(a)));
+            doc.p(&format!(
+                "{s}: {} - {} success = {:+.1} points over all SVOs ({} starts), p = {} {}",
+                flows[1],
+                flows[0],
+                100.0 * t.mean_diff,
+                t.n,
+                super::p_holm(t.p_value, a),
+                stars(a)
+            ));
             if flows[1] == "SocialComm" {
-                found.checks.push(Check::from_paired(format!("SocialComm beats {} over the SVO sweep in {s}", flows[0]), &format!("success, SocialComm - {}", flows[0]), t));
+                found.checks.push(Check::from_paired(
+                    format!("SocialComm beats {} over the SVO sweep in {s}", flows[0]),
+                    &format!("success, SocialComm - {}", flows[0]),
+                    t,
+                ));
             }
         }
     }
@@ -142,24 +231,56 @@ pub(super) fn density(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Result<
         let series: Vec<(String, Vec<(f64, f64)>)> = flows
             .iter()
             .map(|f| {
-                let ns: BTreeSet<usize> = de.iter().filter(|r| &r.cell.flow == f).filter_map(|r| r.cell.vehicles).collect();
+                let ns: BTreeSet<usize> = de
+                    .iter()
+                    .filter(|r| &r.cell.flow == f)
+                    .filter_map(|r| r.cell.vehicles)
+                    .collect();
                 (
                     f.clone(),
                     ns.into_iter()
-                        .map(|n| (n as f64, summary(&by(rows, |r| r.cell.experiment == "density" && &r.cell.flow == f && r.cell.vehicles == Some(n)), |r| r.ep.scores.success).mean))
+                        .map(|n| {
+                            (
+                                n as f64,
+                                summary(
+                                    &by(rows, |r| {
+                                        r.cell.experiment == "density"
+                                            && &r.cell.flow == f
+                                            && r.cell.vehicles == Some(n)
+                                    }),
+                                    |r| r.ep.scores.success,
+                                )
+                                .mean,
+                            )
+                        })
                         .collect(),
                 )
             })
             .collect();
-        let ser: Vec<Series> = series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
-        plot::line_chart(&ctx.out.join("density.png"), &format!("Success vs vehicles, {scen}"), "vehicles per case", "success", &ser, Some((0.0, 1.0)), (640, 400))?;
+        let ser: Vec<Series> =
+            series.iter().map(|(n, p)| Series { name: n, points: p.clone() }).collect();
+        plot::line_chart(
+            &ctx.out.join("density.png"),
+            &format!("Success vs vehicles, {scen}"),
+            "vehicles per case",
+            "success",
+            &ser,
+            Some((0.0, 1.0)),
+            (640, 400),
+        )?;
         doc.figure("density.png", &format!("Flow success rate by number of vehicles in {scen}"))?;
         let mut table = Vec::new();
         for (f, pts) in &series {
-            table.push(std::iter::once(f.clone()).chain(pts.iter().map(|(n, v)| format!("{n}: {:.1}", 100.0 * v))).collect());
+            table.push(
+                std::iter::once(f.clone())
+                    .chain(pts.iter().map(|(n, v)| format!("{n}: {:.1}", 100.0 * v)))
+                    .collect(),
+            );
         }
         let width = table.iter().map(Vec::len).max().unwrap_or(1);
-        let head: Vec<String> = std::iter::once("Flow".to_string()).chain((1..width).map(|k| format!("density {k}"))).collect();
+        let head: Vec<String> = std::iter::once("Flow".to_string())
+            .chain((1..width).map(|k| format!("density {k}")))
+            .collect();
         let table: Vec<Vec<String>> = table
             .into_iter()
             .map(|mut r: Vec<String>| {

@@ -56,7 +56,11 @@ pub fn fmt_p(p: f64) -> String {
     }
 }
 
-const METRICS: [(&str, Metric); 3] = [("Success", |r| r.ep.scores.success), ("Safety", |r| r.ep.scores.safety), ("Speed", |r| r.ep.scores.speed)];
+const METRICS: [(&str, Metric); 3] = [
+    ("Success", |r| r.ep.scores.success),
+    ("Safety", |r| r.ep.scores.safety),
+    ("Speed", |r| r.ep.scores.speed),
+];
 
 /// "= 1.23e-2", or "< 1e-15" below what [`fmt_p`] prints (after a "p").
 fn p_is(p: f64) -> String {
@@ -83,19 +87,43 @@ fn p_holm(p: f64, adjusted: f64) -> String {
 fn paper_adversary(metric: &str) -> BTreeMap<(&'static str, &'static str), [f64; 3]> {
     let success: [(&str, [[f64; 3]; 4]); 4] = [
         ("RL/IDM", [[76.5, 74.8, 55.2], [52.0, 50.8, 20.6], [64.5, 62.8, 9.2], [75.0, 72.8, 19.6]]),
-        ("RL/MACAD", [[83.6, 82.6, 52.1], [75.2, 73.6, 4.6], [71.2, 69.6, 9.1], [73.6, 71.6, 29.6]]),
-        ("RL/CoPO", [[81.6, 78.8, 51.0], [71.6, 69.8, 6.5], [70.1, 66.2, 10.0], [82.1, 80.8, 21.0]]),
-        ("RL/SocialComm", [[87.2, 85.2, 51.4], [91.2, 85.2, 2.4], [84.8, 80.2, 8.4], [87.8, 84.7, 17.0]]),
+        (
+            "RL/MACAD",
+            [[83.6, 82.6, 52.1], [75.2, 73.6, 4.6], [71.2, 69.6, 9.1], [73.6, 71.6, 29.6]],
+        ),
+        (
+            "RL/CoPO",
+            [[81.6, 78.8, 51.0], [71.6, 69.8, 6.5], [70.1, 66.2, 10.0], [82.1, 80.8, 21.0]],
+        ),
+        (
+            "RL/SocialComm",
+            [[87.2, 85.2, 51.4], [91.2, 85.2, 2.4], [84.8, 80.2, 8.4], [87.8, 84.7, 17.0]],
+        ),
     ];
     let speed: [(&str, [[f64; 3]; 4]); 4] = [
-        ("RL/IDM", [[47.4, 46.4, 37.3], [58.6, 57.5, 34.5], [51.6, 51.2, 15.1], [38.3, 38.3, 20.2]]),
-        ("RL/MACAD", [[49.8, 49.7, 36.1], [74.3, 73.9, 24.3], [54.7, 54.2, 17.6], [39.4, 39.6, 25.1]]),
-        ("RL/CoPO", [[49.3, 47.6, 34.9], [71.4, 70.0, 27.7], [55.6, 53.5, 19.4], [42.9, 42.3, 22.9]]),
-        ("RL/SocialComm", [[52.1, 51.0, 36.5], [81.5, 78.5, 24.3], [60.9, 59.4, 16.8], [43.4, 42.5, 19.9]]),
+        (
+            "RL/IDM",
+            [[47.4, 46.4, 37.3], [58.6, 57.5, 34.5], [51.6, 51.2, 15.1], [38.3, 38.3, 20.2]],
+        ),
+        (
+            "RL/MACAD",
+            [[49.8, 49.7, 36.1], [74.3, 73.9, 24.3], [54.7, 54.2, 17.6], [39.4, 39.6, 25.1]],
+        ),
+        (
+            "RL/CoPO",
+            [[49.3, 47.6, 34.9], [71.4, 70.0, 27.7], [55.6, 53.5, 19.4], [42.9, 42.3, 22.9]],
+        ),
+        (
+            "RL/SocialComm",
+            [[52.1, 51.0, 36.5], [81.5, 78.5, 24.3], [60.9, 59.4, 16.8], [43.4, 42.5, 19.9]],
+        ),
     ];
     let table = if metric == "Speed" { speed } else { success };
     let scen = ["intersection", "bottleneck", "merge", "roundabout"];
-    table.iter().flat_map(|(ego, rows)| scen.iter().zip(rows).map(move |(s, v)| ((*ego, *s), *v))).collect()
+    table
+        .iter()
+        .flat_map(|(ego, rows)| scen.iter().zip(rows).map(move |(s, v)| ((*ego, *s), *v)))
+        .collect()
 }
 
 /// Markdown and HTML written side by side.
@@ -123,9 +151,17 @@ impl Doc {
             let _ = writeln!(self.md, "| {} |", r.join(" | "));
         }
         self.md.push('\n');
-        let _ = write!(self.html, "<table><tr>{}</tr>", head.iter().map(|h| format!("<th>{}</th>", esc(h))).collect::<String>());
+        let _ = write!(
+            self.html,
+            "<table><tr>{}</tr>",
+            head.iter().map(|h| format!("<th>{}</th>", esc(h))).collect::<String>()
+        );
         for r in rows {
-            let _ = write!(self.html, "<tr>{}</tr>", r.iter().map(|c| format!("<td>{}</td>", esc(c))).collect::<String>());
+            let _ = write!(
+                self.html,
+                "<tr>{}</tr>",
+                r.iter().map(|c| format!("<td>{}</td>", esc(c))).collect::<String>()
+            );
         }
         self.html.push_str("</table>\n");
     }
@@ -199,7 +235,11 @@ pub fn build(rows: &[EpisodeRow], meta: &Meta, out: &Path) -> Result<Findings, R
 /// pair episodes within a replicate (the same start under two flows or egos of the same
 /// replicate) and the findings table shows every replicate's effect and p beside the pooled
 /// one. One set is [`build`].
-pub fn build_replicates(sets: &[Vec<EpisodeRow>], meta: &Meta, out: &Path) -> Result<Findings, ReportError> {
+pub fn build_replicates(
+    sets: &[Vec<EpisodeRow>],
+    meta: &Meta,
+    out: &Path,
+) -> Result<Findings, ReportError> {
     if sets.len() == 1 {
         return build(&sets[0], meta, out);
     }
@@ -212,7 +252,12 @@ pub fn build_replicates(sets: &[Vec<EpisodeRow>], meta: &Meta, out: &Path) -> Re
     build_doc(&pooled, meta, out, each)
 }
 
-fn build_doc(rows: &[EpisodeRow], meta: &Meta, out: &Path, replicates: Vec<Findings>) -> Result<Findings, ReportError> {
+fn build_doc(
+    rows: &[EpisodeRow],
+    meta: &Meta,
+    out: &Path,
+    replicates: Vec<Findings>,
+) -> Result<Findings, ReportError> {
     std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
     let mut doc = Doc { md: String::new(), html: String::new(), dir: out.to_path_buf() };
     let mut found = Findings { episodes: rows.len(), ..Findings::default() };
@@ -228,15 +273,29 @@ fn build_doc(rows: &[EpisodeRow], meta: &Meta, out: &Path, replicates: Vec<Findi
         rows.len(),
         meta.sizes_text()
     ));
-    let ctx = Ctx { rows, meta, out, scen_pref: ["intersection", "bottleneck", "merge", "roundabout"].iter().map(|s| s.to_string()).collect() };
-    for section in [flows::flow_quality, flows::svo_sweep, flows::density, egos::adversary, egos::cross] {
+    let ctx = Ctx {
+        rows,
+        meta,
+        out,
+        scen_pref: ["intersection", "bottleneck", "merge", "roundabout"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
+    };
+    for section in
+        [flows::flow_quality, flows::svo_sweep, flows::density, egos::adversary, egos::cross]
+    {
         section(&ctx, &mut doc, &mut found)?;
     }
     findings::adjust(&mut found.checks);
 
     // Episode GIFs placed in `out` by the caller (`gif-<scenario>.gif`).
-    let mut gifs: Vec<String> =
-        std::fs::read_dir(out).map_err(|e| file_err(out, e))?.flatten().map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with("gif-") && n.ends_with(".gif")).collect();
+    let mut gifs: Vec<String> = std::fs::read_dir(out)
+        .map_err(|e| file_err(out, e))?
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with("gif-") && n.ends_with(".gif"))
+        .collect();
     gifs.sort();
     if !gifs.is_empty() {
         doc.h(2, "The same case under each flow");
@@ -272,10 +331,23 @@ fn findings_table(doc: &mut Doc, checks: &[Check]) {
     }
     doc.h(2, "The paper's findings at this budget");
     doc.p(FAMILY_NOTE);
-    let head: Vec<String> = ["Finding", "Test", "Effect (points)", "p", "p (Holm)", "MDE (points)", "Verdict"].map(String::from).into();
+    let head: Vec<String> =
+        ["Finding", "Test", "Effect (points)", "p", "p (Holm)", "MDE (points)", "Verdict"]
+            .map(String::from)
+            .into();
     let table: Vec<Vec<String>> = checks
         .iter()
-        .map(|c| vec![c.claim.clone(), c.test.clone(), format!("{:+.1}", c.effect_points), fmt_p(c.p_value), fmt_p(c.p_adjusted), format!("{:.1}", c.mde_points()), c.verdict.as_str().into()])
+        .map(|c| {
+            vec![
+                c.claim.clone(),
+                c.test.clone(),
+                format!("{:+.1}", c.effect_points),
+                fmt_p(c.p_value),
+                fmt_p(c.p_adjusted),
+                format!("{:.1}", c.mde_points()),
+                c.verdict.as_str().into(),
+            ]
+        })
         .collect();
     doc.table(&head, &table);
 }
@@ -292,20 +364,34 @@ fn across_table(doc: &mut Doc, across: &[AcrossRuns]) {
     doc.p(FAMILY_NOTE);
     let mut head: Vec<String> = vec!["Finding".into()];
     head.extend((1..=k).map(|r| format!("Run {r}: effect, p (Holm), MDE")));
-    head.extend(["Random effects: effect ± 95 %, I²", "Verdict (runs as the unit)"].map(String::from));
+    head.extend(
+        ["Random effects: effect ± 95 %, I²", "Verdict (runs as the unit)"].map(String::from),
+    );
     let table: Vec<Vec<String>> = across
         .iter()
         .map(|a| {
             // A claim that quotes measured values differs between runs: its key names it.
             let claims: Vec<&String> = a.runs.iter().flatten().map(|c| &c.claim).collect();
-            let claim = if claims.windows(2).all(|w| w[0] == w[1]) { claims.first().map(|c| c.to_string()).unwrap_or_else(|| a.key.clone()) } else { a.key.clone() };
+            let claim = if claims.windows(2).all(|w| w[0] == w[1]) {
+                claims.first().map(|c| c.to_string()).unwrap_or_else(|| a.key.clone())
+            } else {
+                a.key.clone()
+            };
             let mut row = vec![claim];
             row.extend(a.runs.iter().map(|c| match c {
-                Some(c) => format!("{:+.1}, {}, MDE {:.1}: {}", c.effect_points, p_holm(c.p_value, c.p_adjusted), c.mde_points(), c.verdict.as_str()),
+                Some(c) => format!(
+                    "{:+.1}, {}, MDE {:.1}: {}",
+                    c.effect_points,
+                    p_holm(c.p_value, c.p_adjusted),
+                    c.mde_points(),
+                    c.verdict.as_str()
+                ),
                 None => "-".into(),
             }));
             row.push(match &a.combined {
-                Some(re) => format!("{:+.1} ± {:.1}, I² {:.0} %", re.estimate, re.ci95, 100.0 * re.i2),
+                Some(re) => {
+                    format!("{:+.1} ± {:.1}, I² {:.0} %", re.estimate, re.ci95, 100.0 * re.i2)
+                }
                 None => "-".into(),
             });
             row.push(a.verdict.as_str().into());
@@ -328,10 +414,29 @@ mod tests {
     use crate::plot::Mark;
     use sf_job::eval::{Cell, EvalEpisode};
 
-    fn row(experiment: &str, ego: &str, flow: &str, case: u32, seed: u32, success: f32) -> EpisodeRow {
+    fn row(
+        experiment: &str,
+        ego: &str,
+        flow: &str,
+        case: u32,
+        seed: u32,
+        success: f32,
+    ) -> EpisodeRow {
         EpisodeRow {
-            cell: Cell { experiment: experiment.into(), ego: ego.into(), flow: flow.into(), scenario: "merge".into(), svo_deg: None, vehicles: None },
-            ep: EvalEpisode { case, seed, scores: sf_job::Scores { success, safety: success, speed: 0.5 }, collision: 0.0 },
+            cell: Cell {
+                experiment: experiment.into(),
+                ego: ego.into(),
+                flow: flow.into(),
+                scenario: "merge".into(),
+                svo_deg: None,
+                vehicles: None,
+            },
+            ep: EvalEpisode {
+                case,
+                seed,
+                scores: sf_job::Scores { success, safety: success, speed: 0.5 },
+                collision: 0.0,
+            },
             replicate: 0,
         }
     }
@@ -354,7 +459,8 @@ mod tests {
                 y.push(row("adversary", ego, "Y", case, 0, if case == 0 { 1.0 - s } else { s }));
             }
         }
-        let (xr, yr): (Vec<&EpisodeRow>, Vec<&EpisodeRow>) = (x.iter().collect(), y.iter().collect());
+        let (xr, yr): (Vec<&EpisodeRow>, Vec<&EpisodeRow>) =
+            (x.iter().collect(), y.iter().collect());
         let t = paired_across_flows(&xr, &yr, |r| r.ep.scores.success).expect("a test");
         assert_eq!(t.n, 40, "one pair per ego and episode start");
         assert!(t.mean_diff.abs() < 1e-12 && t.p_value > 0.9, "{t:?}");
@@ -374,15 +480,24 @@ mod tests {
         let m = medals(&egos, &flows, &values, &trained, None);
         assert_eq!(m[0][0], Mark::Diagonal, "A's own flow is grey though it is the best");
         assert_eq!((m[2][0], m[3][0], m[1][0]), (Mark::Gold, Mark::Silver, Mark::Copper));
-        assert_eq!((m[3][1], m[2][1], m[1][1], m[0][1]), (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None));
+        assert_eq!(
+            (m[3][1], m[2][1], m[1][1], m[0][1]),
+            (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None)
+        );
         // A baseline row is not ranked: the next ego takes its medal.
         let m = medals(&egos, &flows, &values, &trained, Some(&egos[3]));
-        assert_eq!((m[2][1], m[1][1], m[0][1], m[3][1]), (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None));
+        assert_eq!(
+            (m[2][1], m[1][1], m[0][1], m[3][1]),
+            (Mark::Gold, Mark::Silver, Mark::Copper, Mark::None)
+        );
     }
 
     #[test]
     fn stars_follow_the_paper() {
-        assert_eq!((stars(1e-5), stars(5e-4), stars(5e-3), stars(0.03), stars(0.2)), ("****", "***", "**", "*", "n.s."));
+        assert_eq!(
+            (stars(1e-5), stars(5e-4), stars(5e-3), stars(0.03), stars(0.2)),
+            ("****", "***", "**", "*", "n.s.")
+        );
         assert_eq!((fmt_p(0.0), fmt_p(0.0123)), ("< 1e-15".to_string(), "1.23e-2".to_string()));
     }
 
@@ -399,22 +514,46 @@ mod tests {
                 rows.push(row("flow_quality", "", "SocialComm", case, 0, base));
                 rows.push(row("flow_quality", "", "CoPO", case, 0, base - 0.1 - jitter));
                 // The adversary claim quotes measured values, which differ between replicates.
-                for (flow, v) in [("SocialComm", 0.7), ("SocialCommAdv", 0.6 - 0.1 * rep as f32), ("FailMaker", 0.2)] {
+                for (flow, v) in [
+                    ("SocialComm", 0.7),
+                    ("SocialCommAdv", 0.6 - 0.1 * rep as f32),
+                    ("FailMaker", 0.2),
+                ] {
                     rows.push(row("adversary", "RL/IDM", flow, case, 0, v + jitter));
                 }
             }
             rows
         };
-        let meta = Meta { flows: vec!["CoPO".into(), "SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()], cases: 16, seeds: 1, ..Meta::default() };
+        let meta = Meta {
+            flows: vec![
+                "CoPO".into(),
+                "SocialComm".into(),
+                "SocialCommAdv".into(),
+                "FailMaker".into(),
+            ],
+            cases: 16,
+            seeds: 1,
+            ..Meta::default()
+        };
         let out = std::env::temp_dir().join(format!("sf-report-replicates-{}", std::process::id()));
         let f = build_replicates(&[set(0), set(1)], &meta, &out).expect("report");
-        let copo = f.checks.iter().find(|c| c.claim == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)").expect("flow check");
+        let copo = f
+            .checks
+            .iter()
+            .find(|c| {
+                c.claim
+                    == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)"
+            })
+            .expect("flow check");
         assert_eq!(copo.n, 16, "the 16 starts, each averaged over both replicates");
         assert!(copo.holds() && (copo.effect_points - 11.0).abs() < 1.0, "{copo:?}");
         assert_eq!(f.replicates.len(), 2);
         for (k, r) in f.replicates.iter().enumerate() {
             assert_eq!(r.episodes, 16 * 5, "run {k}");
-            assert!(out.join(format!("run-{}", k + 1)).join("report.md").exists(), "run {k}'s own report");
+            assert!(
+                out.join(format!("run-{}", k + 1)).join("report.md").exists(),
+                "run {k}'s own report"
+            );
         }
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
         assert!(
@@ -422,13 +561,37 @@ mod tests {
                 && md.contains("| Finding | Run 1: effect, p (Holm), MDE | Run 2: effect, p (Holm), MDE | Random effects: effect ± 95 %, I² | Verdict (runs as the unit) |"),
             "{md}"
         );
-        let fm = md.lines().find(|l| l.starts_with("| FailMaker degrades egos more")).expect("adversary row");
-        assert!(!fm.contains("| - |"), "each run's check is found by its key although its claim differs: {fm}");
+        let fm = md
+            .lines()
+            .find(|l| l.starts_with("| FailMaker degrades egos more"))
+            .expect("adversary row");
+        assert!(
+            !fm.contains("| - |"),
+            "each run's check is found by its key although its claim differs: {fm}"
+        );
         assert!(fm.ends_with("| holds in every run |"), "both runs hold: {fm}");
         // Run 1 drops 10 points under SocialCommAdv, run 2 20: ratios 5 and 2.5, each with its interval.
-        let run = |k: usize| std::fs::read_to_string(out.join(format!("run-{k}")).join("report.md")).expect("run report");
-        assert!(run(1).contains("drop ratio 5.0x") && run(2).contains("drop ratio 2.5x"), "{}", run(1));
-        assert_ne!(f.replicates[0].checks.iter().find(|c| c.key.starts_with("FailMaker")).map(|c| &c.claim), f.replicates[1].checks.iter().find(|c| c.key.starts_with("FailMaker")).map(|c| &c.claim));
+        let run = |k: usize| {
+            std::fs::read_to_string(out.join(format!("run-{k}")).join("report.md"))
+                .expect("run report")
+        };
+        assert!(
+            run(1).contains("drop ratio 5.0x") && run(2).contains("drop ratio 2.5x"),
+            "{}",
+            run(1)
+        );
+        assert_ne!(
+            f.replicates[0]
+                .checks
+                .iter()
+                .find(|c| c.key.starts_with("FailMaker"))
+                .map(|c| &c.claim),
+            f.replicates[1]
+                .checks
+                .iter()
+                .find(|c| c.key.starts_with("FailMaker"))
+                .map(|c| &c.claim)
+        );
         let _ = std::fs::remove_dir_all(&out);
     }
 
@@ -441,9 +604,23 @@ mod tests {
             for seed in 0..2 {
                 let noise = ((case * 7 + seed * 3) % 5) as f32 * 0.02;
                 for (flow, fb) in [("IDM", 0.0), ("SocialComm", 0.05)] {
-                    rows.push(row("cross", "RARL/SocialCommAdv", flow, case, seed, 0.8 + fb + noise));
+                    rows.push(row(
+                        "cross",
+                        "RARL/SocialCommAdv",
+                        flow,
+                        case,
+                        seed,
+                        0.8 + fb + noise,
+                    ));
                     rows.push(row("cross", "RL/IDM", flow, case, seed, 0.3 + fb + noise));
-                    rows.push(row("cross", "RL/SocialComm", flow, case, seed, 0.6 + fb + noise * 0.5));
+                    rows.push(row(
+                        "cross",
+                        "RL/SocialComm",
+                        flow,
+                        case,
+                        seed,
+                        0.6 + fb + noise * 0.5,
+                    ));
                     rows.push(row("cross", "IDM ego", flow, case, seed, 0.45 + fb + noise * 0.5));
                 }
                 rows.push(row("flow_quality", "", "SocialComm", case, seed, 0.7 + noise));
@@ -453,19 +630,40 @@ mod tests {
                 }
                 for svo in [0, 45, 90] {
                     for (flow, v) in [("CoPO", 0.4), ("SocialComm", 0.7)] {
-                        rows.push(with_cell(row("svo_sweep", "", flow, case, seed, v + noise), |c| c.svo_deg = Some(svo)));
+                        rows.push(with_cell(
+                            row("svo_sweep", "", flow, case, seed, v + noise),
+                            |c| c.svo_deg = Some(svo),
+                        ));
                     }
                 }
                 for n in [4, 8] {
-                    rows.push(with_cell(row("density", "", "SocialComm", case, seed, 0.9 - n as f32 * 0.05), |c| c.vehicles = Some(n)));
+                    rows.push(with_cell(
+                        row("density", "", "SocialComm", case, seed, 0.9 - n as f32 * 0.05),
+                        |c| c.vehicles = Some(n),
+                    ));
                 }
             }
         }
         let meta = Meta {
-            trained_in: [("RL/IDM".to_string(), "IDM".to_string()), ("RL/SocialComm".to_string(), "SocialComm".to_string())].into(),
+            trained_in: [
+                ("RL/IDM".to_string(), "IDM".to_string()),
+                ("RL/SocialComm".to_string(), "SocialComm".to_string()),
+            ]
+            .into(),
             ours: Some("RARL/SocialCommAdv".into()),
-            flows: vec!["IDM".into(), "CoPO".into(), "SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()],
-            egos: vec!["RL/IDM".into(), "RL/SocialComm".into(), "RARL/SocialCommAdv".into(), "IDM ego".into()],
+            flows: vec![
+                "IDM".into(),
+                "CoPO".into(),
+                "SocialComm".into(),
+                "SocialCommAdv".into(),
+                "FailMaker".into(),
+            ],
+            egos: vec![
+                "RL/IDM".into(),
+                "RL/SocialComm".into(),
+                "RARL/SocialCommAdv".into(),
+                "IDM ego".into(),
+            ],
             idm_ego: Some("IDM ego".into()),
             cases: 12,
             seeds: 2,
@@ -475,28 +673,89 @@ mod tests {
         let f = build(&rows, &meta, &out).expect("report");
         assert_eq!(f.experiments, ["flow_quality", "svo_sweep", "density", "adversary", "cross"]);
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
-        for needle in ["Cross-validation", "cross-success-merge.png", "zero-shot-success.png", "64.5 / 62.8 / 9.2", "svo-sweep-merge.png", "density.png"] {
+        for needle in [
+            "Cross-validation",
+            "cross-success-merge.png",
+            "zero-shot-success.png",
+            "64.5 / 62.8 / 9.2",
+            "svo-sweep-merge.png",
+            "density.png",
+        ] {
             assert!(md.contains(needle), "{needle} missing from the report");
         }
         let html = std::fs::read_to_string(out.join("report.html")).expect("html");
-        assert!(html.contains("data:image/png;base64,") && !html.contains("src=\"cross-"), "figures are embedded");
-        let best = f.checks.iter().find(|c| c.claim.starts_with("RARL/SocialCommAdv transfers best in merge")).expect("a zero-shot check");
-        assert!(best.holds() && best.p_value < 1e-4 && best.test.contains("decisive: vs RL/SocialComm"), "the nearer of the two others decides: {best:?}");
+        assert!(
+            html.contains("data:image/png;base64,") && !html.contains("src=\"cross-"),
+            "figures are embedded"
+        );
+        let best = f
+            .checks
+            .iter()
+            .find(|c| c.claim.starts_with("RARL/SocialCommAdv transfers best in merge"))
+            .expect("a zero-shot check");
+        assert!(
+            best.holds() && best.p_value < 1e-4 && best.test.contains("decisive: vs RL/SocialComm"),
+            "the nearer of the two others decides: {best:?}"
+        );
         // FailMaker (0.2) degrades far more than SocialCommAdv (0.6) from SocialComm (0.7): a tested
         // finding with its direction, not a bare comparison of means.
-        let fm = f.checks.iter().find(|c| c.claim.starts_with("FailMaker degrades egos more")).expect("the adversary check");
+        let fm = f
+            .checks
+            .iter()
+            .find(|c| c.claim.starts_with("FailMaker degrades egos more"))
+            .expect("the adversary check");
         assert!(fm.holds() && (fm.effect_points - 40.0).abs() < 1.0, "{fm:?}");
-        assert!(md.contains("drop ratio 5.0x (95 % cluster-bootstrap interval"), "a significant first drop gives a ratio with its interval");
-        let copo = f.checks.iter().find(|c| c.claim == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)").expect("flow check");
+        assert!(
+            md.contains("drop ratio 5.0x (95 % cluster-bootstrap interval"),
+            "a significant first drop gives a ratio with its interval"
+        );
+        let copo = f
+            .checks
+            .iter()
+            .find(|c| {
+                c.claim
+                    == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)"
+            })
+            .expect("flow check");
         assert!(copo.holds() && copo.test.starts_with("paired t"), "{copo:?}");
-        assert!(md.contains("| Finding | Test | Effect (points) | p | p (Holm) | MDE (points) | Verdict |"), "the findings table names test, effect, raw and adjusted p");
+        assert!(
+            md.contains(
+                "| Finding | Test | Effect (points) | p | p (Holm) | MDE (points) | Verdict |"
+            ),
+            "the findings table names test, effect, raw and adjusted p"
+        );
         // Against the IDM driver in the ego's seat: one check per trained ego, with its direction.
-        let vs_idm = |e: &str| f.checks.iter().find(|c| c.claim.starts_with(&format!("{e} succeeds more often than the IDM driver"))).unwrap_or_else(|| panic!("{e} vs the IDM ego"));
-        assert!(vs_idm("RL/SocialComm").holds() && (vs_idm("RL/SocialComm").effect_points - 15.0).abs() < 1e-3, "{:?}", vs_idm("RL/SocialComm"));
-        assert_eq!(vs_idm("RL/IDM").verdict, crate::findings::Verdict::Opposite, "0.30 vs 0.45 on every start");
-        assert_eq!(f.checks.iter().filter(|c| c.claim.contains("than the IDM driver")).count(), 3, "the IDM ego is not tested against itself");
+        let vs_idm = |e: &str| {
+            f.checks
+                .iter()
+                .find(|c| {
+                    c.claim.starts_with(&format!("{e} succeeds more often than the IDM driver"))
+                })
+                .unwrap_or_else(|| panic!("{e} vs the IDM ego"))
+        };
+        assert!(
+            vs_idm("RL/SocialComm").holds()
+                && (vs_idm("RL/SocialComm").effect_points - 15.0).abs() < 1e-3,
+            "{:?}",
+            vs_idm("RL/SocialComm")
+        );
+        assert_eq!(
+            vs_idm("RL/IDM").verdict,
+            crate::findings::Verdict::Opposite,
+            "0.30 vs 0.45 on every start"
+        );
+        assert_eq!(
+            f.checks.iter().filter(|c| c.claim.contains("than the IDM driver")).count(),
+            3,
+            "the IDM ego is not tested against itself"
+        );
         assert!(!best.test.contains("IDM ego"), "ours is compared with trained egos only");
-        assert!(md.contains("Trained egos against the IDM driver in their seat") && md.contains("| IDM ego | 49.4 | 49.4 |") && md.contains("(+15.0, p < 1e-15, Holm < 1e-15)"), "{md}");
+        assert!(
+            md.contains("Trained egos against the IDM driver in their seat")
+                && md.contains("| IDM ego | 49.4 | 49.4 |")
+                && md.contains("(+15.0, p < 1e-15, Holm < 1e-15)"),
+            "{md}"
+        );
         let _ = std::fs::remove_dir_all(&out);
     }
 
@@ -506,7 +765,10 @@ mod tests {
         (0..30)
             .flat_map(|case| {
                 let j = (case % 5) as f32 * 0.02;
-                [row("flow_quality", "", "SocialComm", case, 0, sc + j), row("flow_quality", "", other, case, 0, o + j + (case % 3) as f32 * 0.01)]
+                [
+                    row("flow_quality", "", "SocialComm", case, 0, sc + j),
+                    row("flow_quality", "", other, case, 0, o + j + (case % 3) as f32 * 0.01),
+                ]
             })
             .map(|r| with_cell(r, |c| c.scenario = scenario.into()))
             .collect()
@@ -516,9 +778,15 @@ mod tests {
     /// than in two scenarios but not in the third does not hold; larger than all three does.
     #[test]
     fn larger_in_merge_needs_every_other_scenario() {
-        let meta = Meta { flows: vec!["CoPO".into(), "SocialComm".into()], cases: 30, seeds: 1, ..Meta::default() };
+        let meta = Meta {
+            flows: vec!["CoPO".into(), "SocialComm".into()],
+            cases: 30,
+            seeds: 1,
+            ..Meta::default()
+        };
         let out = std::env::temp_dir().join(format!("sf-report-merge-{}", std::process::id()));
-        let claim = "SocialComm's advantage over CoPO is larger in merge than in each other scenario";
+        let claim =
+            "SocialComm's advantage over CoPO is larger in merge than in each other scenario";
         let mut rows = flows_in("merge", 0.8, "CoPO", 0.5);
         rows.extend(flows_in("intersection", 0.7, "CoPO", 0.6));
         rows.extend(flows_in("roundabout", 0.7, "CoPO", 0.6));
@@ -526,15 +794,26 @@ mod tests {
         rows.extend(flows_in("bottleneck", 0.9, "CoPO", 0.4));
         let f = build(&rows, &meta, &out).expect("report");
         let c = f.checks.iter().find(|c| c.claim == claim).expect("the merge check");
-        assert_eq!(c.verdict, crate::findings::Verdict::Opposite, "bottleneck's advantage is larger: {c:?}");
-        assert!(c.test.contains("decisive: merge vs bottleneck") && c.test.starts_with("every one of 3 comparisons"), "{c:?}");
+        assert_eq!(
+            c.verdict,
+            crate::findings::Verdict::Opposite,
+            "bottleneck's advantage is larger: {c:?}"
+        );
+        assert!(
+            c.test.contains("decisive: merge vs bottleneck")
+                && c.test.starts_with("every one of 3 comparisons"),
+            "{c:?}"
+        );
         let mut rows = both;
         rows.extend(flows_in("bottleneck", 0.65, "CoPO", 0.6));
         let f = build(&rows, &meta, &out).expect("report");
         let c = f.checks.iter().find(|c| c.claim == claim).expect("the merge check");
         assert!(c.holds() && c.test.contains("Welch t"), "{c:?}");
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
-        assert!(md.contains("except the \"larger in merge\" comparisons (Welch"), "the header says which tests are not paired");
+        assert!(
+            md.contains("except the \"larger in merge\" comparisons (Welch"),
+            "the header says which tests are not paired"
+        );
         let _ = std::fs::remove_dir_all(&out);
     }
 
@@ -544,15 +823,26 @@ mod tests {
         let mut rows = Vec::new();
         for case in 0..30 {
             let noise = if case % 2 == 0 { 0.05 } else { -0.05 };
-            for (flow, v) in [("SocialComm", 0.7), ("SocialCommAdv", 0.7 + noise), ("FailMaker", 0.3)] {
+            for (flow, v) in
+                [("SocialComm", 0.7), ("SocialCommAdv", 0.7 + noise), ("FailMaker", 0.3)]
+            {
                 rows.push(row("adversary", "RL/IDM", flow, case, 0, v + (case % 4) as f32 * 0.03));
             }
         }
-        let meta = Meta { flows: vec!["SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()], cases: 30, seeds: 1, ..Meta::default() };
+        let meta = Meta {
+            flows: vec!["SocialComm".into(), "SocialCommAdv".into(), "FailMaker".into()],
+            cases: 30,
+            seeds: 1,
+            ..Meta::default()
+        };
         let out = std::env::temp_dir().join(format!("sf-report-ratio-{}", std::process::id()));
         build(&rows, &meta, &out).expect("report");
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
-        assert!(md.contains("no drop ratio: the first drop is not significantly positive") && !md.contains("x (95 % cluster-bootstrap"), "{md}");
+        assert!(
+            md.contains("no drop ratio: the first drop is not significantly positive")
+                && !md.contains("x (95 % cluster-bootstrap"),
+            "{md}"
+        );
         assert!(md.contains("under FailMaker +40.0 points"), "both drops are reported: {md}");
         assert!(md.contains("Power: SocialCommAdv's drop: this grid has 30 starts"), "{md}");
         let _ = std::fs::remove_dir_all(&out);

@@ -12,16 +12,36 @@ pub fn configs() -> PathBuf {
 }
 
 pub fn map(name: &str) -> Arc<Map> {
-    Arc::new(Map::load(&configs().join(format!("scenarios/{name}.json"))).expect("shipped scenario loads"))
+    Arc::new(
+        Map::load(&configs().join(format!("scenarios/{name}.json")))
+            .expect("shipped scenario loads"),
+    )
 }
 
 /// The first spawn point (in file order) whose routes include `route`, skipping `skip` of them.
 pub fn spawn_for(map: &Map, route: u32, skip: usize) -> u32 {
-    map.spawns.iter().enumerate().filter(|(_, s)| s.routes.contains(&route)).nth(skip).map(|(i, _)| i as u32).expect("a spawn point for the route")
+    map.spawns
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.routes.contains(&route))
+        .nth(skip)
+        .map(|(i, _)| i as u32)
+        .expect("a spawn point for the route")
 }
 
 pub fn case(vehicles: &[(u32, u32, f32)]) -> Case {
-    Case { id: 0, vehicles: vehicles.iter().map(|&(spawn, route, svo_deg)| CaseVehicle { spawn, route, svo_deg, max_speed_mps: None }).collect() }
+    Case {
+        id: 0,
+        vehicles: vehicles
+            .iter()
+            .map(|&(spawn, route, svo_deg)| CaseVehicle {
+                spawn,
+                route,
+                svo_deg,
+                max_speed_mps: None,
+            })
+            .collect(),
+    }
 }
 
 pub fn env(map: &Arc<Map>) -> Env {
@@ -35,7 +55,8 @@ pub fn assert_ego_drives_like_idm(ego_action: impl Fn(usize) -> sf_sim::Action) 
     use sf_sim::env::{Controller, Mode};
     for name in ["intersection", "bottleneck", "merge", "roundabout"] {
         let m = map(name);
-        let cases = sf_sim::CaseFile::load(&configs().join(format!("cases/{name}.v1.json")), &m).expect("shipped cases load");
+        let cases = sf_sim::CaseFile::load(&configs().join(format!("cases/{name}.v1.json")), &m)
+            .expect("shipped cases load");
         for (k, c) in cases.cases.iter().take(25).enumerate() {
             let (mut ego, mut idm) = (env(&m), env(&m));
             ego.reset(c, Mode::Ego { background: Controller::Idm }, None).expect("reset");
@@ -48,9 +69,20 @@ pub fn assert_ego_drives_like_idm(ego_action: impl Fn(usize) -> sf_sim::Action) 
                 idm.step(&idle).expect("step");
                 let (a, b) = (&ego.agents()[0], &idm.agents()[0]);
                 assert_eq!(a.state, b.state, "{name} case {} step {}", c.id, ego.step_index());
-                assert_eq!(a.termination, b.termination, "{name} case {} step {}", c.id, ego.step_index());
+                assert_eq!(
+                    a.termination,
+                    b.termination,
+                    "{name} case {} step {}",
+                    c.id,
+                    ego.step_index()
+                );
             }
-            assert_eq!(ego.agents()[0].outcome(), idm.agents()[0].outcome(), "{name} case {}", c.id);
+            assert_eq!(
+                ego.agents()[0].outcome(),
+                idm.agents()[0].outcome(),
+                "{name} case {}",
+                c.id
+            );
         }
     }
 }

@@ -46,7 +46,14 @@ impl NStep {
 
     /// One decision step `s` of row `r` of simulator `k` (`ended`: the agent's episode ended
     /// on it, by any end, a cut included); what leaves goes to `out`.
-    pub fn step(&mut self, k: usize, r: usize, s: Transition<'_>, ended: bool, out: &mut impl FnMut(Transition<'_>)) {
+    pub fn step(
+        &mut self,
+        k: usize,
+        r: usize,
+        s: Transition<'_>,
+        ended: bool,
+        out: &mut impl FnMut(Transition<'_>),
+    ) {
         if self.n == 1 {
             out(Transition { steps: 1, ..s });
             return;
@@ -59,7 +66,12 @@ impl NStep {
             rows.resize_with(r + 1, Window::default);
         }
         let w = &mut rows[r];
-        w.pending.push_back(Pending { obs: s.obs.to_vec(), action: s.action.to_vec(), reward: 0.0, steps: 0 });
+        w.pending.push_back(Pending {
+            obs: s.obs.to_vec(),
+            action: s.action.to_vec(),
+            reward: 0.0,
+            steps: 0,
+        });
         for p in &mut w.pending {
             p.reward += self.gamma.powi(i32::from(p.steps)) * s.reward;
             p.steps += 1;
@@ -67,13 +79,29 @@ impl NStep {
         w.map_id = s.map_id;
         if ended {
             for p in w.pending.drain(..) {
-                out(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: s.next_obs, terminal: s.terminal, map_id: s.map_id, steps: p.steps });
+                out(Transition {
+                    obs: &p.obs,
+                    action: &p.action,
+                    reward: p.reward,
+                    next_obs: s.next_obs,
+                    terminal: s.terminal,
+                    map_id: s.map_id,
+                    steps: p.steps,
+                });
             }
             return;
         }
         if w.pending.front().is_some_and(|p| p.steps >= self.n) {
             if let Some(p) = w.pending.pop_front() {
-                out(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: s.next_obs, terminal: false, map_id: s.map_id, steps: p.steps });
+                out(Transition {
+                    obs: &p.obs,
+                    action: &p.action,
+                    reward: p.reward,
+                    next_obs: s.next_obs,
+                    terminal: false,
+                    map_id: s.map_id,
+                    steps: p.steps,
+                });
             }
         }
         if !w.pending.is_empty() {
@@ -87,7 +115,15 @@ impl NStep {
     pub fn flush(&mut self, out: &mut impl FnMut(Transition<'_>)) {
         for w in self.windows.iter_mut().flatten() {
             for p in w.pending.drain(..) {
-                out(Transition { obs: &p.obs, action: &p.action, reward: p.reward, next_obs: &w.next_obs, terminal: false, map_id: w.map_id, steps: p.steps });
+                out(Transition {
+                    obs: &p.obs,
+                    action: &p.action,
+                    reward: p.reward,
+                    next_obs: &w.next_obs,
+                    terminal: false,
+                    map_id: w.map_id,
+                    steps: p.steps,
+                });
             }
         }
     }
@@ -115,10 +151,32 @@ mod tests {
     fn run(n: u8, steps: &[(f32, f32, bool, bool)], flush_after: Option<usize>) -> Vec<Out> {
         let mut ns = NStep::new(n, 0.5);
         let mut got = Vec::new();
-        let mut out = |s: Transition<'_>| got.push(Out { obs: s.obs[0], reward: s.reward, next_obs: s.next_obs[0], terminal: s.terminal, steps: s.steps });
+        let mut out = |s: Transition<'_>| {
+            got.push(Out {
+                obs: s.obs[0],
+                reward: s.reward,
+                next_obs: s.next_obs[0],
+                terminal: s.terminal,
+                steps: s.steps,
+            })
+        };
         for (t, &(reward, next, ended, terminal)) in steps.iter().enumerate() {
             let obs = [t as f32];
-            ns.step(1, 2, Transition { obs: &obs, action: &[0.0], reward, next_obs: &[next], terminal, steps: 1, map_id: 0 }, ended, &mut out);
+            ns.step(
+                1,
+                2,
+                Transition {
+                    obs: &obs,
+                    action: &[0.0],
+                    reward,
+                    next_obs: &[next],
+                    terminal,
+                    steps: 1,
+                    map_id: 0,
+                },
+                ended,
+                &mut out,
+            );
             if flush_after == Some(t) {
                 ns.flush(&mut out);
             }
@@ -132,7 +190,16 @@ mod tests {
     /// spans they saw, terminal.
     #[test]
     fn windows_sum_discounted_rewards_and_end_with_the_episode() {
-        let got = run(3, &[(1.0, 1.0, false, false), (2.0, 2.0, false, false), (4.0, 3.0, false, false), (8.0, 4.0, true, true)], None);
+        let got = run(
+            3,
+            &[
+                (1.0, 1.0, false, false),
+                (2.0, 2.0, false, false),
+                (4.0, 3.0, false, false),
+                (8.0, 4.0, true, true),
+            ],
+            None,
+        );
         assert_eq!(
             got,
             vec![
@@ -149,8 +216,18 @@ mod tests {
     #[test]
     fn cuts_and_policy_changes_leave_short_non_terminal_spans() {
         let got = run(4, &[(1.0, 1.0, false, false), (1.0, 2.0, true, false)], None);
-        assert_eq!(got, vec![Out { obs: 0.0, reward: 1.5, next_obs: 2.0, terminal: false, steps: 2 }, Out { obs: 1.0, reward: 1.0, next_obs: 2.0, terminal: false, steps: 1 }]);
-        let got = run(4, &[(1.0, 1.0, false, false), (1.0, 2.0, false, false), (1.0, 3.0, true, true)], Some(0));
+        assert_eq!(
+            got,
+            vec![
+                Out { obs: 0.0, reward: 1.5, next_obs: 2.0, terminal: false, steps: 2 },
+                Out { obs: 1.0, reward: 1.0, next_obs: 2.0, terminal: false, steps: 1 }
+            ]
+        );
+        let got = run(
+            4,
+            &[(1.0, 1.0, false, false), (1.0, 2.0, false, false), (1.0, 3.0, true, true)],
+            Some(0),
+        );
         assert_eq!(
             got,
             vec![
@@ -165,6 +242,12 @@ mod tests {
     #[test]
     fn one_step_passes_through() {
         let got = run(1, &[(1.0, 1.0, false, false), (2.0, 2.0, true, true)], Some(0));
-        assert_eq!(got, vec![Out { obs: 0.0, reward: 1.0, next_obs: 1.0, terminal: false, steps: 1 }, Out { obs: 1.0, reward: 2.0, next_obs: 2.0, terminal: true, steps: 1 }]);
+        assert_eq!(
+            got,
+            vec![
+                Out { obs: 0.0, reward: 1.0, next_obs: 1.0, terminal: false, steps: 1 },
+                Out { obs: 1.0, reward: 2.0, next_obs: 2.0, terminal: true, steps: 1 }
+            ]
+        );
     }
 }

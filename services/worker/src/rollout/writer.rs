@@ -52,7 +52,11 @@ impl Credits {
             if lock(control).stop {
                 return false;
             }
-            n = self.changed.wait_timeout(n, std::time::Duration::from_millis(100)).unwrap_or_else(|p| p.into_inner()).0;
+            n = self
+                .changed
+                .wait_timeout(n, std::time::Duration::from_millis(100))
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
         }
     }
 }
@@ -108,7 +112,14 @@ impl TransitionWriter {
     /// One step of every simulator: its simulated steps, the `rows`' transitions (`before`: each
     /// simulator's observations before the step; `actions`: `act_dim` floats per row) and the
     /// episodes that finished.
-    pub(super) fn add(&mut self, venvs: &mut [VecEnv], before: &[Vec<f32>], rows: &[Vec<usize>], actions: &[Vec<f32>], job: &JobConfig) {
+    pub(super) fn add(
+        &mut self,
+        venvs: &mut [VecEnv],
+        before: &[Vec<f32>],
+        rows: &[Vec<usize>],
+        actions: &[Vec<f32>],
+        job: &JobConfig,
+    ) {
         let (len, act_dim) = (self.batch.obs_len, self.batch.action_dim);
         for (k, v) in venvs.iter_mut().enumerate() {
             self.batch.sim_steps += v.n_envs() as u64;
@@ -128,14 +139,22 @@ impl TransitionWriter {
                     map_id: k as u32,
                 };
                 let batch = &mut self.batch;
-                self.nstep.step(k, r, step, st.ended.is_some() || st.truncated, &mut |t| batch.push_transition(t));
+                self.nstep.step(k, r, step, st.ended.is_some() || st.truncated, &mut |t| {
+                    batch.push_transition(t)
+                });
             }
             for m in v.take_finished() {
                 self.metrics.episodes.inc();
                 self.batch.episodes.push(EpisodeResult {
                     scenario_index: k as u32,
                     scores: m.scores,
-                    ends: Ends { collision: m.collision, off_road: m.off_road, off_route: m.off_route, wrong_lane: m.wrong_lane, timeout: m.timeout },
+                    ends: Ends {
+                        collision: m.collision,
+                        off_road: m.off_road,
+                        off_route: m.off_route,
+                        wrong_lane: m.wrong_lane,
+                        timeout: m.timeout,
+                    },
                 });
             }
         }
@@ -171,11 +190,22 @@ mod tests {
     use super::*;
     use prometheus_client::registry::Registry;
 
-    fn writer(credits: u32, full_at: usize) -> (TransitionWriter, mpsc::Receiver<pb::TransitionBatch>, Arc<Mutex<Control>>) {
+    fn writer(
+        credits: u32,
+        full_at: usize,
+    ) -> (TransitionWriter, mpsc::Receiver<pb::TransitionBatch>, Arc<Mutex<Control>>) {
         let control = Arc::new(Mutex::new(Control { warmup: false, policy: None, stop: false }));
         let (tx, rx) = mpsc::channel(8);
         let metrics = WorkerMetrics::register(&mut Registry::default());
-        let w = TransitionWriter::new(TransitionBatch::new(7, 3, 2, 1), NStep::new(1, 0.9), full_at, Arc::clone(&control), Arc::new(Credits::new(credits)), tx, metrics);
+        let w = TransitionWriter::new(
+            TransitionBatch::new(7, 3, 2, 1),
+            NStep::new(1, 0.9),
+            full_at,
+            Arc::clone(&control),
+            Arc::new(Credits::new(credits)),
+            tx,
+            metrics,
+        );
         (w, rx, control)
     }
 
@@ -216,13 +246,24 @@ mod tests {
         assert!(w.stamp(v(4))?.is_continue());
         let batch = &mut w.batch;
         for reward in [1.0, 2.0] {
-            let step = Transition { obs: &[0.0, 1.0], action: &[0.5], reward, next_obs: &[1.0, 2.0], terminal: false, steps: 1, map_id: 0 };
+            let step = Transition {
+                obs: &[0.0, 1.0],
+                action: &[0.5],
+                reward,
+                next_obs: &[1.0, 2.0],
+                terminal: false,
+                steps: 1,
+                map_id: 0,
+            };
             w.nstep.step(0, 0, step, false, &mut |t| batch.push_transition(t));
         }
         assert_eq!((w.batch.count, w.nstep.pending()), (0, 2), "the window holds both steps");
         assert!(w.stamp(v(5))?.is_continue());
         let sent = rx.try_recv()?;
-        assert_eq!((sent.policy_version, sent.count, sent.steps.as_slice(), sent.rewards.as_slice()), (4, 2, &[2u8, 1][..], &[2.0f32, 2.0][..]));
+        assert_eq!(
+            (sent.policy_version, sent.count, sent.steps.as_slice(), sent.rewards.as_slice()),
+            (4, 2, &[2u8, 1][..], &[2.0f32, 2.0][..])
+        );
         assert_eq!(w.nstep.pending(), 0);
         Ok(())
     }
@@ -238,7 +279,10 @@ mod tests {
         assert!(w.send_if_full()?.is_continue());
         let sent = rx.try_recv()?;
         assert_eq!((sent.policy_version, sent.count), (4, 2));
-        assert_eq!((w.metrics.transitions_sent.get(), w.metrics.batches_sent.get(), w.batch.count), (2, 1, 0));
+        assert_eq!(
+            (w.metrics.transitions_sent.get(), w.metrics.batches_sent.get(), w.batch.count),
+            (2, 1, 0)
+        );
         Ok(())
     }
 
