@@ -92,10 +92,11 @@ def exported_metrics(repo):
         files += [os.path.join(d, f) for f in sorted(os.listdir(os.path.join(repo, d))) if f.endswith(".rs")]
     srcs = {f: read(repo, f) for f in files}
     all_src = "\n".join(srcs.values())
-    components = set(re.findall(r'CommonMetrics::register\(\s*\w+\s*,\s*"(\w+)"\s*\)', all_src))
+    # Calls may span lines with a trailing comma (rustfmt at width 100).
+    components = set(re.findall(r'CommonMetrics::register\(\s*\w+\s*,\s*"(\w+)"\s*,?\s*\)', all_src))
     prefixed = "Registry::with_prefix" in all_src
     names = {}
-    reg = re.compile(r'\.register\(\s*(?:"([^"]+)"|format!\("([^"]+)"\))\s*,\s*"[^"]*"\s*,\s*m\.(\w+)\.clone\(\)\s*\)')
+    reg = re.compile(r'\.register\(\s*(?:"([^"]+)"|format!\("([^"]+)"\))\s*,\s*"[^"]*"\s*,\s*m\.(\w+)\.clone\(\)\s*,?\s*\)')
     for f, src in srcs.items():
         fields = dict(re.findall(r"^\s*pub (\w+):\s*([^\n]+?),\s*$", src, re.M))
         for lit, fmt, field in reg.findall(src):
