@@ -20,8 +20,9 @@ if [ ! -x "$tools/usr/bin/promtool" ]; then
   dpkg -x "$tools"/deb/prometheus_*.deb "$tools"
 fi
 export PROMTOOL="$tools/usr/bin/promtool" SOCIALFLOW_REQUIRE_PROMTOOL=1
-# The full-disk test mounts a small tmpfs: as root it must run, not skip.
-if [ "$(id -u)" = 0 ]; then export SOCIALFLOW_REQUIRE_TMPFS=1; fi
+# The full-disk test mounts a small tmpfs and the network test makes namespaces, links and
+# iptables rules of its own: as root they must run, not skip.
+if [ "$(id -u)" = 0 ]; then export SOCIALFLOW_REQUIRE_TMPFS=1 SOCIALFLOW_REQUIRE_NETNS=1; fi
 "$PROMTOOL" check rules deploy/alerts.yml
 # One cached venv for the Python sides of the tests: the official tensorboard package reads a
 # job's event files, onnxruntime runs an exported policy, and the socialflow Python package

@@ -207,6 +207,29 @@ fn a_job_completes_after_a_worker_is_killed() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A continuation that warms up with the policy it continues (`warmup_policy = "policy"`, as
+/// Stage 2's RARL rounds do) trains to its end: its workers fetch that policy before the first
+/// step (they once waited for it forever: no transition, so no acknowledgement to fetch it on).
+#[test]
+fn a_continuation_warms_up_with_the_policy_it_continues() {
+    let dir = scratch("continuation");
+    let l = start_learner(&dir, 64 << 20);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    let first = submit(&rt, &mut c, tiny_job(TWO_MAPS, "first", 600));
+    let done = wait_final(&rt, &mut c, first.job_id, "the first job to finish");
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    let cont = tiny_job(TWO_MAPS, "continued", 800)
+        .replace("[train]\n", &format!("[train]\ninit_job = {}\n", first.job_id))
+        .replace("warmup_steps = 200\n", "warmup_steps = 200\nwarmup_policy = \"policy\"\n");
+    let job = submit(&rt, &mut c, cont);
+    let done = wait_final(&rt, &mut c, job.job_id, "the continuation to finish");
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, 800);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Killed mid-job, its data directory moved elsewhere (a restored backup, a volume mounted at
 /// another path), the learner resumes from the moved checkpoint and replay.
 #[test]

@@ -3,6 +3,8 @@
 //! `cargo test --workspace` does not build other packages' binaries; `tests/run.sh` builds
 //! them first. Children are killed when their deadline passes or when the handle drops.
 
+pub mod netns;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -16,6 +18,10 @@ pub fn repo() -> PathBuf {
 pub fn bin(name: &str) -> PathBuf {
     if let Ok(p) = std::env::var(format!("SOCIALFLOW_BIN_{}", name.to_uppercase())) {
         return PathBuf::from(p);
+    }
+    // Every binary from one directory (e.g. a release build's, for measurements).
+    if let Some(dir) = std::env::var_os("SOCIALFLOW_BIN_DIR") {
+        return PathBuf::from(dir).join(name);
     }
     let exe = std::env::current_exe().expect("test executable path");
     // target/<profile>/deps/<test> -> target/<profile>/<name>

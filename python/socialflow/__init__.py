@@ -6,6 +6,7 @@ simulator, with the background traffic (IDM, or a trained flow's frozen policy) 
     venv = socialflow.make_ego_vec(num_envs=16, scenario="merge")   # gymnasium.vector.VectorEnv
     flow = socialflow.make_flow(scenario="roundabout")              # pettingzoo ParallelEnv
     result = socialflow.evaluate(policy, grid={"flows": {"idm": "idm"}, "scenarios": ["merge"]})
+    actor = socialflow.load_policy("runs/quickstart/jobs/1-quickstart")   # a trained job's actor
 
 Rust is the only implementation: this package wraps `crates/sim` and `crates/sac` (module
 `socialflow._socialflow`); nothing here steps a vehicle.
@@ -17,6 +18,7 @@ from . import _socialflow
 from .envs import EgoEnv, EgoVectorEnv, make_ego, make_ego_vec, split_obs
 from .evaluation import EvalResult, evaluate, zero_residual_policy
 from .parallel import FlowParallelEnv, make_flow
+from .policy import Policy, load_policy
 
 SCENARIOS = tuple(_socialflow.scenarios())
 TERMINATIONS = tuple(_socialflow.terminations())
@@ -31,9 +33,11 @@ __all__ = [
     "EgoVectorEnv",
     "EvalResult",
     "FlowParallelEnv",
+    "Policy",
     "SCENARIOS",
     "TERMINATIONS",
     "evaluate",
+    "load_policy",
     "make_ego",
     "make_ego_vec",
     "make_flow",

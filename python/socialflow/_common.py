@@ -60,9 +60,15 @@ def observation_space(core, obs_format):
     return spaces.Dict(parts)
 
 
-def make_core(scenario, flow, vehicles, layout, action, num_envs, seed, conflict_share, multi_agent=False, reward="individual"):
+def make_core(scenario, flow, vehicles, layout, action, num_envs, seed, conflict_share, multi_agent=False, reward="individual", policy=None):
     if not isinstance(scenario, str):
         raise ValueError(f"scenario: {scenario!r} is not a scenario name")
+    if policy is not None:
+        if not isinstance(policy, _socialflow.Policy):
+            raise ValueError(f"policy: {policy!r} is not a socialflow.Policy (socialflow.load_policy)")
+        # The env observes and acts as the loaded policy does.
+        action = policy.action if action is None else action
+    action = "direct" if action is None else action
     seed = seed_arg(seed)
     return _socialflow.Core(
         scenario,
@@ -75,4 +81,5 @@ def make_core(scenario, flow, vehicles, layout, action, num_envs, seed, conflict
         conflict_share,
         multi_agent,
         reward,
+        policy,
     )

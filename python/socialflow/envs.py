@@ -46,11 +46,11 @@ class EgoEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action="direct", obs_format="dict", conflict_share=None, render_mode=None, seed=0):
+    def __init__(self, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, obs_format="dict", conflict_share=None, render_mode=None, seed=0, policy=None):
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         self.render_mode = render_mode
-        self._core = make_core(scenario, flow, vehicles, layout, action, 1, seed, conflict_share)
+        self._core = make_core(scenario, flow, vehicles, layout, action, 1, seed, conflict_share, policy=policy)
         self.obs_format = obs_format
         self.observation_space = observation_space(self._core, obs_format)
         self.action_space = spaces.Box(-1.0, 1.0, (self._core.action_dim,), np.float32)
@@ -116,13 +116,13 @@ class EgoVectorEnv(VectorEnv):
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action="direct", obs_format="dict", conflict_share=None, render_mode=None, seed=0):
+    def __init__(self, num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, obs_format="dict", conflict_share=None, render_mode=None, seed=0, policy=None):
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs: {num_envs!r} is not a positive integer")
         self.render_mode = render_mode
-        self._core = make_core(scenario, flow, vehicles, layout, action, num_envs, seed, conflict_share)
+        self._core = make_core(scenario, flow, vehicles, layout, action, num_envs, seed, conflict_share, policy=policy)
         self.num_envs = int(num_envs)
         self.obs_format = obs_format
         self.single_observation_space = observation_space(self._core, obs_format)
@@ -165,11 +165,13 @@ class EgoVectorEnv(VectorEnv):
         return self._core.render(0)
 
 
-def make_ego(scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action="direct", **kwargs):
-    """The ego's seat in `scenario` among `flow` (`"idm"` or a trained flow's job directory)."""
+def make_ego(scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, **kwargs):
+    """The ego's seat in `scenario` among `flow` (`"idm"` or a trained flow's job directory).
+    `action`: `"direct"` unless given; `policy=socialflow.load_policy(...)`: observe and act as
+    that trained policy does (its layout, observation caps and action)."""
     return EgoEnv(scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, **kwargs)
 
 
-def make_ego_vec(num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action="direct", **kwargs):
+def make_ego_vec(num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, **kwargs):
     """`num_envs` ego seats stepped together in Rust (see `EgoVectorEnv`)."""
     return EgoVectorEnv(num_envs=num_envs, scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, **kwargs)

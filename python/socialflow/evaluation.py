@@ -92,7 +92,8 @@ def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="fla
     """Runs `policy` in the ego's seat over the grid: for every flow and scenario, the first
     `cases` stored cases (200) x `seeds` (10), `envs` (16) simulators stepped together.
 
-    `policy(obs)` gets a batch of observations (`[n, obs_len]` float32, or a dict of blocks with
+    `policy` is a job's actor from `load_policy` (run in Rust with its own action and layout,
+    as `socialflow eval` runs it), or any callable: `policy(obs)` gets a batch of observations (`[n, obs_len]` float32, or a dict of blocks with
     `obs_format="dict"`) and returns `[n, action_dim]` actions in [-1, 1] of the kind `action`.
     `grid`: `{"flows": {name: "idm" | flow job dir}, "scenarios": [...], "cases", "seeds",
     "envs", "vehicles", "svo_deg", "experiment", "ego"}`; keyword arguments override it.
@@ -101,6 +102,16 @@ def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="fla
     if not callable(policy):
         raise ValueError(f"policy: {policy!r} is not callable")
     check_choice("obs_format", obs_format, ("flat", "dict"))
+    loaded = isinstance(policy, _socialflow.Policy)
+    if loaded:
+        # A job's actor (`load_policy`) drives in Rust with its own action and layout.
+        if action not in ("direct", policy.action):
+            raise ValueError(f"action: {action!r} given, but the policy drives with {policy.action!r}")
+        if layout not in (None, policy.layout):
+            raise ValueError(f"layout: {layout!r} given, but the policy reads {policy.layout!r}")
+        if obs_format != "flat":
+            raise ValueError("obs_format: a loaded policy reads flat observations")
+        action, layout = policy.action, policy.layout
     g, flow_map, scenario_list = _grid(grid, {"cases": cases, "seeds": seeds, "envs": envs, "scenarios": scenarios, "flows": flows})
     n_cases, n_seeds, n_envs = int(g.get("cases", 200)), int(g.get("seeds", 10)), int(g.get("envs", 16))
     vehicles, svo = g.get("vehicles"), g.get("svo_deg")
@@ -119,7 +130,7 @@ def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="fla
                 a = np.ascontiguousarray(np.asarray(_call(obs), dtype=np.float32))
                 return a.reshape(len(obs), -1) if a.ndim == 1 else a
 
-            rows = _socialflow.evaluate(wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
+            rows = _socialflow.evaluate(policy if loaded else wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
             mine = [
                 dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision)))
                 for case, seed, success, safety, speed, collision in rows

@@ -3,7 +3,8 @@
 //! Owns: [`Core`] (K simulators of one scenario stepped together, with the background flow
 //! driven inside Rust: IDM, or a finished flow job's frozen policy with CoPO's coordinator or
 //! SocialCommAdv's adversary; in ego mode Python drives agent 0 of every simulator, in
-//! multi-agent mode every vehicle), [`evaluate`] (a Python policy over stored cases x seeds
+//! multi-agent mode every vehicle), [`LoadedPolicy`] (a finished job's kept actor, Rust
+//! inference of its mean action), [`evaluate`] (a Python policy over stored cases x seeds
 //! through `sf_rollout::evaluate::run_stored`, the loop of `socialflow eval`'s cells) and the
 //! conversions to NumPy. Must not: re-implement the simulator, the flows or inference (it
 //! calls `sf_sim` and `sf_rollout`), or hold the GIL while simulators step.
@@ -23,7 +24,8 @@ use pyo3::types::PyDict;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_rollout::drive::{self, Actor};
-use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Runners};
+use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Policy, Runners};
+use sf_rollout::inference::PolicyRunner;
 use sf_sim::obs::{MapSegments, ObsSpec, AGENT_CTX};
 use sf_sim::vec_env::{EpisodeSpec, VecEnv, VecEnvConfig};
 use sf_sim::{CaseFile, DriveAction, Layout, Map, Mode, SvoVisibility, Termination};
@@ -179,7 +181,7 @@ type StepOut<'py> = (
 #[pymethods]
 impl Core {
     #[new]
-    #[pyo3(signature = (scenario_name, flow=None, vehicles=(8, 20), layout=None, action="direct", num_envs=1, seed=0, conflict_share=None, multi_agent=false, reward="individual"))]
+    #[pyo3(signature = (scenario_name, flow=None, vehicles=(8, 20), layout=None, action="direct", num_envs=1, seed=0, conflict_share=None, multi_agent=false, reward="individual", policy=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         scenario_name: &str,
@@ -192,10 +194,17 @@ impl Core {
         conflict_share: Option<f32>,
         multi_agent: bool,
         reward: &str,
+        policy: Option<PyRef<'_, LoadedPolicy>>,
     ) -> PyResult<Self> {
         let (map, cases) = scenario(scenario_name)?;
         let action = DriveAction::parse(action).map_err(|e| bad("action", e))?;
-        let layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
+        let mut layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
+        if let Some(p) = &policy {
+            if multi_agent {
+                return Err(bad("policy", "observes as one ego: not in a multi-agent environment"));
+            }
+            layout = Some(p.fits(action, layout)?);
+        }
         if vehicles.0 == 0 || vehicles.0 > vehicles.1 {
             return Err(bad(
                 "vehicles",
@@ -248,6 +257,9 @@ impl Core {
                 if reward == Reward::Composed { SvoVisibility::All } else { SvoVisibility::None };
             setup.sim = Arc::new(sim);
             setup.mode = Mode::MultiAgent;
+        }
+        if let Some(p) = &policy {
+            setup.sim = Arc::new(sf_rollout::evaluate::ego_sim(&def, &p.policy));
         }
         let hide_svo = !multi_agent && !matches!(def, FlowDef::Idm);
         let segments = MapSegments::build(&map, setup.sim.obs.segment_points).len();
@@ -526,6 +538,204 @@ impl Core {
     }
 }
 
+fn cpu() -> PyResult<sf_nn::device::Device> {
+    sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)
+        .map_err(|e| PyOSError::new_err(e.to_string()))
+}
+
+/// A finished job's kept actor (`policy.bpk` with its `config.toml`): batched Rust inference of
+/// its deterministic (mean) action, the action `socialflow eval` drives with. Query-centric
+/// actors read map segments, so they act in one scenario (`scenario`, or the job's only one).
+#[pyclass(name = "Policy", module = "socialflow._socialflow", frozen)]
+struct LoadedPolicy {
+    policy: Policy,
+    job_dir: String,
+    action: DriveAction,
+    layout: Layout,
+    obs_len: usize,
+    action_dim: usize,
+    scenario: Option<String>,
+    /// Boxed: the runner's tensors are aligned beyond what a Python object's storage gives.
+    runner: Option<Box<PolicyRunner>>,
+}
+
+impl LoadedPolicy {
+    /// Its layout, once `action` and `layout` (the caller's) are checked against its own.
+    fn fits(&self, action: DriveAction, layout: Option<Layout>) -> PyResult<Layout> {
+        if action != self.action {
+            return Err(bad(
+                "action",
+                format!(
+                    "`{}` given, but the policy drives with `{}`",
+                    action.as_str(),
+                    self.action.as_str()
+                ),
+            ));
+        }
+        if layout.is_some_and(|l| l != self.layout) {
+            return Err(bad(
+                "layout",
+                format!("the policy reads the `{}` layout", self.layout.as_str()),
+            ));
+        }
+        Ok(self.layout)
+    }
+}
+
+#[pymethods]
+impl LoadedPolicy {
+    #[new]
+    #[pyo3(signature = (job_dir, scenario=None))]
+    fn new(job_dir: &str, scenario: Option<&str>) -> PyResult<Self> {
+        let dir = std::path::Path::new(job_dir);
+        if !dir.join("config.toml").exists() {
+            return Err(PyOSError::new_err(format!(
+                "job_dir: `{job_dir}` is not a job's artifact directory (no config.toml there)"
+            )));
+        }
+        let policy = Policy::load(dir).map_err(|e| match e {
+            sf_rollout::evaluate::EvalError::Io { .. } => {
+                PyOSError::new_err(format!("job_dir: {e}"))
+            }
+            e => bad("job_dir", e),
+        })?;
+        if !policy.cfg.kind.drives() {
+            return Err(bad(
+                "job_dir",
+                format!("a {} job's actor does not drive a vehicle", policy.cfg.kind.as_str()),
+            ));
+        }
+        let resolved = sf_rollout::setup::resolve(&policy.cfg, None);
+        let bound = match scenario {
+            Some(s) => Some(s.to_string()),
+            None => match policy.cfg.env.scenarios.as_slice() {
+                [only] => Some(only.clone()),
+                _ => None,
+            },
+        };
+        let layout = resolved.obs.layout;
+        let build = |maps: &[&MapSegments]| -> PyResult<PolicyRunner> {
+            PolicyRunner::from_bytes(
+                &resolved.net,
+                &resolved.obs,
+                resolved.sim.dt_s,
+                maps,
+                &policy.weights,
+                0,
+                &cpu()?,
+            )
+            .map_err(|e| bad("job_dir", format!("{}: {e}", dir.join("policy.bpk").display())))
+        };
+        let runner = match (&bound, layout) {
+            (Some(name), _) => {
+                let (map, _) = crate::scenario(name)?;
+                Some(Box::new(build(&[&MapSegments::build(
+                    &map,
+                    resolved.sim.obs.segment_points,
+                )])?))
+            }
+            (None, Layout::EgoFrame) => Some(Box::new(build(&[])?)),
+            (None, _) => None,
+        };
+        Ok(Self {
+            job_dir: job_dir.to_string(),
+            action: resolved.net.action,
+            action_dim: resolved.net.action_dim,
+            obs_len: resolved.obs.len,
+            layout,
+            scenario: bound,
+            runner,
+            policy,
+        })
+    }
+
+    /// Mean actions `[n, action_dim]` for observations `[n, obs_len]` (float32) of the job's
+    /// observation format (`make_ego(..., layout=policy.layout, action=policy.action)`).
+    fn __call__<'py>(
+        &self,
+        py: Python<'py>,
+        obs: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let runner = self.runner.as_ref().ok_or_else(|| {
+            bad(
+                "scenario",
+                format!(
+                    "this actor reads the {} layout's map segments and its job trained on {} scenarios: load it with load_policy(job_dir, scenario=...) for the scenario it acts in",
+                    self.layout.as_str(),
+                    self.policy.cfg.env.scenarios.len()
+                ),
+            )
+        })?;
+        let [n, len] = [obs.shape()[0], obs.shape()[1]];
+        if len != self.obs_len {
+            return Err(bad(
+                "obs",
+                format!("rows of {len} floats, expected {} (this job's observation)", self.obs_len),
+            ));
+        }
+        let rows = obs.as_slice().map_err(|e| bad("obs", e))?.to_vec();
+        if rows.iter().any(|v| !v.is_finite()) {
+            return Err(bad("obs", "holds NaN or infinite values"));
+        }
+        let out = py.detach(|| runner.mean(&rows, &vec![0; n]));
+        PyArray1::from_vec(py, out).reshape([n, self.action_dim])
+    }
+
+    /// The action kind its output drives (`"direct"`, `"idm-accel-residual"`, ...).
+    #[getter]
+    fn action(&self) -> &'static str {
+        self.action.as_str()
+    }
+    /// The observation layout it reads (`"ego-frame"` or `"query-centric"`).
+    #[getter]
+    fn layout(&self) -> &'static str {
+        self.layout.as_str()
+    }
+    #[getter]
+    fn obs_len(&self) -> usize {
+        self.obs_len
+    }
+    #[getter]
+    fn action_dim(&self) -> usize {
+        self.action_dim
+    }
+    /// The scenario it acts in (`None`: unbound, evaluation only).
+    #[getter]
+    fn scenario(&self) -> Option<String> {
+        self.scenario.clone()
+    }
+    #[getter]
+    fn job_dir(&self) -> &str {
+        &self.job_dir
+    }
+    /// The job's name and kind (`config.toml`).
+    #[getter]
+    fn name(&self) -> &str {
+        &self.policy.cfg.name
+    }
+    #[getter]
+    fn kind(&self) -> &'static str {
+        self.policy.cfg.kind.as_str()
+    }
+    /// The scenarios the job trained on.
+    #[getter]
+    fn scenarios(&self) -> Vec<String> {
+        self.policy.cfg.env.scenarios.clone()
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "socialflow.Policy(job_dir={:?}, name={:?}, kind={:?}, action={:?}, layout={:?}, scenario={:?})",
+            self.job_dir,
+            self.policy.cfg.name,
+            self.policy.cfg.kind.as_str(),
+            self.action.as_str(),
+            self.layout.as_str(),
+            self.scenario
+        )
+    }
+}
+
 /// Runs `policy` (a callable `[n, obs_len] float32 -> [n, action_dim] float32`) in the ego's
 /// seat over the first `cases` stored cases x `seeds` among the flow, through the loop of
 /// `socialflow eval`'s cells. Returns `(case, seed, success, safety, speed, collision)` per
@@ -551,7 +761,13 @@ fn evaluate(
     }
     let (map, stored) = scenario(scenario_name)?;
     let action = DriveAction::parse(action).map_err(|e| bad("action", e))?;
-    let layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
+    let mut layout = layout.map(Layout::parse).transpose().map_err(|e| bad("layout", e))?;
+    // A loaded job's actor drives in Rust, as in `socialflow eval`, with its own action and
+    // layout.
+    let loaded = policy.extract::<PyRef<'_, LoadedPolicy>>().ok();
+    if let Some(p) = &loaded {
+        layout = Some(p.fits(action, layout)?);
+    }
     if cases == 0 || cases > stored.cases.len() {
         return Err(bad(
             "cases",
@@ -571,11 +787,16 @@ fn evaluate(
         return Err(bad("svo_deg", format!("{s} is not in [0, 90]")));
     }
     let def = flow_def(flow)?;
-    let mut runners = Runners::new(
-        sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)
-            .map_err(|e| PyOSError::new_err(e.to_string()))?,
-    );
-    let setup = FlowSetup::new(&def, &map, layout, &mut runners).map_err(|e| bad("flow", e))?;
+    let mut runners = Runners::new(cpu()?);
+    let mut setup = FlowSetup::new(&def, &map, layout, &mut runners).map_err(|e| bad("flow", e))?;
+    if let Some(p) = &loaded {
+        setup.sim = Arc::new(sf_rollout::evaluate::ego_sim(&def, &p.policy));
+    }
+    let runner = loaded
+        .as_ref()
+        .map(|p| runners.get(&p.policy, &map, &setup.sim))
+        .transpose()
+        .map_err(|e| bad("policy", e))?;
     let spec = ObsSpec::new(&setup.sim.obs);
     let (len, dim, hide) = (spec.len, action.dim(), !matches!(def, FlowDef::Idm));
     let failed: RefCell<Option<PyErr>> = RefCell::new(None);
@@ -606,7 +827,11 @@ fn evaluate(
             vec![0.0; n * dim]
         })
     };
-    let drivers = setup.drivers(Actor::External { act: &act, action });
+    let ego = match &runner {
+        Some(r) => Actor::mean(r),
+        None => Actor::External { act: &act, action },
+    };
+    let drivers = setup.drivers(ego);
     let episodes = Episodes { cases: &stored.cases[..cases], seeds, envs, vehicles, svo_deg };
     let rows = sf_rollout::evaluate::run_stored(
         &map,
@@ -641,6 +866,7 @@ fn terminations() -> Vec<&'static str> {
 #[pymodule]
 fn _socialflow(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Core>()?;
+    m.add_class::<LoadedPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios, m)?)?;
     m.add_function(wrap_pyfunction!(terminations, m)?)?;

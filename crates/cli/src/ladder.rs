@@ -341,18 +341,14 @@ fn rung_cases(dirs: &Ctx, rung: &Rung) -> Result<Vec<(Arc<Map>, CaseFile)>> {
         let sim = Arc::new(SimConfig::default());
         for (map, cases) in &mut maps {
             let mut rng = ChaCha8Rng::seed_from_u64(g.seed);
-            cases.cases = (0..rung.eval.cases)
-                .map(|id| {
-                    sf_sim::vec_env::draw_case(
-                        map,
-                        &sim,
-                        &mut rng,
-                        id,
-                        (g.vehicles[0], g.vehicles[1]),
-                        g.draw(),
-                    )
-                })
-                .collect();
+            cases.cases = sf_sim::vec_env::draw_cases(
+                map,
+                &sim,
+                &mut rng,
+                rung.eval.cases,
+                (g.vehicles[0], g.vehicles[1]),
+                g.draw(),
+            );
         }
     }
     Ok(maps)

@@ -75,6 +75,7 @@ impl Embedded {
                 max_backoff: Duration::from_secs(2),
                 threads: 0,
                 tls: Default::default(),
+                in_flight_batches: sf_worker::DEFAULT_IN_FLIGHT_BATCHES,
             };
             let metrics = WorkerMetrics::register(&mut Registry::default());
             workers.push(tokio::spawn(sf_worker::run(wc, metrics, stop_rx.clone())));

@@ -239,6 +239,12 @@ pub struct EnvSection {
     /// lane-change rung, `sf_sim::vec_env::SlowLeader`). Absent: every case as drawn.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slow_leader: Option<sf_sim::vec_env::SlowLeader>,
+    /// Flow and FailMaker jobs: the range, in degrees within [-90, 90], that a case's SVO
+    /// (stored in [0, 90]) is mapped onto for the job's vehicles, in training and wherever the
+    /// job is the background (absent: [-90, 90] for FailMaker, the paper's c; [0, 90] for the
+    /// other flows). `[-90, -90]`: every FailMaker vehicle is rewarded by `-R_ego` alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub svo_range_deg: Option<[f32; 2]>,
     /// Overrides the observation's cap on other agents (nearest first; default 20).
     #[serde(default)]
     pub max_neighbours: Option<usize>,
@@ -850,6 +856,25 @@ impl JobConfig {
                 );
             }
         }
+        if let Some([lo, hi]) = self.env.svo_range_deg {
+            if !self.kind.multi_agent() && self.kind != JobKind::Failmaker {
+                return bad(
+                    "env.svo_range_deg",
+                    format!(
+                        "the range of a flow's own SVOs is for flow and failmaker jobs, not a {} job (its background's range is the background job's)",
+                        self.kind.as_str()
+                    ),
+                );
+            }
+            if !(lo.is_finite() && hi.is_finite() && -90.0 <= lo && lo <= hi && hi <= 90.0) {
+                return bad(
+                    "env.svo_range_deg",
+                    format!(
+                        "[{lo}, {hi}] must be an SVO range with -90 <= low <= high <= 90 degrees"
+                    ),
+                );
+            }
+        }
         for (f, v, hi) in [
             ("env.max_neighbours", self.env.max_neighbours, 64),
             ("env.max_segments", self.env.max_segments, 512),
@@ -1164,6 +1189,30 @@ mod tests {
         assert_eq!(c.net.preset, NetPreset::Fast);
         let again = JobConfig::from_toml(&c.to_toml()).expect("round trip");
         assert_eq!(again, c);
+    }
+
+    /// `env.svo_range_deg`: a flow's or FailMaker's own range, inside [-90, 90], low <= high;
+    /// refused on ego jobs (whose background brings its own) with the field named.
+    #[test]
+    fn svo_range_is_a_flows_and_is_checked() {
+        let fm = |r: &str, kind: &str| {
+            let ego = if kind.contains("failmaker") { "ego_job = 1\n" } else { "" };
+            JobConfig::from_toml(&format!(
+                "{kind}{}[sac]\nwarmup_steps = 100\n",
+                MIN.replace("[train]", &format!("svo_range_deg = {r}\n{ego}[train]"))
+            ))
+        };
+        let ok = fm("[-90.0, -90.0]", "kind = \"failmaker\"\n").map(|j| j.env.svo_range_deg);
+        assert_eq!(ok.ok().flatten(), Some([-90.0, -90.0]));
+        assert!(fm("[0.0, 45.0]", "kind = \"copo\"\n").is_ok());
+        for (r, kind) in [
+            ("[10.0, -10.0]", "kind = \"failmaker\"\n"),
+            ("[-100.0, 0.0]", "kind = \"failmaker\"\n"),
+            ("[0.0, 90.0]", ""),
+        ] {
+            let e = fm(r, kind).expect_err(r);
+            assert!(e.to_string().contains("env.svo_range_deg"), "{r} {kind}: {e}");
+        }
     }
 
     #[test]

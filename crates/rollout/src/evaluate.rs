@@ -152,7 +152,7 @@ impl FlowDef {
     }
 
     /// The flow's message probe on `sim` (nothing for IDM, whose drivers read no messages).
-    fn probe(&self, sim: &mut SimConfig) {
+    pub fn probe(&self, sim: &mut SimConfig) {
         if let Self::Learned { messages, .. } = self {
             sim.obs.messages = *messages;
         }
@@ -166,6 +166,14 @@ impl FlowDef {
             Self::Idm => None,
             Self::Learned { adversary: Some(_), .. } => Some(JobKind::SocialcommAdv),
             Self::Learned { background, .. } => Some(background.cfg.kind),
+        }
+    }
+
+    /// The config of the flow job whose policy drives the background; `None` for IDM.
+    pub fn background_config(&self) -> Option<&JobConfig> {
+        match self {
+            Self::Idm => None,
+            Self::Learned { background, .. } => Some(&background.cfg),
         }
     }
 }
@@ -459,6 +467,14 @@ impl Acting {
 const IDM_EGO: Actor<'static> =
     Actor::Demo { noise: 0.0, action: sf_sim::DriveAction::IdmAccelResidual };
 
+/// The simulator a learned ego acts in among `flow`: its own observation settings (layout,
+/// neighbour and segment caps), what the flow's observations carry, and the flow's probe.
+pub fn ego_sim(flow: &FlowDef, ego: &Policy) -> SimConfig {
+    let mut sim = setup::resolve(&ego.cfg, flow.background_config()).sim;
+    flow.probe(&mut sim);
+    sim
+}
+
 /// Simulator settings, mode and acting policies of a cell.
 fn cell_setup(
     cell: &Cell,
@@ -488,16 +504,10 @@ fn cell_setup(
         None => None,
     };
     // The layout comes from whichever job acts; what the background's observations carry from the flow.
-    let bg_kind = match flow {
-        FlowDef::Idm => None,
-        FlowDef::Learned { background, .. } => Some(background.cfg.kind),
-    };
     let (sim, mode) = match (ego, flow) {
-        (Some(e), FlowDef::Idm) => {
-            (setup::resolve(&e.cfg, None).sim, Mode::Ego { background: Controller::Idm })
-        }
+        (Some(e), FlowDef::Idm) => (ego_sim(flow, e), Mode::Ego { background: Controller::Idm }),
         (Some(e), FlowDef::Learned { .. }) => {
-            (setup::resolve(&e.cfg, bg_kind).sim, Mode::Ego { background: Controller::External })
+            (ego_sim(flow, e), Mode::Ego { background: Controller::External })
         }
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
         (None, FlowDef::Learned { background, .. }) => {
@@ -505,7 +515,9 @@ fn cell_setup(
         }
     };
     let mut sim = sim;
-    flow.probe(&mut sim);
+    if ego.is_none() {
+        flow.probe(&mut sim);
+    }
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
         FlowDef::Idm => (None, None),
@@ -702,7 +714,7 @@ impl FlowSetup {
                 })
             }
             FlowDef::Learned { background, adversary, .. } => {
-                let mut sim = setup::resolve(&background.cfg, Some(background.cfg.kind)).sim;
+                let mut sim = setup::resolve(&background.cfg, Some(&background.cfg)).sim;
                 flow.probe(&mut sim);
                 if let Some(l) = layout.filter(|&l| l != sim.obs.layout) {
                     return Err(EvalError::Misfit(format!(

@@ -31,10 +31,10 @@ pub struct ResolvedJob {
     pub mode: Mode,
 }
 
-/// Resolves `job`. `background` is the kind of the job named in `env.background_job` (the
-/// frozen flow), which decides what the background's observations must carry; it changes
-/// `sim` only.
-pub fn resolve(job: &JobConfig, background: Option<JobKind>) -> ResolvedJob {
+/// Resolves `job`. `background` is the config of the job named in `env.background_job` (the
+/// frozen flow), whose kind decides what the background's observations must carry and whose
+/// `env.svo_range_deg` the background's SVOs are drawn from; it changes `sim` only.
+pub fn resolve(job: &JobConfig, background: Option<&JobConfig>) -> ResolvedJob {
     ResolvedJob {
         sim: sim_config(job, background),
         net: net_config(job),
@@ -109,10 +109,12 @@ pub fn adversary_svo_deg(action: f32) -> f32 {
 }
 
 /// Simulator settings: digest defaults with the observation layout the encoder reads.
-/// `background` is the kind of the job named in `env.background_job` (the frozen flow), which
-/// decides what the background's observations must carry.
-fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
+/// `background` is the config of the job named in `env.background_job` (the frozen flow), which
+/// decides what the background's observations must carry and where their SVOs are drawn from.
+fn sim_config(job: &JobConfig, background: Option<&JobConfig>) -> SimConfig {
     let mut s = SimConfig::default();
+    let svo_owner = background.unwrap_or(job);
+    let background = background.map(|b| b.kind);
     s.obs.layout = net_config(job).encoder;
     s.obs.svo = match job.kind.svo_seen() {
         // A frozen flow in the background may read SVOs; every network zeroes the SVO channels
@@ -130,6 +132,11 @@ fn sim_config(job: &JobConfig, background: Option<JobKind>) -> SimConfig {
     if job.kind == JobKind::Failmaker || background == Some(JobKind::Failmaker) {
         s.obs.ego_flag = true;
         s.svo_range_deg = [-90.0, 90.0];
+    }
+    // A flow job's own range (e.g. a FailMaker whose every vehicle wants the ego to lose), also
+    // where it is the background.
+    if let Some(r) = svo_owner.env.svo_range_deg {
+        s.svo_range_deg = r;
     }
     s
 }
@@ -177,7 +184,8 @@ mod tests {
             ("socialcomm-adv", SvoVisibility::None, SvoVisibility::All, false, -1.0),
         ] {
             let j = job(kind);
-            let bg = (kind == "socialcomm-adv").then_some(JobKind::Socialcomm);
+            let flow = job("socialcomm");
+            let bg = (kind == "socialcomm-adv").then_some(&flow);
             assert_eq!(net_config(&j).svo, svo, "{kind}");
             assert_eq!(sim_config(&j, bg).obs.svo, vis, "{kind}");
             assert_eq!(mode(&j) == Mode::MultiAgent, multi, "{kind}");
@@ -196,16 +204,26 @@ mod tests {
     #[test]
     fn failmaker_observations_flag_the_ego_and_widen_the_svo_range() {
         let ego = job("ego");
-        for (bg, flag, lo) in [
-            (None, false, 0.0),
-            (Some(JobKind::Socialcomm), false, 0.0),
-            (Some(JobKind::Failmaker), true, -90.0),
-        ] {
+        let (socialcomm, failmaker) = (job("socialcomm"), job("failmaker"));
+        for (bg, flag, lo) in
+            [(None, false, 0.0), (Some(&socialcomm), false, 0.0), (Some(&failmaker), true, -90.0)]
+        {
             let s = sim_config(&ego, bg);
-            assert_eq!((s.obs.ego_flag, s.svo_range_deg[0]), (flag, lo), "{bg:?}");
+            assert_eq!(
+                (s.obs.ego_flag, s.svo_range_deg[0]),
+                (flag, lo),
+                "{:?}",
+                bg.map(|b| b.kind)
+            );
         }
-        let s = sim_config(&job("failmaker"), None);
+        let s = sim_config(&failmaker, None);
         assert_eq!((s.obs.ego_flag, s.svo_range_deg), (true, [-90.0, 90.0]));
+        // A FailMaker whose every vehicle wants the ego to lose: its own range, also as a
+        // background.
+        let mut hostile = failmaker.clone();
+        hostile.env.svo_range_deg = Some([-90.0, -90.0]);
+        assert_eq!(sim_config(&hostile, None).svo_range_deg, [-90.0, -90.0]);
+        assert_eq!(sim_config(&ego, Some(&hostile)).svo_range_deg, [-90.0, -90.0]);
         assert_eq!(adversary_svo_deg(-1.0), 0.0);
         assert_eq!(adversary_svo_deg(1.0), 90.0);
     }
@@ -214,7 +232,8 @@ mod tests {
     #[test]
     fn resolve_is_the_parts_and_the_background_changes_only_the_simulator() {
         let ego = job("ego");
-        let (plain, with_bg) = (resolve(&ego, None), resolve(&ego, Some(JobKind::Failmaker)));
+        let failmaker = job("failmaker");
+        let (plain, with_bg) = (resolve(&ego, None), resolve(&ego, Some(&failmaker)));
         assert_eq!(
             (&plain.net, &plain.obs, plain.mode),
             (&net_config(&ego), &obs_spec(&ego), mode(&ego))

@@ -97,6 +97,19 @@ impl SlowLeader {
     }
 }
 
+/// `count` cases numbered from 0, drawn one after another from one `rng` (as [`draw_case`]):
+/// held-out validation and evaluation sets, reproducible from the rng's seed.
+pub fn draw_cases(
+    map: &Arc<Map>,
+    sim: &Arc<SimConfig>,
+    rng: &mut impl Rng,
+    count: u32,
+    vehicles: (u32, u32),
+    draw: CaseDraw,
+) -> Vec<Case> {
+    (0..count).map(|id| draw_case(map, sim, rng, id, vehicles, draw)).collect()
+}
+
 /// A random case with a vehicle count uniform in `vehicles`; with `draw.conflict_share =
 /// Some(p)`, with probability p one in which the IDM driver in agent 0's seat ends by a
 /// collision (tried up to 200 draws, then the last draw is taken); with `draw.slow_leader`,

@@ -137,25 +137,22 @@ impl Validator {
     ) -> Result<Self, LearnerError> {
         let flow =
             if cfg.kind.is_flow() { None } else { Some(evaluate::from_frozen(frozen, weights)?.0) };
-        let sim = Arc::new(setup::resolve(cfg, flow.as_ref().and_then(FlowDef::kind)).sim);
+        let sim =
+            Arc::new(setup::resolve(cfg, flow.as_ref().and_then(FlowDef::background_config)).sim);
         let vehicles = (cfg.env.vehicles_min, cfg.env.vehicles_max);
         let cases = maps
             .iter()
             .enumerate()
             .map(|(k, map)| {
                 let mut rng = ChaCha8Rng::seed_from_u64(section.seed ^ ((k as u64) << 32));
-                let cases = (0..section.episodes)
-                    .map(|id| {
-                        sf_sim::vec_env::draw_case(
-                            map,
-                            &sim,
-                            &mut rng,
-                            id,
-                            vehicles,
-                            cfg.case_draw(),
-                        )
-                    })
-                    .collect();
+                let cases = sf_sim::vec_env::draw_cases(
+                    map,
+                    &sim,
+                    &mut rng,
+                    section.episodes,
+                    vehicles,
+                    cfg.case_draw(),
+                );
                 (Arc::clone(map), cases)
             })
             .collect();

@@ -36,6 +36,11 @@ pub struct WorkerArgs {
     /// Longest reconnect delay, seconds.
     #[arg(long, default_value_t = 10)]
     pub max_backoff_s: u64,
+    /// Transition batches sent and not yet acknowledged, at most: the window that carries
+    /// ingest across a slow link (throughput is at most this many batches per round trip);
+    /// more is more lost if the worker dies and more stale data.
+    #[arg(long, env = "SOCIALFLOW_IN_FLIGHT_BATCHES", default_value_t = crate::DEFAULT_IN_FLIGHT_BATCHES)]
+    pub in_flight_batches: u32,
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,
 }
@@ -58,6 +63,11 @@ impl WorkerArgs {
             self.eval_cases_dir.display()
         );
         anyhow::ensure!(self.rpc_timeout_s > 0, "--rpc-timeout-s must be positive");
+        anyhow::ensure!(
+            (1..=64).contains(&self.in_flight_batches),
+            "--in-flight-batches {} is not in 1..=64",
+            self.in_flight_batches
+        );
         let token = self.conn.token()?;
         let name = self
             .name
@@ -75,6 +85,7 @@ impl WorkerArgs {
             max_backoff: Duration::from_secs(self.max_backoff_s.max(1)),
             threads: 0,
             tls: self.conn.tls(),
+            in_flight_batches: self.in_flight_batches,
         })
     }
 }

@@ -60,7 +60,13 @@ pub struct WorkerConfig {
     pub threads: usize,
     /// Trust root for an `https://` learner and the worker's client certificate (mutual TLS).
     pub tls: sf_service::tls::ClientTls,
+    /// Transition batches sent and not yet acknowledged, at most.
+    pub in_flight_batches: u32,
 }
+
+/// The default window of unacknowledged batches: right for loopback and a LAN; across tens of
+/// milliseconds ingest is bound by it (`docs/results/reliability.md`), where 8 carries it.
+pub const DEFAULT_IN_FLIGHT_BATCHES: u32 = 2;
 
 #[derive(Clone)]
 pub struct WorkerMetrics {
@@ -228,9 +234,14 @@ async fn session(
         FrozenPolicies::fetch(&client, me.worker_id, &asg.frozen, cfg.rpc_timeout, metrics).await?;
     let mut policy =
         PolicyClient::new(&client, asg.job_id, asg.policy_version, cfg.rpc_timeout, metrics);
-    let first = if asg.warmup { None } else { Some(policy.latest().await?) };
+    // The policy acts from the first step after the warm-up, and in it too where the job's
+    // warm-up is its own (continued) policy: without weights that warm-up could not start, and
+    // no acknowledgement would ever come to fetch them.
+    let acts_in_warmup = job.sac.warmup_policy == sf_job::config::WarmupPolicy::Policy;
+    let first = if asg.warmup && !acts_in_warmup { None } else { Some(policy.latest().await?) };
     let spec =
         RolloutSpec::for_assignment(&asg, job, frozen.into_vec(), maps, me.worker_id, cfg.threads);
-    let (rollout, batches) = Rollout::start(spec, asg.warmup, first, metrics)?;
+    let (rollout, batches) =
+        Rollout::start(spec, asg.warmup, first, cfg.in_flight_batches, metrics)?;
     stream(&mut client, batches, &rollout, &mut policy, &mut heartbeats, metrics).await
 }

@@ -108,11 +108,12 @@ impl Rollout {
         spec: RolloutSpec,
         warmup: bool,
         policy: Option<(u64, Vec<u8>)>,
+        in_flight_batches: u32,
         metrics: &WorkerMetrics,
     ) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
         let control = Arc::new(Mutex::new(Control { warmup, policy, stop: false }));
         let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-        let credits = Arc::new(Credits::new(2));
+        let credits = Arc::new(Credits::new(in_flight_batches.max(1)));
         let thread =
             spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
         Ok((Self { control, credits, thread }, batch_rx))
@@ -159,9 +160,9 @@ pub fn spawn(
     tx: mpsc::Sender<pb::TransitionBatch>,
     metrics: WorkerMetrics,
 ) -> anyhow::Result<std::thread::JoinHandle<()>> {
-    let bg_kind =
-        spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c.kind);
-    let resolved = setup::resolve(&spec.job, bg_kind);
+    let background =
+        spec.frozen.iter().find(|(r, _, _)| *r == FrozenRole::Background).map(|(_, c, _)| c);
+    let resolved = setup::resolve(&spec.job, background);
     if resolved.obs.len != spec.obs_len {
         bail!(
             "the learner expects {}-float observations; this worker's build makes {}",
