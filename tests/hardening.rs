@@ -501,8 +501,11 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
         (progress(&get(&rt, &mut c, doomed.job_id)).updates > 20).then_some(())
     });
     let art = PathBuf::from(get(&rt, &mut c, doomed.job_id).artifact_dir);
-    std::fs::remove_dir_all(&art).expect("remove the artifact dir");
+    // Renamed away at once (removing it races with the checkpoints the learner writes into it).
+    let gone = art.with_extension("gone");
+    std::fs::rename(&art, &gone).expect("move the artifact dir away");
     std::fs::write(&art, b"not a directory").expect("a file in its place");
+    let _ = std::fs::remove_dir_all(&gone);
     let failed = wait_for("the doomed job to fail", Duration::from_secs(120), || {
         Some(get(&rt, &mut c, doomed.job_id)).filter(|j| j.state == FAILED)
     });
