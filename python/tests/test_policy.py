@@ -3,6 +3,7 @@ in `socialflow.evaluate` exactly what `socialflow eval` scores for it, episode b
 
 import csv
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -81,3 +82,11 @@ def test_evaluate_scores_what_the_cli_scores(tmp_path):
     assert mine.keys() == cli.keys()
     for k in sorted(mine):
         assert mine[k] == pytest.approx(cli[k], abs=1e-6), k
+
+
+def test_python_m_socialflow_lists_the_entry_points():
+    out = subprocess.run([sys.executable, "-m", "socialflow", "--help"], check=True, capture_output=True, text=True).stdout
+    for name in ("make_ego", "make_ego_vec", "make_flow", "load_policy", "evaluate"):
+        assert f"socialflow.{name}" in out, out
+    bad = subprocess.run([sys.executable, "-m", "socialflow", "--nope"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--nope" in bad.stderr
