@@ -191,10 +191,8 @@ impl Inner {
 
     /// A job with live progress if it is running.
     pub async fn job(self: &Arc<Self>, id: u64) -> Result<JobRecord, ServiceError> {
-        let store = Arc::clone(&self.store);
-        let mut rec = blocking(move || store.get(id))
-            .await?
-            .ok_or(LearnerError::JobNotFound { job_id: id })?;
+        // Records are read from memory: no I/O, nothing to wait on.
+        let mut rec = self.store.get(id).ok_or(LearnerError::JobNotFound { job_id: id })?;
         if let Some(p) = self.live_progress(id).filter(|_| !rec.state.is_final()) {
             rec.progress = p;
             rec.state = JobState::Running;
@@ -203,8 +201,7 @@ impl Inner {
     }
 
     pub async fn jobs(self: &Arc<Self>) -> Result<Vec<JobRecord>, ServiceError> {
-        let store = Arc::clone(&self.store);
-        let mut all = blocking(move || store.list()).await?;
+        let mut all = self.store.list();
         for r in all.iter_mut().filter(|r| !r.state.is_final()) {
             if let Some(p) = self.live_progress(r.id) {
                 r.progress = p;
@@ -745,7 +742,7 @@ mod tests {
             });
             let c = cancel.join().expect("cancel thread").expect("cancel").expect("job");
             let e = end.join().expect("end thread").expect("end").expect("job");
-            let stored = store.get(id).expect("get").expect("job");
+            let stored = store.get(id).expect("job");
             assert_eq!(
                 c.state, e.state,
                 "the cancel answered {:?}, the end recorded {:?}",
