@@ -170,7 +170,6 @@ pub struct FaultProxy {
     faults: watch::Sender<Faults>,
     cuts: watch::Sender<u64>,
     bytes: Arc<AtomicU64>,
-    conns: Arc<AtomicU64>,
     _rt: tokio::runtime::Runtime,
 }
 
@@ -186,16 +185,15 @@ impl FaultProxy {
         let addr = listener.local_addr().expect("proxy address");
         let (faults, faults_rx) = watch::channel(Faults::default());
         let (cuts, cuts_rx) = watch::channel(0u64);
-        let (bytes, conns) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
-        let (b, c) = (bytes.clone(), conns.clone());
+        let bytes = Arc::new(AtomicU64::new(0));
+        let b = bytes.clone();
         rt.spawn(async move {
             while let Ok((down, _)) = listener.accept().await {
                 let Ok(up) = TcpStream::connect(upstream).await else { continue };
-                c.fetch_add(1, Ordering::Relaxed);
                 tokio::spawn(carry(down, up, faults_rx.clone(), cuts_rx.clone(), b.clone()));
             }
         });
-        Self { addr, faults, cuts, bytes, conns, _rt: rt }
+        Self { addr, faults, cuts, bytes, _rt: rt }
     }
 
     pub fn set(&self, f: Faults) {
@@ -210,11 +208,6 @@ impl FaultProxy {
     /// Bytes carried so far, both directions.
     pub fn bytes(&self) -> u64 {
         self.bytes.load(Ordering::Relaxed)
-    }
-
-    /// Connections accepted so far.
-    pub fn connections(&self) -> u64 {
-        self.conns.load(Ordering::Relaxed)
     }
 }
 

@@ -511,13 +511,11 @@ fn cell_setup(
         }
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
         (None, FlowDef::Learned { background, .. }) => {
-            (setup::resolve(&background.cfg, None).sim, Mode::MultiAgent)
+            let mut sim = setup::resolve(&background.cfg, None).sim;
+            flow.probe(&mut sim);
+            (sim, Mode::MultiAgent)
         }
     };
-    let mut sim = sim;
-    if ego.is_none() {
-        flow.probe(&mut sim);
-    }
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
         FlowDef::Idm => (None, None),
