@@ -230,12 +230,62 @@ fn a_continuation_warms_up_with_the_policy_it_continues() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Two training jobs side by side on one learner with two workers: both progress at once, each
+/// with its own series on /metrics and one worker each; one is cancelled, the other is
+/// unaffected, takes both workers and finishes.
+#[test]
+fn two_jobs_train_side_by_side_and_cancelling_one_leaves_the_other() {
+    let dir = scratch("sidebyside");
+    let l = start_learner_with(&dir, 64 << 20, "max_running_jobs = 2\n");
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    let a = submit(&rt, &mut c, tiny_job(TWO_MAPS, "side-a", 100_000));
+    let b = submit(&rt, &mut c, tiny_job(TWO_MAPS, "side-b", 3000));
+    let series = |m: &str, name: &str, id: u64| metric(m, &format!("{name}{{job=\"{id}\"}}"));
+    // Both learn at once: each past its warm-up with updates, one worker each.
+    let m = wait_for("both jobs updating at once, a worker each", Duration::from_secs(600), || {
+        let m = http_get(&l.admin, "/metrics")?;
+        let (ja, jb) = (get(&rt, &mut c, a.job_id), get(&rt, &mut c, b.job_id));
+        let running = pb::JobState::Running as i32;
+        let both = ja.state == running && jb.state == running;
+        let updating = [a.job_id, b.job_id].iter().all(|&id| {
+            series(&m, "socialflow_learner_job_updates_total", id) > 1.0
+                && series(&m, "socialflow_learner_job_transitions_received_total", id) > 0.0
+        });
+        let spread = [a.job_id, b.job_id]
+            .iter()
+            .all(|&id| series(&m, "socialflow_learner_job_workers", id) == 1.0);
+        (both && updating && spread).then_some(m)
+    });
+    assert_eq!(metric(&m, "socialflow_learner_running_jobs"), 2.0);
+    for id in [a.job_id, b.job_id] {
+        assert!(m.contains(&format!("socialflow_learner_policy_version{{job=\"{id}\"}}")));
+    }
+    let b_before = progress(&get(&rt, &mut c, b.job_id)).env_steps;
+    rt.block_on(c.cancel_job(pb::CancelJobRequest { job_id: a.job_id })).expect("cancel");
+    // The cancelled job's series go, its worker joins the other job.
+    wait_for("the other job to take both workers", Duration::from_secs(120), || {
+        let m = http_get(&l.admin, "/metrics")?;
+        let gone = !m.contains(&format!("job=\"{}\"", a.job_id));
+        (gone && series(&m, "socialflow_learner_job_workers", b.job_id) == 2.0).then_some(())
+    });
+    let done = wait_final(&rt, &mut c, b.job_id, "the other job to finish");
+    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
+    assert_eq!(progress(&done).env_steps, 3000);
+    assert!(progress(&done).env_steps > b_before);
+    let ja = get(&rt, &mut c, a.job_id);
+    assert_eq!(ja.state, pb::JobState::Cancelled as i32, "{}", ja.message);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Killed mid-job, its data directory moved elsewhere (a restored backup, a volume mounted at
 /// another path), the learner resumes from the moved checkpoint and replay.
 #[test]
 fn a_killed_learner_resumes_the_job_from_its_checkpoint() {
     let dir = scratch("killlearner");
-    let mut l = start_learner(&dir, 64 << 20);
+    // One job at a time: the first finishes before the second is killed mid-way.
+    let mut l = start_learner_with(&dir, 64 << 20, "max_running_jobs = 1\n");
     let rt = rt();
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
     let queued = submit(&rt, &mut c, tiny_job(TWO_MAPS, "queued-behind", 300));

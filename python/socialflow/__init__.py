@@ -7,6 +7,7 @@ simulator, with the background traffic (IDM, or a trained flow's frozen policy) 
     flow = socialflow.make_flow(scenario="roundabout")              # pettingzoo ParallelEnv
     result = socialflow.evaluate(policy, grid={"flows": {"idm": "idm"}, "scenarios": ["merge"]})
     actor = socialflow.load_policy("runs/quickstart/jobs/1-quickstart")   # a trained job's actor
+    jobs = socialflow.client.Client("http://127.0.0.1:50051")             # submit and follow jobs
 
 Rust is the only implementation: this package wraps `crates/sim` and `crates/sac` (module
 `socialflow._socialflow`); nothing here steps a vehicle.
@@ -14,7 +15,7 @@ Rust is the only implementation: this package wraps `crates/sim` and `crates/sac
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import _socialflow
+from . import _socialflow, client
 from .envs import EgoEnv, EgoVectorEnv, make_ego, make_ego_vec, split_obs
 from .evaluation import EvalResult, evaluate, zero_residual_policy
 from .parallel import FlowParallelEnv, make_flow
@@ -36,6 +37,7 @@ __all__ = [
     "Policy",
     "SCENARIOS",
     "TERMINATIONS",
+    "client",
     "evaluate",
     "load_policy",
     "make_ego",

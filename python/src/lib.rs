@@ -9,8 +9,12 @@
 //! conversions to NumPy. Must not: re-implement the simulator, the flows or inference (it
 //! calls `sf_sim` and `sf_rollout`), or hold the GIL while simulators step.
 //!
+//! [`client`] is the job API's half (`socialflow.client`).
+//!
 //! Errors: bad arguments raise `ValueError` naming the argument; missing files `OSError`.
 //! The Gymnasium / PettingZoo classes are Python (`python/socialflow/`).
+
+mod client;
 
 use std::cell::RefCell;
 use std::sync::Arc;
@@ -867,6 +871,8 @@ fn terminations() -> Vec<&'static str> {
 fn _socialflow(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Core>()?;
     m.add_class::<LoadedPolicy>()?;
+    m.add_class::<client::JobClient>()?;
+    m.add_class::<client::JobWatch>()?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios, m)?)?;
     m.add_function(wrap_pyfunction!(terminations, m)?)?;

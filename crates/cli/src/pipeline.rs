@@ -7,8 +7,10 @@
 //! `env.ego_from`, `train.init_from` = "<job name>", turned into the `*_job = <id>` fields at
 //! submission), the submission order (dependencies first: a topological order),
 //! reuse of jobs the learner already has under the same name (unless they failed or were
-//! cancelled), and the final summary. Must not: schedule (the learner runs queued jobs in order
-//! once their dependency has succeeded).
+//! cancelled), replicates side by side (`--seeds 5,6`: the graph once per seed, each job
+//! renamed `<name>-seed<N>`, the grid evaluated once per replicate and reported together),
+//! and the final summary. Must not: schedule (the learner runs queued jobs once their
+//! dependencies have succeeded, several at once where it has the cores and the workers).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -45,8 +47,16 @@ pub struct PipelineArgs {
     /// sampling and the training episodes) instead of its config's: a replicate of the graph
     /// from scratch. The evaluation grid keeps its own seeds, so replicates meet the same
     /// episodes. Use a fresh `--data-dir` per replicate.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "seeds")]
     pub seed: Option<u64>,
+    /// Replicates side by side on one learner: the graph once per seed (jobs renamed
+    /// `<name>-seed<N>`), trained together where the learner runs several jobs at once; with
+    /// `--eval`, the grid once per replicate and `--report` over all of them.
+    #[arg(long, value_delimiter = ',', num_args = 1..)]
+    pub seeds: Vec<u64>,
+    /// Embedded: training jobs the learner runs at once (default: the machine's cores).
+    #[arg(long, env = "SOCIALFLOW_MAX_RUNNING_JOBS")]
+    pub max_running_jobs: Option<usize>,
     #[command(flatten)]
     pub conn: Conn,
 }
@@ -152,65 +162,55 @@ async fn submit_all(
     Ok(out)
 }
 
-/// After the graph, if there is a grid: submits it (or reuses the learner's evaluation job of
-/// its name), follows it and builds the report.
-async fn evaluate(
-    c: &mut JobsClient,
-    grid: Option<&(PathBuf, EvalConfig, String)>,
-    report: Option<&Path>,
-) -> Result<()> {
-    let Some((path, cfg, text)) = grid else { return Ok(()) };
-    let mut existing = None;
+/// Submits an evaluation grid (or reuses the learner's evaluation job of its name); its id.
+async fn submit_grid(c: &mut JobsClient, path: &Path, cfg: &EvalConfig) -> Result<u64> {
     // Newest first: the first of its name that is an evaluation.
     for j in remote::list(c).await?.into_iter().filter(|j| {
         j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)
     }) {
         let full = remote::get(c, j.id).await?;
         if sf_job::JobSpec::from_toml(&full.config_toml).is_ok_and(|s| s.is_eval()) {
-            existing = Some(full);
-            break;
-        }
-    }
-    let id = match existing {
-        Some(j) => {
             eprintln!(
                 "{}: evaluation job {} ({}) already on the learner",
                 cfg.name,
-                j.id,
-                j.state.as_str()
+                full.id,
+                full.state.as_str()
             );
-            j.id
+            return Ok(full.id);
         }
-        None => {
-            let j = remote::submit(c, text.clone())
-                .await
-                .with_context(|| path.display().to_string())?;
-            eprintln!(
-                "{}: submitted as evaluation job {} ({} cells)",
-                cfg.name,
-                j.id,
-                cfg.cells().len()
-            );
-            j.id
-        }
-    };
-    follow(c, &[(cfg.name.clone(), id)]).await?;
-    if let Some(out) = report {
-        let j = remote::list(c)
-            .await?
-            .into_iter()
-            .find(|j| j.id == id)
-            .with_context(|| format!("evaluation job {id} is gone"))?;
-        let results = PathBuf::from(&j.artifact_dir);
-        if !results.join("episodes.csv").exists() {
-            bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", results.display());
-        }
-        crate::eval::report(crate::eval::ReportArgs {
-            results: vec![results],
-            out: out.to_path_buf(),
-        })?;
     }
-    Ok(())
+    let j = remote::submit(c, cfg.to_toml()).await.with_context(|| path.display().to_string())?;
+    eprintln!("{}: submitted as evaluation job {} ({} cells)", cfg.name, j.id, cfg.cells().len());
+    Ok(j.id)
+}
+
+/// After the graph: submits the grids (one per replicate), follows them and builds the report
+/// over all of their results.
+async fn evaluate(
+    c: &mut JobsClient,
+    grids: &[(PathBuf, EvalConfig)],
+    report: Option<&Path>,
+) -> Result<()> {
+    let mut ids = Vec::new();
+    for (path, cfg) in grids {
+        ids.push((cfg.name.clone(), submit_grid(c, path, cfg).await?));
+    }
+    follow(c, &ids).await?;
+    let Some(out) = report else { return Ok(()) };
+    let all = remote::list(c).await?;
+    let mut results = Vec::new();
+    for (_, id) in &ids {
+        let j = all
+            .iter()
+            .find(|j| j.id == *id)
+            .with_context(|| format!("evaluation job {id} is gone"))?;
+        let dir = PathBuf::from(&j.artifact_dir);
+        if !dir.join("episodes.csv").exists() {
+            bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", dir.display());
+        }
+        results.push(dir);
+    }
+    crate::eval::report(crate::eval::ReportArgs { results, out: out.to_path_buf() })
 }
 
 /// Polls until every job is final; prints one JSON line per job; fails if any did not succeed.
@@ -246,6 +246,40 @@ pub fn reseed(jobs: &mut [(PathBuf, JobConfig, String)], seed: u64) {
     }
 }
 
+/// A replicate's name for a job or grid of the graph.
+fn replicate_name(name: &str, seed: u64) -> String {
+    format!("{name}-seed{seed}")
+}
+
+/// The graph's replicate with seed `seed`, beside others on one learner: every job reseeded
+/// and renamed, and its references to other jobs of the graph renamed with it.
+pub fn replicate(
+    jobs: &[(PathBuf, JobConfig, String)],
+    seed: u64,
+) -> Vec<(PathBuf, JobConfig, String)> {
+    let mut out = jobs.to_vec();
+    reseed(&mut out, seed);
+    for (_, cfg, _) in &mut out {
+        cfg.name = replicate_name(&cfg.name, seed);
+        for dep in [&mut cfg.env.background_from, &mut cfg.env.ego_from, &mut cfg.train.init_from] {
+            if let Some(n) = dep.as_mut() {
+                *n = replicate_name(n, seed);
+            }
+        }
+    }
+    out
+}
+
+/// The grid for replicate `seed`: the same cells on that replicate's jobs.
+fn replicate_grid(grid: &EvalConfig, seed: u64) -> EvalConfig {
+    let mut g = grid.clone();
+    g.name = replicate_name(&g.name, seed);
+    for n in g.flows.iter_mut().chain(g.egos.iter_mut()).filter(|n| !n.is_idm()) {
+        n.job = replicate_name(&n.job, seed);
+    }
+    g
+}
+
 pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
     let mut jobs = load(&a.dir)?;
     if let Some(seed) = a.seed {
@@ -257,21 +291,39 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
             let text =
                 std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             let cfg = EvalConfig::from_toml(&text).with_context(|| p.display().to_string())?;
-            Some((p.clone(), cfg, text))
+            Some((p.clone(), cfg))
         }
         None => None,
+    };
+    let seeds = a.seeds.clone();
+    let mut unique = seeds.clone();
+    unique.sort_unstable();
+    unique.dedup();
+    if unique.len() != seeds.len() {
+        bail!("--seeds {seeds:?}: name each seed once");
+    }
+    let (jobs, grids): (Vec<_>, Vec<_>) = if seeds.is_empty() {
+        (jobs, grid.into_iter().collect())
+    } else {
+        let all = seeds.iter().flat_map(|&s| replicate(&jobs, s)).collect();
+        let grids = grid
+            .iter()
+            .flat_map(|(p, g)| seeds.iter().map(|&s| (p.clone(), replicate_grid(g, s))))
+            .collect();
+        (all, grids)
     };
     runtime()?.block_on(async move {
         match a.embedded {
             Some(0) => bail!("--embedded needs at least one worker"),
             Some(n) => {
-                let emb = Embedded::start(a.data_dir.clone(), dirs, n).await?;
+                let emb =
+                    Embedded::start_with(a.data_dir.clone(), dirs, n, a.max_running_jobs).await?;
                 let mut c = emb.client().await?;
                 let r = async {
                     let ids = submit_all(&mut c, &jobs).await?;
                     let all = async {
                         follow(&mut c, &ids).await?;
-                        evaluate(&mut c, grid.as_ref(), a.report.as_deref()).await
+                        evaluate(&mut c, &grids, a.report.as_deref()).await
                     };
                     tokio::select! {
                         r = all => r.map(Some),
@@ -283,7 +335,7 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                 match r? {
                     Some(()) => Ok(()),
                     None => {
-                        eprintln!("interrupted: the running job is checkpointed; run the same command to resume");
+                        eprintln!("interrupted: the running jobs are checkpointed; run the same command to resume");
                         Ok(())
                     }
                 }
@@ -292,7 +344,7 @@ pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
                 let mut c = remote::connect(&a.conn).await?;
                 let ids = submit_all(&mut c, &jobs).await?;
                 follow(&mut c, &ids).await?;
-                evaluate(&mut c, grid.as_ref(), a.report.as_deref()).await
+                evaluate(&mut c, &grids, a.report.as_deref()).await
             }
         }
     })
@@ -467,5 +519,43 @@ mod tests {
         let e = load(&dir).expect_err("a cycle");
         assert!(e.to_string().contains("cycle"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Replicates side by side: distinct names, each replicate's references stay inside it,
+    /// only the seed and names differ from the graph, and the grid follows its replicate.
+    #[test]
+    fn replicates_rename_their_jobs_and_references_and_differ_only_in_seed() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let jobs = load(&root.join("configs/paper-small")).expect("a valid pipeline");
+        let (r5, r6) = (replicate(&jobs, 5), replicate(&jobs, 6));
+        let names: std::collections::BTreeSet<&str> =
+            r5.iter().chain(&r6).map(|(_, c, _)| c.name.as_str()).collect();
+        assert_eq!(names.len(), 2 * jobs.len(), "every job name is distinct across replicates");
+        for ((_, orig, _), (_, c, _)) in jobs.iter().zip(&r5) {
+            assert_eq!(c.name, format!("{}-seed5", orig.name));
+            assert_eq!(c.sac.seed, 5);
+            for ((role, d), (_, od)) in c.deps_by_name().into_iter().zip(orig.deps_by_name()) {
+                assert_eq!(d, format!("{od}-seed5"), "{}: {}", c.name, role.field());
+                assert!(r5.iter().any(|(_, x, _)| x.name == d), "{d} is in the replicate");
+            }
+            let mut back = c.clone();
+            back.name = orig.name.clone();
+            back.sac.seed = orig.sac.seed;
+            back.env.background_from = orig.env.background_from.clone();
+            back.env.ego_from = orig.env.ego_from.clone();
+            back.train.init_from = orig.train.init_from.clone();
+            assert_eq!(back.to_toml(), orig.to_toml(), "{}: only seed and names change", c.name);
+        }
+        let text = std::fs::read_to_string(root.join("configs/eval/paper-small.toml"))
+            .expect("the paper-small grid");
+        let grid = EvalConfig::from_toml(&text).expect("valid grid");
+        let g6 = replicate_grid(&grid, 6);
+        assert_eq!(g6.name, format!("{}-seed6", grid.name));
+        for (a, b) in grid.flows.iter().chain(&grid.egos).zip(g6.flows.iter().chain(&g6.egos)) {
+            let want = if a.is_idm() { a.job.clone() } else { format!("{}-seed6", a.job) };
+            assert_eq!(b.job, want);
+            assert!(b.is_idm() || r6.iter().any(|(_, c, _)| c.name == b.job), "{}", b.job);
+        }
+        assert!(EvalConfig::from_toml(&g6.to_toml()).is_ok(), "the replicate's grid is valid");
     }
 }

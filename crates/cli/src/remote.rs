@@ -1,21 +1,18 @@
-//! `socialflow submit | status | watch | cancel`: the job API from the command line, and the
-//! progress display shared with the embedded `train`.
+//! `socialflow submit | status | watch | cancel | download`: the job API from the command line
+//! (the calls are `sf_service::client`'s), and the progress display shared with the embedded
+//! `train`.
 
 use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Subcommand;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
-use sf_job::{JobRecord, JobState, Progress};
-use sf_proto::pb;
-use sf_proto::pb::job_service_client::JobServiceClient;
-use sf_service::auth::{AttachToken, Token};
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
+use sf_job::{JobState, Progress};
+use sf_service::auth::Token;
+use sf_service::client::Watch;
 
-pub type JobsClient = JobServiceClient<InterceptedService<Channel, AttachToken>>;
+pub use sf_service::client::{cancel, get, job_json, list, submit, JobsClient};
 
 pub use sf_service::conn::LearnerConn as Conn;
 
@@ -51,6 +48,16 @@ pub enum RemoteCmd {
         #[command(flatten)]
         conn: Conn,
     },
+    /// Fetches a succeeded job's files into a directory: a training job's config, final actor
+    /// and curves (a job directory `socialflow eval` and `socialflow.load_policy` read), or an
+    /// evaluation's results.
+    Download {
+        job_id: u64,
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        conn: Conn,
+    },
 }
 
 /// A job-API client for `conn` with its token.
@@ -63,59 +70,7 @@ pub async fn jobs_client(
     url: &str,
     token: Option<Token>,
 ) -> Result<JobsClient> {
-    let ch =
-        endpoint.connect().await.with_context(|| format!("connecting to the learner at {url}"))?;
-    Ok(JobServiceClient::with_interceptor(ch, AttachToken::new(token))
-        .max_decoding_message_size(sf_service::MAX_MESSAGE_BYTES))
-}
-
-fn deadline<T>(msg: T) -> tonic::Request<T> {
-    let mut r = tonic::Request::new(msg);
-    r.set_timeout(Duration::from_secs(30));
-    r
-}
-
-fn status_err(s: tonic::Status) -> anyhow::Error {
-    anyhow!("{} ({})", s.message(), sf_service::error::code_label(s.code()))
-}
-
-pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord> {
-    let j = c
-        .submit_job(deadline(pb::SubmitJobRequest { config_toml }))
-        .await
-        .map_err(status_err)
-        .context("submitting the job")?
-        .into_inner();
-    Ok(sf_proto::job_from_wire(&j)?)
-}
-
-/// One job with its config.
-pub async fn get(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
-    let j = c
-        .get_job(deadline(pb::GetJobRequest { job_id }))
-        .await
-        .map_err(status_err)
-        .with_context(|| format!("getting job {job_id}"))?
-        .into_inner();
-    Ok(sf_proto::job_from_wire(&j)?)
-}
-
-/// Every job, newest first, without configs (`get` has them).
-pub async fn list(c: &mut JobsClient) -> Result<Vec<JobRecord>> {
-    let r = c
-        .list_jobs(deadline(pb::ListJobsRequest {}))
-        .await
-        .map_err(status_err)
-        .context("listing jobs")?
-        .into_inner();
-    r.jobs.iter().map(|j| sf_proto::job_from_wire(j).map_err(Into::into)).collect()
-}
-
-pub fn job_json(j: &JobRecord) -> serde_json::Value {
-    json!({
-        "job_id": j.id, "name": j.name, "state": j.state.as_str(), "message": j.message,
-        "artifact_dir": j.artifact_dir, "progress": j.progress,
-    })
+    Ok(sf_service::client::connect(endpoint, url, token).await?)
 }
 
 /// A progress bar over learner transitions.
@@ -148,26 +103,12 @@ pub fn show(pb: &ProgressBar, state: JobState, progress: &Progress) {
 
 /// Follows a job until it reaches a final state; returns that state and the last progress.
 pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobState, Progress)> {
-    let mut stream = c
-        .watch_job(pb::WatchJobRequest { job_id })
-        .await
-        .map_err(status_err)
-        .with_context(|| format!("watching job {job_id}"))?
-        .into_inner();
+    let mut w = Watch::open(c, job_id).await?;
     let pb = if quiet { ProgressBar::hidden() } else { bar(1) };
     let mut last = None;
-    while let Some(m) = stream
-        .message()
-        .await
-        .map_err(status_err)
-        .with_context(|| format!("watching job {job_id}"))?
-    {
-        let (state, p) = sf_proto::progress_from_wire(&m)?;
+    while let Some((state, p)) = w.next().await? {
         show(&pb, state, &p);
         last = Some((state, p));
-        if state.is_final() {
-            break;
-        }
     }
     pb.finish();
     last.ok_or_else(|| anyhow!("the learner ended the watch of job {job_id} without progress"))
@@ -231,12 +172,13 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
             }
             RemoteCmd::Cancel { job_id, conn } => {
                 let mut c = connect(&conn).await?;
-                let j = c
-                    .cancel_job(deadline(pb::CancelJobRequest { job_id }))
-                    .await
-                    .map_err(status_err)?
-                    .into_inner();
-                println!("{}", job_json(&sf_proto::job_from_wire(&j)?));
+                println!("{}", job_json(&cancel(&mut c, job_id).await?));
+                Ok(())
+            }
+            RemoteCmd::Download { job_id, out, conn } => {
+                let mut c = connect(&conn).await?;
+                let files = sf_service::client::download(&mut c, job_id, &out).await?;
+                println!("{}", json!({"job_id": job_id, "dir": out, "files": files}));
                 Ok(())
             }
         }

@@ -48,6 +48,16 @@ pub struct Embedded {
 impl Embedded {
     /// Starts a learner on loopback ports chosen by the OS and `n` workers connected to it.
     pub async fn start(data_dir: PathBuf, dirs: &Ctx, n: usize) -> Result<Self> {
+        Self::start_with(data_dir, dirs, n, None).await
+    }
+
+    /// As [`Embedded::start`], with the learner's `max_running_jobs` (unset: the cores).
+    pub async fn start_with(
+        data_dir: PathBuf,
+        dirs: &Ctx,
+        n: usize,
+        max_running_jobs: Option<usize>,
+    ) -> Result<Self> {
         let (scenarios_dir, cases_dir) = (dirs.scenarios.clone(), dirs.cases.clone());
         let secret: String =
             (0..32).map(|_| format!("{:x}", rand::rng().random_range(0..16u8))).collect();
@@ -58,6 +68,7 @@ impl Embedded {
             data_dir,
             scenarios_dir: scenarios_dir.clone(),
             cases_dir: cases_dir.clone(),
+            max_running_jobs,
             ..LearnerConfig::default()
         };
         let learner = sf_learner::start(cfg, token.clone()).await?;

@@ -1,7 +1,8 @@
 //! Service plumbing shared by the learner and the worker.
 //!
 //! Owns: the one table from domain errors to gRPC status codes ([`error`]), bearer-token auth
-//! on both ends ([`auth`]), the clients' learner connection flags ([`conn`]), the admin HTTP server with Prometheus metrics, liveness and
+//! on both ends ([`auth`]), the clients' learner connection flags ([`conn`]) and the typed job
+//! client ([`client`]), the admin HTTP server with Prometheus metrics, liveness and
 //! readiness ([`admin`]), RPC counters and process gauges ([`metrics`]), bounded backoff
 //! ([`backoff`]), logging set-up ([`logging`]), poison-tolerant locks ([`sync`]) and optional TLS
 //! ([`tls`]). Must not: hold learner or worker logic.
@@ -9,6 +10,7 @@
 pub mod admin;
 pub mod auth;
 pub mod backoff;
+pub mod client;
 pub mod conn;
 pub mod error;
 pub mod logging;

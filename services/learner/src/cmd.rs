@@ -46,6 +46,9 @@ pub struct LearnerArgs {
     /// network only; prefer TLS).
     #[arg(long, env = "SOCIALFLOW_ALLOW_PLAINTEXT_TOKEN")]
     pub allow_plaintext_token: bool,
+    /// Training jobs that may run at once (default: the machine's cores).
+    #[arg(long, env = "SOCIALFLOW_MAX_RUNNING_JOBS")]
+    pub max_running_jobs: Option<usize>,
     /// Log JSON lines (for containers).
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,
@@ -70,6 +73,9 @@ impl LearnerArgs {
         }
         if let Some(d) = &self.data_dir {
             cfg.data_dir = d.clone();
+        }
+        if let Some(n) = self.max_running_jobs {
+            cfg.max_running_jobs = Some(n);
         }
         if let Some(d) = &self.scenarios_dir {
             cfg.scenarios_dir = d.clone();

@@ -24,8 +24,12 @@ pub struct LearnerConfig {
     pub max_message_bytes: usize,
     /// Seconds a worker may go without a heartbeat before it is forgotten.
     pub worker_timeout_s: u64,
-    /// Seconds the trainer gets to write its checkpoint on shutdown.
+    /// Seconds the trainers get to write their checkpoints on shutdown.
     pub shutdown_grace_s: u64,
+    /// Training jobs that may run at once, each on its own trainer thread with its own replay
+    /// and rate limiter (never more than there are live workers: each needs one). Unset: the
+    /// machine's cores.
+    pub max_running_jobs: Option<usize>,
     /// PEM certificate chain and key: serve TLS only (both or neither).
     pub tls_cert_file: Option<PathBuf>,
     pub tls_key_file: Option<PathBuf>,
@@ -47,6 +51,7 @@ impl Default for LearnerConfig {
             max_message_bytes: sf_service::MAX_MESSAGE_BYTES,
             worker_timeout_s: 30,
             shutdown_grace_s: 120,
+            max_running_jobs: None,
             tls_cert_file: None,
             tls_key_file: None,
             tls_client_ca_file: None,
@@ -56,6 +61,13 @@ impl Default for LearnerConfig {
 }
 
 impl LearnerConfig {
+    /// How many training jobs may run at once: `max_running_jobs`, else the machine's cores.
+    pub fn running_job_limit(&self) -> usize {
+        self.max_running_jobs
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+            .max(1)
+    }
+
     pub fn from_toml(text: &str, origin: &str) -> anyhow::Result<Self> {
         let c: Self = toml::from_str(text).with_context(|| format!("learner config {origin}"))?;
         c.validate().with_context(|| format!("learner config {origin}"))?;
@@ -69,6 +81,10 @@ impl LearnerConfig {
             self.max_message_bytes
         );
         anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
+        anyhow::ensure!(
+            self.max_running_jobs != Some(0),
+            "field `max_running_jobs`: 0 would run no job (leave it out for the machine's cores)"
+        );
         anyhow::ensure!(
             self.scenarios_dir.is_dir(),
             "field `scenarios_dir`: {} is not a directory",

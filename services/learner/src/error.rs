@@ -60,6 +60,17 @@ pub enum LearnerError {
     WorkerNotRegistered { worker_id: u64 },
     #[error("job {job_id} is {state}, not running")]
     NotRunning { job_id: u64, state: &'static str },
+    #[error("field `name`: `{name}` is not a job file a client may read (one of {})", crate::artifacts::READABLE.join(", "))]
+    UnknownJobFile { name: String },
+    #[error("job {job_id} has no {name} (not written yet, or not a file this kind of job writes)")]
+    NoJobFile { job_id: u64, name: &'static str },
+    #[error(
+        "{name} of job {job_id} is {bytes} bytes, over the learner's message limit of {limit}"
+    )]
+    JobFileTooLarge { job_id: u64, name: &'static str, bytes: u64, limit: u64 },
+    /// Training jobs share the workers: this one is to end its session and ask again.
+    #[error("job {job_id} has more workers than its share; worker {worker_id} moves to job {to}")]
+    WorkerMoved { job_id: u64, worker_id: u64, to: u64 },
     /// A policy version the running job does not hold (never published, or evicted).
     #[error("job {job_id} holds no policy version {version}")]
     NoPolicyVersion { job_id: u64, version: PolicyRequest },
@@ -201,9 +212,13 @@ impl LearnerError {
             | L::WorkerNotRegistered { .. }
             | L::NoPolicyVersion { .. }
             | L::VersionGone { .. } => S::NotFound,
-            L::NotRunning { .. } | L::NotEvaluating { .. } | L::CellFailed { .. } => {
-                S::FailedPrecondition
-            }
+            L::UnknownJobFile { .. } => S::InvalidArgument,
+            L::NoJobFile { .. } => S::NotFound,
+            L::JobFileTooLarge { .. } => S::ResourceExhausted,
+            L::NotRunning { .. }
+            | L::WorkerMoved { .. }
+            | L::NotEvaluating { .. }
+            | L::CellFailed { .. } => S::FailedPrecondition,
             L::NoCell { .. } => S::NotFound,
             L::BadCellResults { .. } => S::InvalidArgument,
             L::DependencyLookup { .. } | L::NoFinalPolicy { .. } => S::FailedPrecondition,

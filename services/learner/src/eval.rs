@@ -528,7 +528,7 @@ impl crate::Inner {
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
-        self.slot.fill(crate::slot::Running::Eval(Arc::clone(&job)));
+        self.slots.fill(id, crate::slot::Running::Eval(Arc::clone(&job)));
         let started = tokio::task::spawn_blocking(move || {
             store.update(id, |r| {
                 r.advance(JobState::Running, None);
@@ -539,7 +539,7 @@ impl crate::Inner {
         .and_then(|r| r.map_err(LearnerError::from));
         if !matches!(&started, Ok(Some(r)) if r.state == JobState::Running) {
             job.request_stop(StopReason::Cancelled);
-            self.slot.clear();
+            self.slots.clear(id);
             self.wake.notify_one();
             return started
                 .map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));

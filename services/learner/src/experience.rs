@@ -1,9 +1,11 @@
 //! What workers call during a training job: their assignment, policy weights by version (from
 //! the running job or a finished job's files) and the ingest of their transition batches.
 //!
-//! Owns: the `impl Inner` blocks behind `GetAssignment`'s training half, `GetPolicy` and
-//! `PushTransitions`. Must not: see wire types other than the transition batch it decodes, or
-//! pick a status (errors are `LearnerError`s, mapped in `error.rs`).
+//! Owns: the `impl Inner` blocks behind `GetAssignment`'s training half (a worker gets the
+//! running job with the fewest workers), `GetPolicy` and `PushTransitions` (a worker on a job
+//! with more than its share is told to move, FAILED_PRECONDITION, before its batch is stored).
+//! Must not: see wire types other than the transition batch it decodes, or pick a status
+//! (errors are `LearnerError`s, mapped in `error.rs`).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -31,6 +33,15 @@ impl Inner {
             Ok(()) => self.running(msg.job_id).await.map_err(ServiceError::from),
             Err(e) => Err(e),
         };
+        let job = job.and_then(|j| {
+            match self.workers.rebalance(msg.worker_id, j.id, &self.open_jobs()) {
+                Some(to) => Err({
+                    self.count_workers_per_job();
+                    LearnerError::WorkerMoved { job_id: j.id, worker_id: msg.worker_id, to }.into()
+                }),
+                None => Ok(j),
+            }
+        });
         let job = match job {
             Ok(job) => job,
             Err(e) => {
@@ -53,10 +64,8 @@ impl Inner {
         self: &Arc<Self>,
         id: u64,
     ) -> Result<Arc<crate::job::ActiveJob>, LearnerError> {
-        if let Some(j) = self.active() {
-            if j.id == id {
-                return Ok(j);
-            }
+        if let Some(j) = self.training(id) {
+            return Ok(j);
         }
         let rec = self.job(id).await?;
         Err(LearnerError::NotRunning { job_id: id, state: rec.state.as_str() })
@@ -105,15 +114,34 @@ impl Inner {
         }
     }
 
+    /// The running training jobs that take workers: not stopping, not complete, a policy
+    /// published.
+    fn open_jobs(&self) -> Vec<u64> {
+        self.trainings()
+            .iter()
+            .filter(|j| j.stop_reason().is_none() && !j.is_complete() && j.latest().is_some())
+            .map(|j| j.id)
+            .collect()
+    }
+
+    /// Sets each running job's `job_workers` gauge.
+    pub(crate) fn count_workers_per_job(&self) {
+        let jobs = self.trainings();
+        let ids: Vec<u64> = jobs.iter().map(|j| j.id).collect();
+        let n = self.workers.per_job(&ids);
+        for j in jobs {
+            j.metrics.workers.set(n.get(&j.id).copied().unwrap_or(0) as i64);
+        }
+    }
+
     pub(crate) fn assignment(
         self: &Arc<Self>,
         worker_id: u64,
     ) -> Result<Option<Assignment>, ServiceError> {
         self.touch_worker(worker_id)?;
-        let Some(j) = self.active() else { return Ok(None) };
-        if j.stop_reason().is_some() || j.is_complete() || j.latest().is_none() {
-            return Ok(None);
-        }
+        let pick = self.workers.assign(worker_id, &self.open_jobs());
+        self.count_workers_per_job();
+        let Some(j) = pick.and_then(|id| self.training(id)) else { return Ok(None) };
         let scenario_index = j.next_scenario();
         let seed = j
             .cfg

@@ -18,7 +18,7 @@ use sf_sac::{Losses, RateLimiter, Replay};
 use tokio::sync::watch;
 
 use crate::error::IngestError;
-use crate::metrics::LearnerMetrics;
+use crate::metrics::JobMetrics;
 use sf_service::sync::{lock, read, write};
 
 /// Why the trainer should stop.
@@ -92,7 +92,7 @@ pub struct ActiveJob {
     complete: AtomicBool,
     next_scenario: AtomicU64,
     started: Instant,
-    pub metrics: LearnerMetrics,
+    pub metrics: JobMetrics,
 }
 
 impl ActiveJob {
@@ -107,7 +107,7 @@ impl ActiveJob {
         action_dim: usize,
         limiter: RateLimiter,
         restored: Counters,
-        metrics: LearnerMetrics,
+        metrics: JobMetrics,
     ) -> Self {
         let obs_len = spec.len;
         let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
@@ -223,6 +223,7 @@ impl ActiveJob {
         if self.is_stale(b.acted_by, latest, warm) {
             lock(&self.stats).c.dropped_stale += b.count as u64;
             self.metrics
+                .totals
                 .transitions_dropped
                 .get_or_create(&crate::metrics::ReasonLabel { reason: "stale".into() })
                 .inc_by(b.count as u64);
@@ -275,7 +276,7 @@ impl ActiveJob {
     fn is_stale(&self, acted_by: ActedBy, latest: u64, warm: bool) -> bool {
         let Some(version) = acted_by.version() else { return !warm };
         let lag = latest.saturating_sub(version);
-        self.metrics.policy_lag.observe(lag as f64);
+        self.metrics.totals.policy_lag.observe(lag as f64);
         let mut s = lock(&self.stats);
         s.lag_sum += lag;
         s.lag_batches += 1;
@@ -348,8 +349,9 @@ impl ActiveJob {
     /// Counts a stored batch: counters, the rolling episode window, the transition rate,
     /// completion and the metrics.
     fn count(&self, b: &TransitionBatch, take: usize) {
-        self.metrics.transitions_received.inc_by(take as u64);
-        self.metrics.env_steps.inc_by(b.sim_steps);
+        self.metrics.transitions.inc_by(take as u64);
+        self.metrics.totals.transitions_received.inc_by(take as u64);
+        self.metrics.totals.env_steps.inc_by(b.sim_steps);
         for e in &b.episodes {
             let scenario = self
                 .cfg
@@ -358,7 +360,11 @@ impl ActiveJob {
                 .get(e.scenario_index as usize)
                 .cloned()
                 .unwrap_or_else(|| "unknown".into());
-            self.metrics.episodes.get_or_create(&crate::metrics::ScenarioLabel { scenario }).inc();
+            self.metrics
+                .totals
+                .episodes
+                .get_or_create(&crate::metrics::ScenarioLabel { scenario })
+                .inc();
         }
         let mut s = lock(&self.stats);
         s.c.env_steps += take as u64;
@@ -422,6 +428,7 @@ impl ActiveJob {
         s.updates = updates;
         s.losses = l;
         self.metrics.updates.inc();
+        self.metrics.totals.updates.inc();
         self.metrics.critic_loss.set(l.critic as f64);
         self.metrics.actor_loss.set(l.actor as f64);
         self.metrics.alpha.set(l.alpha as f64);

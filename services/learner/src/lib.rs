@@ -3,18 +3,22 @@
 //! Owns: [`start`] (validates the [`LearnerConfig`] before any port is bound, binds the gRPC and
 //! admin ports, opens the job store, starts the scheduler) and [`Inner`], the shared state
 //! behind the handlers: the job store and every stored job's parsed [`sf_job::JobSpec`]
-//! (parsed once), the one running slot ([`slot::Slot`]: a training [`job::ActiveJob`] or an
-//! evaluation [`eval::EvalJob`]), the worker registry ([`workers::Workers`]), metrics. The
-//! scheduler runs one job at a time — a RUNNING job left by a previous process first
-//! (auto-resume from its checkpoint), then QUEUED jobs in id order — a training job on a
-//! dedicated trainer thread ([`trainer`]), an evaluation job ([`eval`]) by leasing its cells to
-//! the workers. Must not: expose wire types outside [`service`] (the gRPC edge), or pick a
-//! status for an error (`error.rs` maps each domain error to one).
+//! (parsed once), the running jobs ([`slot::Slots`]: training [`job::ActiveJob`]s side by side,
+//! or one evaluation [`eval::EvalJob`] alone), the worker registry ([`workers::Workers`]),
+//! metrics. The scheduler starts jobs while [`slot::Slots::admits`] them — RUNNING jobs left by
+//! a previous process first (auto-resume from their checkpoints), then QUEUED jobs in id order,
+//! a job behind an unfinished dependency skipped, an evaluation waiting for the running jobs to
+//! end — a training job on a dedicated trainer thread ([`trainer`]) with its own replay, rate
+//! limiter and metrics, an evaluation job ([`eval`]) by leasing its cells to the workers.
+//! Training jobs share the workers (each gets the least served job; `experience.rs`). Must
+//! not: expose wire types outside [`service`] (the gRPC edge), or pick a status for an error
+//! (`error.rs` maps each domain error to one).
 //!
-//! Shutdown ([`RunningLearner::shutdown`], SIGTERM in the binary): the running job is asked to
-//! stop, its trainer writes a checkpoint, the job stays RUNNING in the store and resumes on the
-//! next start.
+//! Shutdown ([`RunningLearner::shutdown`], SIGTERM in the binary): the running jobs are asked
+//! to stop, their trainers write checkpoints, the jobs stay RUNNING in the store and resume on
+//! the next start.
 
+mod artifacts;
 pub mod cmd;
 pub mod config;
 mod deps;
@@ -55,7 +59,7 @@ pub use crate::config::LearnerConfig;
 pub use crate::error::{IngestError, LearnerError};
 use crate::job::{ActiveJob, StopReason};
 use crate::metrics::LearnerMetrics;
-use crate::slot::{Running, Slot};
+use crate::slot::{Kind, Running, Slots};
 use crate::store::Store;
 use crate::trainer::Outcome;
 use crate::workers::Workers;
@@ -66,8 +70,8 @@ pub struct Inner {
     cfg: LearnerConfig,
     store: Arc<Store>,
     pub metrics: LearnerMetrics,
-    /// The running training or evaluation job.
-    slot: Slot,
+    /// The running training jobs or evaluation job.
+    slots: Slots,
     wake: Notify,
     idle: Notify,
     workers: Workers,
@@ -91,9 +95,14 @@ async fn blocking<T: Send + 'static>(
 }
 
 impl Inner {
-    /// The running training job.
-    pub fn active(&self) -> Option<Arc<ActiveJob>> {
-        self.slot.train()
+    /// The running training job `id`.
+    pub fn training(&self, id: u64) -> Option<Arc<ActiveJob>> {
+        self.slots.train(id)
+    }
+
+    /// Every running training job, by id.
+    pub fn trainings(&self) -> Vec<Arc<ActiveJob>> {
+        self.slots.trains()
     }
 
     /// Why the data directory refuses writes, while it does.
@@ -103,7 +112,7 @@ impl Inner {
 
     /// The running evaluation job.
     pub fn evaluating(&self) -> Option<Arc<eval::EvalJob>> {
-        self.slot.eval()
+        self.slots.eval()
     }
 
     /// The parsed config of stored job `rec`, parsed on first use and kept.
@@ -126,7 +135,7 @@ impl Inner {
 
     /// Live progress of the running job `id`, if it is running.
     fn live_progress(&self, id: u64) -> Option<sf_job::Progress> {
-        self.slot.progress(id)
+        self.slots.progress(id)
     }
 
     /// Loads and validates the job's scenario files off the async runtime (file IO).
@@ -219,7 +228,7 @@ impl Inner {
         })
         .await?
         .ok_or(LearnerError::JobNotFound { job_id: id })?;
-        if let Some(j) = self.active().filter(|j| j.id == id) {
+        if let Some(j) = self.training(id) {
             j.request_stop(StopReason::Cancelled);
         }
         if let Some(e) = self.evaluating().filter(|e| e.id == id) {
@@ -246,10 +255,10 @@ impl Inner {
         Ok(self.workers.touch(id)?)
     }
 
-    /// Starts the next job if none is running.
+    /// Starts what may start now: RUNNING jobs of a previous process, then ready QUEUED jobs
+    /// in id order, while the slots admit them.
     async fn schedule_once(self: &Arc<Self>) {
-        if self.slot.busy() || self.shutting_down.load(Ordering::Acquire) || !self.storage.healthy()
-        {
+        if self.shutting_down.load(Ordering::Acquire) || !self.storage.healthy() {
             return;
         }
         let all = match self.jobs().await {
@@ -283,9 +292,24 @@ impl Inner {
             r.state == JobState::Queued
                 && dep_state(r).is_none_or(|(_, s)| s == JobState::Succeeded)
         };
-        let next =
-            all.iter().find(|r| r.state == JobState::Running).or_else(|| all.iter().find(ready));
-        if let Some(rec) = next.cloned() {
+        let candidates = all
+            .iter()
+            .filter(|r| r.state == JobState::Running)
+            .chain(all.iter().filter(ready))
+            .filter(|r| self.slots.progress(r.id).is_none());
+        for rec in candidates {
+            let kind = match self.spec(rec) {
+                Ok(s) if s.is_eval() => Kind::Eval,
+                _ => Kind::Train,
+            };
+            if !self.slots.admits(kind, self.workers.live().len()) {
+                // In order: a job does not overtake one that waits for room.
+                return;
+            }
+            if !self.storage.healthy() || self.shutting_down.load(Ordering::Acquire) {
+                return;
+            }
+            let rec = rec.clone();
             match self.start_job(&rec).await {
                 Ok(()) => {}
                 // The job waits, as it is, until the disk takes writes again.
@@ -340,13 +364,13 @@ impl Inner {
             action_dim,
             limiter,
             counters,
-            self.metrics.clone(),
+            metrics::JobMetrics::new(&self.metrics, rec.id),
         ));
         let store = Arc::clone(&self.store);
         let id = rec.id;
         // Active first, then RUNNING only if not cancelled meanwhile: a CancelJob either sees
         // the active job (and stops it) or wrote CANCELLED before this update (which keeps it).
-        self.slot.fill(Running::Train(Arc::clone(&job)));
+        self.slots.fill(id, Running::Train(Arc::clone(&job)));
         let started = blocking(move || {
             store.update(id, |r| {
                 r.advance(JobState::Running, None);
@@ -357,7 +381,8 @@ impl Inner {
             Ok(Some(r)) if r.state == JobState::Running => {}
             other => {
                 job.request_stop(StopReason::Cancelled);
-                self.slot.clear();
+                job.metrics.remove();
+                self.slots.clear(id);
                 self.wake.notify_one();
                 return match other {
                     Err(e) => Err(e.into()),
@@ -405,11 +430,12 @@ impl Inner {
         Ok(())
     }
 
-    /// Records how a job ended and frees the slot.
+    /// Records how a job ended and frees its slot.
     async fn finish(self: &Arc<Self>, id: u64, out: Outcome, progress: Option<sf_job::Progress>) {
         tracing::info!(job_id = id, outcome = ?out, "job stopped");
-        if let Some(j) = self.active().filter(|j| j.id == id) {
+        if let Some(j) = self.training(id) {
             j.close();
+            j.metrics.remove();
         }
         if let Outcome::Paused(cause) = &out {
             // Nothing to record: the job stays RUNNING at its last checkpoint.
@@ -434,7 +460,7 @@ impl Inner {
                 Err(e) => tracing::error!(job_id = id, error = %e, "recording the job's end"),
             }
         }
-        self.slot.clear();
+        self.slots.clear(id);
         self.idle.notify_waiters();
         self.wake.notify_one();
     }
@@ -506,7 +532,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         cfg: cfg.clone(),
         store,
         metrics: metrics.clone(),
-        slot: Slot::default(),
+        slots: Slots::new(cfg.running_job_limit(), metrics.running_jobs.clone()),
         wake: Notify::new(),
         idle: Notify::new(),
         workers: Workers::new(
@@ -584,6 +610,7 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
     tokio::spawn(async move {
         loop {
             sched.workers.prune();
+            sched.count_workers_per_job();
             sched.schedule_once().await;
             if sched.shutting_down.load(Ordering::Acquire) {
                 return;
@@ -632,18 +659,15 @@ async fn recover_storage(inner: Arc<Inner>) {
 }
 
 impl RunningLearner {
-    /// Checkpoints the running job (it stays RUNNING) and stops serving.
+    /// Checkpoints the running jobs (they stay RUNNING) and stops serving.
     pub async fn shutdown(mut self) -> anyhow::Result<()> {
         let inner = &self.inner;
         inner.shutting_down.store(true, Ordering::Release);
-        if let Some(j) = inner.active() {
+        let deadline =
+            tokio::time::Instant::now() + Duration::from_secs(inner.cfg.shutdown_grace_s);
+        for j in inner.trainings() {
             tracing::info!(job_id = j.id, "shutting down: checkpointing the running job");
-            let idle = inner.idle.notified();
             j.request_stop(StopReason::Shutdown);
-            let grace = Duration::from_secs(inner.cfg.shutdown_grace_s);
-            if inner.active().is_some() && tokio::time::timeout(grace, idle).await.is_err() {
-                tracing::warn!("the trainer did not finish its checkpoint within the grace period");
-            }
         }
         if let Some(e) = inner.evaluating() {
             // Stored cells stay stored; the job stays RUNNING and resumes with the rest.
@@ -651,14 +675,16 @@ impl RunningLearner {
                 job_id = e.id,
                 "shutting down: the evaluation resumes on the next start"
             );
-            let idle = inner.idle.notified();
             e.request_stop(StopReason::Shutdown);
-            if inner.evaluating().is_some()
-                && tokio::time::timeout(Duration::from_secs(inner.cfg.shutdown_grace_s), idle)
-                    .await
-                    .is_err()
-            {
-                tracing::warn!("the evaluation did not stop within the grace period");
+        }
+        loop {
+            let idle = inner.idle.notified();
+            if inner.slots.is_empty() {
+                break;
+            }
+            if tokio::time::timeout_at(deadline, idle).await.is_err() {
+                tracing::warn!("a running job did not stop (checkpoint) within the grace period");
+                break;
             }
         }
         if let Some(tx) = self.stop_server.take() {

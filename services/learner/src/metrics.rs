@@ -1,4 +1,10 @@
 //! The learner's Prometheus metrics (`socialflow_learner_*`).
+//!
+//! Owns: [`LearnerMetrics`] (the learner's totals: transitions, updates, episodes, workers,
+//! storage, evaluation) and [`JobMetrics`], one running training job's series labelled
+//! `job="<id>"` (replay, policy version, losses, rolling episode ratios, its own update and
+//! transition counters), removed when the job stops. Several jobs train at once, so nothing
+//! that belongs to one job is an unlabelled gauge.
 
 use std::sync::atomic::AtomicU64;
 
@@ -16,6 +22,11 @@ pub struct ReasonLabel {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct JobLabel {
+    pub job: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct ScenarioLabel {
     pub scenario: String,
 }
@@ -30,16 +41,9 @@ pub struct LearnerMetrics {
     pub env_steps: Counter,
     pub updates: Counter,
     pub episodes: Family<ScenarioLabel, Counter>,
-    pub replay_size: Gauge,
-    pub replay_bytes: Gauge,
-    pub policy_version: Gauge,
     pub policy_lag: Histogram,
-    pub critic_loss: FGauge,
-    pub actor_loss: FGauge,
-    pub alpha: FGauge,
-    pub success: FGauge,
-    pub safety: FGauge,
-    pub speed: FGauge,
+    pub jobs: JobFamilies,
+    pub running_jobs: Gauge,
     pub workers: Gauge,
     pub checkpoints: Counter,
     pub eval_episodes: Counter,
@@ -58,16 +62,9 @@ impl LearnerMetrics {
             env_steps: Counter::default(),
             updates: Counter::default(),
             episodes: Family::default(),
-            replay_size: Gauge::default(),
-            replay_bytes: Gauge::default(),
-            policy_version: Gauge::default(),
             policy_lag: Histogram::new(exponential_buckets(1.0, 2.0, 8)),
-            critic_loss: FGauge::default(),
-            actor_loss: FGauge::default(),
-            alpha: FGauge::default(),
-            success: FGauge::default(),
-            safety: FGauge::default(),
-            speed: FGauge::default(),
+            jobs: JobFamilies::default(),
+            running_jobs: Gauge::default(),
             workers: Gauge::default(),
             checkpoints: Counter::default(),
             eval_episodes: Counter::default(),
@@ -108,51 +105,16 @@ impl LearnerMetrics {
             m.episodes.clone(),
         );
         reg.register(
-            "socialflow_learner_replay_size_transitions",
-            "Transitions held in the replay buffer",
-            m.replay_size.clone(),
-        );
-        reg.register(
-            "socialflow_learner_replay_bytes",
-            "Bytes the replay buffer holds",
-            m.replay_bytes.clone(),
-        );
-        reg.register(
-            "socialflow_learner_policy_version",
-            "Latest published policy version of the running job",
-            m.policy_version.clone(),
+            "socialflow_learner_running_jobs",
+            "Training and evaluation jobs running now",
+            m.running_jobs.clone(),
         );
         reg.register(
             "socialflow_learner_policy_lag_versions",
             "Learner version minus the version that produced each received batch",
             m.policy_lag.clone(),
         );
-        reg.register(
-            "socialflow_learner_critic_loss",
-            "Critic loss of the latest update",
-            m.critic_loss.clone(),
-        );
-        reg.register(
-            "socialflow_learner_actor_loss",
-            "Actor loss of the latest update",
-            m.actor_loss.clone(),
-        );
-        reg.register("socialflow_learner_alpha", "Entropy temperature", m.alpha.clone());
-        reg.register(
-            "socialflow_learner_episode_success_ratio",
-            "Rolling success rate of finished episodes",
-            m.success.clone(),
-        );
-        reg.register(
-            "socialflow_learner_episode_safety_ratio",
-            "Rolling safety rate of finished episodes",
-            m.safety.clone(),
-        );
-        reg.register(
-            "socialflow_learner_episode_speed_ratio",
-            "Rolling mean speed / v_max of finished episodes",
-            m.speed.clone(),
-        );
+        m.jobs.register(reg);
         reg.register(
             "socialflow_learner_workers",
             "Workers that sent a heartbeat recently",
@@ -179,5 +141,142 @@ impl LearnerMetrics {
             m.eval_cells_reassigned.clone(),
         );
         m
+    }
+}
+
+type Per<M> = Family<JobLabel, M>;
+
+/// The per-job series (label `job`), one family per quantity.
+#[derive(Clone, Default)]
+pub struct JobFamilies {
+    transitions: Per<Counter>,
+    updates: Per<Counter>,
+    workers: Per<Gauge>,
+    replay_size: Per<Gauge>,
+    replay_bytes: Per<Gauge>,
+    policy_version: Per<Gauge>,
+    critic_loss: Per<FGauge>,
+    actor_loss: Per<FGauge>,
+    alpha: Per<FGauge>,
+    success: Per<FGauge>,
+    safety: Per<FGauge>,
+    speed: Per<FGauge>,
+}
+
+impl JobFamilies {
+    fn register(&self, reg: &mut Registry) {
+        let f = self;
+        reg.register(
+            "socialflow_learner_job_transitions_received",
+            "Transitions accepted into the job's replay",
+            f.transitions.clone(),
+        );
+        reg.register("socialflow_learner_job_updates", "The job's SAC updates", f.updates.clone());
+        reg.register(
+            "socialflow_learner_job_workers",
+            "Live workers assigned to the job",
+            f.workers.clone(),
+        );
+        reg.register(
+            "socialflow_learner_replay_size_transitions",
+            "Transitions held in the job's replay buffer",
+            f.replay_size.clone(),
+        );
+        reg.register(
+            "socialflow_learner_replay_bytes",
+            "Bytes the job's replay buffer holds",
+            f.replay_bytes.clone(),
+        );
+        reg.register(
+            "socialflow_learner_policy_version",
+            "Latest published policy version of the job",
+            f.policy_version.clone(),
+        );
+        reg.register(
+            "socialflow_learner_critic_loss",
+            "Critic loss of the job's latest update",
+            f.critic_loss.clone(),
+        );
+        reg.register(
+            "socialflow_learner_actor_loss",
+            "Actor loss of the job's latest update",
+            f.actor_loss.clone(),
+        );
+        reg.register("socialflow_learner_alpha", "The job's entropy temperature", f.alpha.clone());
+        reg.register(
+            "socialflow_learner_episode_success_ratio",
+            "Rolling success rate of the job's finished episodes",
+            f.success.clone(),
+        );
+        reg.register(
+            "socialflow_learner_episode_safety_ratio",
+            "Rolling safety rate of the job's finished episodes",
+            f.safety.clone(),
+        );
+        reg.register(
+            "socialflow_learner_episode_speed_ratio",
+            "Rolling mean speed / v_max of the job's finished episodes",
+            f.speed.clone(),
+        );
+    }
+}
+
+/// One running job's series and the learner's totals it adds to.
+#[derive(Clone)]
+pub struct JobMetrics {
+    pub totals: LearnerMetrics,
+    label: JobLabel,
+    pub transitions: Counter,
+    pub updates: Counter,
+    pub workers: Gauge,
+    pub replay_size: Gauge,
+    pub replay_bytes: Gauge,
+    pub policy_version: Gauge,
+    pub critic_loss: FGauge,
+    pub actor_loss: FGauge,
+    pub alpha: FGauge,
+    pub success: FGauge,
+    pub safety: FGauge,
+    pub speed: FGauge,
+}
+
+impl JobMetrics {
+    /// The series of job `id` (created, or the existing ones of a job started again).
+    pub fn new(totals: &LearnerMetrics, id: u64) -> Self {
+        let label = JobLabel { job: id.to_string() };
+        let f = &totals.jobs;
+        Self {
+            transitions: f.transitions.get_or_create(&label).clone(),
+            updates: f.updates.get_or_create(&label).clone(),
+            workers: f.workers.get_or_create(&label).clone(),
+            replay_size: f.replay_size.get_or_create(&label).clone(),
+            replay_bytes: f.replay_bytes.get_or_create(&label).clone(),
+            policy_version: f.policy_version.get_or_create(&label).clone(),
+            critic_loss: f.critic_loss.get_or_create(&label).clone(),
+            actor_loss: f.actor_loss.get_or_create(&label).clone(),
+            alpha: f.alpha.get_or_create(&label).clone(),
+            success: f.success.get_or_create(&label).clone(),
+            safety: f.safety.get_or_create(&label).clone(),
+            speed: f.speed.get_or_create(&label).clone(),
+            totals: totals.clone(),
+            label,
+        }
+    }
+
+    /// Removes the job's series (it stopped): a scrape shows only running jobs.
+    pub fn remove(&self) {
+        let (f, l) = (&self.totals.jobs, &self.label);
+        f.transitions.remove(l);
+        f.updates.remove(l);
+        f.workers.remove(l);
+        f.replay_size.remove(l);
+        f.replay_bytes.remove(l);
+        f.policy_version.remove(l);
+        f.critic_loss.remove(l);
+        f.actor_loss.remove(l);
+        f.alpha.remove(l);
+        f.success.remove(l);
+        f.safety.remove(l);
+        f.speed.remove(l);
     }
 }

@@ -77,6 +77,12 @@ impl JobService for Jobs {
         done(&self.0, "CancelJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
+    async fn get_job_file(&self, req: Request<pb::GetJobFileRequest>) -> Res<pb::JobFile> {
+        let pb::GetJobFileRequest { job_id, name } = req.into_inner();
+        let r = self.0.job_file(job_id, &name).await;
+        done(&self.0, "GetJobFile", r.map(|content| pb::JobFile { job_id, name, content }))
+    }
+
     type WatchJobStream = BoxStream<pb::JobProgress>;
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Res<Self::WatchJobStream> {

@@ -1,63 +1,113 @@
-//! The learner's one running slot: a training job or an evaluation job, never both.
+//! The learner's running jobs: several training jobs side by side, or one evaluation job alone.
 //!
-//! Owns: [`Slot`], which holds the [`Running`] job the handlers, the scheduler and shutdown
-//! look at. Must not: start or stop jobs (the scheduler fills and clears it, the job itself
-//! stops on request) or know how either kind runs.
+//! Owns: [`Slots`], which hold the [`Running`] jobs the handlers, the scheduler and shutdown
+//! look at, and the rule for what may start next ([`Slots::admits`]): training jobs up to the
+//! limit (each needs a worker of its own, so no more than there are live workers), an
+//! evaluation only when nothing runs (its cells go to idle workers, and a worker in a training
+//! session is never idle), and nothing beside an evaluation. Must not: start or stop jobs (the
+//! scheduler fills and clears the slots, the job itself stops on request) or know how either
+//! kind runs.
 
+use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
 
+use prometheus_client::metrics::gauge::Gauge;
 use sf_service::sync::{read, write};
 
 use crate::eval::EvalJob;
 use crate::job::ActiveJob;
 
-/// What occupies the slot.
+/// What occupies a slot.
 #[derive(Clone)]
 pub enum Running {
     Train(Arc<ActiveJob>),
     Eval(Arc<EvalJob>),
 }
 
-/// The running job, if any.
-#[derive(Default)]
-pub struct Slot(RwLock<Option<Running>>);
+/// What the scheduler wants to start.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Train,
+    Eval,
+}
 
-impl Slot {
-    /// The running training job.
-    pub fn train(&self) -> Option<Arc<ActiveJob>> {
-        match &*read(&self.0) {
+/// The running jobs by id.
+pub struct Slots {
+    jobs: RwLock<BTreeMap<u64, Running>>,
+    /// Training jobs that may run at once.
+    limit: usize,
+    gauge: Gauge,
+}
+
+impl Slots {
+    pub fn new(limit: usize, gauge: Gauge) -> Self {
+        Self { jobs: RwLock::new(BTreeMap::new()), limit: limit.max(1), gauge }
+    }
+
+    /// The running training job `id`.
+    pub fn train(&self, id: u64) -> Option<Arc<ActiveJob>> {
+        match read(&self.jobs).get(&id) {
             Some(Running::Train(j)) => Some(Arc::clone(j)),
             _ => None,
         }
     }
 
+    /// Every running training job, by id.
+    pub fn trains(&self) -> Vec<Arc<ActiveJob>> {
+        read(&self.jobs)
+            .values()
+            .filter_map(|r| match r {
+                Running::Train(j) => Some(Arc::clone(j)),
+                Running::Eval(_) => None,
+            })
+            .collect()
+    }
+
     /// The running evaluation job.
     pub fn eval(&self) -> Option<Arc<EvalJob>> {
-        match &*read(&self.0) {
-            Some(Running::Eval(e)) => Some(Arc::clone(e)),
-            _ => None,
+        read(&self.jobs).values().find_map(|r| match r {
+            Running::Eval(e) => Some(Arc::clone(e)),
+            Running::Train(_) => None,
+        })
+    }
+
+    pub fn is_empty(&self) -> bool {
+        read(&self.jobs).is_empty()
+    }
+
+    /// Whether a job of `kind` may start now, with `workers` live workers.
+    pub fn admits(&self, kind: Kind, workers: usize) -> bool {
+        let jobs = read(&self.jobs);
+        if jobs.values().any(|r| matches!(r, Running::Eval(_))) {
+            return false;
+        }
+        match kind {
+            Kind::Eval => jobs.is_empty(),
+            Kind::Train => jobs.len() < self.limit.min(workers.max(1)),
         }
     }
 
-    pub fn busy(&self) -> bool {
-        read(&self.0).is_some()
-    }
-
-    /// Live progress of job `id` if it is the running one.
+    /// Live progress of job `id` if it is running.
     pub fn progress(&self, id: u64) -> Option<sf_job::Progress> {
-        match &*read(&self.0) {
-            Some(Running::Train(j)) if j.id == id => Some(j.progress()),
-            Some(Running::Eval(e)) if e.id == id => Some(e.progress()),
-            _ => None,
+        match read(&self.jobs).get(&id) {
+            Some(Running::Train(j)) => Some(j.progress()),
+            Some(Running::Eval(e)) => Some(e.progress()),
+            None => None,
         }
     }
 
-    /// Puts `job` in the slot (the scheduler starts a job only when it is empty).
-    pub fn fill(&self, job: Running) {
-        *write(&self.0) = Some(job);
+    /// Puts `job` in a slot (the scheduler starts a job only when [`Slots::admits`] it).
+    pub fn fill(&self, id: u64, job: Running) {
+        let mut jobs = write(&self.jobs);
+        jobs.insert(id, job);
+        self.gauge.set(jobs.len() as i64);
     }
 
-    pub fn clear(&self) {
-        *write(&self.0) = None;
+    /// Frees job `id`'s slot; true if it held one.
+    pub fn clear(&self, id: u64) -> bool {
+        let mut jobs = write(&self.jobs);
+        let held = jobs.remove(&id).is_some();
+        self.gauge.set(jobs.len() as i64);
+        held
     }
 }

@@ -691,7 +691,7 @@ fn save(
             tracing::warn!(error = %e, "could not draw curve.png");
         }
     }
-    job.metrics.checkpoints.inc();
+    job.metrics.totals.checkpoints.inc();
     tracing::info!(
         job_id = job.id,
         updates = sac.updates,

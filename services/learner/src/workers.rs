@@ -2,12 +2,15 @@
 //! silent ones.
 //!
 //! Owns: [`Workers`] (ids issued once per learner start, last-seen times, the `workers`
-//! gauge). Every call from a worker (heartbeat, assignment, transitions, evaluation results)
-//! touches it; the scheduler prunes it once a tick so the gauge falls even when no worker
-//! calls. Must not: know about jobs or leases (the evaluation job asks [`Workers::live`] whom
-//! to keep leases for).
+//! gauge, the training job each works for) and the sharing of workers between training jobs
+//! running side by side ([`Workers::assign`] gives a worker the job with the fewest workers,
+//! [`Workers::rebalance`] moves one off a job holding more than its share). Every call from a
+//! worker (heartbeat, assignment, transitions, evaluation results) touches it; the scheduler
+//! prunes it once a tick so the gauge falls even when no worker calls. Must not: know what a
+//! job is beyond its id, or leases (the evaluation job asks [`Workers::live`] whom to keep
+//! leases for).
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -22,6 +25,8 @@ struct WorkerInfo {
     last_seen: Instant,
     /// It runs evaluation cells with the IDM driver in the ego's seat.
     runs_idm_ego: bool,
+    /// The training job it was last assigned, until it is moved or asks again.
+    job: Option<u64>,
 }
 
 /// Registered workers, forgotten after `timeout` without a call.
@@ -49,7 +54,12 @@ impl Workers {
         let mut w = lock(&self.map);
         w.insert(
             id,
-            WorkerInfo { name: name.to_string(), last_seen: Instant::now(), runs_idm_ego },
+            WorkerInfo {
+                name: name.to_string(),
+                last_seen: Instant::now(),
+                runs_idm_ego,
+                job: None,
+            },
         );
         self.gauge.set(w.len() as i64);
         tracing::info!(worker_id = id, name, "worker registered");
@@ -79,6 +89,49 @@ impl Workers {
         lock(&self.map).keys().copied().collect()
     }
 
+    /// Gives worker `id` the job among `jobs` (the running training jobs that take workers)
+    /// with the fewest other live workers, the lowest id among equals; `None` (and no job
+    /// recorded) when there is none.
+    pub fn assign(&self, id: u64, jobs: &[u64]) -> Option<u64> {
+        let mut w = lock(&self.map);
+        let loads = loads(&w, jobs, Some(id));
+        let pick = least_loaded(&loads);
+        if let Some(info) = w.get_mut(&id) {
+            info.job = pick;
+        }
+        pick
+    }
+
+    /// Whether worker `id`, sending for job `job`, should move to another of `jobs` to even out
+    /// the workers per job: when `job` holds more than one worker above the least served job.
+    /// If so the worker is recorded on the job it should take at once (so that its fellows on
+    /// `job` stay) and that job is returned.
+    pub fn rebalance(&self, id: u64, job: u64, jobs: &[u64]) -> Option<u64> {
+        let mut w = lock(&self.map);
+        let info = w.get_mut(&id)?;
+        if info.job != Some(job) {
+            // An older session's batch (or one from before a restart): recorded, not moved.
+            info.job = Some(job);
+        }
+        let loads = loads(&w, jobs, None);
+        let to = least_loaded(&loads)?;
+        let here = loads.get(&job).copied().unwrap_or(0);
+        if to == job || here <= loads[&to] + 1 {
+            return None;
+        }
+        // Counted on the job it is to take, so that its fellows on `job` stay.
+        if let Some(info) = w.get_mut(&id) {
+            info.job = Some(to);
+        }
+        tracing::info!(worker_id = id, from = job, to, "worker moves to even out the running jobs");
+        Some(to)
+    }
+
+    /// Live workers per job of `jobs`.
+    pub fn per_job(&self, jobs: &[u64]) -> BTreeMap<u64, usize> {
+        loads(&lock(&self.map), jobs, None)
+    }
+
     /// Forgets workers silent for longer than the timeout and updates the gauge.
     pub fn prune(&self) {
         self.prune_locked(&mut lock(&self.map), None);
@@ -97,6 +150,22 @@ impl Workers {
             self.gauge.set(w.len() as i64);
         }
     }
+}
+
+/// Workers per job of `jobs` (every one listed, zero included), `except` not counted.
+fn loads(w: &HashMap<u64, WorkerInfo>, jobs: &[u64], except: Option<u64>) -> BTreeMap<u64, usize> {
+    let mut n: BTreeMap<u64, usize> = jobs.iter().map(|&j| (j, 0)).collect();
+    for job in w.iter().filter(|(wid, _)| Some(**wid) != except).filter_map(|(_, i)| i.job) {
+        if let Some(c) = n.get_mut(&job) {
+            *c += 1;
+        }
+    }
+    n
+}
+
+/// The job with the fewest workers, the lowest id among equals.
+fn least_loaded(loads: &BTreeMap<u64, usize>) -> Option<u64> {
+    loads.iter().min_by_key(|(&j, &n)| (n, j)).map(|(&j, _)| j)
 }
 
 #[cfg(test)]
@@ -122,5 +191,32 @@ mod tests {
         w.prune();
         assert!(w.live().is_empty());
         assert_eq!(gauge.get(), 0, "the gauge falls with no worker calling");
+    }
+
+    #[test]
+    fn workers_spread_over_running_jobs_and_move_when_a_job_starts_or_ends() {
+        let w = Workers::new(1, Duration::from_secs(60), Gauge::default());
+        let ids: Vec<u64> = (0..3).map(|k| w.register(&format!("w{k}"), false)).collect();
+        // One job: everyone on it.
+        for &id in &ids {
+            assert_eq!(w.assign(id, &[10]), Some(10));
+        }
+        assert_eq!(w.per_job(&[10]), BTreeMap::from([(10, 3)]));
+        // A second job starts: the first sender moves, the next ones stay (3 vs 0 -> 2 vs 1).
+        assert_eq!(w.rebalance(ids[0], 10, &[10, 11]), Some(11), "3 on 10, 0 on 11");
+        assert_eq!(w.rebalance(ids[1], 10, &[10, 11]), None, "2 on 10, 1 moving to 11");
+        assert_eq!(w.rebalance(ids[2], 10, &[10, 11]), None);
+        assert_eq!(w.assign(ids[0], &[10, 11]), Some(11), "the mover takes the empty job");
+        assert_eq!(w.per_job(&[10, 11]), BTreeMap::from([(10, 2), (11, 1)]));
+        // Job 10 ends: its workers ask again and both land on 11.
+        assert_eq!(w.assign(ids[1], &[11]), Some(11));
+        assert_eq!(w.assign(ids[2], &[11]), Some(11));
+        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 3)]));
+        // Nothing runs: nothing is assigned.
+        assert_eq!(w.assign(ids[0], &[]), None);
+        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 2)]));
+        // A batch for a job the worker was not recorded on (a session from before): recorded.
+        assert_eq!(w.rebalance(ids[0], 11, &[11]), None);
+        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 3)]));
     }
 }
