@@ -170,7 +170,8 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
         ),
         "rpc errors by code"
     );
-    assert!(m.contains("# HELP socialflow_learner_replay_size_transitions"));
+    // Per-job series (replay size, policy version, ...) go with the job; the totals stay.
+    assert!(m.contains("# HELP socialflow_learner_running_jobs"));
     for scenario in ["roundabout", "merge", "bottleneck"] {
         assert!(
             metric(&m, &format!("socialflow_learner_episodes_total{{scenario=\"{scenario}\"}}"))
@@ -261,6 +262,7 @@ fn two_jobs_train_side_by_side_and_cancelling_one_leaves_the_other() {
     assert_eq!(metric(&m, "socialflow_learner_running_jobs"), 2.0);
     for id in [a.job_id, b.job_id] {
         assert!(m.contains(&format!("socialflow_learner_policy_version{{job=\"{id}\"}}")));
+        assert!(m.contains(&format!("socialflow_learner_replay_size_transitions{{job=\"{id}\"}}")));
     }
     let b_before = progress(&get(&rt, &mut c, b.job_id)).env_steps;
     rt.block_on(c.cancel_job(pb::CancelJobRequest { job_id: a.job_id })).expect("cancel");
