@@ -3,6 +3,8 @@
 //! Sizes: `paper` and `compact` are the paper's ego-frame network at the reference script's
 //! sizes (`../shared/bench/sac_torch.py`); `default` is our default query-centric network at
 //! the paper's observation content. Batches are real observations from the simulator.
+//! `--profile` adds the update's roofline (`profile`: FLOPs counted from the configs, the FMA
+//! peak, the stages timed alone; `docs/results/roofline.md`).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -21,6 +23,8 @@ use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Layout, Mode, SimConfig};
 
 use crate::scenarios::Ctx;
+
+mod profile;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum Size {
@@ -51,6 +55,12 @@ pub struct SacArgs {
     /// `sac.bc_updates`, or the critic-only updates of `sac.critic_pretrain_updates`.
     #[arg(long, value_enum, default_value = "full")]
     phase: Phase,
+    /// Also report the update against this CPU's limit: FLOPs by stage and network part
+    /// (counted from the configs), achieved GFLOP/s beside a measured FMA peak, and the
+    /// update's stages timed one by one beside its matrix products alone (`profile` in the
+    /// JSON, a summary on stderr).
+    #[arg(long)]
+    profile: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -165,7 +175,9 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batches: Vec<_> =
         (0..4).map(|_| replay.sample(&mut rng, a.batch)).collect::<Result<_, _>>()?;
+    let cpu_start = profile::process_cpu_s();
     let mut times = time_updates(&mut sac, &batches, a.seconds);
+    let update_cpu_s = (profile::process_cpu_s() - cpu_start) / times.len() as f64;
     let updates_timed = times.len();
     // The first and the last tenth of the timed updates: an update that slows as training goes
     // on shows here, not in the median.
@@ -190,11 +202,19 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         .flat_map(|&r| venv.observations()[r * spec.len..(r + 1) * spec.len].iter().copied())
         .collect();
     let (infer_median, unshared_median, encoded) = time_inference(&runner, &rows, a.seconds / 6.0);
-    let out = json!({
+    let profile = if a.profile {
+        let p = profile::report(&sac, &segs, &batches[0], update_median, a.phase)?;
+        profile::print(&p, update_median);
+        Some(p)
+    } else {
+        None
+    };
+    let mut out = json!({
         "size": match &a.job { Some(p) => p.display().to_string(), None => format!("{:?}", a.size).to_lowercase() },
         "batch": a.batch,
         "updates_per_s": 1.0 / update_median,
         "update_median_s": update_median,
+        "update_cpu_s_mean": update_cpu_s,
         "updates_timed": updates_timed,
         "phase": format!("{:?}", a.phase).to_lowercase(),
         "update_first_tenth_median_s": first_tenth,
@@ -213,6 +233,9 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
         "threads": rayon::current_num_threads(),
         "device": format!("{:?}", a.device).to_lowercase(),
     });
+    if let Some(p) = profile {
+        out["profile"] = p;
+    }
     if a.json {
         println!("{out}");
     } else {

@@ -107,21 +107,8 @@ pub enum Flow {
     Socialcommadv,
 }
 
-/// Keeps freed memory in the process instead of returning it to the kernel after every
-/// tensor: burn allocates and frees many large buffers per update, and glibc's defaults turn
-/// each into mmap/munmap plus page faults (measured: ~1.5x on SAC updates).
-fn tune_allocator() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only changes allocator thresholds; it is called before any thread starts.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
-        libc::mallopt(libc::M_TOP_PAD, 64 << 20);
-    }
-}
-
 pub fn main() -> ExitCode {
-    tune_allocator();
+    sf_nn::device::tune_allocator();
     let cli = Cli::parse();
     // One logging set-up for every command; the services' own `--log-json` (and
     // SOCIALFLOW_LOG_JSON, which the container images set) chooses JSON lines.

@@ -7,7 +7,7 @@ use sf_sim::obs::{MapSegments, AGENT_CTX, EGO_CTX, MAP_FEATS, SEG_POSE};
 
 use crate::batch::{AgentInput, MapInput, ObsBatch, AGENT_IN, STATIC_IN};
 use crate::config::{Layout, NetConfig};
-use crate::layers::{DeepSet, EgoAttention, Init, Mlp};
+use crate::layers::{DeepSet, EgoAttention, Init, Mlp, TokenRun};
 
 /// Token types (rows of the type embedding added to keys).
 const TYPES: usize = 4;
@@ -134,27 +134,41 @@ impl Encoder {
         let ego = ego_hist + self.ego_ctx.forward(obs.ego_ctx.clone());
         let agents = agents_hist + self.agent_ctx.forward(obs.agents_ctx.clone());
         let route = self.static_set.forward(obs.route.clone(), obs.route_mask.clone());
-        let map = match &obs.map {
-            MapInput::EgoFrame { pts, mask } => self.static_set.forward(pts.clone(), mask.clone()),
+        // Ego, neighbours and route are one run of tokens; query-centric map segments are a
+        // second run whose pose MLP's last layer the attention folds (`TokenRun::tail`: it
+        // never runs per segment).
+        let mut first = vec![ego.clone().reshape([b, 1, d]), agents, route];
+        let mut types = vec![T_EGO];
+        types.extend(std::iter::repeat_n(T_AGENT, n));
+        types.push(T_ROUTE);
+        let map_run = match &obs.map {
+            MapInput::EgoFrame { pts, mask } => {
+                let map = self.static_set.forward(pts.clone(), mask.clone());
+                types.extend(std::iter::repeat_n(T_MAP, map.dims()[1]));
+                first.push(map);
+                None
+            }
             MapInput::QueryCentric { ids, pose } => {
                 let table = table.expect("a query-centric batch needs its segment table");
                 let [_, s, _] = pose.dims();
-                table.emb.clone().select(0, ids.clone()).reshape([b, s, self.d()])
-                    + self.seg_pose.forward(pose.clone())
+                let segs = table.emb.clone().select(0, ids.clone()).reshape([b, s, d]);
+                let (x, last) = self.seg_pose.split_last(pose.clone());
+                let shift = self.type_emb.val().narrow(0, T_MAP as usize, 1).reshape([d]);
+                Some(TokenRun {
+                    key: segs.clone(),
+                    value: segs,
+                    tail: Some((x, last)),
+                    key_shift: Some(shift),
+                })
             }
         };
-        let m = map.dims()[1];
-        let tokens =
-            Tensor::cat(vec![ego.clone().reshape([b, 1, self.d()]), agents, route, map], 1);
+        let tokens = Tensor::cat(first, 1);
         let t = tokens.dims()[1];
-        let mut types = Vec::with_capacity(t);
-        types.push(T_EGO);
-        types.extend(std::iter::repeat_n(T_AGENT, n));
-        types.push(T_ROUTE);
-        types.extend(std::iter::repeat_n(T_MAP, m));
         let types = Tensor::<1, Int>::from_data(TensorData::new(types, [t]), &tokens.device());
         let keys = tokens.clone() + self.type_emb.val().select(0, types).unsqueeze_dim::<3>(0);
-        let out = self.attn.forward(ego.clone(), keys, tokens, obs.pad.clone());
+        let mut runs = vec![TokenRun { key: keys, value: tokens, tail: None, key_shift: None }];
+        runs.extend(map_run);
+        let out = self.attn.forward_runs(ego.clone(), runs, obs.pad.clone());
         if self.ego_skip {
             (out + ego).mul_scalar(0.5)
         } else {

@@ -1,7 +1,8 @@
 //! `socialflow-learner`: see `sf_learner::cmd`.
 use clap::Parser;
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    sf_learner::cmd::run(sf_learner::cmd::LearnerArgs::parse()).await
+fn main() -> anyhow::Result<()> {
+    sf_nn::device::tune_allocator();
+    let args = sf_learner::cmd::LearnerArgs::parse();
+    tokio::runtime::Runtime::new()?.block_on(sf_learner::cmd::run(args))
 }

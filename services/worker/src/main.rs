@@ -1,7 +1,8 @@
 //! `socialflow-worker`: see `sf_worker::cmd`.
 use clap::Parser;
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    sf_worker::cmd::run(sf_worker::cmd::WorkerArgs::parse()).await
+fn main() -> anyhow::Result<()> {
+    sf_nn::device::tune_allocator();
+    let args = sf_worker::cmd::WorkerArgs::parse();
+    tokio::runtime::Runtime::new()?.block_on(sf_worker::cmd::run(args))
 }
