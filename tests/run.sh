@@ -38,8 +38,24 @@ export SOCIALFLOW_TB_PYTHON="$pyvenv/bin/python" SOCIALFLOW_ONNX_PYTHON="$pyvenv
 # The Python package from this tree (maturin from the Python registry builds it; the dev profile
 # reuses the debug build's optimised dependencies); its tests run inside `cargo test`
 # (tests/python_pkg.rs) with this interpreter.
-step "python package (maturin)"
-MATURIN_PEP517_ARGS="--profile dev" "$pyvenv/bin/pip" install -q --disable-pip-version-check --force-reinstall --no-deps ./python
+# A wheel is built once; the test venv installs it, and a fresh venv installs it with its
+# dependencies from the Python registry and imports it, as a user's `pip install <wheel>` would.
+step "python package (maturin wheel)"
+wheels="$cache/wheels"
+rm -rf "$wheels"
+MATURIN_PEP517_ARGS="--profile dev" "$pyvenv/bin/pip" wheel -q --disable-pip-version-check --no-deps ./python -w "$wheels"
+wheel=$(ls "$wheels"/socialflow-*.whl)
+"$pyvenv/bin/pip" install -q --disable-pip-version-check --force-reinstall --no-deps "$wheel"
+step "the wheel in a fresh venv"
+fresh="$cache/fresh-venv"
+python3 -m venv --clear "$fresh"
+"$fresh/bin/pip" install -q --disable-pip-version-check "$wheel"
+(cd / && "$fresh/bin/python" -m socialflow --help >/dev/null && "$fresh/bin/python" -c '
+import socialflow
+env = socialflow.make_ego(scenario="merge", flow="idm")
+obs, info = env.reset(seed=0)
+obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+print("fresh venv: socialflow", socialflow.__version__, "imports and steps")')
 export SOCIALFLOW_PKG_PYTHON="$pyvenv/bin/python"
 step "build and test"
 cargo build --workspace --bins --locked && cargo test --workspace --locked
