@@ -1,6 +1,7 @@
 """Argument checks and observation spaces shared by the environments (internal)."""
 
 import os
+from typing import Literal, Optional, Tuple, Union
 
 import numpy as np
 from gymnasium import spaces
@@ -8,6 +9,18 @@ from gymnasium import spaces
 from . import _socialflow
 
 OBS_FORMATS = ("dict", "flat")
+
+# Argument types of the public functions (for IDEs and type checkers).
+PathLike = Union[str, "os.PathLike[str]"]
+Flow = Union[Literal["idm"], PathLike, None]
+"""`"idm"` (or None) for the rule-based flow, or a finished flow job's directory."""
+Vehicles = Union[int, Tuple[int, int]]
+"""A vehicle count, or an inclusive range drawn per episode."""
+Action = Literal["direct", "idm-residual", "idm-accel-residual", "idm-residual-lateral"]
+Layout = Literal["ego-frame", "query-centric"]
+ObsFormat = Literal["dict", "flat"]
+RenderMode = Optional[Literal["rgb_array"]]
+Seed = Optional[int]
 
 
 def check_choice(name, value, choices):

@@ -3,6 +3,8 @@ simulators stepped together in Rust threads). The background traffic is driven i
 IDM flow, or a trained flow's frozen policy (with CoPO's coordinator, or SocialCommAdv's
 adversary); Python drives only the ego (agent 0)."""
 
+from typing import Any, Dict, Optional
+
 import numpy as np
 import gymnasium as gym
 from gymnasium import spaces
@@ -10,12 +12,12 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import _socialflow
-from ._common import check_choice, make_core, observation_space, seed_arg
+from ._common import Action, Flow, Layout, ObsFormat, RenderMode, Seed, Vehicles, check_choice, make_core, observation_space, seed_arg
 
 TERMINATIONS = tuple(_socialflow.terminations())
 
 
-def split_obs(spec, flat):
+def split_obs(spec: Dict[str, Any], flat: np.ndarray) -> Dict[str, np.ndarray]:
     """Flat observation rows `[..., obs_len]` as a dict of their blocks (views, no copy);
     `spec` is a Core's `spec()` (`{name: (start, stop, shape)}`)."""
     lead = flat.shape[:-1]
@@ -46,7 +48,19 @@ class EgoEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, obs_format="dict", conflict_share=None, render_mode=None, seed=0, policy=None):
+    def __init__(
+        self,
+        scenario: str = "merge",
+        flow: Flow = "idm",
+        vehicles: Vehicles = (8, 20),
+        layout: Optional[Layout] = None,
+        action: Optional[Action] = None,
+        obs_format: ObsFormat = "dict",
+        conflict_share: Optional[float] = None,
+        render_mode: RenderMode = None,
+        seed: Seed = 0,
+        policy: Optional["_socialflow.Policy"] = None,
+    ) -> None:
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         self.render_mode = render_mode
@@ -116,7 +130,20 @@ class EgoVectorEnv(VectorEnv):
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, obs_format="dict", conflict_share=None, render_mode=None, seed=0, policy=None):
+    def __init__(
+        self,
+        num_envs: int = 8,
+        scenario: str = "merge",
+        flow: Flow = "idm",
+        vehicles: Vehicles = (8, 20),
+        layout: Optional[Layout] = None,
+        action: Optional[Action] = None,
+        obs_format: ObsFormat = "dict",
+        conflict_share: Optional[float] = None,
+        render_mode: RenderMode = None,
+        seed: Seed = 0,
+        policy: Optional["_socialflow.Policy"] = None,
+    ) -> None:
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
@@ -165,13 +192,46 @@ class EgoVectorEnv(VectorEnv):
         return self._core.render(0)
 
 
-def make_ego(scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, **kwargs):
-    """The ego's seat in `scenario` among `flow` (`"idm"` or a trained flow's job directory).
-    `action`: `"direct"` unless given; `policy=socialflow.load_policy(...)`: observe and act as
-    that trained policy does (its layout, observation caps and action)."""
-    return EgoEnv(scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, **kwargs)
+def make_ego(
+    scenario: str = "merge",
+    flow: Flow = "idm",
+    vehicles: Vehicles = (8, 20),
+    layout: Optional[Layout] = None,
+    action: Optional[Action] = None,
+    obs_format: ObsFormat = "dict",
+    conflict_share: Optional[float] = None,
+    render_mode: RenderMode = None,
+    seed: Seed = 0,
+    policy: Optional["_socialflow.Policy"] = None,
+) -> EgoEnv:
+    """The ego's seat in `scenario` (one of `socialflow.SCENARIOS`) among `flow` (`"idm"` or a
+    trained flow's job directory), `vehicles` a count or a `(min, max)` range per episode.
+    `action`: `"direct"` unless given; `obs_format`: `"dict"` of blocks or the `"flat"` row;
+    `conflict_share`: the share of episodes drawn as conflict cases (the scenario's default
+    unless given); `policy=socialflow.load_policy(...)`: observe and act as that trained
+    policy does (its layout, observation caps and action). See `EgoEnv`."""
+    return EgoEnv(
+        scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, obs_format=obs_format,
+        conflict_share=conflict_share, render_mode=render_mode, seed=seed, policy=policy,
+    )
 
 
-def make_ego_vec(num_envs=8, scenario="merge", flow="idm", vehicles=(8, 20), layout=None, action=None, **kwargs):
-    """`num_envs` ego seats stepped together in Rust (see `EgoVectorEnv`)."""
-    return EgoVectorEnv(num_envs=num_envs, scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, **kwargs)
+def make_ego_vec(
+    num_envs: int = 8,
+    scenario: str = "merge",
+    flow: Flow = "idm",
+    vehicles: Vehicles = (8, 20),
+    layout: Optional[Layout] = None,
+    action: Optional[Action] = None,
+    obs_format: ObsFormat = "dict",
+    conflict_share: Optional[float] = None,
+    render_mode: RenderMode = None,
+    seed: Seed = 0,
+    policy: Optional["_socialflow.Policy"] = None,
+) -> EgoVectorEnv:
+    """`num_envs` ego seats stepped together in Rust (see `EgoVectorEnv`; the arguments as
+    `make_ego`'s)."""
+    return EgoVectorEnv(
+        num_envs=num_envs, scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action,
+        obs_format=obs_format, conflict_share=conflict_share, render_mode=render_mode, seed=seed, policy=policy,
+    )

@@ -5,18 +5,19 @@ cases x seeds, among the chosen flows, through the same Rust loop as `socialflow
 import csv
 import math
 from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Union, cast
 
 import numpy as np
 
 from . import _socialflow
-from ._common import check_choice, flow_arg
+from ._common import Action, Flow, Layout, ObsFormat, PathLike, check_choice, flow_arg
 from .envs import split_obs
 
 EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision")
 _GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_deg", "experiment", "ego"}
 
 
-def zero_residual_policy(dim=1):
+def zero_residual_policy(dim: int = 1) -> Callable[[np.ndarray], np.ndarray]:
     """The IDM driver as a policy: with `action="idm-accel-residual"` (`dim=1`) or
     `"idm-residual-lateral"` (`dim=2`) zeros drive exactly like IDM."""
 
@@ -55,10 +56,10 @@ def _summary(xs):
 class EvalResult:
     """Per-episode `rows` (dicts with `EPISODE_COLUMNS`) and a `summary` per (flow, scenario)."""
 
-    rows: list = field(default_factory=list)
-    summary: list = field(default_factory=list)
+    rows: List[Dict[str, Any]] = field(default_factory=list)
+    summary: List[Dict[str, Any]] = field(default_factory=list)
 
-    def to_csv(self, path):
+    def to_csv(self, path: PathLike) -> None:
         """Writes the rows as an `episodes.csv` (the format `socialflow report` reads)."""
         with open(path, "w", newline="") as f:
             w = csv.writer(f, lineterminator="\n")
@@ -88,7 +89,19 @@ def _grid(grid, kw):
     return g, flows, scenarios
 
 
-def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="flat", cases=None, seeds=None, envs=None, scenarios=None, flows=None):
+def evaluate(
+    policy: Union["_socialflow.Policy", Callable[[Any], Any]],
+    grid: Optional[Mapping[str, Any]] = None,
+    *,
+    action: Action = "direct",
+    layout: Optional[Layout] = None,
+    obs_format: ObsFormat = "flat",
+    cases: Optional[int] = None,
+    seeds: Optional[int] = None,
+    envs: Optional[int] = None,
+    scenarios: Optional[Sequence[str]] = None,
+    flows: Optional[Mapping[str, Flow]] = None,
+) -> EvalResult:
     """Runs `policy` in the ego's seat over the grid: for every flow and scenario, the first
     `cases` stored cases (200) x `seeds` (10), `envs` (16) simulators stepped together.
 
@@ -103,7 +116,7 @@ def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="fla
         raise ValueError(f"policy: {policy!r} is not callable")
     check_choice("obs_format", obs_format, ("flat", "dict"))
     loaded = isinstance(policy, _socialflow.Policy)
-    if loaded:
+    if isinstance(policy, _socialflow.Policy):
         # A job's actor (`load_policy`) drives in Rust with its own action and layout.
         if action not in ("direct", policy.action):
             raise ValueError(f"action: {action!r} given, but the policy drives with {policy.action!r}")
@@ -111,7 +124,7 @@ def evaluate(policy, grid=None, *, action="direct", layout=None, obs_format="fla
             raise ValueError(f"layout: {layout!r} given, but the policy reads {policy.layout!r}")
         if obs_format != "flat":
             raise ValueError("obs_format: a loaded policy reads flat observations")
-        action, layout = policy.action, policy.layout
+        action, layout = cast(Action, policy.action), cast(Layout, policy.layout)
     g, flow_map, scenario_list = _grid(grid, {"cases": cases, "seeds": seeds, "envs": envs, "scenarios": scenarios, "flows": flows})
     n_cases, n_seeds, n_envs = int(g.get("cases", 200)), int(g.get("seeds", 10)), int(g.get("envs", 16))
     vehicles, svo = g.get("vehicles"), g.get("svo_deg")

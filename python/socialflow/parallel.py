@@ -3,13 +3,14 @@
 destination, timeout, ...). Rewards are individual or SVO-composed (the paper's Stage 1)."""
 
 import functools
+from typing import Literal, Optional
 
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from . import _socialflow
-from ._common import check_choice, make_core, observation_space, seed_arg
+from ._common import Action, Layout, ObsFormat, RenderMode, Seed, Vehicles, check_choice, make_core, observation_space, seed_arg
 from .envs import _check_actions, split_obs
 
 TERMINATIONS = tuple(_socialflow.terminations())
@@ -18,7 +19,17 @@ TERMINATIONS = tuple(_socialflow.terminations())
 class FlowParallelEnv(ParallelEnv):
     metadata = {"name": "socialflow_flow_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
-    def __init__(self, scenario="roundabout", vehicles=(8, 20), layout=None, action="direct", reward="composed", obs_format="dict", render_mode=None, seed=0):
+    def __init__(
+        self,
+        scenario: str = "roundabout",
+        vehicles: Vehicles = (8, 20),
+        layout: Optional[Layout] = None,
+        action: Action = "direct",
+        reward: Literal["individual", "composed"] = "composed",
+        obs_format: ObsFormat = "dict",
+        render_mode: RenderMode = None,
+        seed: Seed = 0,
+    ) -> None:
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         check_choice("reward", reward, ("individual", "composed"))
@@ -30,7 +41,7 @@ class FlowParallelEnv(ParallelEnv):
         self._obs_space = observation_space(self._core, obs_format)
         self._act_space = spaces.Box(-1.0, 1.0, (self._core.action_dim,), np.float32)
         self._spec = self._core.spec()
-        self.agents = []
+        self.agents: list = []
 
     @functools.lru_cache(maxsize=None)
     def observation_space(self, agent):
@@ -84,6 +95,19 @@ class FlowParallelEnv(ParallelEnv):
         return self._core.render(0)
 
 
-def make_flow(scenario="roundabout", vehicles=(8, 20), **kwargs):
-    """A whole flow of `scenario` with every vehicle an agent (see `FlowParallelEnv`)."""
-    return FlowParallelEnv(scenario=scenario, vehicles=vehicles, **kwargs)
+def make_flow(
+    scenario: str = "roundabout",
+    vehicles: Vehicles = (8, 20),
+    layout: Optional[Layout] = None,
+    action: Action = "direct",
+    reward: Literal["individual", "composed"] = "composed",
+    obs_format: ObsFormat = "dict",
+    render_mode: RenderMode = None,
+    seed: Seed = 0,
+) -> "FlowParallelEnv":
+    """A whole flow of `scenario` with every vehicle an agent (see `FlowParallelEnv`);
+    `reward`: each agent's own reward or the SVO-composed one."""
+    return FlowParallelEnv(
+        scenario=scenario, vehicles=vehicles, layout=layout, action=action, reward=reward, obs_format=obs_format,
+        render_mode=render_mode, seed=seed,
+    )

@@ -2,13 +2,15 @@
 inference (the mean action `socialflow eval` drives with)."""
 
 import os
+from typing import Optional
 
 from . import _socialflow
+from ._common import PathLike
 
 Policy = _socialflow.Policy
 
 
-def load_policy(job_dir, scenario=None):
+def load_policy(job_dir: PathLike, scenario: Optional[str] = None) -> "_socialflow.Policy":
     """The kept actor of the finished job in `job_dir` (its `config.toml` and `policy.bpk`,
     e.g. `runs/<data dir>/jobs/1-ego-idm` or a committed `docs/curves/.../jobs/...`).
 
