@@ -42,10 +42,6 @@ fn py_err(e: ClientError) -> PyErr {
     }
 }
 
-fn json_text(v: &serde_json::Value) -> String {
-    v.to_string()
-}
-
 /// A connection to a learner's job API.
 #[pyclass(module = "socialflow._socialflow")]
 pub struct JobClient {
@@ -104,28 +100,28 @@ impl JobClient {
     fn submit(&mut self, py: Python<'_>, config_toml: String) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
         let j = py.detach(|| rt.block_on(client::submit(c, config_toml))).map_err(py_err)?;
-        Ok(json_text(&client::job_json(&j)))
+        Ok(client::job_json(&j).to_string())
     }
 
     /// One job, with its config, as JSON.
     fn job(&mut self, py: Python<'_>, job_id: u64) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
         let j = py.detach(|| rt.block_on(client::get(c, job_id))).map_err(py_err)?;
-        Ok(json_text(&client::job_json(&j)))
+        Ok(client::job_json(&j).to_string())
     }
 
     /// Every job, newest first, as a JSON list.
     fn jobs(&mut self, py: Python<'_>) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
         let all = py.detach(|| rt.block_on(client::list(c))).map_err(py_err)?;
-        Ok(json_text(&all.iter().map(client::job_json).collect()))
+        Ok(serde_json::Value::Array(all.iter().map(client::job_json).collect()).to_string())
     }
 
     /// Cancels a queued or running job; the job as JSON.
     fn cancel(&mut self, py: Python<'_>, job_id: u64) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
         let j = py.detach(|| rt.block_on(client::cancel(c, job_id))).map_err(py_err)?;
-        Ok(json_text(&client::job_json(&j)))
+        Ok(client::job_json(&j).to_string())
     }
 
     /// One file of the job's artifact directory.
@@ -168,7 +164,7 @@ impl JobWatch {
         let (rt, w) = (&self.rt, &mut self.w);
         let n = py.detach(|| rt.block_on(w.next())).map_err(py_err)?;
         Ok(n.map(|(state, p)| {
-            json_text(&serde_json::json!({"state": state.as_str(), "progress": p}))
+            serde_json::json!({"state": state.as_str(), "progress": p}).to_string()
         }))
     }
 }
