@@ -19,10 +19,13 @@ _GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_d
 
 def zero_residual_policy(dim: int = 1) -> Callable[[np.ndarray], np.ndarray]:
     """The IDM driver as a policy: with `action="idm-accel-residual"` (`dim=1`) or
-    `"idm-residual-lateral"` (`dim=2`) zeros drive exactly like IDM."""
+    `"idm-residual-lateral"` (`dim=2`) zeros drive exactly like IDM. Takes flat or dict
+    observations."""
 
     def policy(obs):
-        return np.zeros((len(obs), dim), np.float32)
+        # A flat batch `[n, obs_len]`, or a dict of blocks whose arrays lead with `n`.
+        n = len(next(iter(obs.values()))) if isinstance(obs, Mapping) else len(obs)
+        return np.zeros((n, dim), np.float32)
 
     return policy
 

@@ -49,6 +49,14 @@ def test_idm_as_policy_equals_the_cli(scenario):
     assert s["success"]["ci95"] == pytest.approx(cli["success"]["ci95"], rel=1e-3)
 
 
+def test_the_idm_driver_takes_dict_observations_too():
+    grid = {"flows": {"idm": "idm"}, "scenarios": ["merge"], "cases": 6, "seeds": 1}
+    flat = socialflow.evaluate(socialflow.zero_residual_policy(), grid=grid, action="idm-accel-residual")
+    blocks = socialflow.evaluate(socialflow.zero_residual_policy(), grid=grid, action="idm-accel-residual", obs_format="dict")
+    assert [r["success"] for r in blocks.rows] == [r["success"] for r in flat.rows]
+    assert len(blocks.rows) == 6
+
+
 def test_direct_policy_and_dict_observations(tmp_path):
     seen = []
 
