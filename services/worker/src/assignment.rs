@@ -15,9 +15,10 @@ use sf_proto::pb;
 use sf_sim::Map;
 use tonic::Code;
 
+use crate::client::{req, status_err, Client, WorkerConfig};
 use crate::evalcell::Cells;
 use crate::membership::Heartbeats;
-use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::metrics::WorkerMetrics;
 
 /// A training job's assignment; evaluation cells handed out before it are run on the way.
 pub async fn next_assignment(

@@ -19,7 +19,8 @@ use sf_proto::pb;
 use sf_rollout::evaluate::{self, CellSize, Runners};
 use tonic::Code;
 
-use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::client::{req, status_err, Client, WorkerConfig};
+use crate::metrics::WorkerMetrics;
 
 type Maps = BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>;
 

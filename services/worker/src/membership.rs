@@ -16,7 +16,8 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 use tonic::Code;
 
-use crate::{connect, req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::client::{connect, req, status_err, Client, WorkerConfig};
+use crate::metrics::WorkerMetrics;
 
 /// What the learner gave this worker when it registered.
 #[derive(Clone, Copy, Debug)]

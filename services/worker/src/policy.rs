@@ -13,8 +13,9 @@ use sf_job::{Frozen, FrozenRole, JobConfig, PolicyRequest};
 use sf_proto::pb;
 use tonic::Code;
 
+use crate::client::{req, status_err, Client};
+use crate::metrics::WorkerMetrics;
 use crate::rollout::Rollout;
-use crate::{req, status_err, Client, WorkerMetrics};
 
 /// The frozen policies an assignment acts with (background flow, ego, adversary): role, config
 /// and final weights.

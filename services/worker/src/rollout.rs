@@ -33,7 +33,7 @@ use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Map, Mode, ObsSpec, SimConfig};
 use tokio::sync::mpsc;
 
-use crate::WorkerMetrics;
+use crate::metrics::WorkerMetrics;
 use sf_service::sync::lock;
 
 const STREAM_CLOSED: &str = "the transition stream closed";

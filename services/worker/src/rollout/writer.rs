@@ -21,7 +21,7 @@ use tokio::sync::mpsc;
 
 use super::nstep::NStep;
 use super::{Control, STREAM_CLOSED};
-use crate::WorkerMetrics;
+use crate::metrics::WorkerMetrics;
 
 /// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
 /// flight, and so its policy lag, when the learner's rate limiter holds workers back.
