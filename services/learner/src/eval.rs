@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
-use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
+use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress, WorkerId};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_rollout::evaluate::{EgoDef, Resolved};
 use tokio::sync::Notify;
@@ -188,7 +188,7 @@ fn add_scores(sums: &mut [f64; 3], rows: &[EpisodeRow]) {
 struct State {
     queued: VecDeque<usize>,
     /// Cell -> (worker, since).
-    leased: HashMap<usize, (u64, Instant)>,
+    leased: HashMap<usize, (WorkerId, Instant)>,
     stored: Vec<bool>,
     episodes: u64,
     sums: [f64; 3],
@@ -343,7 +343,12 @@ impl EvalJob {
     /// Leases of workers not in `live` (forgotten for missing heartbeats) and the worker's own
     /// earlier lease (it asks again, so it gave that cell up) go back to the queue first.
     /// `None`: nothing queued now for this worker (cells may still be leased to others).
-    pub fn lease(&self, worker: u64, live: &BTreeSet<u64>, runs_idm_ego: bool) -> Option<EvalWork> {
+    pub fn lease(
+        &self,
+        worker: WorkerId,
+        live: &BTreeSet<WorkerId>,
+        runs_idm_ego: bool,
+    ) -> Option<EvalWork> {
         if self.stop_reason().is_some() {
             return None;
         }
@@ -359,7 +364,7 @@ impl EvalJob {
             .collect();
         for c in gone {
             if let Some((w, since)) = s.leased.remove(&c) {
-                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w, leased_s = since.elapsed().as_secs(), "cell returned to the queue");
+                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w.get(), leased_s = since.elapsed().as_secs(), "cell returned to the queue");
                 if w != worker {
                     self.metrics.eval_cells_reassigned.inc();
                 }
@@ -387,7 +392,7 @@ impl EvalJob {
     /// cell's size ([`EvalConfig::size_of`]); nothing is written otherwise.
     pub fn store(
         &self,
-        worker: u64,
+        worker: WorkerId,
         cell_id: u64,
         episodes: &[EvalEpisode],
         error: &str,
@@ -433,7 +438,7 @@ impl EvalJob {
         self.metrics.eval_cells_pending.set((self.cells.len() - stored) as i64);
         let done = stored == self.cells.len();
         drop(s);
-        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker, "cell stored");
+        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker.get(), "cell stored");
         if done {
             self.changed.notify_one();
         }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use sf_job::eval::{EvalEpisode, EvalWork};
-use sf_job::{Assignment, JobState, PolicyRequest};
+use sf_job::{Assignment, JobState, PolicyRequest, WorkerId};
 use sf_proto::pb;
 use sf_service::ServiceError;
 
@@ -61,17 +61,17 @@ impl Experience {
         Self { jobs, slots, workers, storage, assignments: AtomicU64::new(0) }
     }
 
-    pub fn register(&self, name: &str, runs_idm_ego: bool) -> u64 {
+    pub fn register(&self, name: &str, runs_idm_ego: bool) -> WorkerId {
         self.workers.register(name, runs_idm_ego)
     }
 
-    pub fn heartbeat(&self, worker_id: u64) -> Result<(), LearnerError> {
+    pub fn heartbeat(&self, worker_id: WorkerId) -> Result<(), LearnerError> {
         self.workers.touch(worker_id)
     }
 
     /// What worker `worker_id` should do next: a cell is leased only when there is no training
     /// assignment to give.
-    pub fn assignment(&self, worker_id: u64) -> Result<Work, ServiceError> {
+    pub fn assignment(&self, worker_id: WorkerId) -> Result<Work, ServiceError> {
         if let Some(a) = self.train_assignment(worker_id)? {
             return Ok(Work::Train(a));
         }
@@ -84,7 +84,7 @@ impl Experience {
     }
 
     /// A session of the running training job with the fewest workers, if one takes workers.
-    fn train_assignment(&self, worker_id: u64) -> Result<Option<Assignment>, LearnerError> {
+    fn train_assignment(&self, worker_id: WorkerId) -> Result<Option<Assignment>, LearnerError> {
         self.workers.touch(worker_id)?;
         let pick = self.workers.assign(worker_id, &self.open_jobs());
         self.count_workers_per_job();
@@ -95,7 +95,7 @@ impl Experience {
             .sac
             .seed
             .wrapping_mul(1_000_003)
-            .wrapping_add(worker_id.wrapping_mul(7919))
+            .wrapping_add(worker_id.get().wrapping_mul(7919))
             .wrapping_add(self.assignments.fetch_add(1, Ordering::Relaxed));
         Ok(Some(Assignment {
             job_id: j.id,
@@ -115,19 +115,18 @@ impl Experience {
     /// that does not decode is refused as such before anything about its worker or job.
     pub async fn ingest(&self, msg: pb::TransitionBatch) -> Result<Ack, ServiceError> {
         let task = |e| ServiceError::from(LearnerError::Join(e));
+        let worker = WorkerId::from(msg.worker_id);
         let job = self
             .workers
-            .touch(msg.worker_id)
+            .touch(worker)
             .and_then(|()| self.running(msg.job_id))
             .map_err(ServiceError::from);
-        let job = job.and_then(|j| {
-            match self.workers.rebalance(msg.worker_id, j.id, &self.open_jobs()) {
-                Some(to) => Err({
-                    self.count_workers_per_job();
-                    LearnerError::WorkerMoved { job_id: j.id, worker_id: msg.worker_id, to }.into()
-                }),
-                None => Ok(j),
-            }
+        let job = job.and_then(|j| match self.workers.rebalance(worker, j.id, &self.open_jobs()) {
+            Some(to) => Err({
+                self.count_workers_per_job();
+                LearnerError::WorkerMoved { job_id: j.id, worker_id: worker, to }.into()
+            }),
+            None => Ok(j),
         });
         let job = match job {
             Ok(job) => job,
@@ -201,7 +200,7 @@ impl Experience {
     pub async fn eval_results(
         &self,
         job_id: u64,
-        worker: u64,
+        worker: WorkerId,
         cell_id: u64,
         episodes: Vec<EvalEpisode>,
         error: String,

@@ -142,12 +142,12 @@ impl ExperienceService for Experience {
         done::<_, ServiceError>(
             &self.metrics,
             "Register",
-            Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }),
+            Ok(pb::RegisterResponse { worker_id: id.get(), heartbeat_interval_ms: 2000 }),
         )
     }
 
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Res<pb::HeartbeatResponse> {
-        let r = self.experience.heartbeat(req.into_inner().worker_id);
+        let r = self.experience.heartbeat(req.into_inner().worker_id.into());
         done(&self.metrics, "Heartbeat", r.map(|()| pb::HeartbeatResponse {}))
     }
 
@@ -155,26 +155,27 @@ impl ExperienceService for Experience {
         &self,
         req: Request<pb::GetAssignmentRequest>,
     ) -> Res<pb::GetAssignmentResponse> {
-        let r = self.experience.assignment(req.into_inner().worker_id).map(|work| match work {
-            Work::Train(a) => pb::GetAssignmentResponse {
-                has_assignment: true,
-                retry_after_ms: 0,
-                assignment: Some(sf_proto::assignment_to_wire(&a)),
-                eval: None,
-            },
-            Work::Eval(w) => pb::GetAssignmentResponse {
-                has_assignment: true,
-                retry_after_ms: 0,
-                assignment: None,
-                eval: Some(sf_proto::eval_work_to_wire(&w)),
-            },
-            Work::Wait { retry_after_ms } => pb::GetAssignmentResponse {
-                has_assignment: false,
-                retry_after_ms,
-                assignment: None,
-                eval: None,
-            },
-        });
+        let r =
+            self.experience.assignment(req.into_inner().worker_id.into()).map(|work| match work {
+                Work::Train(a) => pb::GetAssignmentResponse {
+                    has_assignment: true,
+                    retry_after_ms: 0,
+                    assignment: Some(sf_proto::assignment_to_wire(&a)),
+                    eval: None,
+                },
+                Work::Eval(w) => pb::GetAssignmentResponse {
+                    has_assignment: true,
+                    retry_after_ms: 0,
+                    assignment: None,
+                    eval: Some(sf_proto::eval_work_to_wire(&w)),
+                },
+                Work::Wait { retry_after_ms } => pb::GetAssignmentResponse {
+                    has_assignment: false,
+                    retry_after_ms,
+                    assignment: None,
+                    eval: None,
+                },
+            });
         done(&self.metrics, "GetAssignment", r)
     }
 
@@ -187,7 +188,8 @@ impl ExperienceService for Experience {
             .collect::<Result<Vec<_>, WireError>>();
         let r = match episodes {
             Ok(eps) => {
-                self.experience.eval_results(m.job_id, m.worker_id, m.cell_id, eps, m.error).await
+                let worker = m.worker_id.into();
+                self.experience.eval_results(m.job_id, worker, m.cell_id, eps, m.error).await
             }
             Err(e) => Err(e.into()),
         };
