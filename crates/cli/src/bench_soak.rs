@@ -150,7 +150,7 @@ async fn stream(
             let (rows, len) = (&pool2.0, pool2.1);
             let n_rows = rows.len() / len;
             while Instant::now() < until {
-                let mut b = TransitionBatch::new(job_id, wid, len, act);
+                let mut b = TransitionBatch::new(job_id, wid.into(), len, act);
                 {
                     let mut rng = rand::rng();
                     for k in 0..batch {

@@ -90,7 +90,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
             tokio::time::sleep(Duration::from_millis(100)).await;
         };
         let obs_len = asg.obs_len as usize;
-        let mut b = TransitionBatch::new(job.id, wid, obs_len, 2);
+        let mut b = TransitionBatch::new(job.id, wid.into(), obs_len, 2);
         let row: Vec<f32> = (0..obs_len).map(|i| ((i % 97) as f32 / 97.0) - 0.5).collect();
         for k in 0..a.batch {
             b.push(&row, &[0.1, -0.2], k as f32 * 0.01, &row, k % 50 == 0, 0);

@@ -149,11 +149,11 @@ pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
             }
             None => remote::submit(&mut c, text.clone()).await?,
         };
-        let inner = std::sync::Arc::clone(&emb.learner.inner);
+        let learner = std::sync::Arc::clone(&emb.learner.learner);
         let watched = tokio::select! {
             r = remote::watch(&mut c, job.id, a.quiet) => Watched::Ended(r),
             _ = sf_service::signal::terminate() => Watched::Interrupted,
-            cause = storage_fault(&inner) => Watched::StorageFault(cause),
+            cause = storage_fault(&learner) => Watched::StorageFault(cause),
         };
         emb.stop().await?;
         let checkpoint = checkpoint_line(Path::new(&job.artifact_dir));
@@ -188,9 +188,9 @@ enum Watched {
 }
 
 /// Resolves with the cause once the embedded learner's data directory refuses writes.
-async fn storage_fault(inner: &sf_learner::Inner) -> String {
+async fn storage_fault(learner: &sf_learner::Learner) -> String {
     loop {
-        if let Some(cause) = inner.storage_fault() {
+        if let Some(cause) = learner.storage_fault() {
             return cause;
         }
         tokio::time::sleep(Duration::from_millis(500)).await;

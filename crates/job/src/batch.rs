@@ -13,6 +13,8 @@ use std::num::NonZeroU64;
 
 use half::f16;
 
+use crate::ids::WorkerId;
+
 /// Which actor chose a batch's actions: the warm-up's (uniformly random or the IDM
 /// demonstrator), or a published policy version (versions start at 1).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -113,7 +115,7 @@ pub struct Transition<'a> {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TransitionBatch {
     pub job_id: u64,
-    pub worker_id: u64,
+    pub worker_id: WorkerId,
     /// The policy version (or the warm-up) that chose these actions.
     pub acted_by: ActedBy,
     pub count: usize,
@@ -147,7 +149,7 @@ pub enum BatchError {
 
 impl TransitionBatch {
     /// An empty batch for `obs_len`-float observations and `action_dim` actions.
-    pub fn new(job_id: u64, worker_id: u64, obs_len: usize, action_dim: usize) -> Self {
+    pub fn new(job_id: u64, worker_id: WorkerId, obs_len: usize, action_dim: usize) -> Self {
         Self { job_id, worker_id, obs_len, action_dim, ..Self::default() }
     }
 
@@ -296,7 +298,7 @@ mod tests {
     use super::*;
 
     fn one() -> TransitionBatch {
-        let mut b = TransitionBatch::new(1, 2, 3, 2);
+        let mut b = TransitionBatch::new(1, 2.into(), 3, 2);
         b.push(&[0.0, 1.0, 2.0], &[0.5, -0.5], 1.0, &[1.0, 2.0, 3.0], false, 0);
         b
     }
@@ -332,7 +334,7 @@ mod tests {
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
         // An empty batch is a malformed one (workers send only full or flushed batches).
         assert!(matches!(
-            TransitionBatch::new(1, 2, 3, 2).validate(),
+            TransitionBatch::new(1, 2.into(), 3, 2).validate(),
             Err(BatchError::Invalid { field: "count", .. })
         ));
         let mut b = one();

@@ -5,19 +5,21 @@
 //! that name the field), [`JobState`], [`JobRecord`], [`Progress`] and the [`Learning`] it
 //! shares with curve points, [`Assignment`], [`TransitionBatch`] with its shape and finiteness
 //! checks, evaluation grids ([`eval`]), and [`JobSpec`], the one parse of a submitted or stored
-//! text into either. Must not: depend on
+//! text into either; [`WorkerId`], a typed id that crosses processes. Must not: depend on
 //! burn, tokio or the wire format (`sf_proto` converts to and from these types).
 
 pub use sf_sim::{Scores, SvoGaussian};
 pub mod batch;
 pub mod config;
 pub mod eval;
+pub mod ids;
 pub mod spec;
 
 pub use batch::{
     ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch,
 };
 pub use config::{ConfigError, DepRole, JobConfig};
+pub use ids::WorkerId;
 pub use spec::{JobSpec, SpecError};
 
 use serde::{Deserialize, Serialize};

@@ -348,7 +348,7 @@ fn f16_from_bytes(field: &'static str, b: &[u8], want: usize) -> Result<Vec<f16>
 pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
     pb::TransitionBatch {
         job_id: b.job_id,
-        worker_id: b.worker_id,
+        worker_id: b.worker_id.get(),
         policy_version: acted_by_to_wire(b.acted_by),
         count: b.count as u32,
         obs_len: b.obs_len as u32,
@@ -421,7 +421,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
     let steps = if m.steps.is_empty() { vec![1; n] } else { m.steps };
     let b = TransitionBatch {
         job_id: m.job_id,
-        worker_id: m.worker_id,
+        worker_id: m.worker_id.into(),
         acted_by: acted_by_from_wire(m.policy_version),
         count: n,
         obs_len: m.obs_len as usize,
@@ -460,7 +460,7 @@ mod tests {
 
     #[test]
     fn a_batch_round_trips_and_bad_ones_are_named() {
-        let mut b = TransitionBatch::new(3, 4, 2, 2);
+        let mut b = TransitionBatch::new(3, 4.into(), 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
         b.episodes.push(EpisodeResult {
             scenario_index: 1,
@@ -518,7 +518,7 @@ mod tests {
             let m = get_policy_to_wire(9, which);
             assert_eq!((m.job_id, policy_request_from_wire(m.version)), (9, which));
         }
-        let mut b = TransitionBatch::new(1, 2, 1, 1);
+        let mut b = TransitionBatch::new(1, 2.into(), 1, 1);
         b.push(&[0.0], &[0.0], 0.0, &[0.0], false, 0);
         for acted_by in [ActedBy::Warmup, ActedBy::Policy(five)] {
             b.acted_by = acted_by;
@@ -530,7 +530,7 @@ mod tests {
     /// are refused, not a multiplication overflow panic.
     #[test]
     fn huge_shapes_are_refused_without_overflow() {
-        let mut b = TransitionBatch::new(3, 4, 2, 2);
+        let mut b = TransitionBatch::new(3, 4.into(), 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
         let mut m = batch_to_wire(&b);
         (m.count, m.obs_len, m.action_dim) = (u32::MAX, u32::MAX, u32::MAX);

@@ -120,7 +120,8 @@ fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
                         policy_version,
                         sim_steps,
                     )| {
-                        let mut b = TransitionBatch::new(job_id, worker_id, obs_len, action_dim);
+                        let mut b =
+                            TransitionBatch::new(job_id, worker_id.into(), obs_len, action_dim);
                         for i in 0..rewards.len() {
                             let o = i * obs_len..(i + 1) * obs_len;
                             let a = i * action_dim..(i + 1) * action_dim;
@@ -550,6 +551,6 @@ proptest! {
         let mut m = sf_proto::batch_to_wire(&b);
         (m.job_id, m.worker_id, m.policy_version, m.sim_steps) = (job_id, worker_id, u64::MAX, u64::MAX);
         let back = sf_proto::batch_from_wire(m).expect("extreme counters are valid");
-        prop_assert_eq!((back.job_id, back.worker_id, back.acted_by.version(), back.sim_steps), (job_id, worker_id, Some(u64::MAX), u64::MAX));
+        prop_assert_eq!((back.job_id, back.worker_id.get(), back.acted_by.version(), back.sim_steps), (job_id, worker_id, Some(u64::MAX), u64::MAX));
     }
 }

@@ -1,11 +1,11 @@
 //! What a finished job gives the jobs that depend on it.
 //!
-//! Owns: [`JobDeps`] and [`crate::Inner::job_deps`] (a starting training job's frozen policies,
+//! Owns: [`JobDeps`] and [`job_deps`] (a starting training job's frozen policies,
 //! their final weights when `[validation]` runs episodes with them, and the job a RARL phase
 //! continues from), [`flow_frozen`] (how a finished flow drives a background: itself, its
 //! SocialComm flow and itself as the adversary for SocialCommAdv, a CoPO coordinator's
-//! Gaussians), [`read_final`] (a finished job's `policy.bpk` / `policy.json`) and [`check_dep`]
-//! (whether a job can serve another in a role). Configs come parsed ([`crate::Inner::spec`]); the
+//! Gaussians) and [`check_dep`] (whether a job can serve another in a role). Configs come
+//! parsed ([`Jobs::spec`]); the
 //! frozen text only travels on to workers. Must not: schedule, or decide a job's state.
 
 use std::collections::HashMap;
@@ -16,7 +16,9 @@ use sf_job::config::JobKind;
 use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobState};
 use sf_rollout::setup;
 
+use crate::artifacts::read_final;
 use crate::error::LearnerError;
+use crate::jobs::Jobs;
 
 /// What a starting training job takes from its dependencies.
 pub(crate) struct JobDeps {
@@ -35,97 +37,87 @@ pub(crate) struct InitDep {
     pub dir: PathBuf,
 }
 
-impl crate::Inner {
-    /// The dependencies of training job `cfg`: every one must have succeeded with a final
-    /// policy; the error names the field.
-    pub(crate) async fn job_deps(
-        self: &Arc<Self>,
-        cfg: &JobConfig,
-    ) -> Result<JobDeps, LearnerError> {
-        let mut frozen = Vec::new();
-        // Each frozen policy's artifact directory, for validation's weights.
-        let mut dirs: HashMap<u64, PathBuf> = HashMap::new();
-        let mut init = None;
-        for (role, dep) in cfg.deps() {
-            let d = self.job(dep).await.map_err(|source| LearnerError::DependencyLookup {
+/// The dependencies of training job `cfg` among `jobs`: every one must have succeeded with a
+/// final policy; the error names the field.
+pub(crate) async fn job_deps(jobs: &Jobs, cfg: &JobConfig) -> Result<JobDeps, LearnerError> {
+    let mut frozen = Vec::new();
+    // Each frozen policy's artifact directory, for validation's weights.
+    let mut dirs: HashMap<u64, PathBuf> = HashMap::new();
+    let mut init = None;
+    for (role, dep) in cfg.deps() {
+        let d = jobs.get(dep).map_err(|e| LearnerError::DependencyLookup {
+            dep,
+            field: role.field(),
+            source: e.into(),
+        })?;
+        if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists()
+        {
+            return Err(LearnerError::NoFinalPolicy {
                 dep,
                 field: role.field(),
-                source,
-            })?;
-            if d.state != JobState::Succeeded
-                || !Path::new(&d.artifact_dir).join("policy.bpk").exists()
-            {
-                return Err(LearnerError::NoFinalPolicy {
-                    dep,
-                    field: role.field(),
-                    state: d.state.as_str(),
-                });
+                state: d.state.as_str(),
+            });
+        }
+        match role {
+            DepRole::Init => {
+                init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) })
             }
-            match role {
-                DepRole::Init => {
-                    init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) })
-                }
-                DepRole::Ego => {
-                    dirs.insert(dep, PathBuf::from(&d.artifact_dir));
-                    frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
-                }
-                DepRole::Background => {
-                    let spec = self.spec(&d)?;
-                    let flow_cfg = spec
-                        .train()
-                        .ok_or_else(|| LearnerError::Dependency {
-                            field: role.field(),
-                            dep,
-                            reason: "is an evaluation, not a training job".into(),
-                        })?
-                        .clone();
-                    let jobs = self.jobs().await?;
-                    let fz = {
-                        let jobs = jobs.clone();
-                        tokio::task::spawn_blocking(move || {
-                            flow_frozen(&d, &flow_cfg, |id| {
-                                jobs.iter()
-                                    .find(|r| r.id == id)
-                                    .cloned()
-                                    .ok_or(LearnerError::JobNotFound { job_id: id })
-                            })
+            DepRole::Ego => {
+                dirs.insert(dep, PathBuf::from(&d.artifact_dir));
+                frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
+            }
+            DepRole::Background => {
+                let spec = jobs.spec(&d)?;
+                let flow_cfg = spec
+                    .train()
+                    .ok_or_else(|| LearnerError::Dependency {
+                        field: role.field(),
+                        dep,
+                        reason: "is an evaluation, not a training job".into(),
+                    })?
+                    .clone();
+                let all = jobs.list();
+                let fz = {
+                    let jobs = all.clone();
+                    tokio::task::spawn_blocking(move || {
+                        flow_frozen(&d, &flow_cfg, |id| {
+                            jobs.iter()
+                                .find(|r| r.id == id)
+                                .cloned()
+                                .ok_or(LearnerError::JobNotFound { job_id: id })
                         })
-                        .await??
-                    };
-                    for f in &fz {
-                        if let Some(r) = jobs.iter().find(|r| r.id == f.job_id) {
-                            dirs.insert(f.job_id, PathBuf::from(&r.artifact_dir));
-                        }
+                    })
+                    .await??
+                };
+                for f in &fz {
+                    if let Some(r) = all.iter().find(|r| r.id == f.job_id) {
+                        dirs.insert(f.job_id, PathBuf::from(&r.artifact_dir));
                     }
-                    frozen.extend(fz);
                 }
+                frozen.extend(fz);
             }
         }
-        // `[validation]` runs episodes with the frozen policies the workers fetch.
-        let mut frozen_weights = Vec::new();
-        if cfg.validation.is_some() {
-            for f in &frozen {
-                let job_id = f.job_id;
-                let dir = dirs.get(&job_id).cloned().ok_or(LearnerError::JobNotFound { job_id })?;
-                let bytes =
-                    tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk"))
-                        .await
-                        .map_err(|source| LearnerError::Task {
-                            task: "policy reading task",
-                            source,
-                        })?;
-                frozen_weights.push(Arc::new(bytes?));
-            }
-        }
-        Ok(JobDeps { frozen, frozen_weights, init })
     }
+    // `[validation]` runs episodes with the frozen policies the workers fetch.
+    let mut frozen_weights = Vec::new();
+    if cfg.validation.is_some() {
+        for f in &frozen {
+            let job_id = f.job_id;
+            let dir = dirs.get(&job_id).cloned().ok_or(LearnerError::JobNotFound { job_id })?;
+            let bytes = tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk"))
+                .await
+                .map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
+            frozen_weights.push(Arc::new(bytes?));
+        }
+    }
+    Ok(JobDeps { frozen, frozen_weights, init })
 }
 
 /// The frozen policies with which a finished flow job `rec` drives the background, for a
 /// training job or an evaluation: a SocialCommAdv job brings its SocialComm flow (`find` looks it
 /// up) as the background and itself as the adversary; any other flow drives itself, with a CoPO
 /// coordinator's Gaussians if it has fitted them (Stage 2). `cfg` is `rec`'s parsed config
-/// ([`crate::Inner::spec`]). Blocking file IO (`coordinator.json`).
+/// ([`Jobs::spec`]). Blocking file IO (`coordinator.json`).
 pub(crate) fn flow_frozen(
     rec: &JobRecord,
     cfg: &JobConfig,
@@ -151,12 +143,6 @@ pub(crate) fn flow_frozen(
         f.svo_gaussians = c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect();
     }
     Ok(vec![f])
-}
-
-/// A file of finished job `job_id`'s artifact directory `dir` (`policy.bpk`, `policy.json`):
-/// what workers, validation and evaluation grids get of a frozen policy. Blocking.
-pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>, LearnerError> {
-    std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source })
 }
 
 /// Whether job `dep_id` (config `dep`) can serve `job` in `role`: its kind (`DepRole::accepts`),

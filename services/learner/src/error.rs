@@ -12,7 +12,7 @@
 
 use std::path::PathBuf;
 
-use sf_job::PolicyRequest;
+use sf_job::{PolicyRequest, WorkerId};
 use sf_service::ServiceError;
 
 /// Why the learner refused or failed something. `Display` is the message a client or a failed
@@ -57,7 +57,7 @@ pub enum LearnerError {
     #[error(
         "worker {worker_id} is not registered (the learner may have restarted): register again"
     )]
-    WorkerNotRegistered { worker_id: u64 },
+    WorkerNotRegistered { worker_id: WorkerId },
     #[error("job {job_id} is {state}, not running")]
     NotRunning { job_id: u64, state: &'static str },
     #[error("field `name`: `{name}` is not a job file a client may read (one of {})", crate::artifacts::READABLE.join(", "))]
@@ -70,7 +70,7 @@ pub enum LearnerError {
     JobFileTooLarge { job_id: u64, name: &'static str, bytes: u64, limit: u64 },
     /// Training jobs share the workers: this one is to end its session and ask again.
     #[error("job {job_id} has more workers than its share; worker {worker_id} moves to job {to}")]
-    WorkerMoved { job_id: u64, worker_id: u64, to: u64 },
+    WorkerMoved { job_id: u64, worker_id: WorkerId, to: u64 },
     /// A policy version the running job does not hold (never published, or evicted).
     #[error("job {job_id} holds no policy version {version}")]
     NoPolicyVersion { job_id: u64, version: PolicyRequest },
@@ -93,7 +93,7 @@ pub enum LearnerError {
     NoCell { job_id: u64, cell_id: u64 },
     /// The worker could not run the cell: the evaluation fails with this message.
     #[error("cell {cell} failed on worker {worker}: {error}")]
-    CellFailed { cell: String, worker: u64, error: String },
+    CellFailed { cell: String, worker: WorkerId, error: String },
     /// Results that are not one valid episode per stored case and seed of the grid.
     #[error("cell {cell_id}: {reason}")]
     BadCellResults { cell_id: u64, reason: String },

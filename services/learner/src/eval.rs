@@ -7,8 +7,10 @@
 //! the worker pushes the cell, asks for another, or is forgotten for missing heartbeats; its
 //! cell goes back to the queue. A restarted learner resumes a RUNNING evaluation from the
 //! cells its `episodes.csv` holds. Its directory: `config.toml` (pinned), `meta.json`,
-//! `episodes.csv`, the GIFs. Must not: run simulations (workers do; the GIFs are drawn
-//! by [`crate::Inner`] on a blocking thread once every cell is stored).
+//! `episodes.csv`, the GIFs. Data under a slot, like `job.rs`'s `ActiveJob`: the scheduler
+//! starts and follows it, `experience.rs` leases its cells and stores their results. Must not:
+//! run simulations (workers do; the GIFs are drawn by the scheduler on a blocking thread once
+//! every cell is stored).
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -17,10 +19,9 @@ use std::time::Instant;
 
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
-use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress};
+use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress, WorkerId};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_rollout::evaluate::{EgoDef, Resolved};
-use sf_service::ServiceError;
 use tokio::sync::Notify;
 
 use crate::error::LearnerError;
@@ -70,7 +71,7 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Lea
     Ok(())
 }
 
-/// A stored job's parsed config, as the learner keeps it ([`crate::Inner::spec`]).
+/// A stored job's parsed config, as the learner keeps it ([`crate::jobs::Jobs::spec`]).
 pub type Specs<'a> = &'a dyn Fn(&JobRecord) -> Result<Arc<sf_job::JobSpec>, LearnerError>;
 
 /// Per flow its frozen policies, per ego its frozen policy, and the grid resolved for checks.
@@ -80,7 +81,7 @@ pub type GridPolicies = (BTreeMap<String, Vec<Frozen>>, BTreeMap<String, Frozen>
 /// policies a worker gets (none for IDM; background and adversary for SocialCommAdv, as a
 /// training job's background gets them: [`crate::deps::flow_frozen`]), per ego its frozen policy, and
 /// the same as [`Resolved`] for checks and GIFs (with weights if `weights`: file IO, call off
-/// the runtime). `spec` gives a stored job's parsed config ([`crate::Inner::spec`]), so nothing
+/// the runtime). `spec` gives a stored job's parsed config ([`crate::jobs::Jobs::spec`]), so nothing
 /// here parses a job's text again. Refuses an ego that is not an ego job and a flow that is.
 pub fn resolve_policies(
     cfg: &EvalConfig,
@@ -115,7 +116,7 @@ pub fn resolve_policies(
                 if !weights {
                     return Ok(Arc::new(Vec::new()));
                 }
-                crate::deps::read_final(
+                crate::artifacts::read_final(
                     Path::new(&find(f.job_id)?.artifact_dir),
                     f.job_id,
                     "policy.bpk",
@@ -187,7 +188,7 @@ fn add_scores(sums: &mut [f64; 3], rows: &[EpisodeRow]) {
 struct State {
     queued: VecDeque<usize>,
     /// Cell -> (worker, since).
-    leased: HashMap<usize, (u64, Instant)>,
+    leased: HashMap<usize, (WorkerId, Instant)>,
     stored: Vec<bool>,
     episodes: u64,
     sums: [f64; 3],
@@ -246,23 +247,11 @@ impl EvalJob {
             })
             .collect();
         let dir = PathBuf::from(&rec.artifact_dir);
-        std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io {
-            action: "creating",
-            path: dir.clone(),
-            source,
-        })?;
+        crate::artifacts::create_dir(&dir)?;
         let meta = serde_json::to_string_pretty(&Meta::of(&cfg))?;
-        let write = |name: &str, bytes: &[u8]| {
-            let path = dir.join(name);
-            std::fs::write(&path, bytes).map_err(|source| LearnerError::Io {
-                action: "writing",
-                path,
-                source,
-            })
-        };
-        write("meta.json", meta.as_bytes())?;
+        crate::artifacts::write(&dir.join("meta.json"), meta.as_bytes())?;
         // The grid as it runs (names pinned to job ids), beside its results.
-        write("config.toml", rec.config_toml.as_bytes())?;
+        crate::artifacts::write(&dir.join("config.toml"), rec.config_toml.as_bytes())?;
         let path = dir.join("episodes.csv");
         let rows = sf_report::episodes::read_episodes(&path)?;
         let have: BTreeSet<Cell> = rows.iter().map(EpisodeRow::cell).collect();
@@ -354,7 +343,12 @@ impl EvalJob {
     /// Leases of workers not in `live` (forgotten for missing heartbeats) and the worker's own
     /// earlier lease (it asks again, so it gave that cell up) go back to the queue first.
     /// `None`: nothing queued now for this worker (cells may still be leased to others).
-    pub fn lease(&self, worker: u64, live: &BTreeSet<u64>, runs_idm_ego: bool) -> Option<EvalWork> {
+    pub fn lease(
+        &self,
+        worker: WorkerId,
+        live: &BTreeSet<WorkerId>,
+        runs_idm_ego: bool,
+    ) -> Option<EvalWork> {
         if self.stop_reason().is_some() {
             return None;
         }
@@ -370,7 +364,7 @@ impl EvalJob {
             .collect();
         for c in gone {
             if let Some((w, since)) = s.leased.remove(&c) {
-                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w, leased_s = since.elapsed().as_secs(), "cell returned to the queue");
+                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w.get(), leased_s = since.elapsed().as_secs(), "cell returned to the queue");
                 if w != worker {
                     self.metrics.eval_cells_reassigned.inc();
                 }
@@ -398,7 +392,7 @@ impl EvalJob {
     /// cell's size ([`EvalConfig::size_of`]); nothing is written otherwise.
     pub fn store(
         &self,
-        worker: u64,
+        worker: WorkerId,
         cell_id: u64,
         episodes: &[EvalEpisode],
         error: &str,
@@ -444,7 +438,7 @@ impl EvalJob {
         self.metrics.eval_cells_pending.set((self.cells.len() - stored) as i64);
         let done = stored == self.cells.len();
         drop(s);
-        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker, "cell stored");
+        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker.get(), "cell stored");
         if done {
             self.changed.notify_one();
         }
@@ -468,173 +462,6 @@ pub fn load_maps(
         maps.get(s).map_or(0, |(_, c): &(_, sf_sim::CaseFile)| c.cases.len())
     })?;
     Ok(maps)
-}
-
-/// Runs `f` on a blocking thread.
-async fn blocking_task<T: Send + 'static>(
-    f: impl FnOnce() -> Result<T, LearnerError> + Send + 'static,
-) -> Result<T, LearnerError> {
-    tokio::task::spawn_blocking(f)
-        .await
-        .map_err(|source| LearnerError::Task { task: "blocking task", source })?
-}
-
-impl crate::Inner {
-    /// Validates an evaluation grid, pins its names to this learner's succeeded jobs, checks
-    /// every cell's ego and flow fit and that the cases exist, and queues it.
-    pub(crate) async fn submit_eval(
-        self: &std::sync::Arc<Self>,
-        mut cfg: EvalConfig,
-    ) -> Result<JobRecord, ServiceError> {
-        // A probe changes what a flow's observers are told or who sits in the ego's seat; the
-        // workers' cells carry neither, so the learner refuses it rather than run it unprobed.
-        if let Some(n) = cfg.flows.iter().chain(&cfg.egos).find(|n| n.is_probe()) {
-            return Err(LearnerError::ProbeInService { name: n.name.clone() }.into());
-        }
-        let jobs = self.jobs().await?;
-        resolve_names(&mut cfg, &jobs)?;
-        let (scen, cases) = (self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
-        let c2 = cfg.clone();
-        let me = Arc::clone(self);
-        blocking_task(move || {
-            let (_, _, grid) = resolve_policies(&c2, &jobs, false, &|r| me.spec(r))?;
-            grid.check(&c2.cells())?;
-            load_maps(&c2, &scen, &cases).map(|_| ())
-        })
-        .await?;
-        let store = Arc::clone(&self.store);
-        let name = cfg.name.clone();
-        let target = cfg.episodes();
-        let resolved = cfg.to_toml();
-        let rec = crate::blocking(move || store.create(&name, &resolved, target)).await?;
-        tracing::info!(job_id = rec.id, name = %rec.name, cells = cfg.cells().len(), "evaluation queued");
-        self.keep_spec(rec.id, sf_job::JobSpec::Eval(cfg));
-        self.wake.notify_one();
-        Ok(rec)
-    }
-
-    /// Opens the evaluation (resuming from its stored cells), marks it RUNNING and follows it
-    /// to its end: every cell stored (then the GIFs), a failed cell, cancel or shutdown.
-    pub(crate) async fn start_eval(
-        self: &Arc<Self>,
-        rec: &JobRecord,
-        cfg: EvalConfig,
-    ) -> Result<(), LearnerError> {
-        let jobs = self.jobs().await?;
-        let (r2, m2, me) = (rec.clone(), self.metrics.clone(), Arc::clone(self));
-        let job = Arc::new(
-            blocking_task(move || EvalJob::open(&r2, cfg, &jobs, &|r| me.spec(r), m2)).await?,
-        );
-        let store = Arc::clone(&self.store);
-        let id = rec.id;
-        // As for training jobs: evaluating first, then RUNNING unless a cancel came first.
-        self.slots.fill(id, crate::slot::Running::Eval(Arc::clone(&job)));
-        let started = tokio::task::spawn_blocking(move || {
-            store.update(id, |r| {
-                r.advance(JobState::Running, None);
-            })
-        })
-        .await
-        .map_err(LearnerError::from)
-        .and_then(|r| r.map_err(LearnerError::from));
-        if !matches!(&started, Ok(Some(r)) if r.state == JobState::Running) {
-            job.request_stop(StopReason::Cancelled);
-            self.slots.clear(id);
-            self.wake.notify_one();
-            return started
-                .map(|_| tracing::info!(job_id = id, "evaluation cancelled before it started"));
-        }
-        tracing::info!(
-            job_id = id,
-            cells = job.cells(),
-            stored = job.progress().learning.episodes,
-            "evaluation started"
-        );
-        let me = Arc::clone(self);
-        tokio::spawn(async move {
-            let out = loop {
-                if let Some(why) = job.stop_reason() {
-                    break match why {
-                        StopReason::Cancelled => crate::trainer::Outcome::Cancelled,
-                        StopReason::Shutdown => crate::trainer::Outcome::Shutdown,
-                    };
-                }
-                if let Some(msg) = job.failure() {
-                    break crate::trainer::Outcome::Failed(msg);
-                }
-                if job.is_complete() {
-                    break me.finish_eval(&job).await;
-                }
-                job.changed.notified().await;
-            };
-            me.finish(id, out, Some(job.progress())).await;
-        });
-        Ok(())
-    }
-
-    /// Every cell is stored: draws the grid's GIFs into the job's directory.
-    async fn finish_eval(&self, job: &Arc<EvalJob>) -> crate::trainer::Outcome {
-        let Some(g) = job.cfg.experiments.gifs.clone() else {
-            return crate::trainer::Outcome::Succeeded;
-        };
-        let (j, scen, cases) =
-            (Arc::clone(job), self.cfg.scenarios_dir.clone(), self.cfg.cases_dir.clone());
-        let r = blocking_task(move || {
-            let maps = load_maps(&j.cfg, &scen, &cases)?;
-            let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-            let mut runners = sf_rollout::evaluate::Runners::new(device);
-            Ok(j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)?)
-        })
-        .await;
-        match r {
-            Ok(paths) => {
-                tracing::info!(job_id = job.id, gifs = paths.len(), "evaluation finished");
-                crate::trainer::Outcome::Succeeded
-            }
-            Err(e) => crate::trainer::Outcome::Failed(format!(
-                "every cell is stored, but the GIFs failed: {e}"
-            )),
-        }
-    }
-
-    /// A cell of the running evaluation for `worker`, if one is queued.
-    pub(crate) fn eval_work(&self, worker: u64) -> Option<EvalWork> {
-        let e = self.evaluating()?;
-        e.lease(worker, &self.live_workers(), self.workers.runs_idm_ego(worker))
-    }
-
-    /// A worker's results for one cell of the running evaluation `job_id`.
-    pub(crate) async fn eval_results(
-        self: &Arc<Self>,
-        job_id: u64,
-        worker: u64,
-        cell_id: u64,
-        episodes: Vec<EvalEpisode>,
-        error: String,
-    ) -> Result<bool, ServiceError> {
-        self.touch_worker(worker)?;
-        let job = match self.evaluating() {
-            Some(e) if e.id == job_id && e.stop_reason().is_none() => e,
-            _ => {
-                let rec = self.job(job_id).await?;
-                return Err(
-                    LearnerError::NotEvaluating { job_id, state: rec.state.as_str() }.into()
-                );
-            }
-        };
-        match tokio::task::spawn_blocking(move || job.store(worker, cell_id, &episodes, &error))
-            .await
-            .map_err(LearnerError::from)?
-        {
-            Ok(stored) => Ok(stored),
-            // The cell stays unstored (the worker sends it again); jobs wait for the disk.
-            Err(e) if crate::storage::is_storage_fault(&e) => {
-                self.storage.fault(&format!("storing cell {cell_id} of evaluation {job_id}: {e}"));
-                Err(LearnerError::StorageFault { cause: e.to_string() }.into())
-            }
-            Err(e) => Err(e.into()),
-        }
-    }
 }
 
 #[cfg(test)]

@@ -1,11 +1,11 @@
 //! The learner's gRPC handlers: `JobService` and `ExperienceService`.
 //!
-//! Owns: request decoding (through `sf_proto`), the calls into [`crate::Inner`] and the mapping
-//! of results to responses; errors become statuses only through `sf_service::ServiceError`. What
-//! the calls do lives beside `Inner`: jobs in `lib.rs`, a training job's worker calls in
-//! `experience.rs`, an evaluation's in `eval.rs`.
-//! Must not: block the runtime (store IO and ingest go through `spawn_blocking`) or run
-//! tensor code.
+//! Owns: request decoding (through `sf_proto`), the call into the part each service serves
+//! (`JobService`: the job table, [`crate::jobs::Jobs`]; `ExperienceService`: the worker side,
+//! [`crate::experience::Experience`]), the mapping of results to responses and the per-method
+//! RPC counts; errors become statuses only through `sf_service::ServiceError`. Must not: decide
+//! anything a part decides, block the runtime (store IO and ingest go through `spawn_blocking`)
+//! or run tensor code.
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -20,26 +20,35 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Code, Request, Response, Status, Streaming};
 
-use crate::Inner;
+use crate::experience::Work;
+use crate::metrics::LearnerMetrics;
 
 type Res<T> = Result<Response<T>, Status>;
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
+/// `JobService` over the job table.
 #[derive(Clone)]
-pub struct Jobs(pub Arc<Inner>);
+pub struct Jobs {
+    pub jobs: Arc<crate::jobs::Jobs>,
+    pub metrics: LearnerMetrics,
+}
 
+/// `ExperienceService` over the worker side.
 #[derive(Clone)]
-pub struct Experience(pub Arc<Inner>);
+pub struct Experience {
+    pub experience: Arc<crate::experience::Experience>,
+    pub metrics: LearnerMetrics,
+}
 
 /// Counts the outcome and converts the error.
-fn done<T>(inner: &Inner, method: &str, r: Result<T, ServiceError>) -> Res<T> {
-    match r {
+fn done<T, E: Into<ServiceError>>(m: &LearnerMetrics, method: &str, r: Result<T, E>) -> Res<T> {
+    match r.map_err(Into::into) {
         Ok(v) => {
-            inner.metrics.common.rpc(method, Code::Ok);
+            m.common.rpc(method, Code::Ok);
             Ok(Response::new(v))
         }
         Err(e) => {
-            inner.metrics.common.rpc(method, e.code());
+            m.common.rpc(method, e.code());
             Err(e.into())
         }
     }
@@ -48,17 +57,17 @@ fn done<T>(inner: &Inner, method: &str, r: Result<T, ServiceError>) -> Res<T> {
 #[tonic::async_trait]
 impl JobService for Jobs {
     async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Res<pb::Job> {
-        let r = self.0.submit(req.into_inner().config_toml).await;
-        done(&self.0, "SubmitJob", r.map(|j| sf_proto::job_to_wire(&j)))
+        let r = self.jobs.submit(req.into_inner().config_toml).await;
+        done(&self.metrics, "SubmitJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
     async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Res<pb::Job> {
-        let r = self.0.job(req.into_inner().job_id).await;
-        done(&self.0, "GetJob", r.map(|j| sf_proto::job_to_wire(&j)))
+        let r = self.jobs.get(req.into_inner().job_id);
+        done(&self.metrics, "GetJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
     async fn list_jobs(&self, _req: Request<pb::ListJobsRequest>) -> Res<pb::ListJobsResponse> {
-        let r = self.0.jobs().await;
+        let r: Result<_, ServiceError> = Ok(self.jobs.list());
         // Summaries: configs can be megabytes each, and a list of them would outgrow a default
         // client's 4 MiB receive limit. GetJob carries the config.
         let summary = |j: &sf_job::JobRecord| pb::Job {
@@ -66,33 +75,33 @@ impl JobService for Jobs {
             ..sf_proto::job_to_wire(j)
         };
         done(
-            &self.0,
+            &self.metrics,
             "ListJobs",
             r.map(|js| pb::ListJobsResponse { jobs: js.iter().rev().map(summary).collect() }),
         )
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Res<pb::Job> {
-        let r = self.0.cancel(req.into_inner().job_id).await;
-        done(&self.0, "CancelJob", r.map(|j| sf_proto::job_to_wire(&j)))
+        let r = self.jobs.cancel(req.into_inner().job_id).await;
+        done(&self.metrics, "CancelJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
     async fn get_job_file(&self, req: Request<pb::GetJobFileRequest>) -> Res<pb::JobFile> {
         let pb::GetJobFileRequest { job_id, name } = req.into_inner();
-        let r = self.0.job_file(job_id, &name).await;
-        done(&self.0, "GetJobFile", r.map(|content| pb::JobFile { job_id, name, content }))
+        let r = self.jobs.job_file(job_id, &name).await;
+        done(&self.metrics, "GetJobFile", r.map(|content| pb::JobFile { job_id, name, content }))
     }
 
     type WatchJobStream = BoxStream<pb::JobProgress>;
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Res<Self::WatchJobStream> {
         let id = req.into_inner().job_id;
-        let first = match self.0.job(id).await {
+        let first = match self.jobs.get(id) {
             Ok(j) => j,
-            Err(e) => return done(&self.0, "WatchJob", Err(e)),
+            Err(e) => return done(&self.metrics, "WatchJob", Err(e)),
         };
         let (tx, rx) = mpsc::channel(4);
-        let inner = Arc::clone(&self.0);
+        let jobs = Arc::clone(&self.jobs);
         tokio::spawn(async move {
             let mut last = None;
             let mut cur = first;
@@ -108,16 +117,20 @@ impl JobService for Jobs {
                     return;
                 }
                 tokio::time::sleep(Duration::from_millis(250)).await;
-                cur = match inner.job(id).await {
+                cur = match jobs.get(id) {
                     Ok(j) => j,
                     Err(e) => {
-                        let _ = tx.send(Err(e.into())).await;
+                        let _ = tx.send(Err(ServiceError::from(e).into())).await;
                         return;
                     }
                 };
             }
         });
-        done(&self.0, "WatchJob", Ok(Box::pin(ReceiverStream::new(rx)) as Self::WatchJobStream))
+        done::<_, ServiceError>(
+            &self.metrics,
+            "WatchJob",
+            Ok(Box::pin(ReceiverStream::new(rx)) as Self::WatchJobStream),
+        )
     }
 }
 
@@ -125,51 +138,45 @@ impl JobService for Jobs {
 impl ExperienceService for Experience {
     async fn register(&self, req: Request<pb::RegisterRequest>) -> Res<pb::RegisterResponse> {
         let r = req.into_inner();
-        let id = self.0.register_worker(&r.name, r.runs_idm_ego);
-        done(
-            &self.0,
+        let id = self.experience.register(&r.name, r.runs_idm_ego);
+        done::<_, ServiceError>(
+            &self.metrics,
             "Register",
-            Ok(pb::RegisterResponse { worker_id: id, heartbeat_interval_ms: 2000 }),
+            Ok(pb::RegisterResponse { worker_id: id.get(), heartbeat_interval_ms: 2000 }),
         )
     }
 
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Res<pb::HeartbeatResponse> {
-        let r = self.0.heartbeat(req.into_inner().worker_id);
-        done(&self.0, "Heartbeat", r.map(|()| pb::HeartbeatResponse {}))
+        let r = self.experience.heartbeat(req.into_inner().worker_id.into());
+        done(&self.metrics, "Heartbeat", r.map(|()| pb::HeartbeatResponse {}))
     }
 
     async fn get_assignment(
         &self,
         req: Request<pb::GetAssignmentRequest>,
     ) -> Res<pb::GetAssignmentResponse> {
-        let worker = req.into_inner().worker_id;
-        // A cell is leased only when there is no training assignment to give.
-        let r = self.0.assignment(worker).map(|a| {
-            let eval = if a.is_none() { self.0.eval_work(worker) } else { None };
-            (a, eval)
-        });
-        let r = r.map(|pair| match pair {
-            (Some(a), _) => pb::GetAssignmentResponse {
-                has_assignment: true,
-                retry_after_ms: 0,
-                assignment: Some(sf_proto::assignment_to_wire(&a)),
-                eval: None,
-            },
-            (None, Some(w)) => pb::GetAssignmentResponse {
-                has_assignment: true,
-                retry_after_ms: 0,
-                assignment: None,
-                eval: Some(sf_proto::eval_work_to_wire(&w)),
-            },
-            // An evaluation's last cells are leased to others: ask again soon, one may come back.
-            (None, None) => pb::GetAssignmentResponse {
-                has_assignment: false,
-                retry_after_ms: if self.0.evaluating().is_some() { 250 } else { 1000 },
-                assignment: None,
-                eval: None,
-            },
-        });
-        done(&self.0, "GetAssignment", r)
+        let r =
+            self.experience.assignment(req.into_inner().worker_id.into()).map(|work| match work {
+                Work::Train(a) => pb::GetAssignmentResponse {
+                    has_assignment: true,
+                    retry_after_ms: 0,
+                    assignment: Some(sf_proto::assignment_to_wire(&a)),
+                    eval: None,
+                },
+                Work::Eval(w) => pb::GetAssignmentResponse {
+                    has_assignment: true,
+                    retry_after_ms: 0,
+                    assignment: None,
+                    eval: Some(sf_proto::eval_work_to_wire(&w)),
+                },
+                Work::Wait { retry_after_ms } => pb::GetAssignmentResponse {
+                    has_assignment: false,
+                    retry_after_ms,
+                    assignment: None,
+                    eval: None,
+                },
+            });
+        done(&self.metrics, "GetAssignment", r)
     }
 
     async fn push_eval_results(&self, req: Request<pb::EvalResults>) -> Res<pb::EvalAck> {
@@ -180,10 +187,13 @@ impl ExperienceService for Experience {
             .map(sf_proto::eval_episode_from_wire)
             .collect::<Result<Vec<_>, WireError>>();
         let r = match episodes {
-            Ok(eps) => self.0.eval_results(m.job_id, m.worker_id, m.cell_id, eps, m.error).await,
+            Ok(eps) => {
+                let worker = m.worker_id.into();
+                self.experience.eval_results(m.job_id, worker, m.cell_id, eps, m.error).await
+            }
             Err(e) => Err(e.into()),
         };
-        done(&self.0, "PushEvalResults", r.map(|stored| pb::EvalAck { stored }))
+        done(&self.metrics, "PushEvalResults", r.map(|stored| pb::EvalAck { stored }))
     }
 
     type PushTransitionsStream = BoxStream<pb::PushAck>;
@@ -194,7 +204,7 @@ impl ExperienceService for Experience {
     ) -> Res<Self::PushTransitionsStream> {
         let mut inbound = req.into_inner();
         let (tx, rx) = mpsc::channel(2);
-        let inner = Arc::clone(&self.0);
+        let (exp, metrics) = (Arc::clone(&self.experience), self.metrics.clone());
         tokio::spawn(async move {
             loop {
                 let msg = match inbound.next().await {
@@ -208,16 +218,16 @@ impl ExperienceService for Experience {
                         } else {
                             s
                         };
-                        inner.metrics.common.rpc("PushTransitions", s.code());
+                        metrics.common.rpc("PushTransitions", s.code());
                         let _ = tx.send(Err(s)).await;
                         return;
                     }
                 };
-                let r = inner.ingest(msg).await;
+                let r = exp.ingest(msg).await;
                 let ok = r.is_ok();
                 let item = match r {
                     Ok(a) => {
-                        inner.metrics.common.rpc("PushTransitions", Code::Ok);
+                        metrics.common.rpc("PushTransitions", Code::Ok);
                         Ok(pb::PushAck {
                             accepted: a.accepted,
                             dropped_stale: a.dropped_stale,
@@ -226,7 +236,7 @@ impl ExperienceService for Experience {
                         })
                     }
                     Err(e) => {
-                        inner.metrics.common.rpc("PushTransitions", e.code());
+                        metrics.common.rpc("PushTransitions", e.code());
                         Err(Status::from(e))
                     }
                 };
@@ -240,13 +250,10 @@ impl ExperienceService for Experience {
 
     async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
         let r = req.into_inner();
-        let out = self
-            .0
-            .policy(r.job_id, sf_proto::policy_request_from_wire(r.version))
-            .await
-            .map_err(ServiceError::from);
+        let out =
+            self.experience.policy(r.job_id, sf_proto::policy_request_from_wire(r.version)).await;
         done(
-            &self.0,
+            &self.metrics,
             "GetPolicy",
             out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }),
         )

@@ -6,7 +6,7 @@
 //! evaluation only when nothing runs (its cells go to idle workers, and a worker in a training
 //! session is never idle), and nothing beside an evaluation. Must not: start or stop jobs (the
 //! scheduler fills and clears the slots, the job itself stops on request) or know how either
-//! kind runs.
+//! kind runs. Also owns [`Outcome`], how a running job of either kind ended.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
@@ -15,13 +15,44 @@ use prometheus_client::metrics::gauge::Gauge;
 use sf_service::sync::{read, write};
 
 use crate::eval::EvalJob;
-use crate::job::ActiveJob;
+use crate::job::{ActiveJob, StopReason};
+
+/// How a running job ended (a training job's trainer, or an evaluation's last cell).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Outcome {
+    Succeeded,
+    Cancelled,
+    /// Learner shutdown: checkpoint written, the job stays RUNNING and resumes on next start.
+    Shutdown,
+    /// The disk refused a write (`storage::is_storage_fault`): the job stays RUNNING at its last
+    /// good checkpoint and resumes from it when the disk takes writes again.
+    Paused(String),
+    Failed(String),
+}
 
 /// What occupies a slot.
 #[derive(Clone)]
 pub enum Running {
     Train(Arc<ActiveJob>),
     Eval(Arc<EvalJob>),
+}
+
+impl Running {
+    /// Asks the job to stop (it ends with the first reason asked for a training job, the last
+    /// for an evaluation).
+    pub fn request_stop(&self, why: StopReason) {
+        match self {
+            Running::Train(j) => j.request_stop(why),
+            Running::Eval(e) => e.request_stop(why),
+        }
+    }
+
+    pub fn progress(&self) -> sf_job::Progress {
+        match self {
+            Running::Train(j) => j.progress(),
+            Running::Eval(e) => e.progress(),
+        }
+    }
 }
 
 /// What the scheduler wants to start.
@@ -42,6 +73,16 @@ pub struct Slots {
 impl Slots {
     pub fn new(limit: usize, gauge: Gauge) -> Self {
         Self { jobs: RwLock::new(BTreeMap::new()), limit: limit.max(1), gauge }
+    }
+
+    /// The running job `id`.
+    pub fn get(&self, id: u64) -> Option<Running> {
+        read(&self.jobs).get(&id).cloned()
+    }
+
+    /// Every running job.
+    pub fn all(&self) -> Vec<Running> {
+        read(&self.jobs).values().cloned().collect()
     }
 
     /// The running training job `id`.
@@ -89,11 +130,7 @@ impl Slots {
 
     /// Live progress of job `id` if it is running.
     pub fn progress(&self, id: u64) -> Option<sf_job::Progress> {
-        match read(&self.jobs).get(&id) {
-            Some(Running::Train(j)) => Some(j.progress()),
-            Some(Running::Eval(e)) => Some(e.progress()),
-            None => None,
-        }
+        read(&self.jobs).get(&id).map(Running::progress)
     }
 
     /// Puts `job` in a slot (the scheduler starts a job only when [`Slots::admits`] it).

@@ -33,29 +33,19 @@ use sf_sac::CurvePoint;
 use sf_sac::{checkpoint, Batch, Losses, Sac};
 use sf_sim::obs::MapSegments;
 use sf_sim::Map;
+use tokio::sync::oneshot;
 
+use crate::artifacts::{self, write_atomic};
 use crate::deps::InitDep;
 use crate::error::LearnerError;
 use crate::job::{ActiveJob, Counters, StopReason};
+use crate::slot::Outcome;
 use crate::validation::{BestPolicy, ValidationPoint, Validator};
 use sf_service::sync::lock;
 
-/// How the trainer ended.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Outcome {
-    Succeeded,
-    Cancelled,
-    /// Learner shutdown: checkpoint written, the job stays RUNNING and resumes on next start.
-    Shutdown,
-    /// The disk refused a write (`storage::is_storage_fault`): the job stays RUNNING at its last
-    /// good checkpoint and resumes from it when the disk takes writes again.
-    Paused(String),
-    Failed(String),
-}
-
 /// What survives a restart besides the SAC checkpoint.
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
-pub struct JobState {
+pub struct TrainState {
     pub counters: Counters,
     pub policy_version: u64,
     pub curve: Vec<CurvePoint>,
@@ -69,33 +59,15 @@ pub fn state_path(dir: &Path) -> PathBuf {
 }
 
 /// Reads `state.json` if the job has one (a resumed job).
-pub fn load_state(dir: &Path) -> Result<Option<JobState>, LearnerError> {
+pub fn load_state(dir: &Path) -> Result<Option<TrainState>, LearnerError> {
     let p = state_path(dir);
     if !p.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(&p).map_err(|source| LearnerError::Io {
-        action: "reading",
-        path: p.clone(),
-        source,
-    })?;
+    let text = std::fs::read_to_string(&p).map_err(artifacts::io_error("reading", &p))?;
     serde_json::from_str(&text)
         .map(Some)
         .map_err(|source| LearnerError::StateFile { path: p, source })
-}
-
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).map_err(|source| LearnerError::Io {
-        action: "writing",
-        path: tmp.clone(),
-        source,
-    })?;
-    std::fs::rename(&tmp, path).map_err(|source| LearnerError::Io {
-        action: "renaming",
-        path: path.to_path_buf(),
-        source,
-    })
 }
 
 pub struct TrainerInput {
@@ -104,13 +76,36 @@ pub struct TrainerInput {
     /// Each map's segments, as ingest checked the observations against them.
     pub segs: Vec<Arc<MapSegments>>,
     pub dir: PathBuf,
-    pub resume: Option<JobState>,
+    pub resume: Option<TrainState>,
     /// `train.init_job`: its checkpoint and final policy are the SAC state a fresh job starts
     /// from.
     pub(crate) init: Option<InitDep>,
     /// With `[validation]`: the final weights of the job's frozen policies (`job.frozen`, in
     /// order), which validation episodes run with. Empty otherwise.
     pub frozen_weights: Vec<Arc<Vec<u8>>>,
+}
+
+/// Runs the job on a thread of its own (`trainer-<id>`); its [`Outcome`] comes through the
+/// receiver. A panic fails the job with its message.
+pub fn spawn(input: TrainerInput) -> Result<oneshot::Receiver<Outcome>, LearnerError> {
+    let (tx, rx) = oneshot::channel();
+    std::thread::Builder::new()
+        .name(format!("trainer-{}", input.job.id))
+        .spawn(move || {
+            // A panic is a defect, but it must not leave the job without its cause.
+            let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(input)))
+                .unwrap_or_else(|p| {
+                    let why = p
+                        .downcast_ref::<String>()
+                        .cloned()
+                        .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                        .unwrap_or_else(|| "no message".into());
+                    Outcome::Failed(format!("the trainer panicked: {why}"))
+                });
+            let _ = tx.send(out);
+        })
+        .map_err(LearnerError::SpawnTrainer)?;
+    Ok(rx)
 }
 
 /// Runs the job to an [`Outcome`]. Blocking; call on a dedicated thread.
@@ -137,11 +132,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     .map_err(LearnerError::BuildSac)?;
     let mut st = resume.unwrap_or_default();
     let resumed = start_state(&job, &mut sac, &dir, init.as_ref(), &st)?;
-    std::fs::create_dir_all(&dir).map_err(|source| LearnerError::Io {
-        action: "creating",
-        path: dir.clone(),
-        source,
-    })?;
+    artifacts::create_dir(&dir)?;
     write_atomic(&dir.join("config.toml"), cfg.to_toml().as_bytes())?;
     // The replay comes back before the first policy is published, i.e. before any worker
     // can push.
@@ -251,7 +242,7 @@ fn start_state(
     sac: &mut Sac,
     dir: &Path,
     init: Option<&InitDep>,
-    st: &JobState,
+    st: &TrainState,
 ) -> Result<bool, LearnerError> {
     let ckpt = dir.join("checkpoint");
     if ckpt.exists() {
@@ -269,7 +260,7 @@ fn start_state(
         return Ok(true);
     }
     if let Some(InitDep { job_id, dir: init }) = init {
-        let kept = crate::deps::read_final(init, *job_id, "policy.bpk")?;
+        let kept = artifacts::read_final(init, *job_id, "policy.bpk")?;
         let ckpt = init.join("checkpoint");
         checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| {
             LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source }
@@ -285,7 +276,7 @@ fn restore_replay(
     job: &ActiveJob,
     dir: &Path,
     resumed: bool,
-    st: &JobState,
+    st: &TrainState,
 ) -> Result<(ReplayStore, u64), LearnerError> {
     let store = ReplayStore::new(dir.join("replay"));
     if !resumed {
@@ -389,7 +380,7 @@ impl CurveRecorder {
         job: &ActiveJob,
         last_loss: &Losses,
         version: u64,
-        st: &mut JobState,
+        st: &mut TrainState,
         tb: &mut Option<EventWriter>,
     ) {
         let progress = job.progress();
@@ -523,7 +514,7 @@ fn validate(
     sac: &Sac,
     v: &mut Validator,
     best: &mut BestPolicy,
-    st: &mut JobState,
+    st: &mut TrainState,
     tb: Option<&mut EventWriter>,
 ) -> Result<(), LearnerError> {
     let weights = sac
@@ -632,7 +623,7 @@ fn save(
     job: &ActiveJob,
     sac: &Sac,
     dir: &Path,
-    st: &mut JobState,
+    st: &mut TrainState,
     version: u64,
     persist: &mut Persist,
 ) -> Result<(), LearnerError> {

@@ -92,8 +92,8 @@ impl BestPolicy {
         if self.point.as_ref().is_some_and(|b| !point.better_than(b)) {
             return Ok(false);
         }
-        crate::trainer::write_atomic(&self.dir.join(Self::WEIGHTS), weights)?;
-        crate::trainer::write_atomic(
+        crate::artifacts::write_atomic(&self.dir.join(Self::WEIGHTS), weights)?;
+        crate::artifacts::write_atomic(
             &self.dir.join(Self::POINT),
             serde_json::to_string(point)?.as_bytes(),
         )?;
@@ -104,12 +104,7 @@ impl BestPolicy {
     /// The best actor's weights and point, if any was kept.
     pub fn take(&self) -> Result<Option<(Vec<u8>, ValidationPoint)>, LearnerError> {
         let Some(point) = self.point.clone() else { return Ok(None) };
-        let p = self.dir.join(Self::WEIGHTS);
-        let bytes = std::fs::read(&p).map_err(|source| LearnerError::Io {
-            action: "reading",
-            path: p,
-            source,
-        })?;
+        let bytes = crate::artifacts::read(&self.dir.join(Self::WEIGHTS))?;
         Ok(Some((bytes, point)))
     }
 }

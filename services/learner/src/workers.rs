@@ -16,6 +16,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use prometheus_client::metrics::gauge::Gauge;
+use sf_job::WorkerId;
 use sf_service::sync::lock;
 
 use crate::error::LearnerError;
@@ -31,7 +32,7 @@ struct WorkerInfo {
 
 /// Registered workers, forgotten after `timeout` without a call.
 pub struct Workers {
-    map: Mutex<HashMap<u64, WorkerInfo>>,
+    map: Mutex<HashMap<WorkerId, WorkerInfo>>,
     next: AtomicU64,
     timeout: Duration,
     gauge: Gauge,
@@ -49,8 +50,8 @@ impl Workers {
         }
     }
 
-    pub fn register(&self, name: &str, runs_idm_ego: bool) -> u64 {
-        let id = self.next.fetch_add(1, Ordering::Relaxed);
+    pub fn register(&self, name: &str, runs_idm_ego: bool) -> WorkerId {
+        let id = WorkerId::new(self.next.fetch_add(1, Ordering::Relaxed));
         let mut w = lock(&self.map);
         w.insert(
             id,
@@ -62,17 +63,17 @@ impl Workers {
             },
         );
         self.gauge.set(w.len() as i64);
-        tracing::info!(worker_id = id, name, "worker registered");
+        tracing::info!(worker_id = id.get(), name, "worker registered");
         id
     }
 
     /// Whether worker `id` registered as running IDM-ego evaluation cells.
-    pub fn runs_idm_ego(&self, id: u64) -> bool {
+    pub fn runs_idm_ego(&self, id: WorkerId) -> bool {
         lock(&self.map).get(&id).is_some_and(|w| w.runs_idm_ego)
     }
 
     /// Records a call from worker `id`; refused when it is not (or no longer) registered.
-    pub fn touch(&self, id: u64) -> Result<(), LearnerError> {
+    pub fn touch(&self, id: WorkerId) -> Result<(), LearnerError> {
         let mut w = lock(&self.map);
         self.prune_locked(&mut w, Some(id));
         match w.get_mut(&id) {
@@ -85,14 +86,14 @@ impl Workers {
     }
 
     /// Workers not yet forgotten for missing heartbeats.
-    pub fn live(&self) -> BTreeSet<u64> {
+    pub fn live(&self) -> BTreeSet<WorkerId> {
         lock(&self.map).keys().copied().collect()
     }
 
     /// Gives worker `id` the job among `jobs` (the running training jobs that take workers)
     /// with the fewest other live workers, the lowest id among equals; `None` (and no job
     /// recorded) when there is none.
-    pub fn assign(&self, id: u64, jobs: &[u64]) -> Option<u64> {
+    pub fn assign(&self, id: WorkerId, jobs: &[u64]) -> Option<u64> {
         let mut w = lock(&self.map);
         let loads = loads(&w, jobs, Some(id));
         let pick = least_loaded(&loads);
@@ -106,7 +107,7 @@ impl Workers {
     /// the workers per job: when `job` holds more than one worker above the least served job.
     /// If so the worker is recorded on the job it should take at once (so that its fellows on
     /// `job` stay) and that job is returned.
-    pub fn rebalance(&self, id: u64, job: u64, jobs: &[u64]) -> Option<u64> {
+    pub fn rebalance(&self, id: WorkerId, job: u64, jobs: &[u64]) -> Option<u64> {
         let mut w = lock(&self.map);
         let info = w.get_mut(&id)?;
         if info.job != Some(job) {
@@ -123,7 +124,12 @@ impl Workers {
         if let Some(info) = w.get_mut(&id) {
             info.job = Some(to);
         }
-        tracing::info!(worker_id = id, from = job, to, "worker moves to even out the running jobs");
+        tracing::info!(
+            worker_id = id.get(),
+            from = job,
+            to,
+            "worker moves to even out the running jobs"
+        );
         Some(to)
     }
 
@@ -137,12 +143,12 @@ impl Workers {
         self.prune_locked(&mut lock(&self.map), None);
     }
 
-    fn prune_locked(&self, w: &mut HashMap<u64, WorkerInfo>, keep: Option<u64>) {
+    fn prune_locked(&self, w: &mut HashMap<WorkerId, WorkerInfo>, keep: Option<WorkerId>) {
         let before = w.len();
         w.retain(|wid, info| {
             let stay = Some(*wid) == keep || info.last_seen.elapsed() < self.timeout;
             if !stay {
-                tracing::info!(worker_id = *wid, name = %info.name, "worker timed out");
+                tracing::info!(worker_id = wid.get(), name = %info.name, "worker timed out");
             }
             stay
         });
@@ -153,7 +159,11 @@ impl Workers {
 }
 
 /// Workers per job of `jobs` (every one listed, zero included), `except` not counted.
-fn loads(w: &HashMap<u64, WorkerInfo>, jobs: &[u64], except: Option<u64>) -> BTreeMap<u64, usize> {
+fn loads(
+    w: &HashMap<WorkerId, WorkerInfo>,
+    jobs: &[u64],
+    except: Option<WorkerId>,
+) -> BTreeMap<u64, usize> {
     let mut n: BTreeMap<u64, usize> = jobs.iter().map(|&j| (j, 0)).collect();
     for job in w.iter().filter(|(wid, _)| Some(**wid) != except).filter_map(|(_, i)| i.job) {
         if let Some(c) = n.get_mut(&job) {
@@ -177,7 +187,10 @@ mod tests {
         let gauge = Gauge::default();
         let w = Workers::new(0, Duration::from_millis(50), gauge.clone());
         let (a, b) = (w.register("a", true), w.register("b", false));
-        assert!(a >= 1 && b == a + 1, "ids start at 1 and are never reused: {a} {b}");
+        assert!(
+            a.get() >= 1 && b.get() == a.get() + 1,
+            "ids start at 1 and are never reused: {a} {b}"
+        );
         assert!(w.runs_idm_ego(a) && !w.runs_idm_ego(b), "what each worker registered with");
         assert_eq!(gauge.get(), 2);
         std::thread::sleep(Duration::from_millis(80));
@@ -196,7 +209,7 @@ mod tests {
     #[test]
     fn workers_spread_over_running_jobs_and_move_when_a_job_starts_or_ends() {
         let w = Workers::new(1, Duration::from_secs(60), Gauge::default());
-        let ids: Vec<u64> = (0..3).map(|k| w.register(&format!("w{k}"), false)).collect();
+        let ids: Vec<WorkerId> = (0..3).map(|k| w.register(&format!("w{k}"), false)).collect();
         // One job: everyone on it.
         for &id in &ids {
             assert_eq!(w.assign(id, &[10]), Some(10));

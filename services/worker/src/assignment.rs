@@ -10,20 +10,21 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use sf_job::{Assignment, JobConfig};
+use sf_job::{Assignment, JobConfig, WorkerId};
 use sf_proto::pb;
 use sf_sim::Map;
 use tonic::Code;
 
+use crate::client::{req, status_err, Client, WorkerConfig};
 use crate::evalcell::Cells;
 use crate::membership::Heartbeats;
-use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::metrics::WorkerMetrics;
 
 /// A training job's assignment; evaluation cells handed out before it are run on the way.
 pub async fn next_assignment(
     client: &mut Client,
     cfg: &WorkerConfig,
-    worker_id: u64,
+    worker_id: WorkerId,
     heartbeats: &mut Heartbeats,
     metrics: &WorkerMetrics,
 ) -> anyhow::Result<Assignment> {
@@ -31,7 +32,7 @@ pub async fn next_assignment(
     let mut cells = Cells::new(cfg);
     loop {
         let r = client
-            .get_assignment(req(pb::GetAssignmentRequest { worker_id }, t))
+            .get_assignment(req(pb::GetAssignmentRequest { worker_id: worker_id.get() }, t))
             .await
             .map_err(|s| status_err("GetAssignment", s, metrics))?
             .into_inner();
@@ -58,11 +59,11 @@ pub async fn next_assignment(
 /// The assignment's job config and its scenarios' maps in config order (index = map id).
 pub fn load_job(
     cfg: &WorkerConfig,
-    worker_id: u64,
+    worker_id: WorkerId,
     asg: &Assignment,
 ) -> anyhow::Result<(JobConfig, Vec<Arc<Map>>)> {
     let job = JobConfig::from_toml(&asg.config_toml).context("job config in the assignment")?;
-    tracing::info!(worker_id, job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
+    tracing::info!(worker_id = worker_id.get(), job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
     let maps = job
         .env
         .scenarios

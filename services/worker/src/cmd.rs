@@ -11,7 +11,8 @@ use prometheus_client::registry::Registry;
 use sf_service::conn::LearnerConn;
 use tokio::sync::watch;
 
-use crate::{WorkerConfig, WorkerMetrics};
+use crate::client::{WorkerConfig, DEFAULT_IN_FLIGHT_BATCHES};
+use crate::metrics::WorkerMetrics;
 
 #[derive(Parser, Debug, Clone)]
 #[command(name = "socialflow-worker", about = "A stateless socialflow rollout worker")]
@@ -39,7 +40,7 @@ pub struct WorkerArgs {
     /// Transition batches sent and not yet acknowledged, at most: the window that carries
     /// ingest across a slow link (throughput is at most this many batches per round trip);
     /// more is more lost if the worker dies and more stale data.
-    #[arg(long, env = "SOCIALFLOW_IN_FLIGHT_BATCHES", default_value_t = crate::DEFAULT_IN_FLIGHT_BATCHES)]
+    #[arg(long, env = "SOCIALFLOW_IN_FLIGHT_BATCHES", default_value_t = DEFAULT_IN_FLIGHT_BATCHES)]
     pub in_flight_batches: u32,
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,

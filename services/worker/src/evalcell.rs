@@ -14,12 +14,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use sf_job::eval::EvalWork;
-use sf_job::PolicyRequest;
+use sf_job::{PolicyRequest, WorkerId};
 use sf_proto::pb;
 use sf_rollout::evaluate::{self, CellSize, Runners};
 use tonic::Code;
 
-use crate::{req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::client::{req, status_err, Client, WorkerConfig};
+use crate::metrics::WorkerMetrics;
 
 type Maps = BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>;
 
@@ -46,7 +47,7 @@ impl Cells {
     pub async fn run(
         &mut self,
         client: &mut Client,
-        worker_id: u64,
+        worker_id: WorkerId,
         w: EvalWork,
         t: Duration,
         metrics: &WorkerMetrics,
@@ -116,8 +117,13 @@ impl Cells {
             }
         };
         let n = episodes.len() as u64;
-        let msg =
-            pb::EvalResults { job_id: w.job_id, worker_id, cell_id: w.cell_id, episodes, error };
+        let msg = pb::EvalResults {
+            job_id: w.job_id,
+            worker_id: worker_id.get(),
+            cell_id: w.cell_id,
+            episodes,
+            error,
+        };
         let ack = match client.push_eval_results(req(msg, t)).await {
             Ok(a) => a.into_inner(),
             // The job ended (finished by others, cancelled, failed): ask for the next assignment.

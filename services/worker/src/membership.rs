@@ -11,17 +11,19 @@
 
 use std::time::Duration;
 
+use sf_job::WorkerId;
 use sf_proto::pb;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 use tonic::Code;
 
-use crate::{connect, req, status_err, Client, WorkerConfig, WorkerMetrics};
+use crate::client::{connect, req, status_err, Client, WorkerConfig};
+use crate::metrics::WorkerMetrics;
 
 /// What the learner gave this worker when it registered.
 #[derive(Clone, Copy, Debug)]
 pub struct Registration {
-    pub worker_id: u64,
+    pub worker_id: WorkerId,
     pub heartbeat_every: Duration,
 }
 
@@ -42,7 +44,7 @@ pub async fn register(
     metrics.common.rpc("Register", Code::Ok);
     tracing::info!(worker_id = reg.worker_id, learner = %cfg.learner_url, "registered");
     Ok(Registration {
-        worker_id: reg.worker_id,
+        worker_id: reg.worker_id.into(),
         heartbeat_every: Duration::from_millis(reg.heartbeat_interval_ms.clamp(200, 30_000) as u64),
     })
 }
@@ -69,7 +71,10 @@ impl Heartbeats {
             let mut fails = 0;
             loop {
                 tokio::time::sleep(every).await;
-                match client.heartbeat(req(pb::HeartbeatRequest { worker_id }, t)).await {
+                match client
+                    .heartbeat(req(pb::HeartbeatRequest { worker_id: worker_id.get() }, t))
+                    .await
+                {
                     Ok(_) => {
                         metrics.common.rpc("Heartbeat", Code::Ok);
                         fails = 0

@@ -9,12 +9,13 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use sf_job::{Frozen, FrozenRole, JobConfig, PolicyRequest};
+use sf_job::{Frozen, FrozenRole, JobConfig, PolicyRequest, WorkerId};
 use sf_proto::pb;
 use tonic::Code;
 
+use crate::client::{req, status_err, Client};
+use crate::metrics::WorkerMetrics;
 use crate::rollout::Rollout;
-use crate::{req, status_err, Client, WorkerMetrics};
 
 /// The frozen policies an assignment acts with (background flow, ego, adversary): role, config
 /// and final weights.
@@ -24,7 +25,7 @@ impl FrozenPolicies {
     /// Each frozen job's config, then its final weights, in the assignment's order.
     pub async fn fetch(
         client: &Client,
-        worker_id: u64,
+        worker_id: WorkerId,
         frozen: &[Frozen],
         t: Duration,
         metrics: &WorkerMetrics,
@@ -40,7 +41,7 @@ impl FrozenPolicies {
                 .map_err(|s| status_err("GetPolicy", s, metrics))?
                 .into_inner();
             metrics.common.rpc("GetPolicy", Code::Ok);
-            tracing::info!(worker_id, frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
+            tracing::info!(worker_id = worker_id.get(), frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
             policies.push((f.role, fj, p.weights));
         }
         Ok(Self(policies))

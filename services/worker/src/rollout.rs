@@ -22,7 +22,7 @@ use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::{JobKind, WarmupPolicy};
-use sf_job::{ActedBy, Assignment, FrozenRole, JobConfig, TransitionBatch};
+use sf_job::{ActedBy, Assignment, FrozenRole, JobConfig, TransitionBatch, WorkerId};
 use sf_nn::device::Device;
 use sf_proto::pb;
 use sf_rollout::drive::{self, Actor};
@@ -33,7 +33,7 @@ use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Map, Mode, ObsSpec, SimConfig};
 use tokio::sync::mpsc;
 
-use crate::WorkerMetrics;
+use crate::metrics::WorkerMetrics;
 use sf_service::sync::lock;
 
 const STREAM_CLOSED: &str = "the transition stream closed";
@@ -55,7 +55,7 @@ pub struct RolloutSpec {
     pub svo_gaussians: Vec<Option<sf_sim::SvoGaussian>>,
     /// The job's scenarios in config order (index = map id).
     pub maps: Vec<Arc<Map>>,
-    pub worker_id: u64,
+    pub worker_id: WorkerId,
     pub job_id: u64,
     pub seed: u64,
     pub obs_len: usize,
@@ -70,7 +70,7 @@ impl RolloutSpec {
         job: JobConfig,
         frozen: Vec<(FrozenRole, JobConfig, Vec<u8>)>,
         maps: Vec<Arc<Map>>,
-        worker_id: u64,
+        worker_id: WorkerId,
         threads: usize,
     ) -> Self {
         let bg = asg.frozen.iter().find(|f| f.role == FrozenRole::Background);
@@ -78,7 +78,7 @@ impl RolloutSpec {
             job.env.scenarios.iter().map(|s| bg.and_then(|f| f.svo_gaussian(s))).collect();
         let redrawn = svo_gaussians.iter().flatten().count();
         if redrawn > 0 {
-            tracing::info!(worker_id, "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
+            tracing::info!(worker_id = worker_id.get(), "CoPO Stage 2: background SVOs redrawn every step from the coordinator's Gaussians in {redrawn} scenario(s)");
         }
         Self {
             job,

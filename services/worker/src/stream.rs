@@ -1,8 +1,9 @@
 //! The transition stream of a session: one `PushTransitions` call carrying the rollout
 //! thread's batches, and its acknowledgements.
 //!
-//! Owns: [`stream`]. Each acknowledgement gives the rollout thread a credit and lets the
-//! [`PolicyClient`] follow the learner's version. The session ends when the learner ends the
+//! Owns: [`stream`] and [`SessionEnd`], how a session that did not fail ended. Each
+//! acknowledgement gives the rollout thread a credit and lets the [`PolicyClient`] follow the
+//! learner's version. The session ends when the learner ends the
 //! job (FAILED_PRECONDITION: the next session starts at once), the stream or the rollout thread
 //! stops, or heartbeats fail. Must not: touch simulators or tensors (the rollout thread's), or
 //! retry (the session loop in `lib.rs` does).
@@ -12,10 +13,20 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 
+use crate::client::{status_err, Client};
 use crate::membership::Heartbeats;
+use crate::metrics::WorkerMetrics;
 use crate::policy::PolicyClient;
 use crate::rollout::Rollout;
-use crate::{status_err, Client, SessionEnd, WorkerMetrics};
+
+/// Why a session ended.
+#[derive(Debug)]
+pub enum SessionEnd {
+    /// The job stopped running: ask for a new assignment at once.
+    JobEnded,
+    /// Shutdown requested.
+    Stop,
+}
 
 /// Streams `batches` and follows the acknowledgements until the session ends.
 pub async fn stream(

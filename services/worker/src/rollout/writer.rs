@@ -21,7 +21,7 @@ use tokio::sync::mpsc;
 
 use super::nstep::NStep;
 use super::{Control, STREAM_CLOSED};
-use crate::WorkerMetrics;
+use crate::metrics::WorkerMetrics;
 
 /// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
 /// flight, and so its policy lag, when the learner's rate limiter holds workers back.
@@ -198,7 +198,7 @@ mod tests {
         let (tx, rx) = mpsc::channel(8);
         let metrics = WorkerMetrics::register(&mut Registry::default());
         let w = TransitionWriter::new(
-            TransitionBatch::new(7, 3, 2, 1),
+            TransitionBatch::new(7, 3.into(), 2, 1),
             NStep::new(1, 0.9),
             full_at,
             Arc::clone(&control),
