@@ -17,10 +17,11 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use sf_embedded::runs::find_job;
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
-use sf_rollout::evaluate::{self, CellSize, FlowDef, Policy, Runners};
+use sf_rollout::evaluate::{self, CellSize, FlowDef, Runners};
 
 use crate::scenarios::Ctx;
 
@@ -41,51 +42,6 @@ pub fn load(path: &Path) -> Result<EvalConfig> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     EvalConfig::from_toml(&text).with_context(|| path.display().to_string())
-}
-
-/// Every `jobs/<id>-<name>/` directory of a learner's data directory as `(id, name, dir)`.
-fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
-    let jobs = runs.join("jobs");
-    let mut out = Vec::new();
-    for e in
-        std::fs::read_dir(&jobs).with_context(|| format!("reading {}", jobs.display()))?.flatten()
-    {
-        let file = e.file_name().to_string_lossy().to_string();
-        if let Some((id, name)) = file
-            .split_once('-')
-            .and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name.to_string())))
-        {
-            out.push((id, name, e.path()));
-        }
-    }
-    Ok(out)
-}
-
-/// The job a flow or ego names: by `job_id` if pinned, else the newest `jobs/<id>-<name>/`
-/// with a final policy.
-pub(crate) fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
-    let dirs = job_dirs(runs)?;
-    let dir = match id {
-        Some(id) => {
-            dirs.into_iter().find(|(i, _, _)| *i == id).map(|(_, _, d)| d).with_context(|| {
-                format!("job {id} has no directory under {}", runs.join("jobs").display())
-            })?
-        }
-        None => {
-            let best = dirs
-                .into_iter()
-                .filter(|(_, n, dir)| n == name && dir.join("policy.bpk").exists())
-                .max_by_key(|(id, _, _)| *id);
-            best.map(|(_, _, d)| d).with_context(|| {
-                format!("no finished job named `{name}` under {}", runs.join("jobs").display())
-            })?
-        }
-    };
-    load_job(&dir)
-}
-
-pub(crate) fn load_job(dir: &Path) -> Result<Policy> {
-    Policy::load(dir).map_err(anyhow::Error::msg)
 }
 
 fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {

@@ -1,6 +1,8 @@
 //! The `socialflow` command line: argument parsing and dispatch to the library crates.
 //!
 //! Owns: the CLI contract (subcommand names, flags and JSON output fields that scripts read).
+//! The lab commands (`ladder`, `probe`, `bench ...`, `plot-curves`) keep their names here, with
+//! their arguments and implementations in `sf_lab`; only this dispatch uses `sf_lab`.
 //! Must not: hold simulator or training logic; each subcommand is a thin layer over a library.
 
 use std::path::PathBuf;
@@ -9,18 +11,10 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 
-mod bench;
-mod bench_replay;
-mod bench_sac;
-mod bench_soak;
-mod bench_svc;
 mod eval;
 mod evalflow;
-mod ladder;
 mod onnx;
 mod pipeline;
-mod plot;
-mod probe;
 mod remote;
 mod render;
 mod scenarios;
@@ -51,10 +45,10 @@ enum Cmd {
     Pipeline(pipeline::PipelineArgs),
     /// One rung of the learning ladder: trains its ego job per seed, evaluates each policy
     /// against the IDM driver on the same stored cases and checks the rung's gate.
-    Ladder(ladder::LadderArgs),
+    Ladder(sf_lab::ladder::LadderArgs),
     /// The critic probe: trains a job's critic on demonstrator data alone and scores how well
     /// it predicts failures on held-out episodes (AUROC, failure-row error).
-    Probe(probe::ProbeArgs),
+    Probe(sf_lab::probe::ProbeArgs),
     /// Writes a finished job's actor (its deterministic action) as an ONNX model, with a check
     /// file of stored observations and burn's actions for them.
     ExportOnnx(onnx::ExportOnnxArgs),
@@ -65,7 +59,7 @@ enum Cmd {
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
-        what: bench::BenchCmd,
+        what: sf_lab::bench::BenchCmd,
     },
     /// The paper's evaluation grid (egos x flows x scenarios, sweeps) over stored cases and
     /// seeds; per-episode results appended to `<out>/episodes.csv` (a rerun skips stored cells).
@@ -77,7 +71,7 @@ enum Cmd {
     /// CoPO Stage 2: fits a scenario's SVO Gaussian on a frozen CoPO Stage-1 flow (CEM).
     CopoCoordinator(evalflow::CoordinatorArgs),
     /// Overlays learning curves (CSV) of several runs in one PNG.
-    PlotCurves(plot::PlotArgs),
+    PlotCurves(sf_lab::plot::PlotArgs),
     /// Renders a frame (PNG) or an episode (GIF).
     Render(render::RenderArgs),
     /// Writes the four scenario files from their builders.
@@ -133,18 +127,18 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Train(a) => train::run(&ctx, a),
         Cmd::Remote(c) => remote::run(c),
         Cmd::Pipeline(a) => pipeline::run(&ctx, a),
-        Cmd::Ladder(a) => ladder::run(&ctx, a),
-        Cmd::Probe(a) => probe::run(&ctx, a),
+        Cmd::Ladder(a) => sf_lab::ladder::run(&ctx, a),
+        Cmd::Probe(a) => sf_lab::probe::run(&ctx, a),
         Cmd::ExportOnnx(a) => onnx::run(&ctx, a),
         Cmd::Learner(a) => train::learner(a),
         Cmd::Worker(a) => train::worker(a),
-        Cmd::Bench { what } => bench::run(&ctx, what),
+        Cmd::Bench { what } => sf_lab::bench::run(&ctx, what),
         Cmd::Eval(a) => eval::run(&ctx, a),
         Cmd::Report(a) => eval::report(a),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::CopoCoordinator(a) => evalflow::coordinator(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),
-        Cmd::PlotCurves(a) => plot::plot_curves(a),
+        Cmd::PlotCurves(a) => sf_lab::plot::run(a),
         Cmd::GenScenarios { out } => scenarios::gen_scenarios(&out),
         Cmd::GenCases { out, n, seed } => scenarios::gen_cases(&ctx, &out, n, seed),
     }

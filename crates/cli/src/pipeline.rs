@@ -19,11 +19,11 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
+use sf_embedded::{runtime, Embedded};
 use sf_job::eval::EvalConfig;
 use sf_job::{JobConfig, JobState};
 
 use crate::remote::{self, Conn, JobsClient};
-use crate::train::{runtime, Embedded};
 
 #[derive(Args, Debug)]
 pub struct PipelineArgs {

@@ -1,33 +1,14 @@
-//! Loading scenarios and case files by name, and regenerating the shipped ones.
+//! Regenerating the shipped scenario and case files (`gen-scenarios`, `gen-cases`); loading
+//! them by name is `sf_embedded::Ctx`, shared with the lab.
 
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::path::Path;
 
-use anyhow::{bail, Context, Result};
-use sf_sim::case::{self, CaseFile, DEFAULT_VEHICLES};
+use anyhow::{Context, Result};
+use sf_sim::case::{self, DEFAULT_VEHICLES};
 use sf_sim::scenarios::{self, SCENARIOS};
 use sf_sim::Map;
 
-/// Where the command finds its data files.
-pub struct Ctx {
-    pub scenarios: PathBuf,
-    pub cases: PathBuf,
-}
-
-impl Ctx {
-    pub fn map(&self, name: &str) -> Result<Arc<Map>> {
-        if !SCENARIOS.contains(&name) {
-            bail!("unknown scenario `{name}` (expected one of {})", SCENARIOS.join(", "));
-        }
-        let path = self.scenarios.join(format!("{name}.json"));
-        Ok(Arc::new(Map::load(&path)?))
-    }
-
-    pub fn cases(&self, map: &Map) -> Result<CaseFile> {
-        let path = self.cases.join(format!("{}.v{}.json", map.name, case::CASES_VERSION));
-        Ok(CaseFile::load(&path, map)?)
-    }
-}
+pub use sf_embedded::Ctx;
 
 pub fn gen_scenarios(out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;

@@ -2,6 +2,9 @@
 //! simulator transitions (every vehicle a learner driven by the scripted route follower, as
 //! `bench sim`), then measures a full write, an incremental checkpoint's write and a restore
 //! through `sf_sac::replay_store`, with bytes per transition beside the in-memory f16 size.
+//!
+//! Owns: [`ReplayArgs`] and the timings. Must not: define the store's format (that is
+//! `sf_sac::replay_store`) or leave what it writes behind (its directory is removed).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -10,13 +13,12 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use serde_json::json;
+use sf_embedded::Ctx;
 use sf_sac::replay::{Replay, Transition};
 use sf_sac::replay_store::{ReplayStore, Segment};
 use sf_sim::policy::route_follower;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Mode, SimConfig};
-
-use crate::scenarios::Ctx;
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {

@@ -16,16 +16,14 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use sf_job::JobConfig;
+use sf_rollout::drive::{self, Actor, Drivers};
+use sf_rollout::setup;
+use sf_sac::replay::{Batch, Replay, ReplayError, Transition};
+use sf_sac::Sac;
 use sf_sim::env::{Controller, Mode};
 use sf_sim::obs::MapSegments;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::Map;
-
-use crate::drive::{self, Actor, Drivers};
-use sf_sac::replay::{Batch, Replay, ReplayError, Transition};
-use sf_sac::Sac;
-
-use crate::setup;
 
 /// What failed collecting or training on the probe's transitions.
 #[derive(Debug, thiserror::Error)]

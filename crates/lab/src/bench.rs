@@ -1,4 +1,8 @@
 //! `socialflow bench ...`: measurements with JSON output for scripts.
+//!
+//! Owns: the `bench` subcommands ([`BenchCmd`]) and `bench sim` (simulator throughput with a
+//! scripted policy); the others are in `bench_*`. Must not: change what it measures (every
+//! number comes from the library code that runs in production) or write into a job store.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -6,11 +10,10 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use serde_json::json;
+use sf_embedded::Ctx;
 use sf_sim::policy::route_follower;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Layout, Mode, SimConfig};
-
-use crate::scenarios::Ctx;
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCmd {

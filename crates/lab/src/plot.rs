@@ -1,5 +1,7 @@
 //! `socialflow plot-curves`: overlays one column of several runs' `curve.csv` (or
 //! `validation.csv`) files in one PNG, against the column named by `--x`.
+//!
+//! Owns: [`PlotArgs`] and reading the CSV columns. Must not: draw itself (`sf_report::plot`).
 
 use std::path::PathBuf;
 
@@ -23,7 +25,7 @@ pub struct PlotArgs {
     out: PathBuf,
 }
 
-pub fn plot_curves(a: PlotArgs) -> Result<()> {
+pub fn run(a: PlotArgs) -> Result<()> {
     let mut series = Vec::new();
     let mut names = Vec::new();
     for r in &a.runs {

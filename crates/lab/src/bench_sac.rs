@@ -5,6 +5,9 @@
 //! the paper's observation content. Batches are real observations from the simulator.
 //! `--profile` adds the update's roofline (`profile`: FLOPs counted from the configs, the FMA
 //! peak, the stages timed alone; `docs/results/roofline.md`).
+//!
+//! Owns: [`SacArgs`], the size presets and the timed loops. Must not: change the update or the
+//! networks it measures (it calls `sf_sac::Sac` and `sf_rollout::inference` as training does).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -14,6 +17,7 @@ use clap::{Args, ValueEnum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
+use sf_embedded::Ctx;
 use sf_nn::NetConfig;
 use sf_rollout::inference::PolicyRunner;
 use sf_sac::{Replay, Sac, SacConfig, Transition};
@@ -21,8 +25,6 @@ use sf_sim::obs::MapSegments;
 use sf_sim::policy::route_follower;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Layout, Mode, SimConfig};
-
-use crate::scenarios::Ctx;
 
 mod profile;
 

@@ -10,6 +10,10 @@
 //! plus at most what killed streams had in flight; its resident memory from the first sample
 //! with the replay full to the end stays within 10 % (the curve is in the output, with the
 //! replay's size at each sample).
+//!
+//! Owns: [`SoakArgs`], the streams, the chaos kills and the accounting. Must not: change the
+//! learner (it runs the same binary's `learner` subcommand) or keep its data directory (a fresh
+//! temporary one, removed at the end).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -21,19 +25,18 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use rand::Rng;
 use serde_json::json;
+use sf_embedded::client::jobs_client;
+use sf_embedded::{runtime, Ctx};
 use sf_job::{JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_rollout::setup;
 use sf_service::auth::{AttachToken, Token};
+use sf_service::client::submit;
+use sf_service::sync::lock;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Mode};
 use tokio_stream::StreamExt;
-
-use crate::remote;
-use crate::scenarios::Ctx;
-use crate::train::runtime;
-use sf_service::sync::lock;
 
 #[derive(Args, Debug)]
 pub struct SoakArgs {
@@ -315,13 +318,13 @@ async fn soak(
     let ep = sf_service::tls::endpoint(url, &Default::default())?;
     let start_wait = Instant::now();
     let mut c = loop {
-        match remote::jobs_client(ep.clone(), url, Some(token.clone())).await {
+        match jobs_client(ep.clone(), url, Some(token.clone())).await {
             Ok(c) => break c,
             Err(e) if start_wait.elapsed() > Duration::from_secs(60) => return Err(e),
             Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
         }
     };
-    let job = remote::submit(&mut c, cfg.to_toml()).await?;
+    let job = submit(&mut c, cfg.to_toml()).await?;
     let ch = ep.connect().await?;
     let exp: Exp =
         ExperienceServiceClient::with_interceptor(ch, AttachToken::new(Some(token.clone())))

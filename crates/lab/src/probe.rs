@@ -1,15 +1,19 @@
-//! `socialflow probe <job.toml>`: the critic probe (`sf_rollout::probe`) on a job config: can its
+//! `socialflow probe <job.toml>`: the critic probe ([`critic`]) on a job config: can its
 //! critic tell, from demonstrator data alone, which states lead to a failure?
+//!
+//! Owns: [`ProbeArgs`] and the command (read the job, collect, train, print one JSON line).
+//! Must not: change the job's settings or write files; the probe itself is [`critic`]'s.
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use sf_embedded::Ctx;
 use sf_job::JobConfig;
-use sf_rollout::{probe, setup};
+use sf_rollout::setup;
 use sf_sac::Sac;
 
-use crate::scenarios::Ctx;
+pub mod critic;
 
 #[derive(Args, Debug)]
 pub struct ProbeArgs {
@@ -37,14 +41,14 @@ pub fn run(dirs: &Ctx, a: ProbeArgs) -> Result<()> {
         "--transitions must be at least 1000 and --horizon at least 1"
     );
     let maps = job.env.scenarios.iter().map(|s| dirs.map(s)).collect::<Result<Vec<_>>>()?;
-    let data = probe::collect(&job, &maps, a.transitions, a.horizon, a.seed)
+    let data = critic::collect(&job, &maps, a.transitions, a.horizon, a.seed)
         .map_err(anyhow::Error::msg)?;
-    let segs = probe::segments(&maps, &job);
+    let segs = critic::segments(&maps, &job);
     let seg_refs: Vec<_> = segs.iter().collect();
     let r = setup::resolve(&job, None);
     let mut sac = Sac::new(r.sac, r.net, r.obs, r.sim.dt_s, &seg_refs)?;
     let score =
-        probe::train_and_score(&mut sac, &data, a.updates, a.seed).map_err(anyhow::Error::msg)?;
+        critic::train_and_score(&mut sac, &data, a.updates, a.seed).map_err(anyhow::Error::msg)?;
     println!(
         "{}",
         serde_json::json!({"job": a.job.display().to_string(), "horizon": a.horizon, "score": score})

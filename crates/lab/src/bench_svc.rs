@@ -4,6 +4,9 @@
 //! job never samples (warm-up = replay capacity), so the number is the learner's ingest rate
 //! (decode, validate, rate limiter, copy into replay). `e2e`: a real job with m in-process
 //! workers; rates are measured after the warm-up, while the learner trains.
+//!
+//! Owns: [`SvcBenchArgs`], the synthetic senders and the rate sampling. Must not: bypass the
+//! service (everything goes through the learner's gRPC API, as a worker's data does).
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -13,14 +16,13 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use serde_json::json;
+use sf_embedded::{runtime, Ctx, Embedded};
 use sf_job::{JobConfig, TransitionBatch};
 use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_service::auth::AttachToken;
+use sf_service::client::{submit, JobsClient};
 use tokio_stream::StreamExt;
-
-use crate::remote;
-use crate::train::{runtime, Embedded};
 
 #[derive(Args, Debug)]
 pub struct SvcBenchArgs {
@@ -60,7 +62,7 @@ publish_every_updates = 1000000
 checkpoint_every_s = 100000
 "#;
 
-pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
+pub fn ingest(dirs: &Ctx, a: SvcBenchArgs) -> Result<()> {
     if a.workers == 0 || a.batch == 0 {
         bail!("--workers and --batch must be positive");
     }
@@ -69,7 +71,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     let out = runtime()?.block_on(async {
         let emb = Embedded::start(dir.clone(), dirs, 0).await?;
         let mut c = emb.client().await?;
-        let job = remote::submit(&mut c, INGEST_JOB.to_string()).await?;
+        let job = submit(&mut c, INGEST_JOB.to_string()).await?;
         let ch = tonic::transport::Endpoint::from_shared(emb.url.clone())?.connect().await?;
         let mut exp = ExperienceServiceClient::with_interceptor(
             ch,
@@ -143,7 +145,7 @@ pub fn ingest(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
+pub fn e2e(dirs: &Ctx, a: SvcBenchArgs) -> Result<()> {
     if a.workers == 0 {
         bail!("--workers must be positive");
     }
@@ -162,8 +164,8 @@ pub fn e2e(dirs: &crate::scenarios::Ctx, a: SvcBenchArgs) -> Result<()> {
     let out = runtime()?.block_on(async {
         let emb = Embedded::start(dir.clone(), dirs, a.workers).await?;
         let mut c = emb.client().await?;
-        let job = remote::submit(&mut c, cfg.to_toml()).await?;
-        let get = |c: &mut remote::JobsClient| {
+        let job = submit(&mut c, cfg.to_toml()).await?;
+        let get = |c: &mut JobsClient| {
             let mut c = c.clone();
             async move {
                 anyhow::Ok(

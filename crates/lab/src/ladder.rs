@@ -19,19 +19,19 @@ use clap::Args;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use sf_embedded::client::watch;
+use sf_embedded::runs::{find_job, load_job};
+use sf_embedded::{runtime, Ctx, Embedded};
 use sf_job::{JobConfig, JobState};
 use sf_report::plot::{line_chart, Series};
 use sf_rollout::drive::{self, Actor, Drivers};
 use sf_rollout::evaluate::{EgoDef, FlowDef, Policy, Runners};
 use sf_rollout::setup;
+use sf_service::client::{list, submit};
 use sf_sim::env::{Controller, Mode};
 use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::vec_env::{CaseDraw, EpisodeSpec, SlowLeader, VecEnv};
 use sf_sim::{CaseFile, DriveAction, Map, SimConfig};
-
-use crate::remote;
-use crate::scenarios::Ctx;
-use crate::train::{runtime, Embedded};
 
 #[derive(Args, Debug)]
 pub struct LadderArgs {
@@ -446,10 +446,10 @@ fn earlier_seeds(
 /// disk as `socialflow eval` finds its jobs (so no learner starts, and none resumes other
 /// jobs, just to evaluate); otherwise, unless `--eval-only`, that job trained now.
 fn trained_policy(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<Policy> {
-    match crate::eval::find_job(&a.data_dir, &cfg.name, None) {
+    match find_job(&a.data_dir, &cfg.name, None) {
         Ok(p) => Ok(p),
         Err(e) if a.eval_only => Err(e),
-        Err(_) => crate::eval::load_job(&train(dirs, a, cfg)?),
+        Err(_) => load_job(&train(dirs, a, cfg)?),
     }
 }
 
@@ -461,16 +461,14 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
         let emb = Embedded::start(a.data_dir.clone(), dirs, a.workers.max(1)).await?;
         let mut c = emb.client().await?;
         let result = async {
-            let running = remote::list(&mut c)
-                .await?
-                .into_iter()
-                .find(|j| j.name == cfg.name && !j.state.is_final());
+            let running =
+                list(&mut c).await?.into_iter().find(|j| j.name == cfg.name && !j.state.is_final());
             let job = match running {
                 Some(j) => j,
-                None => remote::submit(&mut c, text).await?,
+                None => submit(&mut c, text).await?,
             };
             eprintln!("training {} (job {})", cfg.name, job.id);
-            let (state, _) = remote::watch(&mut c, job.id, true).await?;
+            let (state, _) = watch(&mut c, job.id, true).await?;
             anyhow::ensure!(
                 state == JobState::Succeeded,
                 "job {} ({}) ended {}",
@@ -806,15 +804,7 @@ type CurvePt = [f64; 4];
 fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let col = |name: &str| {
-        header
-            .iter()
-            .position(|h| *h == name)
-            .with_context(|| format!("{}: no column `{name}`", path.display()))
-    };
-    let idx = [col("updates")?, col("success")?, col("wall_s")?, col("episodes")?];
+    let (idx, lines) = columns(path, &text, ["updates", "success", "wall_s", "episodes"])?;
     let mut out = Vec::new();
     for (i, l) in lines.enumerate() {
         let f: Vec<&str> = l.split(',').collect();
@@ -830,6 +820,24 @@ fn read_curve(path: &Path) -> Result<Vec<CurvePt>> {
     Ok(out)
 }
 
+/// The positions of `names` in the header of a CSV file's `text`, and the rows after it.
+fn columns<'t, const N: usize>(
+    path: &Path,
+    text: &'t str,
+    names: [&str; N],
+) -> Result<([usize; N], std::str::Lines<'t>)> {
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let mut idx = [0; N];
+    for (i, name) in idx.iter_mut().zip(names) {
+        *i = header
+            .iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{}: no column `{name}`", path.display()))?;
+    }
+    Ok((idx, lines))
+}
+
 /// Rolling success against updates, one line per seed.
 /// `validation.png`: every seed's held-out success against updates (jobs with `[validation]`;
 /// nothing is drawn when no seed has a `validation.csv`).
@@ -842,15 +850,7 @@ fn plot_validation(out: &Path, r: &Rung, seeds: &[SeedSummary]) -> Result<()> {
         }
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("reading {}", path.display()))?;
-        let mut lines = text.lines();
-        let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-        let col = |name: &str| {
-            header
-                .iter()
-                .position(|h| *h == name)
-                .with_context(|| format!("{}: no column `{name}`", path.display()))
-        };
-        let (u, v) = (col("updates")?, col("success")?);
+        let ([u, v], lines) = columns(&path, &text, ["updates", "success"])?;
         let points = lines
             .map(|l| {
                 let f: Vec<&str> = l.split(',').collect();
@@ -869,16 +869,19 @@ fn plot_validation(out: &Path, r: &Rung, seeds: &[SeedSummary]) -> Result<()> {
     }
     let series: Vec<Series> =
         series.iter().map(|(name, points)| Series { name, points: points.clone() }).collect();
-    line_chart(
-        &out.join("validation.png"),
+    seed_chart(
+        out,
+        "validation.png",
         &format!("{} {}: held-out success (mean action)", r.rung, r.name),
-        "updates",
         "validation success",
         &series,
-        Some((0.0, 1.0)),
-        (800, 500),
     )
-    .map_err(|e| anyhow::anyhow!("drawing validation.png: {e}"))
+}
+
+/// One line per training seed against updates, y in [0, 1], as `<out>/<file>`.
+fn seed_chart(out: &Path, file: &str, title: &str, y_label: &str, series: &[Series]) -> Result<()> {
+    line_chart(&out.join(file), title, "updates", y_label, series, Some((0.0, 1.0)), (800, 500))
+        .map_err(|e| anyhow::anyhow!("drawing {file}: {e}"))
 }
 
 fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<()> {
@@ -888,21 +891,23 @@ fn plot_curves(out: &Path, r: &Rung, curves: &[(u64, Vec<CurvePt>)]) -> Result<(
         .zip(&names)
         .map(|((_, c), name)| Series { name, points: c.iter().map(|p| (p[0], p[1])).collect() })
         .collect();
-    line_chart(
-        &out.join("success.png"),
+    seed_chart(
+        out,
+        "success.png",
         &format!("{} {}: rolling success", r.rung, r.name),
-        "updates",
         "rolling success",
         &series,
-        Some((0.0, 1.0)),
-        (800, 500),
     )
-    .map_err(|e| anyhow::anyhow!("drawing success.png: {e}"))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Asserts that one of `s`'s failed checks mentions `what`.
+    fn assert_failed(s: &SeedSummary, what: &str) {
+        assert!(s.failed_checks.iter().any(|c| c.contains(what)), "{:?}", s.failed_checks);
+    }
 
     fn summary() -> SeedSummary {
         SeedSummary {
@@ -953,16 +958,8 @@ mod tests {
             [6_000.0, 0.5, 5.0, 700.0],
         ]);
         assert!(!poor.passed, "0.93 at 200 episodes is the warm-up's window");
-        assert!(
-            poor.failed_checks.iter().any(|c| c.contains("never reached 0.9")),
-            "{:?}",
-            poor.failed_checks
-        );
-        assert!(
-            poor.failed_checks.iter().any(|c| c.contains("min 0.500")),
-            "{:?}",
-            poor.failed_checks
-        );
+        assert_failed(&poor, "never reached 0.9");
+        assert_failed(&poor, "min 0.500");
         let good = check(&[
             [500.0, 0.6, 3.0, 200.0],
             [3_000.0, 0.92, 4.0, 400.0],
@@ -1021,16 +1018,8 @@ mod tests {
         let slow = run((0..4)
             .map(|c| row("policy", c, 0.0, 0.33, if c < 1 { 1.0 } else { 0.0 }, 0.0))
             .collect());
-        assert!(
-            slow.failed_checks.iter().any(|c| c.contains("need +20 %")),
-            "{:?}",
-            slow.failed_checks
-        );
-        assert!(
-            slow.failed_checks.iter().any(|c| c.contains("lane change in 0.250")),
-            "{:?}",
-            slow.failed_checks
-        );
+        assert_failed(&slow, "need +20 %");
+        assert_failed(&slow, "lane change in 0.250");
         let reckless = run((0..4)
             .map(|c| row("policy", c, 0.25, 0.9, 1.0, if c > 0 { 1.0 } else { 0.0 }))
             .collect());

@@ -8,6 +8,9 @@
 //! The stages are the update's (`sf_sac::Sac::update`) rebuilt from its public parts on copies
 //! of the networks, with their own Adam optimizers, so the timed update itself is untouched:
 //! their sum tracks the update's median but is not that measurement.
+//!
+//! Owns: the roofline report of `--profile`. Must not: touch the networks the benchmark times
+//! (it works on copies) or count FLOPs itself (`sf_nn::cost` does).
 
 use std::time::Instant;
 
