@@ -146,137 +146,63 @@ impl LearnerMetrics {
 
 type Per<M> = Family<JobLabel, M>;
 
-/// The per-job series (label `job`), one family per quantity.
-#[derive(Clone, Default)]
-pub struct JobFamilies {
-    transitions: Per<Counter>,
-    updates: Per<Counter>,
-    workers: Per<Gauge>,
-    replay_size: Per<Gauge>,
-    replay_bytes: Per<Gauge>,
-    policy_version: Per<Gauge>,
-    critic_loss: Per<FGauge>,
-    actor_loss: Per<FGauge>,
-    alpha: Per<FGauge>,
-    success: Per<FGauge>,
-    safety: Per<FGauge>,
-    speed: Per<FGauge>,
-}
-
-impl JobFamilies {
-    fn register(&self, reg: &mut Registry) {
-        let f = self;
-        reg.register(
-            "socialflow_learner_job_transitions_received",
-            "Transitions accepted into the job's replay",
-            f.transitions.clone(),
-        );
-        reg.register("socialflow_learner_job_updates", "The job's SAC updates", f.updates.clone());
-        reg.register(
-            "socialflow_learner_job_workers",
-            "Live workers assigned to the job",
-            f.workers.clone(),
-        );
-        reg.register(
-            "socialflow_learner_replay_size_transitions",
-            "Transitions held in the job's replay buffer",
-            f.replay_size.clone(),
-        );
-        reg.register(
-            "socialflow_learner_replay_bytes",
-            "Bytes the job's replay buffer holds",
-            f.replay_bytes.clone(),
-        );
-        reg.register(
-            "socialflow_learner_policy_version",
-            "Latest published policy version of the job",
-            f.policy_version.clone(),
-        );
-        reg.register(
-            "socialflow_learner_critic_loss",
-            "Critic loss of the job's latest update",
-            f.critic_loss.clone(),
-        );
-        reg.register(
-            "socialflow_learner_actor_loss",
-            "Actor loss of the job's latest update",
-            f.actor_loss.clone(),
-        );
-        reg.register("socialflow_learner_alpha", "The job's entropy temperature", f.alpha.clone());
-        reg.register(
-            "socialflow_learner_episode_success_ratio",
-            "Rolling success rate of the job's finished episodes",
-            f.success.clone(),
-        );
-        reg.register(
-            "socialflow_learner_episode_safety_ratio",
-            "Rolling safety rate of the job's finished episodes",
-            f.safety.clone(),
-        );
-        reg.register(
-            "socialflow_learner_episode_speed_ratio",
-            "Rolling mean speed / v_max of the job's finished episodes",
-            f.speed.clone(),
-        );
-    }
-}
-
-/// One running job's series and the learner's totals it adds to.
-#[derive(Clone)]
-pub struct JobMetrics {
-    pub totals: LearnerMetrics,
-    label: JobLabel,
-    pub transitions: Counter,
-    pub updates: Counter,
-    pub workers: Gauge,
-    pub replay_size: Gauge,
-    pub replay_bytes: Gauge,
-    pub policy_version: Gauge,
-    pub critic_loss: FGauge,
-    pub actor_loss: FGauge,
-    pub alpha: FGauge,
-    pub success: FGauge,
-    pub safety: FGauge,
-    pub speed: FGauge,
-}
-
-impl JobMetrics {
-    /// The series of job `id` (created, or the existing ones of a job started again).
-    pub fn new(totals: &LearnerMetrics, id: u64) -> Self {
-        let label = JobLabel { job: id.to_string() };
-        let f = &totals.jobs;
-        Self {
-            transitions: f.transitions.get_or_create(&label).clone(),
-            updates: f.updates.get_or_create(&label).clone(),
-            workers: f.workers.get_or_create(&label).clone(),
-            replay_size: f.replay_size.get_or_create(&label).clone(),
-            replay_bytes: f.replay_bytes.get_or_create(&label).clone(),
-            policy_version: f.policy_version.get_or_create(&label).clone(),
-            critic_loss: f.critic_loss.get_or_create(&label).clone(),
-            actor_loss: f.actor_loss.get_or_create(&label).clone(),
-            alpha: f.alpha.get_or_create(&label).clone(),
-            success: f.success.get_or_create(&label).clone(),
-            safety: f.safety.get_or_create(&label).clone(),
-            speed: f.speed.get_or_create(&label).clone(),
-            totals: totals.clone(),
-            label,
+/// The per-job series, written once: each row is a field, its metric kind, its Prometheus name
+/// and help. Makes [`JobFamilies`] (one family per quantity, label `job`, registered with the
+/// learner's registry) and [`JobMetrics`] (one running job's series, made by `new` and removed
+/// by `remove` when the job stops), so the three lists cannot drift apart.
+macro_rules! job_series {
+    ($($field:ident: $kind:ty = $name:literal, $help:literal;)*) => {
+        /// The per-job series (label `job`), one family per quantity.
+        #[derive(Clone, Default)]
+        pub struct JobFamilies {
+            $($field: Per<$kind>,)*
         }
-    }
 
-    /// Removes the job's series (it stopped): a scrape shows only running jobs.
-    pub fn remove(&self) {
-        let (f, l) = (&self.totals.jobs, &self.label);
-        f.transitions.remove(l);
-        f.updates.remove(l);
-        f.workers.remove(l);
-        f.replay_size.remove(l);
-        f.replay_bytes.remove(l);
-        f.policy_version.remove(l);
-        f.critic_loss.remove(l);
-        f.actor_loss.remove(l);
-        f.alpha.remove(l);
-        f.success.remove(l);
-        f.safety.remove(l);
-        f.speed.remove(l);
-    }
+        impl JobFamilies {
+            fn register(&self, reg: &mut Registry) {
+                $(reg.register($name, $help, self.$field.clone());)*
+            }
+        }
+
+        /// One running job's series and the learner's totals it adds to.
+        #[derive(Clone)]
+        pub struct JobMetrics {
+            pub totals: LearnerMetrics,
+            label: JobLabel,
+            $(pub $field: $kind,)*
+        }
+
+        impl JobMetrics {
+            /// The series of job `id` (created, or the existing ones of a job started again).
+            pub fn new(totals: &LearnerMetrics, id: u64) -> Self {
+                let label = JobLabel { job: id.to_string() };
+                let f = &totals.jobs;
+                Self {
+                    $($field: f.$field.get_or_create(&label).clone(),)*
+                    totals: totals.clone(),
+                    label,
+                }
+            }
+
+            /// Removes the job's series (it stopped): a scrape shows only running jobs.
+            pub fn remove(&self) {
+                $(self.totals.jobs.$field.remove(&self.label);)*
+            }
+        }
+    };
+}
+
+job_series! {
+    transitions: Counter = "socialflow_learner_job_transitions_received", "Transitions accepted into the job's replay";
+    updates: Counter = "socialflow_learner_job_updates", "The job's SAC updates";
+    workers: Gauge = "socialflow_learner_job_workers", "Live workers assigned to the job";
+    replay_size: Gauge = "socialflow_learner_replay_size_transitions", "Transitions held in the job's replay buffer";
+    replay_bytes: Gauge = "socialflow_learner_replay_bytes", "Bytes the job's replay buffer holds";
+    policy_version: Gauge = "socialflow_learner_policy_version", "Latest published policy version of the job";
+    critic_loss: FGauge = "socialflow_learner_critic_loss", "Critic loss of the job's latest update";
+    actor_loss: FGauge = "socialflow_learner_actor_loss", "Actor loss of the job's latest update";
+    alpha: FGauge = "socialflow_learner_alpha", "The job's entropy temperature";
+    success: FGauge = "socialflow_learner_episode_success_ratio", "Rolling success rate of the job's finished episodes";
+    safety: FGauge = "socialflow_learner_episode_safety_ratio", "Rolling safety rate of the job's finished episodes";
+    speed: FGauge = "socialflow_learner_episode_speed_ratio", "Rolling mean speed / v_max of the job's finished episodes";
 }
