@@ -245,12 +245,34 @@ pub struct EnvSection {
     /// other flows). `[-90, -90]`: every FailMaker vehicle is rewarded by `-R_ego` alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub svo_range_deg: Option<[f32; 2]>,
+    /// CoPO and SocialComm jobs: whose rewards their SVO-composed reward averages: `"radius"`
+    /// (every learner within 50 m, the released code's) or `"observed"` (the learners among the
+    /// neighbours the observation keeps: the nearest `max_neighbours` within its radius).
+    #[serde(default, skip_serializing_if = "RewardNeighbours::is_radius")]
+    pub reward_neighbours: RewardNeighbours,
     /// Overrides the observation's cap on other agents (nearest first; default 20).
     #[serde(default)]
     pub max_neighbours: Option<usize>,
     /// Overrides the query-centric observation's cap on map segments (nearest first; default 96).
     #[serde(default)]
     pub max_segments: Option<usize>,
+}
+
+/// `env.reward_neighbours`: the neighbours whose rewards an SVO-composed reward averages.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RewardNeighbours {
+    /// Every learner within 50 m (the released code's), seen or not.
+    #[default]
+    Radius,
+    /// The learners among the agents the observation keeps (nearest first, within its radius).
+    Observed,
+}
+
+impl RewardNeighbours {
+    fn is_radius(&self) -> bool {
+        *self == Self::Radius
+    }
 }
 
 /// `env.action`: how a driving policy's action moves its vehicle (one type with the
@@ -875,6 +897,15 @@ impl JobConfig {
                 );
             }
         }
+        if self.env.reward_neighbours != RewardNeighbours::Radius && !self.kind.composed_reward() {
+            return bad(
+                "env.reward_neighbours",
+                format!(
+                    "only copo and socialcomm jobs compose their reward from their neighbours' (a {} job's reward has no neighbour term)",
+                    self.kind.as_str()
+                ),
+            );
+        }
         for (f, v, hi) in [
             ("env.max_neighbours", self.env.max_neighbours, 64),
             ("env.max_segments", self.env.max_segments, 512),
@@ -1189,6 +1220,29 @@ mod tests {
         assert_eq!(c.net.preset, NetPreset::Fast);
         let again = JobConfig::from_toml(&c.to_toml()).expect("round trip");
         assert_eq!(again, c);
+    }
+
+    /// `env.reward_neighbours`: "observed" on the composed-reward flows; refused, with the
+    /// field named, where the reward has no neighbour term; absent from a default's TOML.
+    #[test]
+    fn reward_neighbours_only_where_the_reward_composes() {
+        let with = |kind: &str, v: &str| {
+            JobConfig::from_toml(&format!(
+                "kind = \"{kind}\"\n{}[sac]\nwarmup_steps = 100\n",
+                MIN.replace("[train]", &format!("reward_neighbours = \"{v}\"\n[train]"))
+            ))
+        };
+        let ok = with("socialcomm", "observed").expect("socialcomm observed");
+        assert_eq!(ok.env.reward_neighbours, RewardNeighbours::Observed);
+        assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
+        assert!(with("copo", "observed").is_ok());
+        for kind in ["macad", "ego"] {
+            let e = with(kind, "observed").expect_err(kind).to_string();
+            assert!(e.contains("env.reward_neighbours") && e.contains(kind), "{e}");
+        }
+        assert!(with("socialcomm", "nearby").is_err());
+        let radius = with("macad", "radius").expect("the default is fine anywhere");
+        assert!(!radius.to_toml().contains("reward_neighbours"));
     }
 
     /// `env.svo_range_deg`: a flow's or FailMaker's own range, inside [-90, 90], low <= high;

@@ -7,7 +7,7 @@
 //! limiter (the device kind is `sf_sac::device_kind`). Callers take the resolved value's fields
 //! instead of deriving them one by one. Must not: read files.
 
-use sf_job::config::{JobKind, NetPreset};
+use sf_job::config::{JobKind, NetPreset, RewardNeighbours};
 use sf_job::JobConfig;
 use sf_nn::NetConfig;
 use sf_sim::config::SvoVisibility;
@@ -127,6 +127,10 @@ fn sim_config(job: &JobConfig, background: Option<&JobConfig>) -> SimConfig {
     }
     if let Some(n) = job.env.max_segments {
         s.obs.max_segments = n;
+    }
+    if job.env.reward_neighbours == RewardNeighbours::Observed {
+        s.reward.neighbour_radius_m = s.obs.radius_m;
+        s.reward.max_neighbours = Some(s.obs.max_neighbours);
     }
     // FailMaker's agents tell the ego apart and carry c in [-90, 90] as their SVO.
     if job.kind == JobKind::Failmaker || background == Some(JobKind::Failmaker) {

@@ -137,13 +137,24 @@ impl Default for ObsConfig {
 pub struct RewardConfig {
     pub speed_weight: f32,
     pub failure_penalty: f32,
-    /// Neighbours whose rewards enter the SVO-composed reward.
+    /// Neighbours whose rewards enter the SVO-composed reward: the learners within this
+    /// distance.
     pub neighbour_radius_m: f32,
+    /// Only the nearest this many live agents within `neighbour_radius_m` (any controller,
+    /// ascending distance then index, as the observation picks its neighbours) are candidates;
+    /// the learners among them enter the composed reward. `None`: every learner within the radius.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_neighbours: Option<usize>,
 }
 
 impl Default for RewardConfig {
     fn default() -> Self {
-        Self { speed_weight: 0.07, failure_penalty: 5.0, neighbour_radius_m: 50.0 }
+        Self {
+            speed_weight: 0.07,
+            failure_penalty: 5.0,
+            neighbour_radius_m: 50.0,
+            max_neighbours: None,
+        }
     }
 }
 

@@ -210,6 +210,8 @@ pub struct Env {
     box_road: Cuboid,
     poses: Vec<Pose>,
     alive_before: Vec<bool>,
+    /// Scratch for the composed reward's nearest neighbours: (squared distance, index).
+    reward_cand: Vec<(f32, u32)>,
 }
 
 /// The IDM driver's steer for agent `a`: pure pursuit toward the point of its route
@@ -262,6 +264,7 @@ impl Env {
             seen_ego_svo: Vec::new(),
             poses: Vec::new(),
             alive_before: Vec::new(),
+            reward_cand: Vec::new(),
         }
     }
 
@@ -692,24 +695,35 @@ impl Env {
             }
         }
         let r2 = rc.neighbour_radius_m * rc.neighbour_radius_m;
+        let cap = rc.max_neighbours.unwrap_or(usize::MAX);
         for i in 0..n {
             if !alive_before[i] {
                 continue;
             }
-            let a = &self.agents[i];
-            let (mut sum, mut cnt) = (0.0, 0u32);
+            let me = self.agents[i].state.pos();
+            let cand = &mut self.reward_cand;
+            cand.clear();
             for (j, b) in self.agents.iter().enumerate() {
-                if j != i
-                    && alive_before[j]
-                    && b.controller == Controller::External
-                    && geom::dist2(a.state.pos(), b.state.pos()) <= r2
-                {
+                if j != i && alive_before[j] {
+                    let d2 = geom::dist2(me, b.state.pos());
+                    if d2 <= r2 {
+                        cand.push((d2, j as u32));
+                    }
+                }
+            }
+            if cap < cand.len() {
+                crate::obs::nearest_first(cand, cap);
+            }
+            let (mut sum, mut cnt) = (0.0, 0u32);
+            for &(_, j) in cand.iter() {
+                let j = j as usize;
+                if self.agents[j].controller == Controller::External {
                     sum += self.rewards[j].individual;
                     cnt += 1;
                 }
             }
             let others = if cnt > 0 { sum / cnt as f32 } else { 0.0 };
-            let c = a.svo_deg.to_radians();
+            let c = self.agents[i].svo_deg.to_radians();
             let r = &mut self.rewards[i];
             r.composed = c.cos() * r.individual + c.sin() * others;
             let ego_term = if i == 0 { 0.0 } else { ego_r };

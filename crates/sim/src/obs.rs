@@ -512,7 +512,7 @@ impl Observer {
 }
 
 /// Keeps the `cap` smallest (distance, index) pairs, sorted ascending.
-fn nearest_first(v: &mut Vec<(f32, u32)>, cap: usize) {
+pub(crate) fn nearest_first(v: &mut Vec<(f32, u32)>, cap: usize) {
     let cmp = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
     if v.len() > cap {
         if cap > 0 {

@@ -190,6 +190,46 @@ fn rewards_individual_composed_and_failmaker() {
     assert!(r[1].failmaker > -0.1, "no collision penalty: {:?}", r[1]);
 }
 
+/// `reward.max_neighbours`: only the nearest candidates' rewards enter the composed reward (the
+/// set the observation keeps), not every learner within the radius.
+#[test]
+fn composed_reward_over_the_nearest_neighbours_only() {
+    use std::sync::Arc;
+    let m = map("intersection");
+    let (s0, s1, s2) = (spawn_for(&m, 0, 0), spawn_for(&m, 0, 2), spawn_for(&m, 0, 4));
+    let c = case(&[(s0, 0, 60.0), (s1, 0, 0.0), (s2, 0, 0.0)]);
+    // Agent 1 just ahead of agent 0 and stopping, agent 2 further ahead at speed: different rewards.
+    let place = |e: &mut sf_sim::Env| {
+        let p0 = e.agents()[0].state.pos();
+        let up = std::f32::consts::FRAC_PI_2;
+        e.place_agent(1, [p0[0], p0[1] + 10.0], up, 0.0);
+        e.place_agent(2, [p0[0], p0[1] + 30.0], up, 6.0);
+    };
+    let acts = [Action::default(), stop(), Action { ref_speed: 1.0, ..Action::default() }];
+    let mut composed = Vec::new();
+    for cap in [None, Some(1)] {
+        let mut cfg = sf_sim::SimConfig::default();
+        cfg.reward.max_neighbours = cap;
+        let mut e = sf_sim::Env::new(m.clone(), Arc::new(cfg));
+        e.reset(&c, Mode::MultiAgent, None).expect("reset");
+        place(&mut e);
+        e.step(&acts).expect("step");
+        let r = e.rewards();
+        let w = 60f32.to_radians();
+        let expect = match cap {
+            None => (r[1].individual + r[2].individual) / 2.0,
+            Some(_) => r[1].individual,
+        };
+        assert!(
+            (r[0].composed - (w.cos() * r[0].individual + w.sin() * expect)).abs() < 1e-6,
+            "cap {cap:?}: {:?}",
+            r
+        );
+        composed.push(r[0].composed);
+    }
+    assert!((composed[0] - composed[1]).abs() > 1e-4, "the cap changed nothing: {composed:?}");
+}
+
 #[test]
 fn adversary_svo_reaches_only_the_told_observer() {
     let m = map("intersection");
