@@ -466,7 +466,7 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
     });
     let (obs_len, act) = (a.obs_len as usize, a.action_dim as usize);
     let empty = sf_proto::batch_to_wire(&sf_job::TransitionBatch::new(
-        job.job_id,
+        job.job_id.into(),
         wid.into(),
         obs_len,
         act,
@@ -474,7 +474,7 @@ fn hostile_and_racing_clients_cannot_break_a_job() {
     let st = push_one(&rt, &mut e, empty);
     assert_eq!(st.code(), Code::InvalidArgument, "an empty batch: {st:?}");
     let mut rng = rand::rng();
-    let mut random = sf_job::TransitionBatch::new(job.job_id, wid.into(), obs_len, act);
+    let mut random = sf_job::TransitionBatch::new(job.job_id.into(), wid.into(), obs_len, act);
     for _ in 0..16 {
         let o: Vec<f32> = (0..obs_len).map(|_| rng.random_range(-1.0..1.0)).collect();
         let n: Vec<f32> = (0..obs_len).map(|_| rng.random_range(-1.0..1.0)).collect();

@@ -77,7 +77,7 @@ fn a_job_runs_to_completion_with_two_workers_and_bad_calls_change_nothing() {
         .worker_id;
     let good = || {
         let obs_len = 8usize;
-        let mut b = sf_job::TransitionBatch::new(job.job_id, wid.into(), obs_len, 2);
+        let mut b = sf_job::TransitionBatch::new(job.job_id.into(), wid.into(), obs_len, 2);
         b.push(&[0.0; 8], &[0.0, 0.0], 0.0, &[0.0; 8], false, 0);
         b
     };

@@ -19,6 +19,7 @@ use pyo3::exceptions::{
 };
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
+use sf_job::JobId;
 use sf_service::auth::Token;
 use sf_service::client::{self, ClientError, JobsClient};
 use sf_service::tls::ClientTls;
@@ -106,7 +107,7 @@ impl JobClient {
     /// One job, with its config, as JSON.
     fn job(&mut self, py: Python<'_>, job_id: u64) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
-        let j = py.detach(|| rt.block_on(client::get(c, job_id))).map_err(py_err)?;
+        let j = py.detach(|| rt.block_on(client::get(c, JobId::from(job_id)))).map_err(py_err)?;
         Ok(client::job_json(&j).to_string())
     }
 
@@ -120,7 +121,8 @@ impl JobClient {
     /// Cancels a queued or running job; the job as JSON.
     fn cancel(&mut self, py: Python<'_>, job_id: u64) -> PyResult<String> {
         let (rt, c) = (&self.rt, &mut self.c);
-        let j = py.detach(|| rt.block_on(client::cancel(c, job_id))).map_err(py_err)?;
+        let j =
+            py.detach(|| rt.block_on(client::cancel(c, JobId::from(job_id)))).map_err(py_err)?;
         Ok(client::job_json(&j).to_string())
     }
 
@@ -132,20 +134,24 @@ impl JobClient {
         name: &str,
     ) -> PyResult<Bound<'py, PyBytes>> {
         let (rt, c) = (&self.rt, &mut self.c);
-        let b = py.detach(|| rt.block_on(client::file(c, job_id, name))).map_err(py_err)?;
+        let b = py
+            .detach(|| rt.block_on(client::file(c, JobId::from(job_id), name)))
+            .map_err(py_err)?;
         Ok(PyBytes::new(py, &b))
     }
 
     /// A succeeded job's files into `dir`; the names written.
     fn download(&mut self, py: Python<'_>, job_id: u64, dir: PathBuf) -> PyResult<Vec<String>> {
         let (rt, c) = (&self.rt, &mut self.c);
-        py.detach(|| rt.block_on(client::download(c, job_id, &dir))).map_err(py_err)
+        py.detach(|| rt.block_on(client::download(c, JobId::from(job_id), &dir))).map_err(py_err)
     }
 
     /// Opens the job's progress stream.
     fn watch(&mut self, py: Python<'_>, job_id: u64) -> PyResult<JobWatch> {
         let (rt, c) = (&self.rt, &mut self.c);
-        let w = py.detach(|| rt.block_on(client::Watch::open(c, job_id))).map_err(py_err)?;
+        let w = py
+            .detach(|| rt.block_on(client::Watch::open(c, JobId::from(job_id))))
+            .map_err(py_err)?;
         Ok(JobWatch { rt: std::sync::Arc::clone(&self.rt), w })
     }
 }

@@ -625,7 +625,7 @@ impl LoadedPolicy {
                 resolved.sim.dt_s,
                 maps,
                 &policy.weights,
-                0,
+                sf_job::PolicyVersion::new(0),
                 &cpu()?,
             )
             .map_err(|e| bad("job_dir", format!("{}: {e}", dir.join("policy.bpk").display())))

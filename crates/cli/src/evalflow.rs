@@ -108,7 +108,7 @@ impl LearnedFlow {
             sim.dt_s,
             &[&segments],
             &weights,
-            0,
+            sf_job::PolicyVersion::new(0),
             &device,
         )
         .with_context(|| format!("loading {}", p.display()))?;

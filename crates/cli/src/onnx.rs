@@ -48,7 +48,7 @@ pub fn run(ctx: &Ctx, a: ExportOnnxArgs) -> Result<()> {
         sim.dt_s,
         &segments.iter().collect::<Vec<_>>(),
         &policy.weights,
-        0,
+        sf_job::PolicyVersion::new(0),
         &device,
     )
     .with_context(|| format!("loading {}/policy.bpk", a.job.display()))?;

@@ -21,7 +21,7 @@ use clap::Args;
 use serde_json::json;
 use sf_embedded::{runtime, Embedded};
 use sf_job::eval::EvalConfig;
-use sf_job::{JobConfig, JobState};
+use sf_job::{JobConfig, JobId, JobState};
 
 use crate::remote::{self, Conn, JobsClient};
 
@@ -124,9 +124,9 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
 async fn submit_all(
     c: &mut JobsClient,
     jobs: &[(PathBuf, JobConfig, String)],
-) -> Result<Vec<(String, u64)>> {
+) -> Result<Vec<(String, JobId)>> {
     let existing = remote::list(c).await?;
-    let mut ids: BTreeMap<String, u64> = BTreeMap::new();
+    let mut ids: BTreeMap<String, JobId> = BTreeMap::new();
     let mut out = Vec::new();
     for (path, cfg, _) in jobs {
         let reuse = existing
@@ -163,7 +163,7 @@ async fn submit_all(
 }
 
 /// Submits an evaluation grid (or reuses the learner's evaluation job of its name); its id.
-async fn submit_grid(c: &mut JobsClient, path: &Path, cfg: &EvalConfig) -> Result<u64> {
+async fn submit_grid(c: &mut JobsClient, path: &Path, cfg: &EvalConfig) -> Result<JobId> {
     // Newest first: the first of its name that is an evaluation.
     for j in remote::list(c).await?.into_iter().filter(|j| {
         j.name == cfg.name && !matches!(j.state, JobState::Failed | JobState::Cancelled)
@@ -214,7 +214,7 @@ async fn evaluate(
 }
 
 /// Polls until every job is final; prints one JSON line per job; fails if any did not succeed.
-async fn follow(c: &mut JobsClient, ids: &[(String, u64)]) -> Result<()> {
+async fn follow(c: &mut JobsClient, ids: &[(String, JobId)]) -> Result<()> {
     loop {
         let all = remote::list(c).await?;
         let mine: Vec<_> =

@@ -5,9 +5,10 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
+use clap::builder::TypedValueParser;
 use clap::Subcommand;
 use serde_json::json;
-use sf_job::JobState;
+use sf_job::{JobId, JobState};
 
 pub use sf_embedded::client::{jobs_client, watch};
 pub use sf_service::client::{cancel, get, job_json, list, submit, JobsClient};
@@ -28,7 +29,8 @@ pub enum RemoteCmd {
     },
     /// One job, or all jobs newest first.
     Status {
-        job_id: Option<u64>,
+        #[arg(value_parser = job_id_arg())]
+        job_id: Option<JobId>,
         #[command(flatten)]
         conn: Conn,
         #[arg(long)]
@@ -36,13 +38,15 @@ pub enum RemoteCmd {
     },
     /// Follows a job's progress until it ends.
     Watch {
-        job_id: u64,
+        #[arg(value_parser = job_id_arg())]
+        job_id: JobId,
         #[command(flatten)]
         conn: Conn,
     },
     /// Cancels a queued or running job.
     Cancel {
-        job_id: u64,
+        #[arg(value_parser = job_id_arg())]
+        job_id: JobId,
         #[command(flatten)]
         conn: Conn,
     },
@@ -50,12 +54,18 @@ pub enum RemoteCmd {
     /// and curves (a job directory `socialflow eval` and `socialflow.load_policy` read), or an
     /// evaluation's results.
     Download {
-        job_id: u64,
+        #[arg(value_parser = job_id_arg())]
+        job_id: JobId,
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
         conn: Conn,
     },
+}
+
+/// A job id as given on the command line: the bare number, parsed (and refused) as before.
+fn job_id_arg() -> impl TypedValueParser<Value = JobId> {
+    clap::value_parser!(u64).map(JobId::new)
 }
 
 /// A job-API client for `conn` with its token.

@@ -6,7 +6,7 @@
 
 use anyhow::{anyhow, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use sf_job::{JobState, Progress};
+use sf_job::{JobId, JobState, Progress};
 use sf_service::auth::Token;
 use sf_service::client::{JobsClient, Watch};
 
@@ -48,7 +48,7 @@ pub fn show(pb: &ProgressBar, state: JobState, progress: &Progress) {
 }
 
 /// Follows a job until it reaches a final state; returns that state and the last progress.
-pub async fn watch(c: &mut JobsClient, job_id: u64, quiet: bool) -> Result<(JobState, Progress)> {
+pub async fn watch(c: &mut JobsClient, job_id: JobId, quiet: bool) -> Result<(JobState, Progress)> {
     let mut w = Watch::open(c, job_id).await?;
     let pb = if quiet { ProgressBar::hidden() } else { bar(1) };
     let mut last = None;

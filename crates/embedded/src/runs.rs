@@ -7,10 +7,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
+use sf_job::JobId;
 use sf_rollout::evaluate::Policy;
 
 /// Every `jobs/<id>-<name>/` directory of a learner's data directory as `(id, name, dir)`.
-fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
+fn job_dirs(runs: &Path) -> Result<Vec<(JobId, String, PathBuf)>> {
     let jobs = runs.join("jobs");
     let mut out = Vec::new();
     for e in
@@ -19,7 +20,7 @@ fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
         let file = e.file_name().to_string_lossy().to_string();
         if let Some((id, name)) = file
             .split_once('-')
-            .and_then(|(id, name)| Some((id.parse::<u64>().ok()?, name.to_string())))
+            .and_then(|(id, name)| Some((JobId::new(id.parse().ok()?), name.to_string())))
         {
             out.push((id, name, e.path()));
         }
@@ -29,7 +30,7 @@ fn job_dirs(runs: &Path) -> Result<Vec<(u64, String, PathBuf)>> {
 
 /// The job a flow or ego names: by `job_id` if pinned, else the newest `jobs/<id>-<name>/`
 /// with a final policy.
-pub fn find_job(runs: &Path, name: &str, id: Option<u64>) -> Result<Policy> {
+pub fn find_job(runs: &Path, name: &str, id: Option<JobId>) -> Result<Policy> {
     let dirs = job_dirs(runs)?;
     let dir = match id {
         Some(id) => {

@@ -13,7 +13,7 @@ use std::num::NonZeroU64;
 
 use half::f16;
 
-use crate::ids::WorkerId;
+use crate::ids::{JobId, PolicyVersion, WorkerId};
 
 /// Which actor chose a batch's actions: the warm-up's (uniformly random or the IDM
 /// demonstrator), or a published policy version (versions start at 1).
@@ -25,11 +25,11 @@ pub enum ActedBy {
 }
 
 impl ActedBy {
-    /// The version's number, `None` for warm-up actions.
-    pub fn version(self) -> Option<u64> {
+    /// The version, `None` for warm-up actions.
+    pub fn version(self) -> Option<PolicyVersion> {
         match self {
             Self::Warmup => None,
-            Self::Policy(v) => Some(v.get()),
+            Self::Policy(v) => Some(PolicyVersion::new(v.get())),
         }
     }
 }
@@ -44,10 +44,10 @@ pub enum PolicyRequest {
 
 impl PolicyRequest {
     /// The version asked for, `None` for the latest.
-    pub fn version(self) -> Option<u64> {
+    pub fn version(self) -> Option<PolicyVersion> {
         match self {
             Self::Latest => None,
-            Self::Version(v) => Some(v.get()),
+            Self::Version(v) => Some(PolicyVersion::new(v.get())),
         }
     }
 }
@@ -114,7 +114,7 @@ pub struct Transition<'a> {
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TransitionBatch {
-    pub job_id: u64,
+    pub job_id: JobId,
     pub worker_id: WorkerId,
     /// The policy version (or the warm-up) that chose these actions.
     pub acted_by: ActedBy,
@@ -149,7 +149,7 @@ pub enum BatchError {
 
 impl TransitionBatch {
     /// An empty batch for `obs_len`-float observations and `action_dim` actions.
-    pub fn new(job_id: u64, worker_id: WorkerId, obs_len: usize, action_dim: usize) -> Self {
+    pub fn new(job_id: JobId, worker_id: WorkerId, obs_len: usize, action_dim: usize) -> Self {
         Self { job_id, worker_id, obs_len, action_dim, ..Self::default() }
     }
 
@@ -298,7 +298,7 @@ mod tests {
     use super::*;
 
     fn one() -> TransitionBatch {
-        let mut b = TransitionBatch::new(1, 2.into(), 3, 2);
+        let mut b = TransitionBatch::new(1.into(), 2.into(), 3, 2);
         b.push(&[0.0, 1.0, 2.0], &[0.5, -0.5], 1.0, &[1.0, 2.0, 3.0], false, 0);
         b
     }
@@ -334,7 +334,7 @@ mod tests {
         assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "obs_len", .. })));
         // An empty batch is a malformed one (workers send only full or flushed batches).
         assert!(matches!(
-            TransitionBatch::new(1, 2.into(), 3, 2).validate(),
+            TransitionBatch::new(1.into(), 2.into(), 3, 2).validate(),
             Err(BatchError::Invalid { field: "count", .. })
         ));
         let mut b = one();

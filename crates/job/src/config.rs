@@ -7,6 +7,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::JobId;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("job config is not valid TOML for a job: {0}")]
@@ -209,7 +211,7 @@ pub struct EnvSection {
     /// Ego jobs: drive the background with the final policy of this (flow) job instead of
     /// IDM. The job waits until that one has succeeded (a pipeline dependency).
     #[serde(default)]
-    pub background_job: Option<u64>,
+    pub background_job: Option<JobId>,
     /// In a pipeline directory: the background flow by job name; `socialflow pipeline` turns it
     /// into `background_job` when it submits (the learner accepts only ids).
     #[serde(default)]
@@ -217,7 +219,7 @@ pub struct EnvSection {
     /// FailMaker and SocialCommAdv jobs: the ego job whose final policy drives the ego (a
     /// dependency, like `background_job`).
     #[serde(default)]
-    pub ego_job: Option<u64>,
+    pub ego_job: Option<JobId>,
     /// In a pipeline directory: `ego_job` by job name.
     #[serde(default)]
     pub ego_from: Option<String>,
@@ -563,7 +565,7 @@ pub struct TrainSection {
     /// Start from the final SAC state (actor, critics, alpha, optimizers) of this job, of the
     /// same kind and network, instead of from scratch: how RARL phases continue each other.
     #[serde(default)]
-    pub init_job: Option<u64>,
+    pub init_job: Option<JobId>,
     /// In a pipeline directory: `init_job` by job name.
     #[serde(default)]
     pub init_from: Option<String>,
@@ -682,7 +684,7 @@ impl JobConfig {
     }
 
     /// The jobs this one depends on, by id.
-    pub fn deps(&self) -> Vec<(DepRole, u64)> {
+    pub fn deps(&self) -> Vec<(DepRole, JobId)> {
         [
             (DepRole::Background, self.env.background_job),
             (DepRole::Ego, self.env.ego_job),
@@ -708,10 +710,10 @@ impl JobConfig {
     /// Replaces the name references by ids (`id_of` answers for a name).
     pub fn resolve_names(
         &mut self,
-        mut id_of: impl FnMut(&str) -> Option<u64>,
+        mut id_of: impl FnMut(&str) -> Option<JobId>,
     ) -> Result<(), UnknownJobName> {
         let mut one = |name: &mut Option<String>,
-                       id: &mut Option<u64>,
+                       id: &mut Option<JobId>,
                        field: &'static str|
          -> Result<(), UnknownJobName> {
             if let Some(n) = name.take() {
@@ -837,7 +839,7 @@ impl JobConfig {
             ("env.ego_job", e.ego_job),
             ("train.init_job", self.train.init_job),
         ] {
-            if v == Some(0) {
+            if v == Some(JobId::new(0)) {
                 return bad(f, "job ids start at 1");
             }
         }

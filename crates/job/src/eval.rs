@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use sf_sim::config::MessageProbe;
 
-use crate::Frozen;
+use crate::{Frozen, JobId};
 
 /// A config that is not a valid evaluation grid; the message names the field.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -39,7 +39,7 @@ pub struct Named {
     /// Pins the job by id. The learner fills it in when it accepts an evaluation job, so the
     /// job evaluates what existed at submission.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub job_id: Option<u64>,
+    pub job_id: Option<JobId>,
     /// Egos: the flow (by name) the ego was trained in; its cell is grey in the heatmaps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trained_in: Option<String>,
@@ -265,7 +265,7 @@ impl EvalEpisode {
 /// One cell handed to a worker by an evaluation job.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EvalWork {
-    pub job_id: u64,
+    pub job_id: JobId,
     /// The cell's index in the job's grid; results name it.
     pub cell_id: u64,
     pub cell: Cell,
@@ -683,7 +683,7 @@ mod tests {
     #[test]
     fn a_config_round_trips_through_its_resolved_toml() {
         let mut c = EvalConfig::from_toml(BASE).expect("valid");
-        c.egos[0].job_id = Some(7);
+        c.egos[0].job_id = Some(JobId::new(7));
         let back = EvalConfig::from_toml(&c.to_toml()).expect("valid");
         assert_eq!(back, c);
         assert_eq!(back.cells(), c.cells());

@@ -5,8 +5,9 @@
 //! that name the field), [`JobState`], [`JobRecord`], [`Progress`] and the [`Learning`] it
 //! shares with curve points, [`Assignment`], [`TransitionBatch`] with its shape and finiteness
 //! checks, evaluation grids ([`eval`]), and [`JobSpec`], the one parse of a submitted or stored
-//! text into either; [`WorkerId`], a typed id that crosses processes. Must not: depend on
-//! burn, tokio or the wire format (`sf_proto` converts to and from these types).
+//! text into either; [`WorkerId`], [`JobId`] and [`PolicyVersion`], typed ids that cross
+//! processes. Must not: depend on burn, tokio or the wire format (`sf_proto` converts to and
+//! from these types).
 
 pub use sf_sim::{Scores, SvoGaussian};
 pub mod batch;
@@ -19,7 +20,7 @@ pub use batch::{
     ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch,
 };
 pub use config::{ConfigError, DepRole, JobConfig};
-pub use ids::WorkerId;
+pub use ids::{JobId, PolicyVersion, WorkerId};
 pub use spec::{JobSpec, SpecError};
 
 use serde::{Deserialize, Serialize};
@@ -80,7 +81,7 @@ pub struct Progress {
     #[serde(flatten)]
     pub learning: Learning,
     pub target_env_steps: u64,
-    pub policy_version: u64,
+    pub policy_version: PolicyVersion,
     pub env_steps_per_s: f64,
     pub dropped_stale: u64,
 }
@@ -88,7 +89,7 @@ pub struct Progress {
 /// A job as the store keeps it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobRecord {
-    pub id: u64,
+    pub id: JobId,
     pub name: String,
     pub state: JobState,
     pub config_toml: String,
@@ -120,11 +121,11 @@ impl JobRecord {
 /// What a worker is told to do.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Assignment {
-    pub job_id: u64,
+    pub job_id: JobId,
     pub config_toml: String,
     pub scenario_index: u32,
     pub seed: u64,
-    pub policy_version: u64,
+    pub policy_version: PolicyVersion,
     pub obs_len: u32,
     pub action_dim: u32,
     /// The job is in its random-action warm-up.
@@ -149,7 +150,7 @@ pub enum FrozenRole {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Frozen {
     pub role: FrozenRole,
-    pub job_id: u64,
+    pub job_id: JobId,
     pub config_toml: String,
     /// CoPO Stage 2: per scenario, the Gaussian the background's SVOs are redrawn from every
     /// step (empty: the cases' SVOs).
@@ -157,7 +158,7 @@ pub struct Frozen {
 }
 
 impl Frozen {
-    pub fn new(role: FrozenRole, job_id: u64, config_toml: String) -> Self {
+    pub fn new(role: FrozenRole, job_id: JobId, config_toml: String) -> Self {
         Self { role, job_id, config_toml, svo_gaussians: Vec::new() }
     }
 
@@ -191,7 +192,7 @@ mod tests {
                 l.updates,
                 l.episodes,
                 p.target_env_steps,
-                p.policy_version,
+                p.policy_version.get(),
                 p.dropped_stale
             ),
             (120, 30, 9, 500, 4, 3)
@@ -214,7 +215,7 @@ mod tests {
         for from in all {
             for to in all {
                 let mut r = JobRecord {
-                    id: 1,
+                    id: JobId::new(1),
                     name: "j".into(),
                     state: from,
                     config_toml: String::new(),

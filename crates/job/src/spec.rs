@@ -10,6 +10,7 @@
 
 use crate::config::{ConfigError, DepRole, JobConfig};
 use crate::eval::{is_eval_toml, EvalConfig, EvalConfigError};
+use crate::JobId;
 
 /// A submitted or stored job: what it runs, parsed and validated.
 #[derive(Clone, Debug, PartialEq)]
@@ -50,7 +51,7 @@ impl JobSpec {
 
     /// The jobs (by id) this one must wait for; an evaluation grid's jobs have all succeeded
     /// before it is accepted, so it waits for none.
-    pub fn deps(&self) -> Vec<(DepRole, u64)> {
+    pub fn deps(&self) -> Vec<(DepRole, JobId)> {
         match self {
             Self::Train(c) => c.deps(),
             Self::Eval(_) => Vec::new(),
@@ -80,7 +81,10 @@ mod tests {
     #[test]
     fn the_kind_decides_and_each_parser_keeps_its_message() {
         let j = JobSpec::from_toml(JOB).expect("a training job");
-        assert_eq!((j.name(), j.is_eval(), j.deps()), ("j", false, vec![(DepRole::Background, 3)]));
+        assert_eq!(
+            (j.name(), j.is_eval(), j.deps()),
+            ("j", false, vec![(DepRole::Background, JobId::new(3))])
+        );
         assert_eq!(j.train().map(|c| c.train.env_steps), Some(1000));
         let g = JobSpec::from_toml(GRID).expect("a grid");
         assert_eq!(

@@ -195,7 +195,8 @@ pub fn run(ctx: &Ctx, a: SacArgs) -> Result<()> {
     // with a copy per observation for comparison.
     let (actor, _) = sac.policy();
     let device = sf_nn::device::device(sf_sac::device_kind(sac_device(a.device)))?;
-    let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], 0, &device);
+    let version = sf_job::PolicyVersion::new(0);
+    let runner = PolicyRunner::new(actor, &net, &spec, sim.dt_s, &[&segs], version, &device);
     let live: Vec<usize> =
         (0..venv.alive().len()).filter(|&r| venv.alive()[r] == 1.0).take(20).collect();
     anyhow::ensure!(live.len() == 20, "the benchmark step has only {} live agents", live.len());

@@ -27,7 +27,7 @@ use rand::Rng;
 use serde_json::json;
 use sf_embedded::client::jobs_client;
 use sf_embedded::{runtime, Ctx};
-use sf_job::{JobConfig, TransitionBatch};
+use sf_job::{JobConfig, JobId, TransitionBatch};
 use sf_proto::pb;
 use sf_proto::pb::experience_service_client::ExperienceServiceClient;
 use sf_rollout::setup;
@@ -111,7 +111,7 @@ fn observation_pool(ctx: &Ctx, cfg: &JobConfig) -> Result<(Vec<f32>, usize)> {
 /// One worker stream until `until`: register, take the assignment, push until the end.
 async fn stream(
     mut exp: Exp,
-    job_id: u64,
+    job_id: JobId,
     pool: Arc<(Vec<f32>, usize)>,
     batch: usize,
     act: usize,
@@ -130,7 +130,7 @@ async fn stream(
     let mut version = loop {
         match exp.get_assignment(pb::GetAssignmentRequest { worker_id: wid }).await {
             Ok(r) => match r.into_inner().assignment {
-                Some(a) if a.job_id == job_id => break a.policy_version,
+                Some(a) if a.job_id == job_id.get() => break a.policy_version,
                 _ => tokio::time::sleep(Duration::from_millis(200)).await,
             },
             Err(s) => return note(&st, s.code()),

@@ -170,7 +170,7 @@ pub fn e2e(dirs: &Ctx, a: SvcBenchArgs) -> Result<()> {
             async move {
                 anyhow::Ok(
                     sf_proto::job_from_wire(
-                        &c.get_job(pb::GetJobRequest { job_id: job.id }).await?.into_inner(),
+                        &c.get_job(pb::GetJobRequest { job_id: job.id.get() }).await?.into_inner(),
                     )?
                     .progress,
                 )

@@ -11,8 +11,8 @@
 use half::f16;
 use sf_job::eval::{Cell, EvalEpisode, EvalWork};
 use sf_job::{
-    ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobRecord, JobState, Learning,
-    PolicyRequest, Progress, Scores, TransitionBatch,
+    ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobId, JobRecord, JobState,
+    Learning, PolicyRequest, PolicyVersion, Progress, Scores, TransitionBatch,
 };
 
 #[allow(clippy::all, missing_docs)]
@@ -56,15 +56,15 @@ pub fn state_from_wire(v: i32) -> Result<JobState, WireError> {
     }
 }
 
-pub fn progress_to_wire(job_id: u64, state: JobState, progress: &Progress) -> pb::JobProgress {
+pub fn progress_to_wire(job_id: JobId, state: JobState, progress: &Progress) -> pb::JobProgress {
     let p = &progress.learning;
     pb::JobProgress {
-        job_id,
+        job_id: job_id.get(),
         state: state_to_wire(state) as i32,
         env_steps: p.env_steps,
         target_env_steps: progress.target_env_steps,
         updates: p.updates,
-        policy_version: progress.policy_version,
+        policy_version: progress.policy_version.get(),
         episodes: p.episodes,
         success: p.scores.success,
         safety: p.scores.safety,
@@ -93,7 +93,7 @@ pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), W
                 wall_s: p.wall_s,
             },
             target_env_steps: p.target_env_steps,
-            policy_version: p.policy_version,
+            policy_version: p.policy_version.into(),
             env_steps_per_s: p.env_steps_per_s,
             dropped_stale: p.dropped_stale,
         },
@@ -102,7 +102,7 @@ pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), W
 
 pub fn job_to_wire(j: &JobRecord) -> pb::Job {
     pb::Job {
-        job_id: j.id,
+        job_id: j.id.get(),
         name: j.name.clone(),
         state: state_to_wire(j.state) as i32,
         config_toml: j.config_toml.clone(),
@@ -120,7 +120,7 @@ pub fn job_from_wire(j: &pb::Job) -> Result<JobRecord, WireError> {
         None => Progress::default(),
     };
     Ok(JobRecord {
-        id: j.job_id,
+        id: j.job_id.into(),
         name: j.name.clone(),
         state: state_from_wire(j.state)?,
         config_toml: j.config_toml.clone(),
@@ -134,11 +134,11 @@ pub fn job_from_wire(j: &pb::Job) -> Result<JobRecord, WireError> {
 
 pub fn assignment_to_wire(a: &Assignment) -> pb::Assignment {
     pb::Assignment {
-        job_id: a.job_id,
+        job_id: a.job_id.get(),
         config_toml: a.config_toml.clone(),
         scenario_index: a.scenario_index,
         seed: a.seed,
-        policy_version: a.policy_version,
+        policy_version: a.policy_version.get(),
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
@@ -153,7 +153,7 @@ fn frozen_to_wire(f: &Frozen) -> pb::FrozenPolicy {
             FrozenRole::Ego => pb::FrozenRole::Ego,
             FrozenRole::Adversary => pb::FrozenRole::Adversary,
         } as i32,
-        job_id: f.job_id,
+        job_id: f.job_id.get(),
         config_toml: f.config_toml.clone(),
         svo_gaussians: f
             .svo_gaussians
@@ -194,13 +194,13 @@ fn frozen_from_wire(f: &pb::FrozenPolicy) -> Result<Frozen, WireError> {
         })?;
         svo_gaussians.push((g.scenario.clone(), gauss));
     }
-    Ok(Frozen { role, job_id: f.job_id, config_toml: f.config_toml.clone(), svo_gaussians })
+    Ok(Frozen { role, job_id: f.job_id.into(), config_toml: f.config_toml.clone(), svo_gaussians })
 }
 
 pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
     let c = &w.cell;
     pb::EvalAssignment {
-        job_id: w.job_id,
+        job_id: w.job_id.get(),
         cell_id: w.cell_id,
         cell: Some(pb::EvalCell {
             experiment: c.experiment.clone(),
@@ -266,7 +266,7 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
         }
     }
     Ok(EvalWork {
-        job_id: w.job_id,
+        job_id: w.job_id.into(),
         cell_id: w.cell_id,
         cell,
         cases: w.cases,
@@ -308,11 +308,11 @@ pub fn assignment_from_wire(a: &pb::Assignment) -> Result<Assignment, WireError>
         return wire("assignment.obs_len", "observation length and action size must be positive");
     }
     Ok(Assignment {
-        job_id: a.job_id,
+        job_id: a.job_id.into(),
         config_toml: a.config_toml.clone(),
         scenario_index: a.scenario_index,
         seed: a.seed,
-        policy_version: a.policy_version,
+        policy_version: a.policy_version.into(),
         obs_len: a.obs_len,
         action_dim: a.action_dim,
         warmup: a.warmup,
@@ -347,7 +347,7 @@ fn f16_from_bytes(field: &'static str, b: &[u8], want: usize) -> Result<Vec<f16>
 
 pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
     pb::TransitionBatch {
-        job_id: b.job_id,
+        job_id: b.job_id.get(),
         worker_id: b.worker_id.get(),
         policy_version: acted_by_to_wire(b.acted_by),
         count: b.count as u32,
@@ -386,7 +386,7 @@ pub fn acted_by_from_wire(version: u64) -> ActedBy {
 }
 
 pub fn acted_by_to_wire(a: ActedBy) -> u64 {
-    a.version().unwrap_or(0)
+    a.version().map_or(0, PolicyVersion::get)
 }
 
 /// The wire spells "the latest policy" as version 0.
@@ -395,8 +395,11 @@ pub fn policy_request_from_wire(version: u64) -> PolicyRequest {
 }
 
 /// A `GetPolicy` request for `job_id`.
-pub fn get_policy_to_wire(job_id: u64, which: PolicyRequest) -> pb::GetPolicyRequest {
-    pb::GetPolicyRequest { job_id, version: which.version().unwrap_or(0) }
+pub fn get_policy_to_wire(job_id: JobId, which: PolicyRequest) -> pb::GetPolicyRequest {
+    pb::GetPolicyRequest {
+        job_id: job_id.get(),
+        version: which.version().map_or(0, PolicyVersion::get),
+    }
 }
 
 /// Decodes and validates a batch (shapes, finiteness, flags).
@@ -420,7 +423,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
     }
     let steps = if m.steps.is_empty() { vec![1; n] } else { m.steps };
     let b = TransitionBatch {
-        job_id: m.job_id,
+        job_id: m.job_id.into(),
         worker_id: m.worker_id.into(),
         acted_by: acted_by_from_wire(m.policy_version),
         count: n,
@@ -460,7 +463,7 @@ mod tests {
 
     #[test]
     fn a_batch_round_trips_and_bad_ones_are_named() {
-        let mut b = TransitionBatch::new(3, 4.into(), 2, 2);
+        let mut b = TransitionBatch::new(3.into(), 4.into(), 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
         b.episodes.push(EpisodeResult {
             scenario_index: 1,
@@ -515,10 +518,10 @@ mod tests {
             (PolicyRequest::Latest, PolicyRequest::Version(five))
         );
         for which in [PolicyRequest::Latest, PolicyRequest::Version(five)] {
-            let m = get_policy_to_wire(9, which);
+            let m = get_policy_to_wire(9.into(), which);
             assert_eq!((m.job_id, policy_request_from_wire(m.version)), (9, which));
         }
-        let mut b = TransitionBatch::new(1, 2.into(), 1, 1);
+        let mut b = TransitionBatch::new(1.into(), 2.into(), 1, 1);
         b.push(&[0.0], &[0.0], 0.0, &[0.0], false, 0);
         for acted_by in [ActedBy::Warmup, ActedBy::Policy(five)] {
             b.acted_by = acted_by;
@@ -530,7 +533,7 @@ mod tests {
     /// are refused, not a multiplication overflow panic.
     #[test]
     fn huge_shapes_are_refused_without_overflow() {
-        let mut b = TransitionBatch::new(3, 4.into(), 2, 2);
+        let mut b = TransitionBatch::new(3.into(), 4.into(), 2, 2);
         b.push(&[0.5, -1.25], &[0.1, 0.2], 1.0, &[0.25, 2.0], true, 1);
         let mut m = batch_to_wire(&b);
         (m.count, m.obs_len, m.action_dim) = (u32::MAX, u32::MAX, u32::MAX);
@@ -539,19 +542,19 @@ mod tests {
 
     #[test]
     fn an_assignment_carries_its_frozen_policies_and_coordinator_gaussians() {
-        let mut bg = Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into());
+        let mut bg = Frozen::new(FrozenRole::Background, 2.into(), "name = \"flow\"".into());
         bg.svo_gaussians =
             vec![("merge".into(), sf_job::SvoGaussian { mean_deg: 45.0, std_deg: 4.5 })];
         let a = Assignment {
-            job_id: 5,
+            job_id: 5.into(),
             config_toml: "name = \"ego\"".into(),
             scenario_index: 0,
             seed: 9,
-            policy_version: 3,
+            policy_version: 3.into(),
             obs_len: 10,
             action_dim: 2,
             warmup: false,
-            frozen: vec![bg, Frozen::new(FrozenRole::Ego, 4, "name = \"e\"".into())],
+            frozen: vec![bg, Frozen::new(FrozenRole::Ego, 4.into(), "name = \"e\"".into())],
         };
         let back = assignment_from_wire(&assignment_to_wire(&a)).expect("round trip");
         assert_eq!(back, a);
@@ -571,7 +574,7 @@ mod tests {
     #[test]
     fn an_eval_cell_round_trips_and_bad_metrics_are_named() {
         let w = EvalWork {
-            job_id: 3,
+            job_id: 3.into(),
             cell_id: 17,
             cell: Cell {
                 experiment: "svo_sweep".into(),
@@ -584,7 +587,7 @@ mod tests {
             cases: 20,
             seeds: 2,
             envs: 40,
-            policies: vec![Frozen::new(FrozenRole::Background, 2, "name = \"flow\"".into())],
+            policies: vec![Frozen::new(FrozenRole::Background, 2.into(), "name = \"flow\"".into())],
             ego_idm: false,
         };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&w)), Ok(w.clone()));
@@ -602,7 +605,11 @@ mod tests {
         };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&idm_ego)), Ok(idm_ego.clone()));
         let mut m = eval_work_to_wire(&idm_ego);
-        m.policies.push(frozen_to_wire(&Frozen::new(FrozenRole::Ego, 5, "name = \"e\"".into())));
+        m.policies.push(frozen_to_wire(&Frozen::new(
+            FrozenRole::Ego,
+            5.into(),
+            "name = \"e\"".into(),
+        )));
         assert_eq!(eval_work_from_wire(&m).expect_err("both").field, "eval.ego_idm");
         m.ego_idm = false;
         assert!(eval_work_from_wire(&m).is_ok(), "a learned ego");

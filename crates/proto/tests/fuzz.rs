@@ -120,8 +120,12 @@ fn valid_batch() -> impl Strategy<Value = TransitionBatch> {
                         policy_version,
                         sim_steps,
                     )| {
-                        let mut b =
-                            TransitionBatch::new(job_id, worker_id.into(), obs_len, action_dim);
+                        let mut b = TransitionBatch::new(
+                            job_id.into(),
+                            worker_id.into(),
+                            obs_len,
+                            action_dim,
+                        );
                         for i in 0..rewards.len() {
                             let o = i * obs_len..(i + 1) * obs_len;
                             let a = i * action_dim..(i + 1) * action_dim;
@@ -162,7 +166,7 @@ fn frozen() -> impl Strategy<Value = Frozen> {
     )
         .prop_map(|(role, job_id, config_toml, svo_gaussians)| Frozen {
             role,
-            job_id,
+            job_id: job_id.into(),
             config_toml,
             svo_gaussians,
         })
@@ -192,11 +196,11 @@ fn valid_assignment() -> impl Strategy<Value = Assignment> {
                 warmup,
                 frozen,
             )| Assignment {
-                job_id,
+                job_id: job_id.into(),
                 config_toml,
                 scenario_index,
                 seed,
-                policy_version,
+                policy_version: policy_version.into(),
                 obs_len,
                 action_dim,
                 warmup,
@@ -247,7 +251,7 @@ fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
                     policies.push(Frozen { role: FrozenRole::Ego, ..ego });
                 }
                 EvalWork {
-                    job_id,
+                    job_id: job_id.into(),
                     cell_id,
                     cell,
                     cases,
@@ -551,6 +555,6 @@ proptest! {
         let mut m = sf_proto::batch_to_wire(&b);
         (m.job_id, m.worker_id, m.policy_version, m.sim_steps) = (job_id, worker_id, u64::MAX, u64::MAX);
         let back = sf_proto::batch_from_wire(m).expect("extreme counters are valid");
-        prop_assert_eq!((back.job_id, back.worker_id.get(), back.acted_by.version(), back.sim_steps), (job_id, worker_id, Some(u64::MAX), u64::MAX));
+        prop_assert_eq!((back.job_id.get(), back.worker_id.get(), back.acted_by.version().map(|v| v.get()), back.sim_steps), (job_id, worker_id, Some(u64::MAX), u64::MAX));
     }
 }

@@ -22,7 +22,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalEpisode};
-use sf_job::{Frozen, FrozenRole, JobConfig, SvoGaussian};
+use sf_job::{Frozen, FrozenRole, JobConfig, JobId, PolicyVersion, SvoGaussian};
 use sf_sim::case::CaseFile;
 use sf_sim::config::MessageProbe;
 use sf_sim::env::Controller;
@@ -52,7 +52,7 @@ pub enum EvalError {
     JobFile { path: std::path::PathBuf, source: sf_job::ConfigError },
     /// A frozen policy's config text does not parse or validate.
     #[error("config of job {job_id}: {source}")]
-    FrozenConfig { job_id: u64, source: sf_job::ConfigError },
+    FrozenConfig { job_id: JobId, source: sf_job::ConfigError },
     /// A CoPO job's `coordinator.json` does not load.
     #[error(transparent)]
     Coordinator(#[from] crate::coordinator::CoordinatorError),
@@ -206,7 +206,7 @@ impl FlowDef {
                         d.file_name()
                             .and_then(|n| n.to_str())
                             .and_then(|n| n.split_once('-'))
-                            .is_some_and(|(i, _)| i.parse::<u64>() == Ok(id))
+                            .is_some_and(|(i, _)| i.parse::<u64>() == Ok(id.get()))
                     })
                     .ok_or_else(|| {
                         EvalError::Misfit(format!(
@@ -407,7 +407,7 @@ impl Runners {
             sim.dt_s,
             &[segs.as_ref()],
             &p.weights,
-            0,
+            PolicyVersion::new(0),
             &self.device,
         )
         .map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;

@@ -6,13 +6,14 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::Rng;
 use rand_distr::StandardNormal;
+use sf_job::PolicyVersion;
 use sf_nn::encoder::{SegmentInput, SegmentTable};
 use sf_nn::{weights, Actor, Histories, NetConfig, ObsBatch};
 use sf_sim::obs::{MapSegments, ObsSpec};
 use sf_sim::Layout;
 
 pub struct PolicyRunner {
-    pub version: u64,
+    pub version: PolicyVersion,
     actor: Actor,
     table: Option<SegmentTable>,
     offsets: Vec<u32>,
@@ -30,7 +31,7 @@ impl PolicyRunner {
         frame_dt_s: f32,
         maps: &[&MapSegments],
         bytes: &[u8],
-        version: u64,
+        version: PolicyVersion,
         device: &Device,
     ) -> Result<Self, weights::WeightsError> {
         let actor = weights::from_bytes(Actor::new(net, 0, device), bytes)?;
@@ -43,7 +44,7 @@ impl PolicyRunner {
         spec: &ObsSpec,
         frame_dt_s: f32,
         maps: &[&MapSegments],
-        version: u64,
+        version: PolicyVersion,
         device: &Device,
     ) -> Self {
         let (table, offsets) = if spec.layout == Layout::QueryCentric {

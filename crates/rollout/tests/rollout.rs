@@ -64,7 +64,7 @@ fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
         &spec,
         sim.dt_s,
         &[&segs],
-        1,
+        sf_job::PolicyVersion::new(1),
         &device,
     );
     let (shared, copies) = (runner.batch(&rows, &ids), runner.batch_unshared(&rows, &ids));

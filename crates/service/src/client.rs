@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use sf_job::{JobRecord, JobState, Progress};
+use sf_job::{JobId, JobRecord, JobState, Progress};
 use sf_proto::pb;
 use sf_proto::pb::job_service_client::JobServiceClient;
 use tonic::service::interceptor::InterceptedService;
@@ -100,10 +100,10 @@ pub async fn submit(c: &mut JobsClient, config_toml: String) -> Result<JobRecord
 }
 
 /// One job with its config.
-pub async fn get(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
+pub async fn get(c: &mut JobsClient, job_id: JobId) -> Result<JobRecord> {
     let what = format!("getting job {job_id}");
     let j = c
-        .get_job(deadline(pb::GetJobRequest { job_id }))
+        .get_job(deadline(pb::GetJobRequest { job_id: job_id.get() }))
         .await
         .map_err(status(what.clone()))?
         .into_inner();
@@ -121,10 +121,10 @@ pub async fn list(c: &mut JobsClient) -> Result<Vec<JobRecord>> {
 }
 
 /// Cancels a queued or running job; a finished one comes back unchanged.
-pub async fn cancel(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
+pub async fn cancel(c: &mut JobsClient, job_id: JobId) -> Result<JobRecord> {
     let what = format!("cancelling job {job_id}");
     let j = c
-        .cancel_job(deadline(pb::CancelJobRequest { job_id }))
+        .cancel_job(deadline(pb::CancelJobRequest { job_id: job_id.get() }))
         .await
         .map_err(status(what.clone()))?
         .into_inner();
@@ -132,9 +132,12 @@ pub async fn cancel(c: &mut JobsClient, job_id: u64) -> Result<JobRecord> {
 }
 
 /// One file of a job's artifact directory (names: the learner's `GetJobFile` list).
-pub async fn file(c: &mut JobsClient, job_id: u64, name: &str) -> Result<Vec<u8>> {
+pub async fn file(c: &mut JobsClient, job_id: JobId, name: &str) -> Result<Vec<u8>> {
     let r = c
-        .get_job_file(deadline(pb::GetJobFileRequest { job_id, name: name.to_string() }))
+        .get_job_file(deadline(pb::GetJobFileRequest {
+            job_id: job_id.get(),
+            name: name.to_string(),
+        }))
         .await
         .map_err(status(format!("fetching {name} of job {job_id}")))?;
     Ok(r.into_inner().content)
@@ -142,15 +145,15 @@ pub async fn file(c: &mut JobsClient, job_id: u64, name: &str) -> Result<Vec<u8>
 
 /// A job's progress as the learner reports it, until it ends.
 pub struct Watch {
-    job_id: u64,
+    job_id: JobId,
     stream: tonic::Streaming<pb::JobProgress>,
     done: bool,
 }
 
 impl Watch {
-    pub async fn open(c: &mut JobsClient, job_id: u64) -> Result<Self> {
+    pub async fn open(c: &mut JobsClient, job_id: JobId) -> Result<Self> {
         let stream = c
-            .watch_job(pb::WatchJobRequest { job_id })
+            .watch_job(pb::WatchJobRequest { job_id: job_id.get() })
             .await
             .map_err(status(format!("watching job {job_id}")))?
             .into_inner();
@@ -192,7 +195,7 @@ fn download_list(eval: bool) -> &'static [(&'static str, bool)] {
 /// Fetches a finished job's files into `dir` (created): a training job's config, final actor
 /// and curves, or an evaluation's results, each written beside and renamed into place. The
 /// names written, in order. A job that did not succeed is refused (its files are incomplete).
-pub async fn download(c: &mut JobsClient, job_id: u64, dir: &Path) -> Result<Vec<String>> {
+pub async fn download(c: &mut JobsClient, job_id: JobId, dir: &Path) -> Result<Vec<String>> {
     let job = get(c, job_id).await?;
     if job.state != JobState::Succeeded {
         return Err(ClientError::Status {

@@ -11,6 +11,8 @@
 
 use std::path::Path;
 
+use sf_job::JobId;
+
 use crate::error::LearnerError;
 
 /// The files of a job directory a client may fetch: the resolved config, the final and best
@@ -63,7 +65,7 @@ pub(crate) fn read(path: &Path) -> Result<Vec<u8>, LearnerError> {
 }
 
 /// A file of finished job `job_id`'s artifact directory `dir` (`policy.bpk`, `policy.json`).
-pub(crate) fn read_final(dir: &Path, job_id: u64, name: &str) -> Result<Vec<u8>, LearnerError> {
+pub(crate) fn read_final(dir: &Path, job_id: JobId, name: &str) -> Result<Vec<u8>, LearnerError> {
     std::fs::read(dir.join(name)).map_err(|source| LearnerError::FinalPolicy { job_id, source })
 }
 
@@ -80,7 +82,7 @@ pub(crate) fn readable(name: &str) -> Result<&'static str, LearnerError> {
 /// fits in a reply under `limit` bytes.
 pub(crate) fn read_job_file(
     dir: &Path,
-    job_id: u64,
+    job_id: JobId,
     name: &'static str,
     limit: u64,
 ) -> Result<Vec<u8>, LearnerError> {

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use sf_job::config::JobKind;
-use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobRecord, JobState};
+use sf_job::{DepRole, Frozen, FrozenRole, JobConfig, JobId, JobRecord, JobState};
 use sf_rollout::setup;
 
 use crate::artifacts::read_final;
@@ -33,7 +33,7 @@ pub(crate) struct JobDeps {
 
 /// The finished job a continuation starts from: its id and artifact directory.
 pub(crate) struct InitDep {
-    pub job_id: u64,
+    pub job_id: JobId,
     pub dir: PathBuf,
 }
 
@@ -42,7 +42,7 @@ pub(crate) struct InitDep {
 pub(crate) async fn job_deps(jobs: &Jobs, cfg: &JobConfig) -> Result<JobDeps, LearnerError> {
     let mut frozen = Vec::new();
     // Each frozen policy's artifact directory, for validation's weights.
-    let mut dirs: HashMap<u64, PathBuf> = HashMap::new();
+    let mut dirs: HashMap<JobId, PathBuf> = HashMap::new();
     let mut init = None;
     for (role, dep) in cfg.deps() {
         let d = jobs.get(dep).map_err(|e| LearnerError::DependencyLookup {
@@ -121,7 +121,7 @@ pub(crate) async fn job_deps(jobs: &Jobs, cfg: &JobConfig) -> Result<JobDeps, Le
 pub(crate) fn flow_frozen(
     rec: &JobRecord,
     cfg: &JobConfig,
-    find: impl Fn(u64) -> Result<JobRecord, LearnerError>,
+    find: impl Fn(JobId) -> Result<JobRecord, LearnerError>,
 ) -> Result<Vec<Frozen>, LearnerError> {
     if cfg.kind == JobKind::SocialcommAdv {
         let flow =
@@ -151,7 +151,7 @@ pub(crate) fn flow_frozen(
 pub(crate) fn check_dep(
     job: &JobConfig,
     role: DepRole,
-    dep_id: u64,
+    dep_id: JobId,
     dep: &JobConfig,
 ) -> Result<(), LearnerError> {
     let refuse =

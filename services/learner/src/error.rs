@@ -12,7 +12,7 @@
 
 use std::path::PathBuf;
 
-use sf_job::{PolicyRequest, WorkerId};
+use sf_job::{JobId, PolicyRequest, PolicyVersion, WorkerId};
 use sf_service::ServiceError;
 
 /// Why the learner refused or failed something. `Display` is the message a client or a failed
@@ -31,7 +31,7 @@ pub enum LearnerError {
     NotPinned { name: String },
     /// A pinned job that has not (or no longer) succeeded.
     #[error("job {job_id} has not succeeded")]
-    NotSucceeded { job_id: u64 },
+    NotSucceeded { job_id: JobId },
     /// Resolving the policy of the grid's flow or ego `name` failed.
     #[error("`{name}`: {source}")]
     Grid { name: String, source: Box<LearnerError> },
@@ -40,7 +40,7 @@ pub enum LearnerError {
     NoEgoPolicy { name: String },
     /// A succeeded job's `policy.bpk` could not be read.
     #[error("reading the final policy of job {job_id}: {source}")]
-    FinalPolicy { job_id: u64, source: std::io::Error },
+    FinalPolicy { job_id: JobId, source: std::io::Error },
     /// Scenarios, cases, policies and cells that do not fit together, or the GIFs.
     #[error(transparent)]
     Eval(#[from] sf_rollout::evaluate::EvalError),
@@ -59,24 +59,24 @@ pub enum LearnerError {
     )]
     WorkerNotRegistered { worker_id: WorkerId },
     #[error("job {job_id} is {state}, not running")]
-    NotRunning { job_id: u64, state: &'static str },
+    NotRunning { job_id: JobId, state: &'static str },
     #[error("field `name`: `{name}` is not a job file a client may read (one of {})", crate::artifacts::READABLE.join(", "))]
     UnknownJobFile { name: String },
     #[error("job {job_id} has no {name} (not written yet, or not a file this kind of job writes)")]
-    NoJobFile { job_id: u64, name: &'static str },
+    NoJobFile { job_id: JobId, name: &'static str },
     #[error(
         "{name} of job {job_id} is {bytes} bytes, over the learner's message limit of {limit}"
     )]
-    JobFileTooLarge { job_id: u64, name: &'static str, bytes: u64, limit: u64 },
+    JobFileTooLarge { job_id: JobId, name: &'static str, bytes: u64, limit: u64 },
     /// Training jobs share the workers: this one is to end its session and ask again.
     #[error("job {job_id} has more workers than its share; worker {worker_id} moves to job {to}")]
-    WorkerMoved { job_id: u64, worker_id: WorkerId, to: u64 },
+    WorkerMoved { job_id: JobId, worker_id: WorkerId, to: JobId },
     /// A policy version the running job does not hold (never published, or evicted).
     #[error("job {job_id} holds no policy version {version}")]
-    NoPolicyVersion { job_id: u64, version: PolicyRequest },
+    NoPolicyVersion { job_id: JobId, version: PolicyRequest },
     /// A finished job keeps only its final version.
     #[error("job {job_id} finished at policy version {final_version}; version {version} is gone")]
-    VersionGone { job_id: u64, final_version: u64, version: u64 },
+    VersionGone { job_id: JobId, final_version: PolicyVersion, version: PolicyVersion },
     /// A submitted job that names its dependencies instead of giving their ids.
     #[error("job config names job `{name}` (env.background_from, env.ego_from or train.init_from): names are resolved by `socialflow pipeline`; submit with job ids")]
     UnresolvedName { name: String },
@@ -90,7 +90,7 @@ pub enum LearnerError {
 
     // --- A worker's results for one cell of a running evaluation.
     #[error("evaluation job {job_id} has no cell {cell_id}")]
-    NoCell { job_id: u64, cell_id: u64 },
+    NoCell { job_id: JobId, cell_id: u64 },
     /// The worker could not run the cell: the evaluation fails with this message.
     #[error("cell {cell} failed on worker {worker}: {error}")]
     CellFailed { cell: String, worker: WorkerId, error: String },
@@ -98,35 +98,35 @@ pub enum LearnerError {
     #[error("cell {cell_id}: {reason}")]
     BadCellResults { cell_id: u64, reason: String },
     #[error("job {job_id} is {state}, not a running evaluation")]
-    NotEvaluating { job_id: u64, state: &'static str },
+    NotEvaluating { job_id: JobId, state: &'static str },
 
     // --- Jobs and their dependencies.
     /// A job config that does not parse or validate.
     #[error(transparent)]
     JobConfig(#[from] sf_job::ConfigError),
     #[error("job {job_id} not found")]
-    JobNotFound { job_id: u64 },
+    JobNotFound { job_id: JobId },
     /// The stored config of a job this one depends on does not parse (any more).
     #[error("stored config of job {job_id}: {source}")]
-    StoredConfig { job_id: u64, source: sf_job::SpecError },
+    StoredConfig { job_id: JobId, source: sf_job::SpecError },
     #[error("socialcomm-adv job {job_id} has no background flow")]
-    NoBackgroundFlow { job_id: u64 },
+    NoBackgroundFlow { job_id: JobId },
     /// Looking up the flow a SocialCommAdv job `job_id` talks to failed.
     #[error("job {flow} (the flow of job {job_id}): {source}")]
-    BackgroundFlow { flow: u64, job_id: u64, source: Box<LearnerError> },
+    BackgroundFlow { flow: JobId, job_id: JobId, source: Box<LearnerError> },
     /// A flow's `coordinator.json` (CoPO Stage 2) could not be read or does not validate.
     #[error(transparent)]
     Coordinator(sf_rollout::coordinator::CoordinatorError),
     /// A submitted job names job `dep` in `field`, but that job cannot serve it: `reason`
     /// completes "job N ...".
     #[error("job config field `{field}`: job {dep} {reason}")]
-    Dependency { field: &'static str, dep: u64, reason: String },
+    Dependency { field: &'static str, dep: JobId, reason: String },
     /// A starting job's dependency could not be looked up.
     #[error("job {dep} ({field}): {source}")]
-    DependencyLookup { dep: u64, field: &'static str, source: ServiceError },
+    DependencyLookup { dep: JobId, field: &'static str, source: ServiceError },
     /// A starting job's dependency did not leave a final policy.
     #[error("job {dep} ({field}) has no final policy ({state})")]
-    NoFinalPolicy { dep: u64, field: &'static str, state: &'static str },
+    NoFinalPolicy { dep: JobId, field: &'static str, state: &'static str },
     #[error("scenario `{name}`: {source}")]
     Scenario { name: String, source: sf_sim::map::MapError },
 
@@ -256,27 +256,27 @@ pub enum IngestError {
     /// The job is being cancelled, shut down or has finished its updates: the worker should
     /// ask for its next assignment.
     #[error("job {job_id} is stopping")]
-    Stopping { job_id: u64 },
+    Stopping { job_id: JobId },
     /// Every transition the job needs is in; the trainer is finishing its updates.
     #[error("job {job_id} has all its transitions")]
-    Complete { job_id: u64 },
+    Complete { job_id: JobId },
     #[error("batch rows are {obs_len} observation floats and {action_dim} actions; job {job_id} expects {want_obs_len} and {want_action_dim}")]
     Shape {
         obs_len: usize,
         action_dim: usize,
-        job_id: u64,
+        job_id: JobId,
         want_obs_len: usize,
         want_action_dim: usize,
     },
     #[error("map id {map_id} out of range: job {job_id} has {maps} scenarios")]
-    MapOutOfRange { map_id: u32, job_id: u64, maps: u32 },
+    MapOutOfRange { map_id: u32, job_id: JobId, maps: u32 },
     #[error("batch field `steps`: a transition spans {steps} steps; job {job_id} sums at most sac.n_step = {n_step}")]
-    Span { steps: u8, job_id: u64, n_step: u8 },
+    Span { steps: u8, job_id: JobId, n_step: u8 },
     /// A row the networks would index or branch on wrongly (masks, segment ids).
     #[error("batch field `{field}`, transition {index}: {reason}")]
     BadRow { field: &'static str, index: usize, reason: sf_sim::obs::ObsRowError },
     #[error("policy version {version} was never published (latest {latest})")]
-    UnpublishedVersion { version: u64, latest: u64 },
+    UnpublishedVersion { version: PolicyVersion, latest: PolicyVersion },
     #[error("deadline passed waiting for the trainer (rate limiter)")]
     Deadline,
     /// The rate limiter refused an insert it should have taken (a bug, not the worker's).
@@ -332,12 +332,12 @@ mod tests {
         // A wrapper takes the status of what it wraps.
         let e = ServiceError::from(LearnerError::Grid {
             name: "copo".into(),
-            source: Box::new(LearnerError::NotSucceeded { job_id: 7 }),
+            source: Box::new(LearnerError::NotSucceeded { job_id: JobId::new(7) }),
         });
         assert_eq!(e.code(), Code::InvalidArgument);
         assert_eq!(e.to_string(), "`copo`: job 7 has not succeeded");
 
-        let e = ServiceError::from(LearnerError::JobNotFound { job_id: 12 });
+        let e = ServiceError::from(LearnerError::JobNotFound { job_id: JobId::new(12) });
         assert_eq!((e.code(), e.to_string().as_str()), (Code::NotFound, "job 12 not found"));
 
         let e = ServiceError::from(LearnerError::Io {
@@ -351,7 +351,7 @@ mod tests {
         );
 
         // Ingest: the worker moves on (stopping), fixes its batch (shape) or retries (deadline).
-        let e = ServiceError::from(IngestError::Stopping { job_id: 4 });
+        let e = ServiceError::from(IngestError::Stopping { job_id: JobId::new(4) });
         assert_eq!(
             (e.code(), e.to_string().as_str()),
             (Code::FailedPrecondition, "job 4 is stopping")
@@ -359,7 +359,7 @@ mod tests {
         let e = ServiceError::from(IngestError::Shape {
             obs_len: 10,
             action_dim: 2,
-            job_id: 4,
+            job_id: JobId::new(4),
             want_obs_len: 12,
             want_action_dim: 2,
         });
@@ -372,8 +372,11 @@ mod tests {
         );
         assert_eq!(ServiceError::from(IngestError::Deadline).code(), Code::DeadlineExceeded);
         assert_eq!(
-            ServiceError::from(IngestError::UnpublishedVersion { version: 9, latest: 3 })
-                .to_string(),
+            ServiceError::from(IngestError::UnpublishedVersion {
+                version: PolicyVersion::new(9),
+                latest: PolicyVersion::new(3),
+            })
+            .to_string(),
             "policy version 9 was never published (latest 3)"
         );
 

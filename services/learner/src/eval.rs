@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
-use sf_job::{Frozen, FrozenRole, JobRecord, JobState, Progress, WorkerId};
+use sf_job::{Frozen, FrozenRole, JobId, JobRecord, JobState, Progress, WorkerId};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_rollout::evaluate::{EgoDef, Resolved};
 use tokio::sync::Notify;
@@ -89,7 +89,7 @@ pub fn resolve_policies(
     weights: bool,
     spec: Specs<'_>,
 ) -> Result<GridPolicies, LearnerError> {
-    let find = |id: u64| {
+    let find = |id: JobId| {
         jobs.iter()
             .find(|r| r.id == id && r.state == JobState::Succeeded)
             .ok_or(LearnerError::NotSucceeded { job_id: id })
@@ -205,7 +205,7 @@ impl State {
 
 /// An evaluation job while it runs.
 pub struct EvalJob {
-    pub id: u64,
+    pub id: JobId,
     pub cfg: EvalConfig,
     pub dir: PathBuf,
     cells: Vec<Cell>,
@@ -364,7 +364,7 @@ impl EvalJob {
             .collect();
         for c in gone {
             if let Some((w, since)) = s.leased.remove(&c) {
-                tracing::info!(job_id = self.id, cell = %self.cells[c].key(), worker_id = w.get(), leased_s = since.elapsed().as_secs(), "cell returned to the queue");
+                tracing::info!(job_id = self.id.get(), cell = %self.cells[c].key(), worker_id = w.get(), leased_s = since.elapsed().as_secs(), "cell returned to the queue");
                 if w != worker {
                     self.metrics.eval_cells_reassigned.inc();
                 }
@@ -438,7 +438,7 @@ impl EvalJob {
         self.metrics.eval_cells_pending.set((self.cells.len() - stored) as i64);
         let done = stored == self.cells.len();
         drop(s);
-        tracing::debug!(job_id = self.id, cell = %cell.key(), worker_id = worker.get(), "cell stored");
+        tracing::debug!(job_id = self.id.get(), cell = %cell.key(), worker_id = worker.get(), "cell stored");
         if done {
             self.changed.notify_one();
         }

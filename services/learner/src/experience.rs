@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use sf_job::eval::{EvalEpisode, EvalWork};
-use sf_job::{Assignment, JobState, PolicyRequest, WorkerId};
+use sf_job::{Assignment, JobId, JobState, PolicyRequest, PolicyVersion, WorkerId};
 use sf_proto::pb;
 use sf_service::ServiceError;
 
@@ -119,7 +119,7 @@ impl Experience {
         let job = self
             .workers
             .touch(worker)
-            .and_then(|()| self.running(msg.job_id))
+            .and_then(|()| self.running(JobId::from(msg.job_id)))
             .map_err(ServiceError::from);
         let job = job.and_then(|j| match self.workers.rebalance(worker, j.id, &self.open_jobs()) {
             Some(to) => Err({
@@ -147,7 +147,7 @@ impl Experience {
 
     /// The running training job with this id; NOT_FOUND for unknown ids, FAILED_PRECONDITION
     /// otherwise.
-    fn running(&self, id: u64) -> Result<Arc<ActiveJob>, LearnerError> {
+    fn running(&self, id: JobId) -> Result<Arc<ActiveJob>, LearnerError> {
         if let Some(j) = self.slots.train(id) {
             return Ok(j);
         }
@@ -159,14 +159,14 @@ impl Experience {
     /// succeeded one.
     pub async fn policy(
         &self,
-        job_id: u64,
+        job_id: JobId,
         which: PolicyRequest,
-    ) -> Result<(u64, Arc<Vec<u8>>), LearnerError> {
+    ) -> Result<(PolicyVersion, Arc<Vec<u8>>), LearnerError> {
         match self.running(job_id) {
             Ok(j) => {
-                let p = match which {
-                    PolicyRequest::Latest => j.latest(),
-                    PolicyRequest::Version(v) => j.version(v.get()),
+                let p = match which.version() {
+                    None => j.latest(),
+                    Some(v) => j.version(v),
                 };
                 p.map(|p| (p.version, p.weights))
                     .ok_or(LearnerError::NoPolicyVersion { job_id, version: which })
@@ -182,12 +182,12 @@ impl Experience {
                     let meta: serde_json::Value =
                         serde_json::from_slice(&read_final(&dir, job_id, "policy.json")?)
                             .map_err(|e| LearnerError::FinalPolicy { job_id, source: e.into() })?;
-                    Ok((meta["version"].as_u64().unwrap_or(0), weights))
+                    Ok((PolicyVersion::new(meta["version"].as_u64().unwrap_or(0)), weights))
                 })
                 .await?;
-                match which {
-                    PolicyRequest::Version(v) if v.get() != final_version => {
-                        Err(LearnerError::VersionGone { job_id, final_version, version: v.get() })
+                match which.version() {
+                    Some(version) if version != final_version => {
+                        Err(LearnerError::VersionGone { job_id, final_version, version })
                     }
                     _ => Ok((final_version, Arc::new(weights))),
                 }
@@ -199,7 +199,7 @@ impl Experience {
     /// A worker's results for one cell of the running evaluation `job_id`.
     pub async fn eval_results(
         &self,
-        job_id: u64,
+        job_id: JobId,
         worker: WorkerId,
         cell_id: u64,
         episodes: Vec<EvalEpisode>,
@@ -231,7 +231,7 @@ impl Experience {
 
     /// The running training jobs that take workers: not stopping, not complete, a policy
     /// published.
-    fn open_jobs(&self) -> Vec<u64> {
+    fn open_jobs(&self) -> Vec<JobId> {
         self.slots
             .trains()
             .iter()
@@ -243,7 +243,7 @@ impl Experience {
     /// Sets each running job's `job_workers` gauge.
     pub fn count_workers_per_job(&self) {
         let jobs = self.slots.trains();
-        let ids: Vec<u64> = jobs.iter().map(|j| j.id).collect();
+        let ids: Vec<JobId> = jobs.iter().map(|j| j.id).collect();
         let n = self.workers.per_job(&ids);
         for j in jobs {
             j.metrics.workers.set(n.get(&j.id).copied().unwrap_or(0) as i64);

@@ -11,7 +11,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
-use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, Progress, TransitionBatch};
+use sf_job::{
+    ActedBy, Ends, EpisodeResult, JobConfig, JobId, PolicyVersion, Progress, TransitionBatch,
+};
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::replay::Stored;
 use sf_sac::{Losses, RateLimiter, Replay};
@@ -32,7 +34,7 @@ pub enum StopReason {
 /// One published policy version.
 #[derive(Clone)]
 pub struct Published {
-    pub version: u64,
+    pub version: PolicyVersion,
     pub weights: Arc<Vec<u8>>,
 }
 
@@ -64,12 +66,12 @@ pub struct Stats {
 pub struct Ack {
     pub accepted: u32,
     pub dropped_stale: u32,
-    pub latest_policy_version: u64,
+    pub latest_policy_version: PolicyVersion,
     pub warmup: bool,
 }
 
 pub struct ActiveJob {
-    pub id: u64,
+    pub id: JobId,
     pub cfg: JobConfig,
     /// The frozen policies the job acts with (background flow, ego, adversary).
     pub frozen: Vec<sf_job::Frozen>,
@@ -84,7 +86,7 @@ pub struct ActiveJob {
     latest: RwLock<Option<Published>>,
     /// Recent versions kept for workers that ask for one by number.
     recent: Mutex<VecDeque<Published>>,
-    pub versions: watch::Sender<u64>,
+    pub versions: watch::Sender<PolicyVersion>,
     stats: Mutex<Stats>,
     stop: Mutex<Option<StopReason>>,
     stopping: AtomicBool,
@@ -99,7 +101,7 @@ impl ActiveJob {
     #[allow(clippy::too_many_arguments)]
     /// `segments`: per map id (the job's scenarios in order), its query-centric segment count.
     pub fn new(
-        id: u64,
+        id: JobId,
         cfg: JobConfig,
         frozen: Vec<sf_job::Frozen>,
         spec: sf_sim::obs::ObsSpec,
@@ -123,7 +125,7 @@ impl ActiveJob {
             limiter,
             latest: RwLock::new(None),
             recent: Mutex::new(VecDeque::new()),
-            versions: watch::channel(0).0,
+            versions: watch::channel(PolicyVersion::default()).0,
             stats: Mutex::new(Stats {
                 reserved: restored.env_steps,
                 c: restored,
@@ -175,17 +177,18 @@ impl ActiveJob {
         read(&self.latest).clone()
     }
 
-    pub fn latest_version(&self) -> u64 {
-        self.latest().map_or(0, |p| p.version)
+    /// The latest published version; 0 before the first.
+    pub fn latest_version(&self) -> PolicyVersion {
+        self.latest().map(|p| p.version).unwrap_or_default()
     }
 
     /// A version still held, or `None`.
-    pub fn version(&self, v: u64) -> Option<Published> {
+    pub fn version(&self, v: PolicyVersion) -> Option<Published> {
         lock(&self.recent).iter().find(|p| p.version == v).cloned()
     }
 
     /// Publishes a new policy version to workers.
-    pub fn publish(&self, version: u64, weights: Vec<u8>) {
+    pub fn publish(&self, version: PolicyVersion, weights: Vec<u8>) {
         let p = Published { version, weights: Arc::new(weights) };
         {
             let mut r = lock(&self.recent);
@@ -196,7 +199,7 @@ impl ActiveJob {
         }
         *write(&self.latest) = Some(p);
         self.versions.send_replace(version);
-        self.metrics.policy_version.set(version as i64);
+        self.metrics.policy_version.set(version.get() as i64);
     }
 
     /// Workers act with the warm-up policy (random or the IDM demonstrator) until
@@ -273,9 +276,9 @@ impl ActiveJob {
 
     /// Whether a batch acted by `acted_by` is dropped: warm-up data once the warm-up is over, a
     /// policy's data more than `max_policy_lag` versions old. Records the lag.
-    fn is_stale(&self, acted_by: ActedBy, latest: u64, warm: bool) -> bool {
+    fn is_stale(&self, acted_by: ActedBy, latest: PolicyVersion, warm: bool) -> bool {
         let Some(version) = acted_by.version() else { return !warm };
-        let lag = latest.saturating_sub(version);
+        let lag = latest.lag_of(version);
         self.metrics.totals.policy_lag.observe(lag as f64);
         let mut s = lock(&self.stats);
         s.lag_sum += lag;

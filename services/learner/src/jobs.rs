@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use sf_job::eval::EvalConfig;
-use sf_job::{JobRecord, JobSpec, JobState, Progress};
+use sf_job::{JobId, JobRecord, JobSpec, JobState, Progress};
 use sf_service::sync::lock;
 use sf_service::ServiceError;
 use sf_sim::Map;
@@ -37,7 +37,7 @@ pub struct Jobs {
     store: Arc<Store>,
     /// Every stored job's text, parsed once (by submit, or on first use after a restart): a
     /// stored config never changes, so the scheduler and job starts read it here.
-    specs: Mutex<BTreeMap<u64, Arc<JobSpec>>>,
+    specs: Mutex<BTreeMap<JobId, Arc<JobSpec>>>,
     /// The running jobs: their live progress, and whom a cancel stops.
     slots: Arc<Slots>,
     storage: Arc<StorageHealth>,
@@ -88,7 +88,7 @@ impl Jobs {
     }
 
     /// Keeps the spec a job was submitted with (its text was parsed by submit).
-    fn keep_spec(&self, id: u64, spec: JobSpec) {
+    fn keep_spec(&self, id: JobId, spec: JobSpec) {
         lock(&self.specs).insert(id, Arc::new(spec));
     }
 
@@ -165,7 +165,7 @@ impl Jobs {
         }
         let target = cfg.train.env_steps;
         let rec = self.queue(JobSpec::Train(cfg), toml_text, target).await?;
-        tracing::info!(job_id = rec.id, name = %rec.name, "job queued");
+        tracing::info!(job_id = rec.id.get(), name = %rec.name, "job queued");
         Ok(rec)
     }
 
@@ -191,12 +191,12 @@ impl Jobs {
         .map_err(|source| LearnerError::Task { task: "blocking task", source })??;
         let (target, cells, resolved) = (cfg.episodes(), cfg.cells().len(), cfg.to_toml());
         let rec = self.queue(JobSpec::Eval(cfg), resolved, target).await?;
-        tracing::info!(job_id = rec.id, name = %rec.name, cells, "evaluation queued");
+        tracing::info!(job_id = rec.id.get(), name = %rec.name, cells, "evaluation queued");
         Ok(rec)
     }
 
     /// Job `id`, with live progress if it is running. Records are read from memory: no IO.
-    pub fn get(&self, id: u64) -> Result<JobRecord, LearnerError> {
+    pub fn get(&self, id: JobId) -> Result<JobRecord, LearnerError> {
         let mut rec = self.store.get(id).ok_or(LearnerError::JobNotFound { job_id: id })?;
         if let Some(p) = self.slots.progress(id).filter(|_| !rec.state.is_final()) {
             rec.progress = p;
@@ -217,7 +217,7 @@ impl Jobs {
     }
 
     /// Records CANCELLED (unless the job already ended) and asks a running job to stop.
-    pub async fn cancel(&self, id: u64) -> Result<JobRecord, ServiceError> {
+    pub async fn cancel(&self, id: JobId) -> Result<JobRecord, ServiceError> {
         let rec = self
             .update(id, |r| {
                 r.advance(JobState::Cancelled, Some(CANCELLED_BY_REQUEST));
@@ -227,12 +227,12 @@ impl Jobs {
         if let Some(j) = self.slots.get(id) {
             j.request_stop(StopReason::Cancelled);
         }
-        tracing::info!(job_id = id, state = rec.state.as_str(), "cancel requested");
+        tracing::info!(job_id = id.get(), state = rec.state.as_str(), "cancel requested");
         Ok(rec)
     }
 
     /// The content of file `name` of job `job_id`'s artifact directory.
-    pub async fn job_file(&self, job_id: u64, name: &str) -> Result<Vec<u8>, ServiceError> {
+    pub async fn job_file(&self, job_id: JobId, name: &str) -> Result<Vec<u8>, ServiceError> {
         let name = artifacts::readable(name)?;
         let dir = PathBuf::from(&self.get(job_id)?.artifact_dir);
         let limit = self.max_message_bytes;
@@ -243,7 +243,7 @@ impl Jobs {
     /// there is no such job.
     pub(crate) async fn update(
         &self,
-        id: u64,
+        id: JobId,
         f: impl FnOnce(&mut JobRecord) + Send + 'static,
     ) -> Result<Option<JobRecord>, LearnerError> {
         let store = Arc::clone(&self.store);
@@ -253,7 +253,7 @@ impl Jobs {
     /// Records how job `id` ended ([`record_end`]), with its last `progress` if given.
     pub(crate) async fn record_end(
         &self,
-        id: u64,
+        id: JobId,
         out: Outcome,
         progress: Option<Progress>,
     ) -> Result<(), LearnerError> {

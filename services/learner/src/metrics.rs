@@ -14,6 +14,7 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
+use sf_job::JobId;
 use sf_service::metrics::CommonMetrics;
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -174,7 +175,7 @@ macro_rules! job_series {
 
         impl JobMetrics {
             /// The series of job `id` (created, or the existing ones of a job started again).
-            pub fn new(totals: &LearnerMetrics, id: u64) -> Self {
+            pub fn new(totals: &LearnerMetrics, id: JobId) -> Self {
                 let label = JobLabel { job: id.to_string() };
                 let f = &totals.jobs;
                 Self {

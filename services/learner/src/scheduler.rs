@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use sf_job::eval::EvalConfig;
-use sf_job::{JobConfig, JobRecord, JobSpec, JobState, Progress};
+use sf_job::{JobConfig, JobId, JobRecord, JobSpec, JobState, Progress};
 use sf_rollout::setup;
 use sf_sac::RateLimiter;
 use tokio::sync::Notify;
@@ -94,7 +94,7 @@ impl Scheduler {
         let all = self.jobs.list();
         // A job waits until every job it depends on has succeeded; it fails if one did not.
         // (An evaluation's jobs succeeded before it was accepted: it has none to wait for.)
-        let dep_state = |r: &JobRecord| -> Option<(u64, JobState)> {
+        let dep_state = |r: &JobRecord| -> Option<(JobId, JobState)> {
             let deps = self.jobs.spec(r).ok()?.deps();
             let states = deps.iter().map(|&(_, dep)| {
                 (dep, all.iter().find(|d| d.id == dep).map_or(JobState::Failed, |d| d.state))
@@ -140,7 +140,7 @@ impl Scheduler {
                     self.storage.fault(&format!("starting job {}: {e}", rec.id))
                 }
                 Err(e) => {
-                    tracing::error!(job_id = rec.id, error = %e, "job failed to start");
+                    tracing::error!(job_id = rec.id.get(), error = %e, "job failed to start");
                     self.finish(rec.id, Outcome::Failed(e.to_string()), None).await;
                 }
             }
@@ -158,7 +158,7 @@ impl Scheduler {
     /// Puts `job` in its slot, then marks it RUNNING unless its record reached a final state
     /// meanwhile (a CancelJob came first): then the job is stopped and its slot freed again.
     /// `Ok(false)`: cancelled before it started.
-    async fn occupy(&self, id: u64, job: Running) -> Result<bool, LearnerError> {
+    async fn occupy(&self, id: JobId, job: Running) -> Result<bool, LearnerError> {
         self.slots.fill(id, job.clone());
         let started = self
             .jobs
@@ -177,9 +177,11 @@ impl Scheduler {
         self.wake.notify_one();
         started?;
         match job {
-            Running::Train(_) => tracing::info!(job_id = id, "job cancelled before it started"),
+            Running::Train(_) => {
+                tracing::info!(job_id = id.get(), "job cancelled before it started")
+            }
             Running::Eval(_) => {
-                tracing::info!(job_id = id, "evaluation cancelled before it started")
+                tracing::info!(job_id = id.get(), "evaluation cancelled before it started")
             }
         }
         Ok(false)
@@ -233,7 +235,7 @@ impl Scheduler {
         if !self.occupy(id, Running::Train(Arc::clone(&job))).await? {
             return Ok(());
         }
-        tracing::info!(job_id = id, resumed = resume.is_some(), "job started");
+        tracing::info!(job_id = id.get(), resumed = resume.is_some(), "job started");
         let input = trainer::TrainerInput {
             job: Arc::clone(&job),
             maps,
@@ -270,7 +272,7 @@ impl Scheduler {
             return Ok(());
         }
         tracing::info!(
-            job_id = id,
+            job_id = id.get(),
             cells = job.cells(),
             stored = job.progress().learning.episodes,
             "evaluation started"
@@ -313,7 +315,7 @@ impl Scheduler {
         .await;
         match r {
             Ok(paths) => {
-                tracing::info!(job_id = job.id, gifs = paths.len(), "evaluation finished");
+                tracing::info!(job_id = job.id.get(), gifs = paths.len(), "evaluation finished");
                 Outcome::Succeeded
             }
             Err(e) => Outcome::Failed(format!("every cell is stored, but the GIFs failed: {e}")),
@@ -321,8 +323,8 @@ impl Scheduler {
     }
 
     /// Records how job `id` ended (with its last `progress`) and frees its slot.
-    async fn finish(&self, id: u64, out: Outcome, progress: Option<Progress>) {
-        tracing::info!(job_id = id, outcome = ?out, "job stopped");
+    async fn finish(&self, id: JobId, out: Outcome, progress: Option<Progress>) {
+        tracing::info!(job_id = id.get(), outcome = ?out, "job stopped");
         if let Some(j) = self.slots.train(id) {
             j.close();
             j.metrics.remove();
@@ -337,7 +339,7 @@ impl Scheduler {
                 Err(e) if storage::is_storage_fault(&e) => {
                     self.storage.fault(&format!("recording the end of job {id}: {e}"))
                 }
-                Err(e) => tracing::error!(job_id = id, error = %e, "recording the job's end"),
+                Err(e) => tracing::error!(job_id = id.get(), error = %e, "recording the job's end"),
             }
         }
         self.slots.clear(id);
@@ -385,11 +387,14 @@ impl Scheduler {
         for r in self.slots.all() {
             match &r {
                 Running::Train(j) => {
-                    tracing::info!(job_id = j.id, "shutting down: checkpointing the running job")
+                    tracing::info!(
+                        job_id = j.id.get(),
+                        "shutting down: checkpointing the running job"
+                    )
                 }
                 // Stored cells stay stored; the job stays RUNNING and resumes with the rest.
                 Running::Eval(e) => tracing::info!(
-                    job_id = e.id,
+                    job_id = e.id.get(),
                     "shutting down: the evaluation resumes on the next start"
                 ),
             }

@@ -11,6 +11,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
+use sf_job::JobId;
 use sf_proto::pb::experience_service_server::ExperienceService;
 use sf_proto::pb::job_service_server::JobService;
 use sf_proto::{pb, WireError};
@@ -62,7 +63,7 @@ impl JobService for Jobs {
     }
 
     async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Res<pb::Job> {
-        let r = self.jobs.get(req.into_inner().job_id);
+        let r = self.jobs.get(JobId::from(req.into_inner().job_id));
         done(&self.metrics, "GetJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
@@ -82,20 +83,20 @@ impl JobService for Jobs {
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Res<pb::Job> {
-        let r = self.jobs.cancel(req.into_inner().job_id).await;
+        let r = self.jobs.cancel(JobId::from(req.into_inner().job_id)).await;
         done(&self.metrics, "CancelJob", r.map(|j| sf_proto::job_to_wire(&j)))
     }
 
     async fn get_job_file(&self, req: Request<pb::GetJobFileRequest>) -> Res<pb::JobFile> {
         let pb::GetJobFileRequest { job_id, name } = req.into_inner();
-        let r = self.jobs.job_file(job_id, &name).await;
+        let r = self.jobs.job_file(JobId::from(job_id), &name).await;
         done(&self.metrics, "GetJobFile", r.map(|content| pb::JobFile { job_id, name, content }))
     }
 
     type WatchJobStream = BoxStream<pb::JobProgress>;
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Res<Self::WatchJobStream> {
-        let id = req.into_inner().job_id;
+        let id = JobId::from(req.into_inner().job_id);
         let first = match self.jobs.get(id) {
             Ok(j) => j,
             Err(e) => return done(&self.metrics, "WatchJob", Err(e)),
@@ -189,7 +190,9 @@ impl ExperienceService for Experience {
         let r = match episodes {
             Ok(eps) => {
                 let worker = m.worker_id.into();
-                self.experience.eval_results(m.job_id, worker, m.cell_id, eps, m.error).await
+                self.experience
+                    .eval_results(JobId::from(m.job_id), worker, m.cell_id, eps, m.error)
+                    .await
             }
             Err(e) => Err(e.into()),
         };
@@ -231,7 +234,7 @@ impl ExperienceService for Experience {
                         Ok(pb::PushAck {
                             accepted: a.accepted,
                             dropped_stale: a.dropped_stale,
-                            latest_policy_version: a.latest_policy_version,
+                            latest_policy_version: a.latest_policy_version.get(),
                             warmup: a.warmup,
                         })
                     }
@@ -250,12 +253,16 @@ impl ExperienceService for Experience {
 
     async fn get_policy(&self, req: Request<pb::GetPolicyRequest>) -> Res<pb::Policy> {
         let r = req.into_inner();
-        let out =
-            self.experience.policy(r.job_id, sf_proto::policy_request_from_wire(r.version)).await;
+        let which = sf_proto::policy_request_from_wire(r.version);
+        let out = self.experience.policy(JobId::from(r.job_id), which).await;
         done(
             &self.metrics,
             "GetPolicy",
-            out.map(|(v, w)| pb::Policy { job_id: r.job_id, version: v, weights: w.to_vec() }),
+            out.map(|(v, w)| pb::Policy {
+                job_id: r.job_id,
+                version: v.get(),
+                weights: w.to_vec(),
+            }),
         )
     }
 }

@@ -12,6 +12,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
 
 use prometheus_client::metrics::gauge::Gauge;
+use sf_job::JobId;
 use sf_service::sync::{read, write};
 
 use crate::eval::EvalJob;
@@ -64,7 +65,7 @@ pub enum Kind {
 
 /// The running jobs by id.
 pub struct Slots {
-    jobs: RwLock<BTreeMap<u64, Running>>,
+    jobs: RwLock<BTreeMap<JobId, Running>>,
     /// Training jobs that may run at once.
     limit: usize,
     gauge: Gauge,
@@ -76,7 +77,7 @@ impl Slots {
     }
 
     /// The running job `id`.
-    pub fn get(&self, id: u64) -> Option<Running> {
+    pub fn get(&self, id: JobId) -> Option<Running> {
         read(&self.jobs).get(&id).cloned()
     }
 
@@ -86,7 +87,7 @@ impl Slots {
     }
 
     /// The running training job `id`.
-    pub fn train(&self, id: u64) -> Option<Arc<ActiveJob>> {
+    pub fn train(&self, id: JobId) -> Option<Arc<ActiveJob>> {
         match read(&self.jobs).get(&id) {
             Some(Running::Train(j)) => Some(Arc::clone(j)),
             _ => None,
@@ -129,19 +130,19 @@ impl Slots {
     }
 
     /// Live progress of job `id` if it is running.
-    pub fn progress(&self, id: u64) -> Option<sf_job::Progress> {
+    pub fn progress(&self, id: JobId) -> Option<sf_job::Progress> {
         read(&self.jobs).get(&id).map(Running::progress)
     }
 
     /// Puts `job` in a slot (the scheduler starts a job only when [`Slots::admits`] it).
-    pub fn fill(&self, id: u64, job: Running) {
+    pub fn fill(&self, id: JobId, job: Running) {
         let mut jobs = write(&self.jobs);
         jobs.insert(id, job);
         self.gauge.set(jobs.len() as i64);
     }
 
     /// Frees job `id`'s slot; true if it held one.
-    pub fn clear(&self, id: u64) -> bool {
+    pub fn clear(&self, id: JobId) -> bool {
         let mut jobs = write(&self.jobs);
         let held = jobs.remove(&id).is_some();
         self.gauge.set(jobs.len() as i64);

@@ -16,9 +16,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, RwLock};
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
-use sf_job::{now_unix_ms, JobRecord, JobState, Progress};
+use sf_job::{now_unix_ms, JobId, JobRecord, JobState, Progress};
 use sf_service::sync::{lock, read, write};
 
+/// Jobs by id: the key is the bare number ([`JobId::get`]), as stores have always written it.
 const JOBS: TableDefinition<u64, &[u8]> = TableDefinition::new("jobs");
 const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 
@@ -31,7 +32,7 @@ pub enum StoreError {
     #[error("job store {path}: storage: {reason}")]
     Storage { path: String, reason: String },
     #[error("job store record {id} is corrupt: {reason}")]
-    Corrupt { id: u64, reason: String },
+    Corrupt { id: JobId, reason: String },
 }
 
 pub struct Store {
@@ -41,11 +42,11 @@ pub struct Store {
     /// The data directory the artifact directories are read against.
     data_dir: PathBuf,
     /// Every record, as last committed.
-    records: Mutex<BTreeMap<u64, JobRecord>>,
+    records: Mutex<BTreeMap<JobId, JobRecord>>,
 }
 
 /// Where job `id` (`name`) keeps its artifacts, relative to the data directory.
-fn relative_artifact_dir(id: u64, name: &str) -> PathBuf {
+fn relative_artifact_dir(id: JobId, name: &str) -> PathBuf {
     Path::new("jobs").join(format!("{id}-{name}"))
 }
 
@@ -84,7 +85,8 @@ impl Store {
             let t = r.open_table(JOBS).map_err(|e| self.err(e))?;
             for item in t.iter().map_err(|e| self.err(e))? {
                 let (k, v) = item.map_err(|e| self.err(e))?;
-                read_back.insert(k.value(), self.decode(k.value(), v.value())?);
+                let id = JobId::new(k.value());
+                read_back.insert(id, self.decode(id, v.value())?);
             }
         }
         *records = read_back;
@@ -116,7 +118,7 @@ impl Store {
 
     /// A stored record with its artifact directory under this store's data directory, whatever
     /// the record says (a relative path, or an absolute one from where the data lived before).
-    fn decode(&self, id: u64, bytes: &[u8]) -> Result<JobRecord, StoreError> {
+    fn decode(&self, id: JobId, bytes: &[u8]) -> Result<JobRecord, StoreError> {
         let mut rec: JobRecord = serde_json::from_slice(bytes)
             .map_err(|e| StoreError::Corrupt { id, reason: e.to_string() })?;
         rec.artifact_dir =
@@ -147,8 +149,10 @@ impl Store {
         let rec;
         {
             let mut meta = w.open_table(META).map_err(|e| self.err(e))?;
-            let id = meta.get("next_id").map_err(|e| self.err(e))?.map(|g| g.value()).unwrap_or(1);
-            meta.insert("next_id", id + 1).map_err(|e| self.err(e))?;
+            let next =
+                meta.get("next_id").map_err(|e| self.err(e))?.map(|g| g.value()).unwrap_or(1);
+            meta.insert("next_id", next + 1).map_err(|e| self.err(e))?;
+            let id = JobId::new(next);
             let now = now_unix_ms();
             rec = JobRecord {
                 id,
@@ -168,7 +172,7 @@ impl Store {
             let bytes = Self::encode(&rec);
             w.open_table(JOBS)
                 .map_err(|e| self.err(e))?
-                .insert(id, bytes.as_slice())
+                .insert(id.get(), bytes.as_slice())
                 .map_err(|e| self.err(e))?;
         }
         w.commit().map_err(|e| self.err(e))?;
@@ -177,7 +181,7 @@ impl Store {
     }
 
     /// The job's record (from memory: the store keeps every record loaded; writes go through).
-    pub fn get(&self, id: u64) -> Option<JobRecord> {
+    pub fn get(&self, id: JobId) -> Option<JobRecord> {
         lock(&self.records).get(&id).cloned()
     }
 
@@ -190,7 +194,7 @@ impl Store {
     /// the job does not exist. `updated_unix_ms` is set. On error nothing changed.
     pub fn update(
         &self,
-        id: u64,
+        id: JobId,
         f: impl FnOnce(&mut JobRecord),
     ) -> Result<Option<JobRecord>, StoreError> {
         let mut records = lock(&self.records);
@@ -203,7 +207,7 @@ impl Store {
         let bytes = Self::encode(&rec);
         w.open_table(JOBS)
             .map_err(|e| self.err(e))?
-            .insert(id, bytes.as_slice())
+            .insert(id.get(), bytes.as_slice())
             .map_err(|e| self.err(e))?;
         w.commit().map_err(|e| self.err(e))?;
         records.insert(id, rec.clone());
@@ -225,14 +229,14 @@ mod tests {
             let s = Store::open(&path, &dir).expect("open");
             let a = s.create("a", "cfg-a", 10).expect("create");
             let b = s.create("b", "cfg-b", 20).expect("create");
-            assert_eq!((a.id, b.id), (1, 2));
+            assert_eq!((a.id, b.id), (JobId::new(1), JobId::new(2)));
             assert_eq!(Path::new(&b.artifact_dir), dir.join("jobs/2-b"));
-            s.update(1, |r| {
+            s.update(JobId::new(1), |r| {
                 r.state = JobState::Running;
                 r.progress.learning.updates = 5;
             })
             .expect("update");
-            assert!(s.update(99, |_| {}).expect("update").is_none());
+            assert!(s.update(JobId::new(99), |_| {}).expect("update").is_none());
         }
         let s = Store::open(&path, &dir).expect("reopen");
         let all = s.list();
@@ -240,7 +244,7 @@ mod tests {
         assert_eq!(all[0].state, JobState::Running);
         assert_eq!(all[0].progress.learning.updates, 5);
         assert_eq!(all[1].config_toml, "cfg-b");
-        assert_eq!(s.create("c", "x", 1).expect("create").id, 3);
+        assert_eq!(s.create("c", "x", 1).expect("create").id, JobId::new(3));
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -271,8 +275,10 @@ mod tests {
         let s = Store::open(&new.join("jobs.redb"), &new).expect("open the moved store");
         let dirs: Vec<PathBuf> = s.list().iter().map(|r| PathBuf::from(&r.artifact_dir)).collect();
         assert_eq!(dirs, vec![new.join("jobs/1-kept"), new.join("jobs/2-legacy")]);
-        let updated =
-            s.update(2, |r| r.message = "touched".into()).expect("update").expect("job 2");
+        let updated = s
+            .update(JobId::new(2), |r| r.message = "touched".into())
+            .expect("update")
+            .expect("job 2");
         assert_eq!(Path::new(&updated.artifact_dir), new.join("jobs/2-legacy"));
         // What is stored now is relative to the data directory.
         let db = read(&s.db);

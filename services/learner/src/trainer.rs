@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_job::PolicyRequest;
+use sf_job::{PolicyRequest, PolicyVersion};
 use sf_report::plot::{line_chart, Series};
 use sf_report::tensorboard::EventWriter;
 use sf_rollout::setup;
@@ -50,7 +50,7 @@ mod curve;
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct TrainState {
     pub counters: Counters,
-    pub policy_version: u64,
+    pub policy_version: PolicyVersion,
     pub curve: Vec<CurvePoint>,
     /// `[validation]`: every point so far.
     #[serde(default)]
@@ -146,7 +146,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     };
     // TensorBoard scalars beside curve.csv (a new event file per start; TensorBoard reads all).
     let mut tb = EventWriter::create(&dir.join("tensorboard"))
-        .map_err(|e| tracing::warn!(job_id = job.id, error = %e, "no TensorBoard event file"))
+        .map_err(|e| tracing::warn!(job_id = job.id.get(), error = %e, "no TensorBoard event file"))
         .ok();
     let mut validator = match &cfg.validation {
         Some(v) => Some((
@@ -255,7 +255,7 @@ fn start_state(
             source,
         })?;
         tracing::info!(
-            job_id = job.id,
+            job_id = job.id.get(),
             updates = sac.updates,
             env_steps = st.counters.env_steps,
             "resumed from checkpoint"
@@ -268,7 +268,7 @@ fn start_state(
         checkpoint::warm_start(sac, &ckpt, Some(&kept)).map_err(|source| {
             LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source }
         })?;
-        tracing::info!(job_id = job.id, from = %init.display(), "started from another job's critic and final policy");
+        tracing::info!(job_id = job.id.get(), from = %init.display(), "started from another job's critic and final policy");
     }
     Ok(false)
 }
@@ -290,7 +290,7 @@ fn restore_replay(
         .restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps)
         .map_err(|source| LearnerError::Replay { action: "restoring", source })?;
     tracing::info!(
-        job_id = job.id,
+        job_id = job.id.get(),
         transitions = r.len(),
         ms = t.elapsed().as_millis() as u64,
         "replay restored"
@@ -307,21 +307,22 @@ struct Publisher<'a> {
     job: &'a ActiveJob,
     file: PathBuf,
     /// The last version published.
-    version: u64,
+    version: PolicyVersion,
 }
 
 impl<'a> Publisher<'a> {
-    fn new(job: &'a ActiveJob, dir: &Path, saved_version: u64) -> Self {
+    fn new(job: &'a ActiveJob, dir: &Path, saved_version: PolicyVersion) -> Self {
         let file = dir.join("published_version");
         let issued = std::fs::read_to_string(&file)
             .ok()
             .and_then(|s| s.trim().parse::<u64>().ok())
-            .unwrap_or(0);
+            .map(PolicyVersion::new)
+            .unwrap_or_default();
         Self { job, file, version: saved_version.max(issued) }
     }
 
     fn publish(&mut self, sac: &Sac) -> Result<(), LearnerError> {
-        self.version += 1;
+        self.version = self.version.next();
         let bytes = sac
             .acting_actor_bytes()
             .map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
@@ -354,7 +355,7 @@ fn write_final_policy(
     let (weights, meta) = match validated {
         Some(((bytes, p), idm)) => {
             tracing::info!(
-                job_id = job.id,
+                job_id = job.id.get(),
                 updates = p.updates,
                 success = p.scores.success,
                 idm_success = idm.scores.success,
@@ -402,7 +403,7 @@ fn validate(
     let p = v.score(&weights, sac.updates, job.progress().learning.env_steps)?;
     let kept = best.offer(&p, &weights)?;
     tracing::info!(
-        job_id = job.id,
+        job_id = job.id.get(),
         updates = p.updates,
         success = p.scores.success,
         safety = p.scores.safety,
@@ -419,7 +420,7 @@ fn validate(
             ("validation/speed", p.scores.speed as f64),
         ];
         if let Err(e) = w.scalars(p.env_steps, &scalars) {
-            tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events");
+            tracing::warn!(job_id = job.id.get(), error = %e, "writing TensorBoard events");
         }
     }
     st.validation.push(p);
@@ -451,7 +452,7 @@ fn fit_coordinator(
             sim.dt_s,
             &[&**seg],
             weights,
-            0,
+            PolicyVersion::new(0),
             &device,
         )
         .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
@@ -465,7 +466,7 @@ fn fit_coordinator(
             seed: cfg.sac.seed ^ 0x636f_6f72 ^ k as u64,
         };
         let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
-            tracing::info!(job_id = job.id, scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
+            tracing::info!(job_id = job.id.get(), scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
         })
         .map_err(|source| LearnerError::FitCoordinator { scenario: scenario.clone(), source })?;
         fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
@@ -476,7 +477,7 @@ fn fit_coordinator(
         serde_json::to_string_pretty(&file)?.as_bytes(),
     )?;
     tracing::info!(
-        job_id = job.id,
+        job_id = job.id.get(),
         s = t.elapsed().as_secs_f32(),
         "CoPO Stage 2: coordinator fitted"
     );
@@ -503,7 +504,7 @@ fn save(
     sac: &Sac,
     dir: &Path,
     st: &mut TrainState,
-    version: u64,
+    version: PolicyVersion,
     persist: &mut Persist,
 ) -> Result<(), LearnerError> {
     let t = Instant::now();
@@ -563,9 +564,9 @@ fn save(
     }
     job.metrics.totals.checkpoints.inc();
     tracing::info!(
-        job_id = job.id,
+        job_id = job.id.get(),
         updates = sac.updates,
-        policy_version = version,
+        policy_version = version.get(),
         replay_bytes,
         ms = t.elapsed().as_millis() as u64,
         "checkpoint written"

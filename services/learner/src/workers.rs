@@ -16,7 +16,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use prometheus_client::metrics::gauge::Gauge;
-use sf_job::WorkerId;
+use sf_job::{JobId, WorkerId};
 use sf_service::sync::lock;
 
 use crate::error::LearnerError;
@@ -27,7 +27,7 @@ struct WorkerInfo {
     /// It runs evaluation cells with the IDM driver in the ego's seat.
     runs_idm_ego: bool,
     /// The training job it was last assigned, until it is moved or asks again.
-    job: Option<u64>,
+    job: Option<JobId>,
 }
 
 /// Registered workers, forgotten after `timeout` without a call.
@@ -93,7 +93,7 @@ impl Workers {
     /// Gives worker `id` the job among `jobs` (the running training jobs that take workers)
     /// with the fewest other live workers, the lowest id among equals; `None` (and no job
     /// recorded) when there is none.
-    pub fn assign(&self, id: WorkerId, jobs: &[u64]) -> Option<u64> {
+    pub fn assign(&self, id: WorkerId, jobs: &[JobId]) -> Option<JobId> {
         let mut w = lock(&self.map);
         let loads = loads(&w, jobs, Some(id));
         let pick = least_loaded(&loads);
@@ -107,7 +107,7 @@ impl Workers {
     /// the workers per job: when `job` holds more than one worker above the least served job.
     /// If so the worker is recorded on the job it should take at once (so that its fellows on
     /// `job` stay) and that job is returned.
-    pub fn rebalance(&self, id: WorkerId, job: u64, jobs: &[u64]) -> Option<u64> {
+    pub fn rebalance(&self, id: WorkerId, job: JobId, jobs: &[JobId]) -> Option<JobId> {
         let mut w = lock(&self.map);
         let info = w.get_mut(&id)?;
         if info.job != Some(job) {
@@ -126,15 +126,15 @@ impl Workers {
         }
         tracing::info!(
             worker_id = id.get(),
-            from = job,
-            to,
+            from = job.get(),
+            to = to.get(),
             "worker moves to even out the running jobs"
         );
         Some(to)
     }
 
     /// Live workers per job of `jobs`.
-    pub fn per_job(&self, jobs: &[u64]) -> BTreeMap<u64, usize> {
+    pub fn per_job(&self, jobs: &[JobId]) -> BTreeMap<JobId, usize> {
         loads(&lock(&self.map), jobs, None)
     }
 
@@ -161,10 +161,10 @@ impl Workers {
 /// Workers per job of `jobs` (every one listed, zero included), `except` not counted.
 fn loads(
     w: &HashMap<WorkerId, WorkerInfo>,
-    jobs: &[u64],
+    jobs: &[JobId],
     except: Option<WorkerId>,
-) -> BTreeMap<u64, usize> {
-    let mut n: BTreeMap<u64, usize> = jobs.iter().map(|&j| (j, 0)).collect();
+) -> BTreeMap<JobId, usize> {
+    let mut n: BTreeMap<JobId, usize> = jobs.iter().map(|&j| (j, 0)).collect();
     for job in w.iter().filter(|(wid, _)| Some(**wid) != except).filter_map(|(_, i)| i.job) {
         if let Some(c) = n.get_mut(&job) {
             *c += 1;
@@ -174,7 +174,7 @@ fn loads(
 }
 
 /// The job with the fewest workers, the lowest id among equals.
-fn least_loaded(loads: &BTreeMap<u64, usize>) -> Option<u64> {
+fn least_loaded(loads: &BTreeMap<JobId, usize>) -> Option<JobId> {
     loads.iter().min_by_key(|(&j, &n)| (n, j)).map(|(&j, _)| j)
 }
 
@@ -210,26 +210,27 @@ mod tests {
     fn workers_spread_over_running_jobs_and_move_when_a_job_starts_or_ends() {
         let w = Workers::new(1, Duration::from_secs(60), Gauge::default());
         let ids: Vec<WorkerId> = (0..3).map(|k| w.register(&format!("w{k}"), false)).collect();
+        let (j10, j11) = (JobId::new(10), JobId::new(11));
         // One job: everyone on it.
         for &id in &ids {
-            assert_eq!(w.assign(id, &[10]), Some(10));
+            assert_eq!(w.assign(id, &[j10]), Some(j10));
         }
-        assert_eq!(w.per_job(&[10]), BTreeMap::from([(10, 3)]));
+        assert_eq!(w.per_job(&[j10]), BTreeMap::from([(j10, 3)]));
         // A second job starts: the first sender moves, the next ones stay (3 vs 0 -> 2 vs 1).
-        assert_eq!(w.rebalance(ids[0], 10, &[10, 11]), Some(11), "3 on 10, 0 on 11");
-        assert_eq!(w.rebalance(ids[1], 10, &[10, 11]), None, "2 on 10, 1 moving to 11");
-        assert_eq!(w.rebalance(ids[2], 10, &[10, 11]), None);
-        assert_eq!(w.assign(ids[0], &[10, 11]), Some(11), "the mover takes the empty job");
-        assert_eq!(w.per_job(&[10, 11]), BTreeMap::from([(10, 2), (11, 1)]));
+        assert_eq!(w.rebalance(ids[0], j10, &[j10, j11]), Some(j11), "3 on 10, 0 on 11");
+        assert_eq!(w.rebalance(ids[1], j10, &[j10, j11]), None, "2 on 10, 1 moving to 11");
+        assert_eq!(w.rebalance(ids[2], j10, &[j10, j11]), None);
+        assert_eq!(w.assign(ids[0], &[j10, j11]), Some(j11), "the mover takes the empty job");
+        assert_eq!(w.per_job(&[j10, j11]), BTreeMap::from([(j10, 2), (j11, 1)]));
         // Job 10 ends: its workers ask again and both land on 11.
-        assert_eq!(w.assign(ids[1], &[11]), Some(11));
-        assert_eq!(w.assign(ids[2], &[11]), Some(11));
-        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 3)]));
+        assert_eq!(w.assign(ids[1], &[j11]), Some(j11));
+        assert_eq!(w.assign(ids[2], &[j11]), Some(j11));
+        assert_eq!(w.per_job(&[j11]), BTreeMap::from([(j11, 3)]));
         // Nothing runs: nothing is assigned.
         assert_eq!(w.assign(ids[0], &[]), None);
-        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 2)]));
+        assert_eq!(w.per_job(&[j11]), BTreeMap::from([(j11, 2)]));
         // A batch for a job the worker was not recorded on (a session from before): recorded.
-        assert_eq!(w.rebalance(ids[0], 11, &[11]), None);
-        assert_eq!(w.per_job(&[11]), BTreeMap::from([(11, 3)]));
+        assert_eq!(w.rebalance(ids[0], j11, &[j11]), None);
+        assert_eq!(w.per_job(&[j11]), BTreeMap::from([(j11, 3)]));
     }
 }

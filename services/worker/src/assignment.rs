@@ -63,7 +63,7 @@ pub fn load_job(
     asg: &Assignment,
 ) -> anyhow::Result<(JobConfig, Vec<Arc<Map>>)> {
     let job = JobConfig::from_toml(&asg.config_toml).context("job config in the assignment")?;
-    tracing::info!(worker_id = worker_id.get(), job_id = asg.job_id, scenarios = ?job.env.scenarios, policy_version = asg.policy_version, warmup = asg.warmup, "assignment");
+    tracing::info!(worker_id = worker_id.get(), job_id = asg.job_id.get(), scenarios = ?job.env.scenarios, policy_version = asg.policy_version.get(), warmup = asg.warmup, "assignment");
     let maps = job
         .env
         .scenarios

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use sf_job::eval::EvalWork;
-use sf_job::{PolicyRequest, WorkerId};
+use sf_job::{JobId, PolicyRequest, WorkerId};
 use sf_proto::pb;
 use sf_rollout::evaluate::{self, CellSize, Runners};
 use tonic::Code;
@@ -28,7 +28,7 @@ type Maps = BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>;
 pub struct Cells {
     scenarios_dir: std::path::PathBuf,
     cases_dir: std::path::PathBuf,
-    weights: HashMap<u64, Arc<Vec<u8>>>,
+    weights: HashMap<JobId, Arc<Vec<u8>>>,
     /// Taken by the blocking task while a cell runs.
     state: Option<(Runners, Maps)>,
 }
@@ -112,13 +112,13 @@ impl Cells {
                 (eps.iter().map(sf_proto::eval_episode_to_wire).collect::<Vec<_>>(), String::new())
             }
             Err(e) => {
-                tracing::error!(job_id = w.job_id, cell = %w.cell.key(), error = %e, "evaluation cell could not run");
+                tracing::error!(job_id = w.job_id.get(), cell = %w.cell.key(), error = %e, "evaluation cell could not run");
                 (Vec::new(), e.to_string())
             }
         };
         let n = episodes.len() as u64;
         let msg = pb::EvalResults {
-            job_id: w.job_id,
+            job_id: w.job_id.get(),
             worker_id: worker_id.get(),
             cell_id: w.cell_id,
             episodes,
@@ -129,7 +129,7 @@ impl Cells {
             // The job ended (finished by others, cancelled, failed): ask for the next assignment.
             Err(s) if s.code() == Code::FailedPrecondition => {
                 metrics.common.rpc("PushEvalResults", s.code());
-                tracing::info!(job_id = w.job_id, reason = s.message(), "evaluation ended");
+                tracing::info!(job_id = w.job_id.get(), reason = s.message(), "evaluation ended");
                 return Ok(());
             }
             Err(s) => return Err(status_err("PushEvalResults", s, metrics)),
@@ -137,7 +137,7 @@ impl Cells {
         metrics.common.rpc("PushEvalResults", Code::Ok);
         metrics.eval_cells.inc();
         metrics.episodes.inc_by(n);
-        tracing::info!(job_id = w.job_id, cell = %w.cell.key(), episodes = n, stored = ack.stored, secs = started.elapsed().as_secs_f64(), "evaluation cell");
+        tracing::info!(job_id = w.job_id.get(), cell = %w.cell.key(), episodes = n, stored = ack.stored, secs = started.elapsed().as_secs_f64(), "evaluation cell");
         Ok(())
     }
 }

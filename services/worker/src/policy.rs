@@ -9,7 +9,7 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use sf_job::{Frozen, FrozenRole, JobConfig, PolicyRequest, WorkerId};
+use sf_job::{Frozen, FrozenRole, JobConfig, JobId, PolicyRequest, PolicyVersion, WorkerId};
 use sf_proto::pb;
 use tonic::Code;
 
@@ -41,7 +41,7 @@ impl FrozenPolicies {
                 .map_err(|s| status_err("GetPolicy", s, metrics))?
                 .into_inner();
             metrics.common.rpc("GetPolicy", Code::Ok);
-            tracing::info!(worker_id = worker_id.get(), frozen_job = f.job_id, role = ?f.role, version = p.version, "frozen policy");
+            tracing::info!(worker_id = worker_id.get(), frozen_job = f.job_id.get(), role = ?f.role, version = p.version, "frozen policy");
             policies.push((f.role, fj, p.weights));
         }
         Ok(Self(policies))
@@ -55,9 +55,9 @@ impl FrozenPolicies {
 /// The training job's own policy: the version this worker holds and the latest weights.
 pub struct PolicyClient<'a> {
     client: Client,
-    job_id: u64,
+    job_id: JobId,
     /// The version last fetched after an acknowledgement (at first the assignment's).
-    held_version: u64,
+    held_version: PolicyVersion,
     rpc_timeout: Duration,
     metrics: &'a WorkerMetrics,
 }
@@ -65,20 +65,20 @@ pub struct PolicyClient<'a> {
 impl<'a> PolicyClient<'a> {
     pub fn new(
         client: &Client,
-        job_id: u64,
-        held_version: u64,
+        job_id: JobId,
+        held_version: PolicyVersion,
         rpc_timeout: Duration,
         metrics: &'a WorkerMetrics,
     ) -> Self {
         Self { client: client.clone(), job_id, held_version, rpc_timeout, metrics }
     }
 
-    pub fn job_id(&self) -> u64 {
+    pub fn job_id(&self) -> JobId {
         self.job_id
     }
 
     /// The latest weights `(version, bytes)`. Does not change the held version.
-    pub async fn latest(&self) -> anyhow::Result<(u64, Vec<u8>)> {
+    pub async fn latest(&self) -> anyhow::Result<(PolicyVersion, Vec<u8>)> {
         let mut c = self.client.clone();
         let p = c
             .get_policy(req(
@@ -90,15 +90,15 @@ impl<'a> PolicyClient<'a> {
             .into_inner();
         self.metrics.common.rpc("GetPolicy", Code::Ok);
         self.metrics.policy_fetches.inc();
-        Ok((p.version, p.weights))
+        Ok((PolicyVersion::from(p.version), p.weights))
     }
 
     /// After an acknowledgement: out of the warm-up, a newer version than the one held (or the
     /// first weights) is fetched and acts at once; otherwise the weights the rollout holds act.
     pub async fn follow(&mut self, ack: &pb::PushAck, rollout: &Rollout) -> anyhow::Result<()> {
         let warm = ack.warmup;
-        let need =
-            !warm && (ack.latest_policy_version > self.held_version || !rollout.has_policy());
+        let latest = PolicyVersion::from(ack.latest_policy_version);
+        let need = !warm && (latest > self.held_version || !rollout.has_policy());
         if need {
             let (v, w) = self.latest().await?;
             self.held_version = v;

@@ -22,7 +22,9 @@ use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_job::config::{JobKind, WarmupPolicy};
-use sf_job::{ActedBy, Assignment, FrozenRole, JobConfig, TransitionBatch, WorkerId};
+use sf_job::{
+    ActedBy, Assignment, FrozenRole, JobConfig, JobId, PolicyVersion, TransitionBatch, WorkerId,
+};
 use sf_nn::device::Device;
 use sf_proto::pb;
 use sf_rollout::drive::{self, Actor};
@@ -42,7 +44,7 @@ const STREAM_CLOSED: &str = "the transition stream closed";
 pub struct Control {
     pub warmup: bool,
     /// Latest weights `(version, bytes)`; the thread rebuilds its actor when the version changes.
-    pub policy: Option<(u64, Vec<u8>)>,
+    pub policy: Option<(PolicyVersion, Vec<u8>)>,
     pub stop: bool,
 }
 
@@ -56,7 +58,7 @@ pub struct RolloutSpec {
     /// The job's scenarios in config order (index = map id).
     pub maps: Vec<Arc<Map>>,
     pub worker_id: WorkerId,
-    pub job_id: u64,
+    pub job_id: JobId,
     pub seed: u64,
     pub obs_len: usize,
     pub threads: usize,
@@ -107,7 +109,7 @@ impl Rollout {
     pub fn start(
         spec: RolloutSpec,
         warmup: bool,
-        policy: Option<(u64, Vec<u8>)>,
+        policy: Option<(PolicyVersion, Vec<u8>)>,
         in_flight_batches: u32,
         metrics: &WorkerMetrics,
     ) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
@@ -134,7 +136,7 @@ impl Rollout {
     }
 
     /// New weights, acting at once (the warm-up is over).
-    pub fn act_with(&self, version: u64, weights: Vec<u8>) {
+    pub fn act_with(&self, version: PolicyVersion, weights: Vec<u8>) {
         let mut c = lock(&self.control);
         c.policy = Some((version, weights));
         c.warmup = false;
@@ -269,7 +271,7 @@ fn rollout(
                 PolicyRunner::from_bytes(&net, &obs_spec, sim.dt_s, &seg_refs, &bytes, v, &device)
                     .with_context(|| format!("loading policy version {v}"))?,
             );
-            metrics.policy_version.set(v as i64);
+            metrics.policy_version.set(v.get() as i64);
         }
         let acting = match (&runner, warmup) {
             (Some(r), false) => Some(r),
@@ -283,7 +285,8 @@ fn rollout(
             std::thread::sleep(Duration::from_millis(20));
             continue;
         };
-        let acted_by = acting.map_or(ActedBy::Warmup, |r| sf_proto::acted_by_from_wire(r.version));
+        let acted_by =
+            acting.map_or(ActedBy::Warmup, |r| sf_proto::acted_by_from_wire(r.version.get()));
         if writer.stamp(acted_by)?.is_break() {
             return Ok(());
         }
@@ -394,9 +397,16 @@ impl FrozenRunners {
                 "frozen {role:?} policy observations are {} floats, the job's {len}",
                 fz.obs.len
             );
-            let runner =
-                PolicyRunner::from_bytes(&fz.net, obs_spec, dt_s, seg_refs, bytes, 0, device)
-                    .with_context(|| format!("loading the frozen {role:?} policy"))?;
+            let runner = PolicyRunner::from_bytes(
+                &fz.net,
+                obs_spec,
+                dt_s,
+                seg_refs,
+                bytes,
+                PolicyVersion::new(0),
+                device,
+            )
+            .with_context(|| format!("loading the frozen {role:?} policy"))?;
             *match role {
                 FrozenRole::Background => &mut runners.background,
                 FrozenRole::Ego => &mut runners.ego,

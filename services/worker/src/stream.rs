@@ -57,7 +57,7 @@ pub async fn stream(
             }
             Err(s) if s.code() == Code::FailedPrecondition => {
                 metrics.common.rpc("PushTransitions", s.code());
-                tracing::info!(job_id = policy.job_id(), reason = s.message(), "job ended");
+                tracing::info!(job_id = policy.job_id().get(), reason = s.message(), "job ended");
                 return Ok(SessionEnd::JobEnded);
             }
             Err(s) => return Err(status_err("PushTransitions", s, metrics)),

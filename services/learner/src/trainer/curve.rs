@@ -61,7 +61,7 @@ impl CurveRecorder {
         &mut self,
         job: &ActiveJob,
         last_loss: &Losses,
-        version: u64,
+        version: sf_job::PolicyVersion,
         st: &mut TrainState,
         tb: &mut Option<EventWriter>,
     ) {
@@ -124,11 +124,11 @@ impl CurveRecorder {
             ("rate/updates_per_s", updates_per_s),
             ("rate/transitions_per_s", transitions_per_s),
             ("policy/lag_versions", lag),
-            ("policy/version", version as f64),
+            ("policy/version", version.get() as f64),
             ("policy/dropped_stale", progress.dropped_stale as f64),
         ];
         if let Err(e) = w.scalars(p.env_steps, &scalars) {
-            tracing::warn!(job_id = job.id, error = %e, "writing TensorBoard events; no more for this run");
+            tracing::warn!(job_id = job.id.get(), error = %e, "writing TensorBoard events; no more for this run");
             *tb = None;
         }
     }

@@ -198,7 +198,7 @@ mod tests {
         let (tx, rx) = mpsc::channel(8);
         let metrics = WorkerMetrics::register(&mut Registry::default());
         let w = TransitionWriter::new(
-            TransitionBatch::new(7, 3.into(), 2, 1),
+            TransitionBatch::new(7.into(), 3.into(), 2, 1),
             NStep::new(1, 0.9),
             full_at,
             Arc::clone(&control),
