@@ -11,87 +11,64 @@ use std::fmt;
 
 use serde::{Deserialize, Serialize};
 
-/// A worker, as the learner that registered it numbers it (ids are issued once per learner
-/// start).
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
-)]
-#[serde(transparent)]
-pub struct WorkerId(u64);
+/// A `u64` newtype that crosses processes: serialised as the bare number, `new`, `get` (for
+/// the wire, the store's keys, logs and metrics), `From<u64>` and `Display`.
+macro_rules! typed_id {
+    ($(#[$doc:meta])* $name:ident) => {
+        $(#[$doc])*
+        #[derive(
+            Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
+        )]
+        #[serde(transparent)]
+        pub struct $name(u64);
 
-impl WorkerId {
-    pub const fn new(id: u64) -> Self {
-        Self(id)
-    }
+        impl $name {
+            pub const fn new(id: u64) -> Self {
+                Self(id)
+            }
 
-    /// The number, for the wire, logs and metrics.
-    pub const fn get(self) -> u64 {
-        self.0
-    }
+            /// The number, for the wire, the store's keys, files, logs and metrics.
+            pub const fn get(self) -> u64 {
+                self.0
+            }
+        }
+
+        impl From<u64> for $name {
+            fn from(id: u64) -> Self {
+                Self(id)
+            }
+        }
+
+        impl fmt::Display for $name {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                self.0.fmt(f)
+            }
+        }
+    };
 }
 
-impl From<u64> for WorkerId {
-    fn from(id: u64) -> Self {
-        Self(id)
-    }
-}
+typed_id!(
+    /// A worker, as the learner that registered it numbers it (ids are issued once per learner
+    /// start).
+    WorkerId
+);
 
-impl fmt::Display for WorkerId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        self.0.fmt(f)
-    }
-}
+typed_id!(
+    /// A job, as the learner that accepted it numbers it (ids start at 1 and are never reused by
+    /// a job store; they name job directories, `jobs/<id>-<name>`, and dependencies in job
+    /// configs).
+    JobId
+);
 
-/// A job, as the learner that accepted it numbers it (ids start at 1 and are never reused by a
-/// job store; they name job directories, `jobs/<id>-<name>`, and dependencies in job configs).
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
-)]
-#[serde(transparent)]
-pub struct JobId(u64);
-
-impl JobId {
-    pub const fn new(id: u64) -> Self {
-        Self(id)
-    }
-
-    /// The number, for the wire, the store's keys, logs and metrics.
-    pub const fn get(self) -> u64 {
-        self.0
-    }
-}
-
-impl From<u64> for JobId {
-    fn from(id: u64) -> Self {
-        Self(id)
-    }
-}
-
-impl fmt::Display for JobId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        self.0.fmt(f)
-    }
-}
-
-/// A published policy's version: a job's counter of published actor weights. Published versions
-/// start at 1; 0 (the default) is a job that has published none yet, and on the wire the
-/// warm-up's actions or "the latest policy" ([`crate::ActedBy`], [`crate::PolicyRequest`]).
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
-)]
-#[serde(transparent)]
-pub struct PolicyVersion(u64);
+typed_id!(
+    /// A published policy's version: a job's counter of published actor weights. Published
+    /// versions start at 1; 0 (the default) is a job that has published none yet, and on the
+    /// wire the warm-up's actions or "the latest policy" ([`crate::ActedBy`],
+    /// [`crate::PolicyRequest`]).
+    PolicyVersion
+);
 
 impl PolicyVersion {
-    pub const fn new(version: u64) -> Self {
-        Self(version)
-    }
-
-    /// The number, for the wire, files, logs and metrics.
-    pub const fn get(self) -> u64 {
-        self.0
-    }
-
     /// The version published after this one.
     #[must_use]
     pub const fn next(self) -> Self {
@@ -101,18 +78,6 @@ impl PolicyVersion {
     /// Policy lag: how many versions `older` is behind this one (0 if it is not behind).
     pub const fn lag_of(self, older: Self) -> u64 {
         self.0.saturating_sub(older.0)
-    }
-}
-
-impl From<u64> for PolicyVersion {
-    fn from(version: u64) -> Self {
-        Self(version)
-    }
-}
-
-impl fmt::Display for PolicyVersion {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        self.0.fmt(f)
     }
 }
 
