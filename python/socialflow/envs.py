@@ -35,7 +35,15 @@ def _check_actions(actions, n, dim):
 
 
 class EgoEnv(gym.Env):
-    """One simulator; Python drives the ego. Observations: a dict of the observation blocks
+    """`make_ego(scenario, flow, vehicles, ...)`: the ego's seat in `scenario` (one of
+    `socialflow.SCENARIOS`) among `flow` (`"idm"` or a trained flow's job directory),
+    `vehicles` a count or a `(min, max)` range per episode. `action`: `"direct"` unless given;
+    `obs_format`: `"dict"` of blocks or the `"flat"` row; `conflict_share`: the share of
+    episodes drawn as conflict cases (the scenario's default unless given);
+    `policy=socialflow.load_policy(...)`: observe and act as that trained policy does (its
+    layout, observation caps and action).
+
+    One simulator; Python drives the ego. Observations: a dict of the observation blocks
     (`obs_format="dict"`, masks included) or the flat row (`"flat"`). Actions in [-1, 1]:
     `direct` (the paper's `[reference speed, steer]`), `idm-residual`, `idm-accel-residual`
     (one number moving the IDM driver's acceleration: 0 drives exactly like IDM) or
@@ -122,7 +130,8 @@ class EgoEnv(gym.Env):
 
 
 class EgoVectorEnv(VectorEnv):
-    """`num_envs` simulators of one scenario stepped together in Rust (rayon threads), one
+    """`make_ego_vec(num_envs, scenario, ...)`: `num_envs` ego seats (the other arguments as
+    `make_ego`'s), simulators of one scenario stepped together in Rust (rayon threads), one
     call per step for all of them: observations, rewards and flags come back as NumPy arrays.
     Finished episodes restart at once (Gymnasium's same-step autoreset): `infos["final_obs"]`
     holds the last observation of the simulators flagged in `infos["_final_obs"]`.
@@ -192,46 +201,7 @@ class EgoVectorEnv(VectorEnv):
         return self._core.render(0)
 
 
-def make_ego(
-    scenario: str = "merge",
-    flow: Flow = "idm",
-    vehicles: Vehicles = (8, 20),
-    layout: Optional[Layout] = None,
-    action: Optional[Action] = None,
-    obs_format: ObsFormat = "dict",
-    conflict_share: Optional[float] = None,
-    render_mode: RenderMode = None,
-    seed: Seed = 0,
-    policy: Optional["_socialflow.Policy"] = None,
-) -> EgoEnv:
-    """The ego's seat in `scenario` (one of `socialflow.SCENARIOS`) among `flow` (`"idm"` or a
-    trained flow's job directory), `vehicles` a count or a `(min, max)` range per episode.
-    `action`: `"direct"` unless given; `obs_format`: `"dict"` of blocks or the `"flat"` row;
-    `conflict_share`: the share of episodes drawn as conflict cases (the scenario's default
-    unless given); `policy=socialflow.load_policy(...)`: observe and act as that trained
-    policy does (its layout, observation caps and action). See `EgoEnv`."""
-    return EgoEnv(
-        scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action, obs_format=obs_format,
-        conflict_share=conflict_share, render_mode=render_mode, seed=seed, policy=policy,
-    )
-
-
-def make_ego_vec(
-    num_envs: int = 8,
-    scenario: str = "merge",
-    flow: Flow = "idm",
-    vehicles: Vehicles = (8, 20),
-    layout: Optional[Layout] = None,
-    action: Optional[Action] = None,
-    obs_format: ObsFormat = "dict",
-    conflict_share: Optional[float] = None,
-    render_mode: RenderMode = None,
-    seed: Seed = 0,
-    policy: Optional["_socialflow.Policy"] = None,
-) -> EgoVectorEnv:
-    """`num_envs` ego seats stepped together in Rust (see `EgoVectorEnv`; the arguments as
-    `make_ego`'s)."""
-    return EgoVectorEnv(
-        num_envs=num_envs, scenario=scenario, flow=flow, vehicles=vehicles, layout=layout, action=action,
-        obs_format=obs_format, conflict_share=conflict_share, render_mode=render_mode, seed=seed, policy=policy,
-    )
+# The factories are the classes themselves, so their keyword lists cannot drift from the
+# constructors' (and IDEs show the constructors' signatures and docs).
+make_ego = EgoEnv
+make_ego_vec = EgoVectorEnv

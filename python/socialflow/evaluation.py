@@ -13,7 +13,7 @@ from . import _socialflow
 from ._common import Action, Flow, Layout, ObsFormat, PathLike, check_choice, flow_arg
 from .envs import split_obs
 
-EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision")
+EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision", "lane_change")
 _GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_deg", "experiment", "ego"}
 
 
@@ -118,16 +118,16 @@ def evaluate(
     if not callable(policy):
         raise ValueError(f"policy: {policy!r} is not callable")
     check_choice("obs_format", obs_format, ("flat", "dict"))
-    loaded = isinstance(policy, _socialflow.Policy)
-    if isinstance(policy, _socialflow.Policy):
-        # A job's actor (`load_policy`) drives in Rust with its own action and layout.
-        if action not in ("direct", policy.action):
-            raise ValueError(f"action: {action!r} given, but the policy drives with {policy.action!r}")
-        if layout not in (None, policy.layout):
-            raise ValueError(f"layout: {layout!r} given, but the policy reads {policy.layout!r}")
+    # A job's actor (`load_policy`) drives in Rust with its own action and layout.
+    loaded = policy if isinstance(policy, _socialflow.Policy) else None
+    if loaded is not None:
+        if action not in ("direct", loaded.action):
+            raise ValueError(f"action: {action!r} given, but the policy drives with {loaded.action!r}")
+        if layout not in (None, loaded.layout):
+            raise ValueError(f"layout: {layout!r} given, but the policy reads {loaded.layout!r}")
         if obs_format != "flat":
             raise ValueError("obs_format: a loaded policy reads flat observations")
-        action, layout = cast(Action, policy.action), cast(Layout, policy.layout)
+        action, layout = cast(Action, loaded.action), cast(Layout, loaded.layout)
     g, flow_map, scenario_list = _grid(grid, {"cases": cases, "seeds": seeds, "envs": envs, "scenarios": scenarios, "flows": flows})
     n_cases, n_seeds, n_envs = int(g.get("cases", 200)), int(g.get("seeds", 10)), int(g.get("envs", 16))
     vehicles, svo = g.get("vehicles"), g.get("svo_deg")
@@ -146,10 +146,10 @@ def evaluate(
                 a = np.ascontiguousarray(np.asarray(_call(obs), dtype=np.float32))
                 return a.reshape(len(obs), -1) if a.ndim == 1 else a
 
-            rows = _socialflow.evaluate(policy if loaded else wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
+            rows = _socialflow.evaluate(loaded if loaded is not None else wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
             mine = [
-                dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision)))
-                for case, seed, success, safety, speed, collision in rows
+                dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision, lane_change)))
+                for case, seed, success, safety, speed, collision, lane_change in rows
             ]
             result.rows.extend(mine)
             s = {"flow": name, "scenario": scenario, "episodes": len(mine)}

@@ -17,6 +17,10 @@ TERMINATIONS = tuple(_socialflow.terminations())
 
 
 class FlowParallelEnv(ParallelEnv):
+    """`make_flow(scenario, vehicles, ...)`: a whole flow of `scenario` with every vehicle an
+    agent (a PettingZoo ParallelEnv); `reward`: each agent's own reward (`"individual"`) or
+    the SVO-composed one (`"composed"`)."""
+
     metadata = {"name": "socialflow_flow_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
     def __init__(
@@ -95,19 +99,5 @@ class FlowParallelEnv(ParallelEnv):
         return self._core.render(0)
 
 
-def make_flow(
-    scenario: str = "roundabout",
-    vehicles: Vehicles = (8, 20),
-    layout: Optional[Layout] = None,
-    action: Action = "direct",
-    reward: Literal["individual", "composed"] = "composed",
-    obs_format: ObsFormat = "dict",
-    render_mode: RenderMode = None,
-    seed: Seed = 0,
-) -> "FlowParallelEnv":
-    """A whole flow of `scenario` with every vehicle an agent (see `FlowParallelEnv`);
-    `reward`: each agent's own reward or the SVO-composed one."""
-    return FlowParallelEnv(
-        scenario=scenario, vehicles=vehicles, layout=layout, action=action, reward=reward, obs_format=obs_format,
-        render_mode=render_mode, seed=seed,
-    )
+# The factory is the class itself, so its keyword list cannot drift from the constructor's.
+make_flow = FlowParallelEnv

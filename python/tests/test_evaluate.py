@@ -66,10 +66,11 @@ def test_direct_policy_and_dict_observations(tmp_path):
 
     res = socialflow.evaluate(brake, flows=["idm"], scenarios=["merge"], cases=4, seeds=1, obs_format="dict")
     assert len(res.rows) == 4 and seen and len(seen[0]) == 3
-    # A car that never moves never succeeds.
-    assert all(r["success"] == 0.0 for r in res.rows)
+    # A car that never moves never succeeds, nor leaves its lane.
+    assert all(r["success"] == 0.0 and r["lane_change"] == 0.0 for r in res.rows)
     res.to_csv(tmp_path / "episodes.csv")
-    assert (tmp_path / "episodes.csv").read_text().startswith("experiment,ego,flow,scenario,svo_deg,vehicles,case,seed")
+    header = (tmp_path / "episodes.csv").read_text().splitlines()[0]
+    assert header == "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change"
 
 
 def test_bad_policy_and_grid():

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use sf_sim::config::MessageProbe;
 
-use crate::{Frozen, JobId};
+use crate::{CellId, Frozen, JobId};
 
 /// A config that is not a valid evaluation grid; the message names the field.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -90,10 +90,12 @@ pub struct Adversary {
     pub flows: Vec<String>,
 }
 
-/// GIFs of the same stored case with one ego under several flows, side by side.
+/// GIFs of the same stored case with one ego under several flows, side by side; with no `ego`
+/// (or `ego = ""`), each flow alone, driving every vehicle (as flow quality runs it).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Gifs {
+    #[serde(default, skip_serializing_if = "String::is_empty")]
     pub ego: String,
     pub flows: Vec<String>,
     pub scenarios: Vec<String>,
@@ -243,6 +245,10 @@ pub struct EvalEpisode {
     pub seed: u32,
     pub scores: sf_sim::Scores,
     pub collision: f32,
+    /// The share of the scored agents that left their route's lane at some point (a lane
+    /// change, a cut-in, or drifting out of it); `None` where it was not recorded (results
+    /// written before it was, and Python's `evaluate`).
+    pub lane_change: Option<f32>,
 }
 
 impl EvalEpisode {
@@ -253,6 +259,7 @@ impl EvalEpisode {
             ("safety", self.scores.safety),
             ("speed", self.scores.speed),
             ("collision", self.collision),
+            ("lane_change", self.lane_change.unwrap_or(0.0)),
         ] {
             if !(0.0..=1.0).contains(&value) {
                 return Err(MetricRangeError { case: self.case, seed: self.seed, metric, value });
@@ -267,7 +274,7 @@ impl EvalEpisode {
 pub struct EvalWork {
     pub job_id: JobId,
     /// The cell's index in the job's grid; results name it.
-    pub cell_id: u64,
+    pub cell_id: CellId,
     pub cell: Cell,
     pub cases: u32,
     pub seeds: u32,
@@ -419,7 +426,9 @@ impl EvalConfig {
         }
         if let Some(g) = &e.gifs {
             need_flows.extend(g.flows.iter().map(|f| ("experiments.gifs.flows", f)));
-            need_egos.push(("experiments.gifs.ego", &g.ego));
+            if !g.ego.is_empty() {
+                need_egos.push(("experiments.gifs.ego", &g.ego));
+            }
         }
         if let Some(a) = &e.adversary {
             need_flows.extend(a.flows.iter().map(|f| ("experiments.adversary.flows", f)));
@@ -593,6 +602,31 @@ mod tests {
         assert!(is_eval_toml(BASE));
         assert!(!is_eval_toml("name = \"x\"\nkind = \"ego\"\n"));
         assert!(!is_eval_toml("not toml ["));
+    }
+
+    /// GIFs name an ego of the grid, or none (each flow alone); a misspelt ego is refused.
+    #[test]
+    fn gifs_take_an_ego_of_the_grid_or_none() {
+        let gifs = |ego: &str| {
+            format!(
+                "{BASE}gifs = {{ {ego}flows = [\"IDM\"], scenarios = [\"merge\"], case = 3 }}\n"
+            )
+        };
+        let alone = EvalConfig::from_toml(&gifs("")).expect("flows alone");
+        let g = alone.experiments.gifs.as_ref().expect("gifs");
+        assert_eq!((g.ego.as_str(), g.case), ("", 3));
+        assert!(!alone.to_toml().contains("ego = \"\""), "an absent ego stays absent");
+        assert_eq!(
+            EvalConfig::from_toml(&gifs("ego = \"E\", "))
+                .expect("an ego")
+                .experiments
+                .gifs
+                .expect("gifs")
+                .ego,
+            "E"
+        );
+        let e = EvalConfig::from_toml(&gifs("ego = \"F\", ")).expect_err("unknown ego");
+        assert!(e.0.contains("experiments.gifs.ego") && e.0.contains("`F`"), "{e}");
     }
 
     #[test]

@@ -2,7 +2,8 @@
 //!
 //! Owns: [`WorkerId`], the number a learner gives a worker when it registers, [`JobId`], the
 //! number a learner gives a job when it accepts it, and [`PolicyVersion`], a job's counter of
-//! published actor weights, each as a type of its own, so that one cannot be passed where
+//! published actor weights, and [`CellId`], a cell's place in an evaluation job's grid, each as
+//! a type of its own, so that one cannot be passed where
 //! another is meant. Stored and written as the bare number (`serde(transparent)`), so files and
 //! the wire format stay as they were.
 //! Must not: know the wire format: the gRPC edges convert (`From<u64>` and `get`).
@@ -68,6 +69,24 @@ typed_id!(
     PolicyVersion
 );
 
+typed_id!(
+    /// A cell of an evaluation job: its index in the job's list of cells
+    /// ([`crate::eval::EvalConfig::cells`]), which a worker's results name.
+    CellId
+);
+
+impl CellId {
+    /// The cell at `index` of the grid's list.
+    pub fn of_index(index: usize) -> Self {
+        Self(index as u64)
+    }
+
+    /// Its index in the grid's list of cells, if this platform can hold it.
+    pub fn index(self) -> Option<usize> {
+        usize::try_from(self.0).ok()
+    }
+}
+
 impl PolicyVersion {
     /// The version published after this one.
     #[must_use]
@@ -109,6 +128,15 @@ mod tests {
         let t = Train { init_job: Some(JobId::new(3)) };
         assert_eq!(toml::to_string(&t).expect("toml"), "init_job = 3\n");
         assert_eq!(toml::from_str::<Train>("init_job = 3").expect("toml"), t);
+    }
+
+    /// A cell id is its index in the grid's list, written as the bare number.
+    #[test]
+    fn a_cell_id_is_its_index() {
+        let c = CellId::of_index(5);
+        assert_eq!((c.get(), c.index(), c.to_string()), (5, Some(5), "5".to_string()));
+        assert_eq!(serde_json::to_string(&c).expect("json"), "5");
+        assert_eq!(serde_json::from_str::<CellId>("5").expect("json"), c);
     }
 
     /// A policy version is written as its bare number (`state.json`, `policy.json`, progress),

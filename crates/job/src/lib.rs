@@ -20,7 +20,7 @@ pub use batch::{
     ActedBy, BatchError, Ends, EpisodeResult, PolicyRequest, Transition, TransitionBatch,
 };
 pub use config::{ConfigError, DepRole, JobConfig};
-pub use ids::{JobId, PolicyVersion, WorkerId};
+pub use ids::{CellId, JobId, PolicyVersion, WorkerId};
 pub use spec::{JobSpec, SpecError};
 
 use serde::{Deserialize, Serialize};

@@ -24,7 +24,6 @@ use sf_embedded::{runtime, Ctx, Embedded};
 use sf_job::{JobConfig, JobState};
 use sf_rollout::drive::{self, Actor, Drivers};
 use sf_rollout::evaluate::{EgoDef, FlowDef, Policy, Runners};
-use sf_rollout::setup;
 use sf_service::client::{list, submit};
 use sf_sim::env::{Controller, Mode};
 use sf_sim::metrics::EpisodeMetrics;
@@ -505,7 +504,7 @@ fn evaluate(
         bail!("eval.cases: {n} exceeds the {} stored cases of {}", cases.cases.len(), map.name);
     }
     let sim = Arc::new(match policy {
-        Some(p) => setup::resolve(&p.cfg, None).sim,
+        Some(p) => p.resolved().sim.clone(),
         None => SimConfig::default(),
     });
     let runner =
@@ -590,7 +589,7 @@ fn render_gifs(
         let suffix = if policy.is_some() { "" } else { "-idm" };
         let path = dir.join(format!("gif-{}-case-{c}{suffix}.gif", map.name));
         sf_rollout::evaluate::render_gif(
-            ("ego", &ego),
+            Some(("ego", &ego)),
             &[("IDM", &FlowDef::Idm)],
             c,
             map,

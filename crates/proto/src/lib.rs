@@ -201,7 +201,7 @@ pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
     let c = &w.cell;
     pb::EvalAssignment {
         job_id: w.job_id.get(),
-        cell_id: w.cell_id,
+        cell_id: w.cell_id.get(),
         cell: Some(pb::EvalCell {
             experiment: c.experiment.clone(),
             ego: c.ego.clone(),
@@ -267,7 +267,7 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
     }
     Ok(EvalWork {
         job_id: w.job_id.into(),
-        cell_id: w.cell_id,
+        cell_id: w.cell_id.into(),
         cell,
         cases: w.cases,
         seeds: w.seeds,
@@ -285,6 +285,7 @@ pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
         safety: e.scores.safety,
         speed: e.scores.speed,
         collision: e.collision,
+        lane_change: e.lane_change,
     }
 }
 
@@ -295,6 +296,7 @@ pub fn eval_episode_from_wire(e: &pb::EvalEpisode) -> Result<EvalEpisode, WireEr
         seed: e.seed,
         scores: Scores { success: e.success, safety: e.safety, speed: e.speed },
         collision: e.collision,
+        lane_change: e.lane_change,
     };
     ep.validate().map_err(|e| WireError { field: "episodes", reason: e.to_string() })?;
     Ok(ep)
@@ -575,7 +577,7 @@ mod tests {
     fn an_eval_cell_round_trips_and_bad_metrics_are_named() {
         let w = EvalWork {
             job_id: 3.into(),
-            cell_id: 17,
+            cell_id: 17.into(),
             cell: Cell {
                 experiment: "svo_sweep".into(),
                 ego: String::new(),
@@ -632,8 +634,15 @@ mod tests {
             seed: 1,
             scores: Scores { success: 1.0, safety: 0.5, speed: 0.7 },
             collision: 0.0,
+            lane_change: Some(0.25),
         };
         assert_eq!(eval_episode_from_wire(&eval_episode_to_wire(&e)), Ok(e));
+        // A worker that predates the lane-change share leaves it unset: read as not recorded.
+        let mut m = eval_episode_to_wire(&e);
+        m.lane_change = None;
+        assert_eq!(eval_episode_from_wire(&m), Ok(EvalEpisode { lane_change: None, ..e }));
+        m.lane_change = Some(2.0);
+        assert!(eval_episode_from_wire(&m).expect_err("range").reason.contains("lane_change"));
         let mut m = eval_episode_to_wire(&e);
         m.speed = f32::NAN;
         assert_eq!(eval_episode_from_wire(&m).expect_err("nan").field, "episodes");

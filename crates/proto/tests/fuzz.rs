@@ -252,7 +252,7 @@ fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
                 }
                 EvalWork {
                     job_id: job_id.into(),
-                    cell_id,
+                    cell_id: cell_id.into(),
                     cell,
                     cases,
                     seeds,
@@ -265,12 +265,21 @@ fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
 }
 
 fn valid_eval_results() -> impl Strategy<Value = pb::EvalResults> {
-    let episode = (any::<u32>(), any::<u32>(), fraction(), fraction(), fraction(), fraction())
-        .prop_map(|(case, seed, success, safety, speed, collision)| EvalEpisode {
+    let episode = (
+        any::<u32>(),
+        any::<u32>(),
+        fraction(),
+        fraction(),
+        fraction(),
+        fraction(),
+        prop::option::of(fraction()),
+    )
+        .prop_map(|(case, seed, success, safety, speed, collision, lane_change)| EvalEpisode {
             case,
             seed,
             scores: sf_job::Scores { success, safety, speed },
             collision,
+            lane_change,
         });
     (1u64.., any::<u64>(), any::<u64>(), prop::collection::vec(episode, 0..6)).prop_map(
         |(job_id, worker_id, cell_id, episodes)| pb::EvalResults {

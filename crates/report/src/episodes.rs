@@ -5,6 +5,10 @@
 //! line is named by its number and field), [`EpisodesWriter`] (whole cells appended and synced,
 //! so a cell is stored whole or not at all), [`Meta`] and [`read_meta`]. Must not: compute
 //! statistics or draw anything (the report does).
+//!
+//! Two formats are read: [`EPISODES_HEADER`] (with the lane-change share, written since
+//! 2026-11-28) and [`EPISODES_HEADER_V1`] (without it: older results and Python's `evaluate`).
+//! A file keeps the format it was started in, so appending to an older file never mixes rows.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -13,7 +17,37 @@ use serde::{Deserialize, Serialize};
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode};
 
 pub const EPISODES_HEADER: &str =
+    "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change";
+
+/// The header of files written before the lane-change share was recorded.
+pub const EPISODES_HEADER_V1: &str =
     "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision";
+
+/// Which of the two line formats a file holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    /// 13 fields, the last the lane-change share (empty when not recorded).
+    Current,
+    /// 12 fields, no lane-change share.
+    V1,
+}
+
+impl Format {
+    fn of_header(h: &str) -> Option<Self> {
+        match h {
+            EPISODES_HEADER => Some(Self::Current),
+            EPISODES_HEADER_V1 => Some(Self::V1),
+            _ => None,
+        }
+    }
+
+    fn fields(self) -> usize {
+        match self {
+            Self::Current => 13,
+            Self::V1 => 12,
+        }
+    }
+}
 
 /// One evaluated episode: the cell it belongs to and what the episode measured. `cell.ego` is
 /// empty when the flow was evaluated on its own.
@@ -38,10 +72,16 @@ impl EpisodeRow {
         self.cell.clone()
     }
 
+    /// The row as a line of [`EPISODES_HEADER`]'s format.
     pub fn to_csv(&self) -> String {
+        self.to_csv_in(Format::Current)
+    }
+
+    /// The row as a line of `format` (V1 drops the lane-change share).
+    pub fn to_csv_in(&self, format: Format) -> String {
         let (c, e) = (&self.cell, &self.ep);
         let o = |v: Option<String>| v.unwrap_or_default();
-        format!(
+        let line = format!(
             "{},{},{},{},{},{},{},{},{},{},{},{}",
             c.experiment,
             c.ego,
@@ -55,13 +95,17 @@ impl EpisodeRow {
             e.scores.safety,
             e.scores.speed,
             e.collision
-        )
+        );
+        match format {
+            Format::Current => format!("{line},{}", o(e.lane_change.map(|v| v.to_string()))),
+            Format::V1 => line,
+        }
     }
 
-    fn parse(line: &str) -> Result<Self, RowError> {
+    fn parse(line: &str, format: Format) -> Result<Self, RowError> {
         let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 12 {
-            return Err(RowError::Fields(f.len()));
+        if f.len() != format.fields() {
+            return Err(RowError::Fields { found: f.len(), expected: format.fields() });
         }
         let int =
             |i: usize, what: &'static str| RowError::NotAnInteger { what, text: f[i].to_string() };
@@ -99,6 +143,10 @@ impl EpisodeRow {
                 speed: num(10, "speed")?,
             },
             collision: num(11, "collision")?,
+            lane_change: match f.get(12) {
+                None | Some(&"") => None,
+                Some(_) => Some(num(12, "lane_change")?),
+            },
         };
         Ok(Self { cell, ep, replicate: 0 })
     }
@@ -107,8 +155,8 @@ impl EpisodeRow {
 /// Why a line of `episodes.csv` does not parse.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RowError {
-    #[error("{0} fields, expected 12")]
-    Fields(usize),
+    #[error("{found} fields, expected {expected}")]
+    Fields { found: usize, expected: usize },
     #[error("{what} `{text}` is not a number")]
     NotANumber { what: &'static str, text: String },
     #[error("{what} is not finite")]
@@ -117,16 +165,26 @@ pub enum RowError {
     NotAnInteger { what: &'static str, text: String },
 }
 
-/// A results file that cannot be read or written, naming the file and what is wrong with it.
+/// A results file that cannot be read or written, naming the file and what is wrong with it;
+/// where the file system refused, its `io::Error` is the source (so a service can tell a full
+/// disk from a bad file by type).
 #[derive(Debug, thiserror::Error)]
 #[error("{path}: {reason}")]
 pub struct FileError {
     pub path: String,
     pub reason: String,
+    #[source]
+    pub io: Option<std::io::Error>,
 }
 
+/// A file whose content is wrong (no `io::Error` behind it).
 pub(crate) fn file_err(path: &Path, reason: impl std::fmt::Display) -> FileError {
-    FileError { path: path.display().to_string(), reason: reason.to_string() }
+    FileError { path: path.display().to_string(), reason: reason.to_string(), io: None }
+}
+
+/// A file the file system would not read or write: the `io::Error` is kept as the source.
+pub(crate) fn io_err(path: &Path, e: std::io::Error) -> FileError {
+    FileError { path: path.display().to_string(), reason: e.to_string(), io: Some(e) }
 }
 
 /// Reads `episodes.csv`; a missing file is an empty result set.
@@ -134,18 +192,22 @@ pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
     if !path.exists() {
         return Ok(Vec::new());
     }
-    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    let text = std::fs::read_to_string(path).map_err(|e| io_err(path, e))?;
     let mut lines = text.lines();
-    match lines.next() {
-        Some(h) if h == EPISODES_HEADER => {}
-        Some(h) => return Err(file_err(path, format!("header `{h}` is not `{EPISODES_HEADER}`"))),
+    let format = match lines.next() {
         None => return Ok(Vec::new()),
-    }
+        Some(h) => Format::of_header(h).ok_or_else(|| {
+            file_err(
+                path,
+                format!("header `{h}` is neither `{EPISODES_HEADER}` nor `{EPISODES_HEADER_V1}`"),
+            )
+        })?,
+    };
     lines
         .enumerate()
         .filter(|(_, l)| !l.is_empty())
         .map(|(i, l)| {
-            EpisodeRow::parse(l).map_err(|e| file_err(path, format!("line {}: {e}", i + 2)))
+            EpisodeRow::parse(l, format).map_err(|e| file_err(path, format!("line {}: {e}", i + 2)))
         })
         .collect()
 }
@@ -209,39 +271,54 @@ impl Meta {
 }
 
 /// Appends whole cells to an `episodes.csv` (the header first if the file is new or empty):
-/// one write per cell, so a cell is stored whole or not at all.
+/// one write per cell, so a cell is stored whole or not at all. A file started in the older
+/// format ([`EPISODES_HEADER_V1`]) is continued in it; one with any other header is refused
+/// rather than appended to.
 pub struct EpisodesWriter {
     file: std::fs::File,
     path: PathBuf,
+    format: Format,
 }
 
 impl EpisodesWriter {
     pub fn open(path: &Path) -> Result<Self, FileError> {
+        use std::io::{BufRead, Write};
         let mut file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
+            .read(true)
             .open(path)
-            .map_err(|e| file_err(path, e))?;
-        let empty = file.metadata().map_err(|e| file_err(path, e))?.len() == 0;
-        if empty {
-            use std::io::Write;
-            writeln!(file, "{EPISODES_HEADER}").map_err(|e| file_err(path, e))?;
-        }
-        Ok(Self { file, path: path.to_path_buf() })
+            .map_err(|e| io_err(path, e))?;
+        let empty = file.metadata().map_err(|e| io_err(path, e))?.len() == 0;
+        let format = if empty {
+            writeln!(file, "{EPISODES_HEADER}").map_err(|e| io_err(path, e))?;
+            Format::Current
+        } else {
+            let mut header = String::new();
+            std::io::BufReader::new(&file).read_line(&mut header).map_err(|e| io_err(path, e))?;
+            let header = header.trim_end_matches(['\n', '\r']);
+            Format::of_header(header).ok_or_else(|| {
+                file_err(
+                    path,
+                    format!("header `{header}` is not an episodes.csv header; not appending"),
+                )
+            })?
+        };
+        Ok(Self { file, path: path.to_path_buf(), format })
     }
 
     pub fn append(&mut self, rows: &[EpisodeRow]) -> Result<(), FileError> {
         use std::io::Write;
-        let text: String = rows.iter().map(|r| r.to_csv() + "\n").collect();
+        let text: String = rows.iter().map(|r| r.to_csv_in(self.format) + "\n").collect();
         self.file
             .write_all(text.as_bytes())
             .and_then(|()| self.file.sync_data())
-            .map_err(|e| file_err(&self.path, e))
+            .map_err(|e| io_err(&self.path, e))
     }
 }
 
 pub fn read_meta(path: &Path) -> Result<Meta, FileError> {
-    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    let text = std::fs::read_to_string(path).map_err(|e| io_err(path, e))?;
     serde_json::from_str(&text).map_err(|e| file_err(path, e))
 }
 
@@ -265,19 +342,91 @@ mod tests {
                 seed: 1,
                 scores: sf_job::Scores { success: 0.25, safety: 0.25, speed: 0.5 },
                 collision: 0.0,
+                lane_change: Some(0.5),
             },
         );
-        assert_eq!(EpisodeRow::parse(&r.to_csv()), Ok(r.clone()));
+        assert_eq!(EpisodeRow::parse(&r.to_csv(), Format::Current), Ok(r.clone()));
+        let unrecorded = EpisodeRow { ep: EvalEpisode { lane_change: None, ..r.ep }, ..r.clone() };
+        assert_eq!(
+            EpisodeRow::parse(&unrecorded.to_csv(), Format::Current),
+            Ok(unrecorded.clone())
+        );
+        assert_eq!(EpisodeRow::parse(&r.to_csv_in(Format::V1), Format::V1), Ok(unrecorded));
         let dir = std::env::temp_dir().join(format!("sf-report-rows-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
         let p = dir.join("episodes.csv");
         std::fs::write(
             &p,
-            format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0\n", r.to_csv()),
+            format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0,\n", r.to_csv()),
         )
         .expect("write");
         let e = read_episodes(&p).expect_err("NaN").to_string();
         assert!(e.contains("line 3") && e.contains("success"), "{e}");
+        // A 12-field line in a file of the current format is named with both counts.
+        std::fs::write(&p, format!("{EPISODES_HEADER}\n{}\n", r.to_csv_in(Format::V1)))
+            .expect("write");
+        let e = read_episodes(&p).expect_err("short line").to_string();
+        assert!(e.contains("line 2") && e.contains("12 fields, expected 13"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn row(case: u32, lane_change: Option<f32>) -> EpisodeRow {
+        EpisodeRow::new(
+            &Cell {
+                experiment: "flow_quality".into(),
+                ego: String::new(),
+                flow: "MACAD".into(),
+                scenario: "merge".into(),
+                svo_deg: None,
+                vehicles: None,
+            },
+            &EvalEpisode {
+                case,
+                seed: 0,
+                scores: sf_job::Scores { success: 1.0, safety: 1.0, speed: 0.9 },
+                collision: 0.0,
+                lane_change,
+            },
+        )
+    }
+
+    /// An evaluation resumed into a file of the older format appends in that format, so the
+    /// stored rows stay readable; a new file gets the current header; a foreign file is refused
+    /// and left as it was.
+    #[test]
+    fn appending_keeps_the_files_format_and_refuses_foreign_files() {
+        let dir = std::env::temp_dir().join(format!("sf-report-append-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let old = dir.join("old.csv");
+        std::fs::write(
+            &old,
+            format!("{EPISODES_HEADER_V1}\n{}\n", row(0, None).to_csv_in(Format::V1)),
+        )
+        .expect("write");
+        EpisodesWriter::open(&old).expect("open").append(&[row(1, Some(1.0))]).expect("append");
+        let rows = read_episodes(&old).expect("still readable");
+        assert_eq!(
+            rows.iter().map(|r| (r.ep.case, r.ep.lane_change)).collect::<Vec<_>>(),
+            [(0, None), (1, None)]
+        );
+
+        let new = dir.join("new.csv");
+        let mut w = EpisodesWriter::open(&new).expect("open");
+        w.append(&[row(0, Some(0.5))]).expect("append");
+        drop(w);
+        EpisodesWriter::open(&new).expect("reopen").append(&[row(1, Some(0.0))]).expect("append");
+        let rows = read_episodes(&new).expect("read");
+        assert_eq!(
+            rows.iter().map(|r| r.ep.lane_change).collect::<Vec<_>>(),
+            [Some(0.5), Some(0.0)]
+        );
+        assert!(std::fs::read_to_string(&new).expect("text").starts_with(EPISODES_HEADER));
+
+        let foreign = dir.join("foreign.csv");
+        std::fs::write(&foreign, "a,b,c\n1,2,3\n").expect("write");
+        let e = EpisodesWriter::open(&foreign).err().expect("foreign header").to_string();
+        assert!(e.contains("a,b,c") && e.contains("not appending"), "{e}");
+        assert_eq!(std::fs::read_to_string(&foreign).expect("text"), "a,b,c\n1,2,3\n");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -101,7 +101,7 @@ pub fn load_scenario(
     Ok((Arc::new(map), cases))
 }
 
-/// A finished job's final policy.
+/// A finished job's final policy, with its job config resolved once ([`Policy::resolved`]).
 #[derive(Clone)]
 pub struct Policy {
     /// Identifies the policy in caches and messages (a job id or an artifact directory).
@@ -110,9 +110,28 @@ pub struct Policy {
     pub weights: Arc<Vec<u8>>,
     /// A CoPO flow past Stage 2: per scenario, the coordinator's SVO Gaussian.
     pub svo_gaussians: Vec<(String, SvoGaussian)>,
+    /// `cfg` resolved on its own (no background): the network, the observation layout and the
+    /// simulator settings the policy acts with. Private, so it always matches `cfg`.
+    resolved: Arc<setup::ResolvedJob>,
 }
 
 impl Policy {
+    /// A policy of job config `cfg` with actor `weights`; resolves `cfg` once.
+    pub fn new(
+        key: String,
+        cfg: JobConfig,
+        weights: Arc<Vec<u8>>,
+        svo_gaussians: Vec<(String, SvoGaussian)>,
+    ) -> Self {
+        let resolved = Arc::new(setup::resolve(&cfg, None));
+        Self { key, cfg, weights, svo_gaussians, resolved }
+    }
+
+    /// The policy's job config resolved on its own (no background job).
+    pub fn resolved(&self) -> &setup::ResolvedJob {
+        &self.resolved
+    }
+
     /// A finished job's final policy from its artifact directory (`config.toml`, `policy.bpk`,
     /// and `coordinator.json` for a CoPO flow past Stage 2). Errors name the file.
     pub fn load(dir: &Path) -> Result<Self, EvalError> {
@@ -126,7 +145,7 @@ impl Policy {
         let svo_gaussians = coordinator
             .map(|c| c.scenarios.into_iter().map(|s| (s.scenario, s.gaussian)).collect())
             .unwrap_or_default();
-        Ok(Self { key: dir.display().to_string(), cfg, weights: Arc::new(weights), svo_gaussians })
+        Ok(Self::new(dir.display().to_string(), cfg, Arc::new(weights), svo_gaussians))
     }
 }
 
@@ -292,12 +311,7 @@ pub fn from_frozen_with<E: From<EvalError>>(
             FrozenRole::Adversary => &mut adversary,
         };
         if slot
-            .replace(Policy {
-                key: f.job_id.to_string(),
-                cfg,
-                weights: Arc::clone(w),
-                svo_gaussians: f.svo_gaussians.clone(),
-            })
+            .replace(Policy::new(f.job_id.to_string(), cfg, Arc::clone(w), f.svo_gaussians.clone()))
             .is_some()
         {
             return Err(EvalError::Misfit(format!("two policies in the role {:?}", f.role)).into());
@@ -356,9 +370,7 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(
             }
         }
         (Some(e), FlowDef::Learned { background, .. }) => {
-            if setup::resolve(&e.cfg, None).obs.layout
-                != setup::resolve(&background.cfg, None).obs.layout
-            {
+            if e.resolved().obs.layout != background.resolved().obs.layout {
                 return Err(EvalError::Misfit(format!(
                     "ego `{}` and flow `{}` observe in different layouts",
                     cell.ego, cell.flow
@@ -400,7 +412,7 @@ impl Runners {
             return Ok(Arc::clone(r));
         }
         let segs = self.segments(map);
-        let own = setup::resolve(&p.cfg, None);
+        let own = p.resolved();
         let r = PolicyRunner::from_bytes(
             &own.net,
             &own.obs,
@@ -511,7 +523,7 @@ fn cell_setup(
         }
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
         (None, FlowDef::Learned { background, .. }) => {
-            let mut sim = setup::resolve(&background.cfg, None).sim;
+            let mut sim = background.resolved().sim.clone();
             flow.probe(&mut sim);
             (sim, Mode::MultiAgent)
         }
@@ -671,6 +683,7 @@ pub fn run_stored(
                 seed,
                 scores: m.scores,
                 collision: m.collision,
+                lane_change: Some(m.lane_change),
             });
         }
     }
@@ -746,10 +759,10 @@ impl FlowSetup {
     }
 }
 
-/// One episode of stored case `case` with `ego` under each of `flows`, rendered side by side
-/// into a GIF at `path`.
+/// One episode of stored case `case` with `ego` (its name and policy) under each of `flows`, or
+/// each flow alone with no ego, rendered side by side into a GIF at `path`.
 pub fn render_gif(
-    ego: (&str, &EgoDef),
+    ego: Option<(&str, &EgoDef)>,
     flows: &[(&str, &FlowDef)],
     case: u32,
     map: &Arc<Map>,
@@ -767,13 +780,13 @@ pub fn render_gif(
     for (name, flow) in flows {
         let cell = Cell {
             experiment: "gif".into(),
-            ego: ego.0.into(),
+            ego: ego.map_or_else(String::new, |(n, _)| n.into()),
             flow: name.to_string(),
             scenario: scenario.clone(),
             svo_deg: None,
             vehicles: None,
         };
-        let (sim, mode, acting) = cell_setup(&cell, map, flow, Some(ego.1), runners)?;
+        let (sim, mode, acting) = cell_setup(&cell, map, flow, ego.map(|(_, e)| e), runners)?;
         let mut v = VecEnv::from_episodes(
             Arc::clone(map),
             sim,
@@ -849,9 +862,13 @@ impl Resolved {
         maps: &BTreeMap<String, (Arc<Map>, CaseFile)>,
         runners: &mut Runners,
     ) -> Result<Vec<std::path::PathBuf>, EvalError> {
-        let ego = self.egos.get(&g.ego).ok_or_else(|| {
-            EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego))
-        })?;
+        let ego = if g.ego.is_empty() {
+            None
+        } else {
+            Some(self.egos.get(&g.ego).map(|e| (g.ego.as_str(), e)).ok_or_else(|| {
+                EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego))
+            })?)
+        };
         let flows = g
             .flows
             .iter()
@@ -870,7 +887,7 @@ impl Resolved {
             let (map, cases) = maps
                 .get(s)
                 .ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
-            render_gif((&g.ego, ego), &flows, g.case, map, cases, runners, &path)
+            render_gif(ego, &flows, g.case, map, cases, runners, &path)
                 .map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
             written.push(path);
         }

@@ -242,9 +242,9 @@ impl<W: Write> GifWriter<W> {
     /// `delay_cs`: hundredths of a second per frame.
     pub fn new(out: W, width: u32, height: u32, delay_cs: u16) -> Result<Self, RenderError> {
         let to16 = |v: u32| u16::try_from(v).map_err(|_| RenderError::Size(width, height));
-        let mut enc = gif::Encoder::new(out, to16(width)?, to16(height)?, &[])
-            .map_err(|e| RenderError::Encode(e.to_string()))?;
-        enc.set_repeat(gif::Repeat::Infinite).map_err(|e| RenderError::Encode(e.to_string()))?;
+        let mut enc =
+            gif::Encoder::new(out, to16(width)?, to16(height)?, &[]).map_err(encode_err)?;
+        enc.set_repeat(gif::Repeat::Infinite).map_err(encode_err)?;
         Ok(Self { enc, delay_cs })
     }
 
@@ -253,6 +253,49 @@ impl<W: Write> GifWriter<W> {
         let mut f =
             gif::Frame::from_rgba_speed(pm.width() as u16, pm.height() as u16, &mut data, 10);
         f.delay = self.delay_cs;
-        self.enc.write_frame(&f).map_err(|e| RenderError::Encode(e.to_string()))
+        self.enc.write_frame(&f).map_err(encode_err)
+    }
+}
+
+/// The GIF encoder's error, with a failed write kept as its `io::Error` (a full disk stays a
+/// storage fault to whoever reads the chain).
+fn encode_err(e: gif::EncodingError) -> RenderError {
+    match e {
+        gif::EncodingError::Io(io) => RenderError::Io(io),
+        e => RenderError::Encode(e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A writer on a full disk.
+    struct Full;
+
+    impl Write for Full {
+        fn write(&mut self, _: &[u8]) -> std::io::Result<usize> {
+            Err(std::io::Error::from_raw_os_error(28))
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    /// A GIF written to a full disk fails with the disk's `io::Error` as the source, not its
+    /// text, so the service can pause the job instead of failing it.
+    #[test]
+    fn a_gif_on_a_full_disk_keeps_its_io_error() {
+        let e = match GifWriter::new(Full, 8, 8, 10) {
+            Err(e) => e,
+            Ok(mut w) => w.push(&Pixmap::new(8, 8).expect("pixmap")).expect_err("no frame written"),
+        };
+        let io = match &e {
+            RenderError::Io(io) => io,
+            other => panic!("not an io error: {other}"),
+        };
+        assert_eq!(io.raw_os_error(), Some(28));
+        assert!(std::error::Error::source(&e).is_some(), "{e}");
     }
 }

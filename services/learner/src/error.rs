@@ -12,7 +12,7 @@
 
 use std::path::PathBuf;
 
-use sf_job::{JobId, PolicyRequest, PolicyVersion, WorkerId};
+use sf_job::{CellId, JobId, PolicyRequest, PolicyVersion, WorkerId};
 use sf_service::ServiceError;
 
 /// Why the learner refused or failed something. `Display` is the message a client or a failed
@@ -47,8 +47,9 @@ pub enum LearnerError {
     /// An evaluation grid that does not parse or validate.
     #[error(transparent)]
     EvalConfig(#[from] sf_job::eval::EvalConfigError),
-    /// An evaluation's `episodes.csv`.
-    #[error(transparent)]
+    /// An evaluation's `episodes.csv`. Not `transparent`: the `FileError` itself is in the
+    /// source chain, where `storage::is_storage_fault` looks for it.
+    #[error("{0}")]
     Episodes(#[from] sf_report::episodes::FileError),
 
     // --- Requests: the learner's state, jobs, workers and policies.
@@ -90,13 +91,13 @@ pub enum LearnerError {
 
     // --- A worker's results for one cell of a running evaluation.
     #[error("evaluation job {job_id} has no cell {cell_id}")]
-    NoCell { job_id: JobId, cell_id: u64 },
+    NoCell { job_id: JobId, cell_id: CellId },
     /// The worker could not run the cell: the evaluation fails with this message.
     #[error("cell {cell} failed on worker {worker}: {error}")]
     CellFailed { cell: String, worker: WorkerId, error: String },
     /// Results that are not one valid episode per stored case and seed of the grid.
     #[error("cell {cell_id}: {reason}")]
-    BadCellResults { cell_id: u64, reason: String },
+    BadCellResults { cell_id: CellId, reason: String },
     #[error("job {job_id} is {state}, not a running evaluation")]
     NotEvaluating { job_id: JobId, state: &'static str },
 
@@ -138,7 +139,10 @@ pub enum LearnerError {
     StateFile { path: PathBuf, source: serde_json::Error },
     #[error(transparent)]
     Json(#[from] serde_json::Error),
-    #[error(transparent)]
+    /// Not `transparent`, which would hide the `StoreError` from the source chain (its
+    /// `source()` is the store error's own): `storage::is_storage_fault` looks for a
+    /// `StoreError::Storage` there.
+    #[error("{0}")]
     Store(#[from] crate::store::StoreError),
     /// The data directory refuses writes (`storage::StorageHealth`): nothing new is accepted
     /// until it takes writes again.

@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
-use sf_job::{Frozen, FrozenRole, JobId, JobRecord, JobState, Progress, WorkerId};
+use sf_job::{CellId, Frozen, FrozenRole, JobId, JobRecord, JobState, Progress, WorkerId};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_rollout::evaluate::{EgoDef, Resolved};
 use tokio::sync::Notify;
@@ -377,7 +377,7 @@ impl EvalJob {
         let (cases, seeds) = self.cfg.size_of(&cell);
         Some(EvalWork {
             job_id: self.id,
-            cell_id: c as u64,
+            cell_id: CellId::of_index(c),
             cell,
             cases,
             seeds,
@@ -393,12 +393,12 @@ impl EvalJob {
     pub fn store(
         &self,
         worker: WorkerId,
-        cell_id: u64,
+        cell_id: CellId,
         episodes: &[EvalEpisode],
         error: &str,
     ) -> Result<bool, LearnerError> {
-        let c = usize::try_from(cell_id)
-            .ok()
+        let c = cell_id
+            .index()
             .filter(|&c| c < self.cells.len())
             .ok_or(LearnerError::NoCell { job_id: self.id, cell_id })?;
         let cell = &self.cells[c];

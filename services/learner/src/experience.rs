@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use sf_job::eval::{EvalEpisode, EvalWork};
-use sf_job::{Assignment, JobId, JobState, PolicyRequest, PolicyVersion, WorkerId};
+use sf_job::{Assignment, CellId, JobId, JobState, PolicyRequest, PolicyVersion, WorkerId};
 use sf_proto::pb;
 use sf_service::ServiceError;
 
@@ -201,7 +201,7 @@ impl Experience {
         &self,
         job_id: JobId,
         worker: WorkerId,
-        cell_id: u64,
+        cell_id: CellId,
         episodes: Vec<EvalEpisode>,
         error: String,
     ) -> Result<bool, ServiceError> {

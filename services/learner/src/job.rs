@@ -73,13 +73,15 @@ pub struct Ack {
 pub struct ActiveJob {
     pub id: JobId,
     pub cfg: JobConfig,
+    /// `cfg` resolved once when the job started (network, observation layout, SAC config,
+    /// simulator settings): what the trainer builds and ingest checks against.
+    pub resolved: Arc<sf_rollout::setup::ResolvedJob>,
     /// The frozen policies the job acts with (background flow, ego, adversary).
     pub frozen: Vec<sf_job::Frozen>,
     pub obs_len: usize,
     pub action_dim: usize,
-    /// The observation layout and, per map id, the map's segment count: what ingest checks
-    /// before a row can reach the networks.
-    spec: sf_sim::obs::ObsSpec,
+    /// Per map id, the map's segment count: with `resolved.obs`, what ingest checks before a
+    /// row can reach the networks.
     segments: Vec<usize>,
     pub replay: Mutex<Replay>,
     pub limiter: RateLimiter,
@@ -99,27 +101,27 @@ pub struct ActiveJob {
 
 impl ActiveJob {
     #[allow(clippy::too_many_arguments)]
-    /// `segments`: per map id (the job's scenarios in order), its query-centric segment count.
+    /// `resolved`: `cfg` resolved (once, by whoever starts the job). `segments`: per map id
+    /// (the job's scenarios in order), its query-centric segment count.
     pub fn new(
         id: JobId,
         cfg: JobConfig,
+        resolved: Arc<sf_rollout::setup::ResolvedJob>,
         frozen: Vec<sf_job::Frozen>,
-        spec: sf_sim::obs::ObsSpec,
         segments: Vec<usize>,
-        action_dim: usize,
         limiter: RateLimiter,
         restored: Counters,
         metrics: JobMetrics,
     ) -> Self {
-        let obs_len = spec.len;
+        let (obs_len, action_dim) = (resolved.obs.len, resolved.net.action_dim);
         let replay = Replay::new(cfg.train.replay_capacity, obs_len, action_dim);
         let complete = restored.env_steps >= cfg.train.env_steps;
         Self {
             id,
+            resolved,
             frozen,
             obs_len,
             action_dim,
-            spec,
             segments,
             replay: Mutex::new(replay),
             limiter,
@@ -266,7 +268,8 @@ impl ActiveJob {
         for i in 0..b.count {
             let segments = self.segments.get(b.map_ids[i] as usize).copied().unwrap_or(0);
             for (field, rows) in [("obs_f16", &b.obs), ("next_obs_f16", &b.next_obs)] {
-                self.spec
+                self.resolved
+                    .obs
                     .check_row(&rows[i * ol..(i + 1) * ol], segments)
                     .map_err(|reason| IngestError::BadRow { field, index: i, reason })?;
             }

@@ -208,9 +208,8 @@ impl Scheduler {
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
         let deps::JobDeps { frozen, frozen_weights, init } =
             deps::job_deps(&self.jobs, &cfg).await?;
-        let r = setup::resolve(&cfg, None);
-        let (action_dim, spec, segment_points) =
-            (r.net.action_dim, r.obs, r.sim.obs.segment_points);
+        let resolved = Arc::new(setup::resolve(&cfg, None));
+        let segment_points = resolved.sim.obs.segment_points;
         let maps2 = maps.clone();
         let segs = tokio::task::spawn_blocking(move || {
             maps2
@@ -224,10 +223,9 @@ impl Scheduler {
         let job = Arc::new(ActiveJob::new(
             id,
             cfg,
+            resolved,
             frozen,
-            spec,
             counts,
-            action_dim,
             limiter,
             counters,
             JobMetrics::new(&self.metrics, id),
@@ -317,6 +315,10 @@ impl Scheduler {
             Ok(paths) => {
                 tracing::info!(job_id = job.id.get(), gifs = paths.len(), "evaluation finished");
                 Outcome::Succeeded
+            }
+            // A full disk pauses the job like any other write; the GIFs are drawn again on resume.
+            Err(e) if crate::storage::is_storage_fault(&e) => {
+                Outcome::Paused(format!("every cell is stored, drawing the GIFs: {e}"))
             }
             Err(e) => Outcome::Failed(format!("every cell is stored, but the GIFs failed: {e}")),
         }

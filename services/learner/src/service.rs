@@ -11,7 +11,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use sf_job::JobId;
+use sf_job::{CellId, JobId};
 use sf_proto::pb::experience_service_server::ExperienceService;
 use sf_proto::pb::job_service_server::JobService;
 use sf_proto::{pb, WireError};
@@ -191,7 +191,13 @@ impl ExperienceService for Experience {
             Ok(eps) => {
                 let worker = m.worker_id.into();
                 self.experience
-                    .eval_results(JobId::from(m.job_id), worker, m.cell_id, eps, m.error)
+                    .eval_results(
+                        JobId::from(m.job_id),
+                        worker,
+                        CellId::from(m.cell_id),
+                        eps,
+                        m.error,
+                    )
                     .await
             }
             Err(e) => Err(e.into()),

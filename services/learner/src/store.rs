@@ -7,8 +7,9 @@
 //! Every write is one committed transaction, so a crash leaves either the old or the new record.
 //! Reads are served from the records this store has read or written (it is the file's only
 //! writer), so they keep working while the disk refuses writes; an I/O error that poisons the
-//! database is a [`StoreError::Storage`], and [`Store::reopen`] opens the file again once the
-//! disk takes writes. Calls block on disk IO: async code calls them through `spawn_blocking`.
+//! database is a [`StoreError::Storage`] (redb's `io::Error` kept as its source), and
+//! [`Store::reopen`] opens the file again once the disk takes writes. Calls block on disk IO:
+//! async code calls them through `spawn_blocking`.
 //! Must not: hold training state (checkpoints live in each job's artifact directory).
 
 use std::collections::BTreeMap;
@@ -29,8 +30,11 @@ pub enum StoreError {
     Db { path: String, reason: String },
     /// The disk refused a read or write (full, read-only, failing): nothing was changed, and
     /// the database must be reopened ([`Store::reopen`]) once the disk takes writes again.
+    /// `source`: redb's `io::Error` when it gave one (`None` for redb's "previous I/O error",
+    /// a closed database and a store closed after an earlier fault). The variant itself is the
+    /// classification (`storage::is_storage_fault`), whatever the error's kind.
     #[error("job store {path}: storage: {reason}")]
-    Storage { path: String, reason: String },
+    Storage { path: String, reason: String, source: Option<std::io::Error> },
     #[error("job store record {id} is corrupt: {reason}")]
     Corrupt { id: JobId, reason: String },
 }
@@ -94,13 +98,17 @@ impl Store {
         Ok(())
     }
 
+    /// `e` on this store's file: a [`StoreError::Storage`] (with redb's `io::Error` as its
+    /// source) when the disk refused a read or write, else a [`StoreError::Db`].
     fn err(&self, e: impl Into<redb::Error>) -> StoreError {
         let (path, e) = (self.path.display().to_string(), e.into());
+        let reason = e.to_string();
         match e {
-            redb::Error::Io(_) | redb::Error::PreviousIo | redb::Error::DatabaseClosed => {
-                StoreError::Storage { path, reason: e.to_string() }
+            redb::Error::Io(io) => StoreError::Storage { path, reason, source: Some(io) },
+            redb::Error::PreviousIo | redb::Error::DatabaseClosed => {
+                StoreError::Storage { path, reason, source: None }
             }
-            _ => StoreError::Db { path, reason: e.to_string() },
+            _ => StoreError::Db { path, reason },
         }
     }
 
@@ -112,6 +120,7 @@ impl Store {
                 path: self.path.display().to_string(),
                 reason: "closed after a storage error; it reopens when the disk takes writes"
                     .into(),
+                source: None,
             }),
         }
     }
@@ -289,5 +298,58 @@ mod tests {
         .expect("json");
         assert_eq!(raw.artifact_dir, "jobs/2-legacy");
         let _ = std::fs::remove_dir_all(&base);
+    }
+
+    /// redb's I/O errors, and a store closed after one, are storage faults by their type (the
+    /// `io::Error` kept as the source of a [`StoreError::Storage`]), not by their text; other
+    /// database errors are not, whatever their text says.
+    #[test]
+    fn a_storage_error_keeps_its_io_error_and_is_a_storage_fault_by_type() {
+        use crate::storage::is_storage_fault;
+        use crate::LearnerError;
+        use std::error::Error as _;
+        let dir = std::env::temp_dir().join(format!("sf-store-fault-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("tmp");
+        let s = Store::open(&dir.join("jobs.redb"), &dir).expect("open");
+        let id = s.create("a", "cfg", 1).expect("create").id;
+
+        let full =
+            LearnerError::Store(s.err(redb::Error::Io(std::io::Error::from_raw_os_error(28))));
+        let kept = full
+            .source()
+            .and_then(|store| store.source())
+            .and_then(|io| io.downcast_ref::<std::io::Error>())
+            .and_then(std::io::Error::raw_os_error);
+        assert_eq!(kept, Some(28), "the io::Error survives as a source: {full}");
+        let message = format!(
+            "job store {}: storage: I/O error: {}",
+            dir.join("jobs.redb").display(),
+            std::io::Error::from_raw_os_error(28)
+        );
+        assert_eq!(full.to_string(), message, "the message is unchanged");
+        assert!(is_storage_fault(&full), "{full}");
+        assert!(is_storage_fault(&LearnerError::Store(s.err(redb::Error::PreviousIo))));
+        assert!(is_storage_fault(&LearnerError::Store(s.err(redb::Error::DatabaseClosed))));
+        // Any I/O error poisons redb's file: it is reopened after a probe, whatever the kind.
+        let denied = s.err(redb::Error::Io(std::io::ErrorKind::PermissionDenied.into()));
+        assert!(is_storage_fault(&LearnerError::Store(denied)));
+
+        let other = LearnerError::Store(s.err(redb::Error::TableDoesNotExist("jobs".into())));
+        assert!(!is_storage_fault(&other), "{other}");
+        let text_only = LearnerError::Store(StoreError::Db {
+            path: "jobs.redb".into(),
+            reason: "Previous I/O error occurred: No space left on device (os error 28)".into(),
+        });
+        assert!(!is_storage_fault(&text_only), "{text_only}");
+
+        // A store closed after a fault refuses writes as a storage fault until it reopens.
+        *write(&s.db) = None;
+        let closed = s.update(id, |_| {}).expect_err("a closed store refuses writes");
+        assert!(is_storage_fault(&LearnerError::Store(closed)));
+        s.reopen().expect("reopen");
+        assert!(s.update(id, |_| {}).expect("update").is_some());
+        drop(s);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -123,7 +123,7 @@ pub fn run(input: TrainerInput) -> Outcome {
 fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     let TrainerInput { job, maps, segs, dir, resume, init, frozen_weights } = input;
     let cfg = &job.cfg;
-    let resolved = setup::resolve(cfg, None);
+    let resolved = Arc::clone(&job.resolved);
     let seg_refs: Vec<&MapSegments> = segs.iter().map(|s| &**s).collect();
     let mut sac = Sac::new(
         resolved.sac.clone(),

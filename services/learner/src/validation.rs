@@ -162,12 +162,12 @@ impl Validator {
         updates: u64,
         env_steps: u64,
     ) -> Result<ValidationPoint, LearnerError> {
-        let policy = Policy {
-            key: format!("validation@{updates}"),
-            cfg: self.cfg.clone(),
-            weights: Arc::new(weights.to_vec()),
-            svo_gaussians: Vec::new(),
-        };
+        let policy = Policy::new(
+            format!("validation@{updates}"),
+            self.cfg.clone(),
+            Arc::new(weights.to_vec()),
+            Vec::new(),
+        );
         let (flow, ego) = match &self.flow {
             Some(flow) => (flow.clone(), Some(EgoDef::Learned(policy.clone()))),
             None => (FlowDef::learned(policy.clone(), None), None),

@@ -120,7 +120,7 @@ impl Cells {
         let msg = pb::EvalResults {
             job_id: w.job_id.get(),
             worker_id: worker_id.get(),
-            cell_id: w.cell_id,
+            cell_id: w.cell_id.get(),
             episodes,
             error,
         };

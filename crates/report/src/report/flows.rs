@@ -23,6 +23,12 @@ pub(super) fn flow_quality(
         let scen = order(fq.iter().map(|r| r.cell.scenario.clone()), &ctx.scen_pref);
         let mut head = vec!["Flow".to_string(), "Scenario".into()];
         head.extend(METRICS.iter().map(|(n, _)| n.to_string()));
+        // The lane-change share, where every flow-quality episode recorded it (results written
+        // since 2026-11-28): the vehicles that can steer show here whether they leave their lane.
+        let lane_change = fq.iter().all(|r| r.ep.lane_change.is_some());
+        if lane_change {
+            head.push("Left its lane".into());
+        }
         let mut table = Vec::new();
         for f in &flows {
             for s in &scen {
@@ -33,10 +39,16 @@ pub(super) fn flow_quality(
                 });
                 let mut row = vec![f.clone(), s.clone()];
                 row.extend(METRICS.iter().map(|(_, m)| pct(summary(&cell, *m))));
+                if lane_change {
+                    row.push(pct(summary(&cell, |r| r.ep.lane_change.unwrap_or(0.0))));
+                }
                 table.push(row);
             }
         }
         doc.table(&head, &table);
+        if lane_change {
+            doc.p("*Left its lane*: the share of the flow's vehicles that left their route's lane at some point in the episode (a lane change, a cut-in or drifting out of it), mean over episodes with its 95 % CI.");
+        }
         for s in &scen {
             let series: Vec<(String, Vec<(f64, f64)>)> = flows
                 .iter()

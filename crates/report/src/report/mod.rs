@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::episodes::{file_err, EpisodeRow, FileError, Meta};
+use crate::episodes::{io_err, EpisodeRow, FileError, Meta};
 use crate::findings::{self, AcrossRuns, Check};
 use crate::inference;
 use crate::plot;
@@ -169,7 +169,7 @@ impl Doc {
     /// A figure already written to `self.dir/<file>`: linked from markdown, embedded in HTML.
     fn figure(&mut self, file: &str, caption: &str) -> Result<(), ReportError> {
         let path = self.dir.join(file);
-        let bytes = std::fs::read(&path).map_err(|e| file_err(&path, e))?;
+        let bytes = std::fs::read(&path).map_err(|e| io_err(&path, e))?;
         let _ = writeln!(self.md, "![{caption}]({file})\n");
         let mime = if file.ends_with(".gif") { "image/gif" } else { "image/png" };
         let _ = writeln!(self.html, "<figure><img src=\"data:{mime};base64,{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>", b64(&bytes), esc(caption), esc(caption));
@@ -258,7 +258,7 @@ fn build_doc(
     out: &Path,
     replicates: Vec<Findings>,
 ) -> Result<Findings, ReportError> {
-    std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| io_err(out, e))?;
     let mut doc = Doc { md: String::new(), html: String::new(), dir: out.to_path_buf() };
     let mut found = Findings { episodes: rows.len(), ..Findings::default() };
     doc.h(1, "socialflow: reproduction report");
@@ -291,7 +291,7 @@ fn build_doc(
 
     // Episode GIFs placed in `out` by the caller (`gif-<scenario>.gif`).
     let mut gifs: Vec<String> = std::fs::read_dir(out)
-        .map_err(|e| file_err(out, e))?
+        .map_err(|e| io_err(out, e))?
         .flatten()
         .map(|e| e.file_name().to_string_lossy().to_string())
         .filter(|n| n.starts_with("gif-") && n.ends_with(".gif"))
@@ -315,10 +315,10 @@ fn build_doc(
     }
     found.replicates = replicates;
     let md_path = out.join("report.md");
-    std::fs::write(&md_path, &doc.md).map_err(|e| file_err(&md_path, e))?;
+    std::fs::write(&md_path, &doc.md).map_err(|e| io_err(&md_path, e))?;
     let html = format!("<!doctype html><html><head><meta charset=\"utf-8\"><title>socialflow report</title><style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}table{{border-collapse:collapse;margin:1em 0}}td,th{{border:1px solid #ccc;padding:3px 8px;font-size:13px}}img{{max-width:100%}}</style></head><body>{}</body></html>", doc.html);
     let html_path = out.join("report.html");
-    std::fs::write(&html_path, html).map_err(|e| file_err(&html_path, e))?;
+    std::fs::write(&html_path, html).map_err(|e| io_err(&html_path, e))?;
     Ok(found)
 }
 
@@ -436,6 +436,7 @@ mod tests {
                 seed,
                 scores: sf_job::Scores { success, safety: success, speed: 0.5 },
                 collision: 0.0,
+                lane_change: None,
             },
             replicate: 0,
         }
@@ -673,6 +674,7 @@ mod tests {
         let f = build(&rows, &meta, &out).expect("report");
         assert_eq!(f.experiments, ["flow_quality", "svo_sweep", "density", "adversary", "cross"]);
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
+        assert!(!md.contains("Left its lane"), "no lane-change column where none was recorded");
         for needle in [
             "Cross-validation",
             "cross-success-merge.png",
@@ -772,6 +774,33 @@ mod tests {
             })
             .map(|r| with_cell(r, |c| c.scenario = scenario.into()))
             .collect()
+    }
+
+    /// Flow-quality episodes that recorded the lane-change share get a column with its mean per
+    /// flow and scenario (here 0.25 for SocialComm, 0 for CoPO).
+    #[test]
+    fn the_lane_change_share_is_tabled_where_recorded() {
+        let meta = Meta {
+            flows: vec!["CoPO".into(), "SocialComm".into()],
+            cases: 30,
+            seeds: 1,
+            ..Meta::default()
+        };
+        let out = std::env::temp_dir().join(format!("sf-report-lanes-{}", std::process::id()));
+        let rows: Vec<EpisodeRow> = flows_in("merge", 0.8, "CoPO", 0.5)
+            .into_iter()
+            .map(|mut r| {
+                r.ep.lane_change = Some(if r.cell.flow == "SocialComm" { 0.25 } else { 0.0 });
+                r
+            })
+            .collect();
+        build(&rows, &meta, &out).expect("report");
+        let md = std::fs::read_to_string(out.join("report.md")).expect("md");
+        assert!(md.contains("| Left its lane |"), "{md}");
+        let sc =
+            md.lines().find(|l| l.starts_with("| SocialComm | merge |")).expect("SocialComm's row");
+        assert!(sc.trim_end().ends_with("| 25.0 ± 0.0 |"), "{sc}");
+        let _ = std::fs::remove_dir_all(&out);
     }
 
     /// "Larger in merge" is tested against each other scenario: a larger advantage in merge

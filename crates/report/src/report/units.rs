@@ -157,6 +157,7 @@ mod tests {
                 seed,
                 scores: sf_job::Scores { success, safety: success, speed: 0.5 },
                 collision: 0.0,
+                lane_change: None,
             },
             replicate,
         }
