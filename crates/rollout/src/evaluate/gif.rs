@@ -1,0 +1,120 @@
+//! GIFs of one stored case: each flow side by side, alone or around one ego ([`render_gif`]),
+//! and a grid's configured GIFs ([`Resolved::render_gifs`]). Must not: decide what a cell runs
+//! (the parent's `cell_setup` does, so a GIF shows what its cell measures).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use sf_job::eval::Cell;
+use sf_sim::case::CaseFile;
+use sf_sim::vec_env::{EpisodeSpec, VecEnv};
+use sf_sim::Map;
+
+use super::{cell_setup, io, EgoDef, EvalError, FlowDef, Resolved, Runners};
+use crate::drive;
+
+/// One episode of stored case `case` with `ego` (its name and policy) under each of `flows`, or
+/// each flow alone with no ego, rendered side by side into a GIF at `path`.
+pub fn render_gif(
+    ego: Option<(&str, &EgoDef)>,
+    flows: &[(&str, &FlowDef)],
+    case: u32,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    runners: &mut Runners,
+    path: &Path,
+) -> Result<(), EvalError> {
+    use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
+    let scenario = map.name.clone();
+    let case = cases.cases.get(case as usize).ok_or_else(|| {
+        EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}"))
+    })?;
+    let renderer = Renderer::new(map, 320, ColourBy::Svo)?;
+    let mut films = Vec::new();
+    for (name, flow) in flows {
+        let cell = Cell {
+            experiment: "gif".into(),
+            ego: ego.map_or_else(String::new, |(n, _)| n.into()),
+            flow: name.to_string(),
+            scenario: scenario.clone(),
+            svo_deg: None,
+            vehicles: None,
+        };
+        let (sim, mode, acting) = cell_setup(&cell, map, flow, ego.map(|(_, e)| e), runners)?;
+        let mut v = VecEnv::from_episodes(
+            Arc::clone(map),
+            sim,
+            mode,
+            1,
+            vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }],
+        )?;
+        v.set_svo_gaussian(acting.svo_gaussian);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut frames = vec![renderer.frame(v.env(0))];
+        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| {
+            frames.push(renderer.frame(v.env(0)))
+        });
+        films.push(frames);
+    }
+    let len = films.iter().map(Vec::len).max().unwrap_or(0);
+    let file = std::fs::File::create(path).map_err(io("creating", path))?;
+    let mut out = Some(std::io::BufWriter::new(file));
+    let mut gif: Option<GifWriter<_>> = None;
+    for k in 0..len {
+        let row: Vec<&sf_sim::render::Pixmap> =
+            films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
+        let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
+        if let Some(o) = out.take() {
+            gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10)?);
+        }
+        if let Some(w) = gif.as_mut() {
+            w.push(&pm)?;
+        }
+    }
+    Ok(())
+}
+
+impl Resolved {
+    /// The config's GIFs (`gif-<scenario>.gif` in `out`) not already there; the paths written.
+    pub fn render_gifs(
+        &self,
+        g: &sf_job::eval::Gifs,
+        out: &Path,
+        maps: &BTreeMap<String, (Arc<Map>, CaseFile)>,
+        runners: &mut Runners,
+    ) -> Result<Vec<std::path::PathBuf>, EvalError> {
+        let ego = if g.ego.is_empty() {
+            None
+        } else {
+            Some(self.egos.get(&g.ego).map(|e| (g.ego.as_str(), e)).ok_or_else(|| {
+                EvalError::Misfit(format!("experiments.gifs.ego `{}` is not in the grid", g.ego))
+            })?)
+        };
+        let flows = g
+            .flows
+            .iter()
+            .map(|f| {
+                self.flows.get(f).map(|d| (f.as_str(), d)).ok_or_else(|| {
+                    EvalError::Misfit(format!("experiments.gifs.flows: `{f}` is not in the grid"))
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut written = Vec::new();
+        for s in &g.scenarios {
+            let path = out.join(format!("gif-{s}.gif"));
+            if path.exists() {
+                continue;
+            }
+            let (map, cases) = maps
+                .get(s)
+                .ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
+            render_gif(ego, &flows, g.case, map, cases, runners, &path)
+                .map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+}
