@@ -1,6 +1,7 @@
 """Success of each lateral ego and of the IDM driver in the ego's seat per flow (all four
 scenarios), and each ego's paired effect against the IDM driver on the same starts (the two
-evaluation seeds of a stored case averaged: 400 starts; normal-approximation p).
+evaluation seeds of a stored case averaged: 400 starts; normal-approximation p), one table per
+run of the learned flows (seeds 7 and 8).
 
     python3 docs/results/lateral-cross/table.py
 """
@@ -14,9 +15,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def main():
+def table(results):
     by = defaultdict(lambda: defaultdict(list))
-    with open(HERE / "results" / "episodes.csv") as f:
+    with open(results / "episodes.csv") as f:
         for r in csv.DictReader(f):
             by[(r["ego"], r["flow"])][(r["scenario"], r["case"])].append(float(r["success"]))
     egos = sorted({e for e, _ in by if e != "IDM ego"}) + ["IDM ego"]
@@ -37,6 +38,13 @@ def main():
             p = math.erfc(abs(dm / (sd / math.sqrt(len(d)))) / math.sqrt(2))
             cells.append(f"{m:.1f} ({100 * dm:+.1f}, p {p:.1g})")
         print(f"| {e} | " + " | ".join(cells) + " |")
+
+
+def main():
+    for seed in (7, 8):
+        print(f"flows of seed {seed}:")
+        table(HERE / f"results-flows-seed{seed}")
+        print()
 
 
 if __name__ == "__main__":
