@@ -41,11 +41,16 @@ impl Format {
         }
     }
 
-    fn fields(self) -> usize {
+    fn header(self) -> &'static str {
         match self {
-            Self::Current => 13,
-            Self::V1 => 12,
+            Self::Current => EPISODES_HEADER,
+            Self::V1 => EPISODES_HEADER_V1,
         }
+    }
+
+    /// Fields per line: the header's.
+    fn fields(self) -> usize {
+        self.header().split(',').count()
     }
 }
 
