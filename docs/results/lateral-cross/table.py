@@ -1,7 +1,7 @@
 """Success of each lateral ego and of the IDM driver in the ego's seat per flow (all four
 scenarios), and each ego's paired effect against the IDM driver on the same starts (the two
-evaluation seeds of a stored case averaged: 400 starts; normal-approximation p), one table per
-run of the learned flows (seeds 7 and 8).
+evaluation seeds of a stored case averaged: 400 starts; normal-approximation p, Holm-adjusted
+over the 12 comparisons of a table), one table per run of the learned flows (seeds 7 and 8).
 
     python3 docs/results/lateral-cross/table.py
 """
@@ -15,6 +15,14 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def holm(ps):
+    """Holm-adjusted p-values, in the order given."""
+    order, adj, run = sorted(range(len(ps)), key=ps.__getitem__), [0.0] * len(ps), 0.0
+    for rank, i in enumerate(order):
+        run = adj[i] = min(1.0, max(run, (len(ps) - rank) * ps[i]))
+    return adj
+
+
 def table(results):
     by = defaultdict(lambda: defaultdict(list))
     with open(results / "episodes.csv") as f:
@@ -22,22 +30,22 @@ def table(results):
             by[(r["ego"], r["flow"])][(r["scenario"], r["case"])].append(float(r["success"]))
     egos = sorted({e for e, _ in by if e != "IDM ego"}) + ["IDM ego"]
     flows = ["IDM", "MACAD", "SocialComm"]
+    cells, tests = {}, []
+    for e in egos:
+        for fl in flows:
+            mine = {k: statistics.fmean(v) for k, v in by[(e, fl)].items()}
+            cells[(e, fl)] = f"{100 * statistics.fmean(mine.values()):.1f}"
+            if e != "IDM ego":
+                idm = {k: statistics.fmean(v) for k, v in by[("IDM ego", fl)].items()}
+                d = [mine[k] - idm[k] for k in mine]
+                dm, sd = statistics.fmean(d), statistics.stdev(d)
+                tests.append(((e, fl), dm, math.erfc(abs(dm / (sd / math.sqrt(len(d)))) / math.sqrt(2))))
+    for ((key, dm, p), adj) in zip(tests, holm([p for _, _, p in tests])):
+        cells[key] += f" ({100 * dm:+.1f}, p {p:.2g}, Holm {adj:.2g})"
     print("| ego | " + " | ".join(flows) + " |")
     print("|---|" + "---|" * len(flows))
     for e in egos:
-        cells = []
-        for fl in flows:
-            mine = {k: statistics.fmean(v) for k, v in by[(e, fl)].items()}
-            m = 100 * statistics.fmean(mine.values())
-            if e == "IDM ego":
-                cells.append(f"{m:.1f}")
-                continue
-            idm = {k: statistics.fmean(v) for k, v in by[("IDM ego", fl)].items()}
-            d = [mine[k] - idm[k] for k in mine]
-            dm, sd = statistics.fmean(d), statistics.stdev(d)
-            p = math.erfc(abs(dm / (sd / math.sqrt(len(d)))) / math.sqrt(2))
-            cells.append(f"{m:.1f} ({100 * dm:+.1f}, p {p:.1g})")
-        print(f"| {e} | " + " | ".join(cells) + " |")
+        print(f"| {e} | " + " | ".join(cells[(e, fl)] for fl in flows) + " |")
 
 
 def main():

@@ -1,6 +1,7 @@
 """SocialComm with twice the budget against the same seed's 24k-update SocialComm, MACAD and the
 all-IDM flow, on the same starts (100 stored cases x 2 seeds x 4 scenarios), paired per start
-(the two evaluation seeds of a stored case averaged: 400 starts), each training run on its own.
+(the two evaluation seeds of a stored case averaged: 400 starts; normal-approximation p, Holm over
+each run's three comparisons), each training run on its own.
 
     python3 docs/results/lateral-socialcomm-long/compare.py
 """
@@ -42,9 +43,13 @@ def main():
         long_ = per_start(new, "SocialComm-long")
         lanes = per_start(new, "SocialComm-long", "lane_change")
         cells = [f"{100 * statistics.fmean(long_.values()):.1f}"]
-        for other, path in (("IDM", new), ("SocialComm", old), ("MACAD", old)):
-            m, ci, p, n = paired(long_, per_start(path, other))
-            cells.append(f"{m:+.1f} ± {ci:.1f} (p {p:.1g})")
+        tests = [paired(long_, per_start(path, other)) for other, path in (("IDM", new), ("SocialComm", old), ("MACAD", old))]
+        # Holm over the run's three comparisons: the k-th smallest p times (3 - k), kept monotone.
+        adj, run = {}, 0.0
+        for rank, k in enumerate(sorted(range(3), key=lambda k: tests[k][2])):
+            run = adj[k] = min(1.0, max(run, (3 - rank) * tests[k][2]))
+        for k, (m, ci, p, _) in enumerate(tests):
+            cells.append(f"{m:+.1f} ± {ci:.1f} (p {p:.1g}, Holm {adj[k]:.1g})")
         cells.append(f"{100 * statistics.fmean(lanes.values()):.1f} %")
         print(f"| {seed} | " + " | ".join(cells) + " |")
 
