@@ -12,6 +12,7 @@ import math
 import sys
 
 from scipy import stats
+from statsmodels.stats.multitest import multipletests
 
 
 def paired(a, b):
@@ -26,15 +27,6 @@ def paired(a, b):
     return mean, half, p
 
 
-def holm(ps):
-    order = sorted(range(len(ps)), key=lambda i: ps[i])
-    out, running = [0.0] * len(ps), 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (len(ps) - rank) * ps[i]))
-        out[i] = running
-    return out
-
-
 def main(paths):
     rows = []
     for path in paths:
@@ -47,7 +39,7 @@ def main(paths):
         rec = paired(succ[("RL/IDM", "FailMaker")], succ[("RARL/FailMaker", "FailMaker")])
         cost = paired(succ[("RL/IDM", "IDM")], succ[("RARL/FailMaker", "IDM")])
         rows.append((seed, attack, rec, cost))
-    adj = holm([x for _, a, r, c in rows for x in (a[2], r[2], c[2])])
+    adj = multipletests([x for _, a, r, c in rows for x in (a[2], r[2], c[2])], method="holm")[1]
     print("| seed | FailMaker's effect on RL/IDM (points) | RARL - RL/IDM among FailMaker (recovery) | share recovered | RARL - RL/IDM among IDM |")
     print("|---|---|---|---|---|")
     for i, (seed, a, r, c) in enumerate(rows):
