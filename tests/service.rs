@@ -211,23 +211,44 @@ fn a_job_completes_after_a_worker_is_killed() {
 /// A continuation that warms up with the policy it continues (`warmup_policy = "policy"`, as
 /// Stage 2's RARL rounds do) trains to its end: its workers fetch that policy before the first
 /// step (they once waited for it forever: no transition, so no acknowledgement to fetch it on).
+/// With `init_replay` it starts with its source's replay, which the learner keeps while the
+/// continuation is queued or running and deletes after; a continuation submitted once that
+/// replay is gone is refused, naming the field.
 #[test]
-fn a_continuation_warms_up_with_the_policy_it_continues() {
+fn a_continuation_warms_up_with_the_policy_it_continues_and_carries_its_replay() {
     let dir = scratch("continuation");
     let l = start_learner(&dir, 64 << 20);
     let rt = rt();
     let mut c = jobs(&rt, &l.url, Some(TOKEN));
     let _w: Vec<Proc> = (0..2).map(|k| start_worker(&l, &dir, k)).collect();
+    let continued = |name: &str, from: u64| {
+        tiny_job(TWO_MAPS, name, 800)
+            .replace("[train]\n", &format!("[train]\ninit_job = {from}\ninit_replay = true\n"))
+            .replace("warmup_steps = 200\n", "warmup_steps = 200\nwarmup_policy = \"policy\"\n")
+    };
     let first = submit(&rt, &mut c, tiny_job(TWO_MAPS, "first", 600));
-    let done = wait_final(&rt, &mut c, first.job_id, "the first job to finish");
-    assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
-    let cont = tiny_job(TWO_MAPS, "continued", 800)
-        .replace("[train]\n", &format!("[train]\ninit_job = {}\n", first.job_id))
-        .replace("warmup_steps = 200\n", "warmup_steps = 200\nwarmup_policy = \"policy\"\n");
-    let job = submit(&rt, &mut c, cont);
+    // Queued behind its source, so the source's replay is kept for it.
+    let job = submit(&rt, &mut c, continued("continued", first.job_id));
+    let src = wait_final(&rt, &mut c, first.job_id, "the first job to finish");
+    assert_eq!(src.state, SUCCEEDED, "job ended: {}", src.message);
     let done = wait_final(&rt, &mut c, job.job_id, "the continuation to finish");
     assert_eq!(done.state, SUCCEEDED, "job ended: {}", done.message);
     assert_eq!(progress(&done).env_steps, 800);
+    let state: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(Path::new(&done.artifact_dir).join("state.json")).expect("state"),
+    )
+    .expect("state.json");
+    assert_eq!(state["carried"], 600, "the source's 600 transitions carried in");
+    wait_for("the carried replay to be released", Duration::from_secs(30), || {
+        (!Path::new(&src.artifact_dir).join("replay").exists()).then_some(())
+    });
+    let late = rt
+        .block_on(
+            c.submit_job(pb::SubmitJobRequest { config_toml: continued("too-late", first.job_id) }),
+        )
+        .expect_err("its replay is gone");
+    assert_eq!(late.code(), Code::InvalidArgument, "{late:?}");
+    assert!(late.message().contains("train.init_job"), "{}", late.message());
     let _ = std::fs::remove_dir_all(&dir);
 }
 

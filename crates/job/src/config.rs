@@ -569,6 +569,12 @@ pub struct TrainSection {
     /// In a pipeline directory: `init_job` by job name.
     #[serde(default)]
     pub init_from: Option<String>,
+    /// A continuation's replay starts as the replay of the job it continues (its newest
+    /// `replay_capacity` transitions), as if one SAC run went on: the ego of a RARL round keeps
+    /// its own data. The learner keeps a finished job's replay while a queued or running job
+    /// carries it; both need `persist_replay` and the same `env.scenarios`.
+    #[serde(default)]
+    pub init_replay: bool,
 }
 fn d_spi() -> f64 {
     0.25
@@ -833,6 +839,20 @@ impl JobConfig {
         }
         if self.train.init_job.is_some() && self.train.init_from.is_some() {
             return bad("train.init_from", "not together with train.init_job");
+        }
+        if self.train.init_replay {
+            if self.train.init_job.is_none() && self.train.init_from.is_none() {
+                return bad(
+                    "train.init_replay",
+                    "carries the replay of the job a continuation starts from: set train.init_job or train.init_from",
+                );
+            }
+            if !self.train.persist_replay {
+                return bad(
+                    "train.init_replay",
+                    "a carried replay is read from disk and written on as the job's own: set train.persist_replay = true",
+                );
+            }
         }
         for (f, v) in [
             ("env.background_job", e.background_job),
@@ -1317,6 +1337,22 @@ mod tests {
         let cont = JobConfig::from_toml(&policy.replace("[train]\n", "[train]\ninit_job = 1\n"))
             .expect("a continuation warms up with its own policy");
         assert_eq!(cont.sac.warmup_policy, WarmupPolicy::Policy);
+        assert!(!cont.train.init_replay, "a continuation starts with an empty replay unless asked");
+        let carry = |extra: &str| {
+            JobConfig::from_toml(&policy.replace("[train]\n", &format!("[train]\n{extra}")))
+        };
+        let c = carry("init_job = 1\ninit_replay = true\n").expect("a carried replay");
+        assert!(c.train.init_replay);
+        for (extra, says) in [
+            ("init_replay = true\n", "init_job"),
+            ("init_job = 1\ninit_replay = true\npersist_replay = false\n", "persist_replay"),
+        ] {
+            let e = carry(extra).expect_err(extra);
+            assert!(
+                e.to_string().contains("train.init_replay") && e.to_string().contains(says),
+                "{e}"
+            );
+        }
         let e = JobConfig::from_toml(&format!("{lat}[sac]\nwarmup_steps = 100\n"))
             .expect_err("random warm-up");
         assert!(e.to_string().contains("sac.warmup_policy"), "{e}");

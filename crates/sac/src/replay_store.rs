@@ -339,6 +339,35 @@ impl ReplayStore {
         act_dim: usize,
         upto: u64,
     ) -> Result<(Replay, u64), ReplayStoreError> {
+        let mut r = self.read(capacity, obs_len, act_dim, upto)?;
+        let segs = self.segments()?;
+        if r.inserted() < upto {
+            r.renumber(upto);
+            for s in &segs {
+                std::fs::remove_file(&s.path).map_err(io(&s.path))?;
+            }
+            let oldest = r.oldest();
+            return Ok((r, oldest));
+        }
+        let mut next = upto;
+        for s in segs.iter().filter(|s| s.end > upto) {
+            next = next.min(s.first.max(r.oldest()));
+            std::fs::remove_file(&s.path).map_err(io(&s.path))?;
+        }
+        Ok((r, next))
+    }
+
+    /// Reads the newest `capacity` of the transitions below `upto` into a new replay numbered
+    /// like the job, leaving the directory as it is (another job's replay, carried by a
+    /// continuation). A replay that holds fewer than were counted (a lost segment) ends below
+    /// `upto`: its [`Replay::inserted`] says where.
+    pub fn read(
+        &self,
+        capacity: usize,
+        obs_len: usize,
+        act_dim: usize,
+        upto: u64,
+    ) -> Result<Replay, ReplayStoreError> {
         let segs = self.segments()?;
         // The window: the newest `capacity` transitions the segments hold below `upto`.
         let reach =
@@ -365,20 +394,7 @@ impl ReplayStore {
                 source,
             })?;
         }
-        if r.inserted() < upto {
-            r.renumber(upto);
-            for s in &segs {
-                std::fs::remove_file(&s.path).map_err(io(&s.path))?;
-            }
-            let oldest = r.oldest();
-            return Ok((r, oldest));
-        }
-        let mut next = upto;
-        for s in segs.iter().filter(|s| s.end > upto) {
-            next = next.min(s.first.max(r.oldest()));
-            std::fs::remove_file(&s.path).map_err(io(&s.path))?;
-        }
-        Ok((r, next))
+        Ok(r)
     }
 }
 
@@ -489,6 +505,15 @@ mod tests {
         let (back, next) = store.restore(50, 4, 2, 120).expect("restore");
         same(&r, &back);
         assert_eq!(next, 120);
+        // Another job reads it (a carried replay): the newest it has room for, and the
+        // directory stays as it is, even when asked for more than it holds.
+        let before = store.segments().expect("list");
+        let carried = store.read(20, 4, 2, 120).expect("read");
+        assert_eq!((carried.oldest(), carried.inserted()), (100, 120));
+        assert_eq!(carried.get(110), r.get(110));
+        let short = store.read(50, 4, 2, 150).expect("read past the end");
+        assert_eq!((short.oldest(), short.inserted()), (70, 120));
+        assert_eq!(store.segments().expect("list"), before);
         // A job counted only 100 of them when it stopped: the segment reaching past is deleted
         // and its counted part is to be written again.
         let (back, next) = store.restore(50, 4, 2, 100).expect("restore");

@@ -10,12 +10,12 @@
 //! job's end keeps whichever was recorded first.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use sf_job::eval::EvalConfig;
-use sf_job::{JobId, JobRecord, JobSpec, JobState, Progress};
+use sf_job::{DepRole, JobId, JobRecord, JobSpec, JobState, Progress};
 use sf_service::sync::lock;
 use sf_service::ServiceError;
 use sf_sim::Map;
@@ -159,6 +159,13 @@ impl Jobs {
                 return Err(refuse("is an evaluation, not a training job").into());
             };
             deps::check_dep(&cfg, role, dep, dep_cfg)?;
+            if role == DepRole::Init
+                && cfg.train.init_replay
+                && rec.state == JobState::Succeeded
+                && !Path::new(&rec.artifact_dir).join("replay").exists()
+            {
+                return Err(refuse("finished without a queued job carrying its replay, which was deleted then (train.init_replay: submit the continuation before its source ends)").into());
+            }
             if matches!(rec.state, JobState::Failed | JobState::Cancelled) {
                 return Err(refuse(&format!("is {}", rec.state.as_str())).into());
             }

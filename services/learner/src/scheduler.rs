@@ -6,9 +6,9 @@
 //! job); a training job on its trainer thread ([`trainer::spawn`]), an evaluation by leasing its
 //! cells ([`EvalJob`]). One routine puts either kind in its slot and marks it RUNNING
 //! ([`Scheduler::occupy`]); one records how either ends and frees the slot
-//! ([`Scheduler::finish`]). While the disk refuses writes it starts nothing, and
-//! [`Scheduler::recover_storage`] probes until it takes them again. [`Scheduler::stop_all`]:
-//! shutdown. Invariant: a job is in its slot before it is marked RUNNING, so a CancelJob racing
+//! ([`Scheduler::finish`]), then deletes the replays no unfinished job carries any more.
+//! While the disk refuses writes it starts nothing, and [`Scheduler::recover_storage`] probes
+//! until it takes them again. [`Scheduler::stop_all`]: shutdown. Invariant: a job is in its slot before it is marked RUNNING, so a CancelJob racing
 //! a start either finds it there (and stops it) or wrote CANCELLED first (and the start undoes
 //! itself). Must not: answer workers or clients (the experience side and the job table do), or
 //! change a final state (records change only through `JobRecord::advance`).
@@ -343,10 +343,38 @@ impl Scheduler {
                 }
                 Err(e) => tracing::error!(job_id = id.get(), error = %e, "recording the job's end"),
             }
+            self.release_replays().await;
         }
         self.slots.clear(id);
         self.idle.notify_waiters();
         self.wake.notify_one();
+    }
+
+    /// Deletes the replays of succeeded jobs that no queued or running job carries
+    /// (`train.init_replay`; [`deps::replays_to_release`]). A replay that cannot be deleted
+    /// stays, with a warning: it costs disk, not correctness.
+    async fn release_replays(&self) {
+        let all = self.jobs.list();
+        let dirs = deps::replays_to_release(&all, |r| self.jobs.spec(r).ok());
+        if dirs.is_empty() {
+            return;
+        }
+        let done = blocking(move || {
+            for d in dirs {
+                let replay = d.join("replay");
+                match std::fs::remove_dir_all(&replay) {
+                    Ok(()) => tracing::info!(dir = %replay.display(), "replay released"),
+                    Err(e) => {
+                        tracing::warn!(dir = %replay.display(), error = %e, "replay not deleted")
+                    }
+                }
+            }
+            Ok::<(), LearnerError>(())
+        })
+        .await;
+        if let Err(e) = done {
+            tracing::warn!(error = %e, "releasing replays");
+        }
     }
 
     /// While the data directory refuses writes: every few seconds, a probe write and, once it

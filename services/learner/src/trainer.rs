@@ -12,7 +12,8 @@
 //! coordinator on that final actor and add `coordinator.json`. `tensorboard/` holds event files
 //! with the curve's scalars and more (losses, alpha, rates, policy lag). With `train.persist_replay`
 //! (the default) `replay/` holds the replay in segments, one per checkpoint, read back on
-//! resume and deleted when the job succeeds. With `[validation]`, `validation.csv` holds the
+//! resume (or carried into a continuation, `train.init_replay`); the scheduler deletes it once
+//! the job has succeeded and no unfinished job carries it. With `[validation]`, `validation.csv` holds the
 //! held-out evaluation's points and `best_policy.bpk`/`.json` the best actor so far, which
 //! becomes `policy.bpk` (`policy.json` then says `"selected_by": "validation"` and at which
 //! update).
@@ -55,6 +56,18 @@ pub struct TrainState {
     /// `[validation]`: every point so far.
     #[serde(default)]
     pub validation: Vec<ValidationPoint>,
+    /// `train.init_replay`: transitions carried in from the continued job's replay at the
+    /// start. The replay numbers them before the job's own, so its insertion numbers run to
+    /// `carried + counters.env_steps`.
+    #[serde(default)]
+    pub carried: u64,
+}
+
+impl TrainState {
+    /// Transitions the job's replay has numbered: the carried ones, then its own.
+    fn replay_inserted(&self) -> u64 {
+        self.carried + self.counters.env_steps
+    }
 }
 
 pub fn state_path(dir: &Path) -> PathBuf {
@@ -140,7 +153,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
     // The replay comes back before the first policy is published, i.e. before any worker
     // can push.
     let mut persist = if cfg.train.persist_replay {
-        Some(restore_replay(&job, &dir, resumed, &st)?)
+        Some(restore_replay(&job, &dir, resumed, init.as_ref(), &mut st)?)
     } else {
         None
     };
@@ -180,7 +193,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
                     let r = lock(&job.replay);
                     // The cloning updates of `sac.bc_from_warmup` draw from the warm-up's rows
                     // (the whole replay once those are evicted).
-                    match cfg.sac.sample_before(sac.updates) {
+                    match cfg.sac.sample_before(sac.updates).map(|b| b + st.carried) {
                         Some(before) => r
                             .sample_before_into(&mut rng, cfg.sac.batch_size, before, &mut batch)
                             .or_else(|_| r.sample_into(&mut rng, cfg.sac.batch_size, &mut batch)),
@@ -221,10 +234,8 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
             validate(&job, &sac, v, best, &mut st, tb.as_mut())?;
         }
         publisher.publish(&sac)?;
-        // A finished job never resumes: its replay need not be written, and goes.
-        if persist.take().is_some() {
-            let _ = std::fs::remove_dir_all(dir.join("replay"));
-        }
+        // The final save writes the replay's last segment: a continuation may carry it
+        // (`train.init_replay`). The scheduler deletes it once no unfinished job does.
     }
     save(&job, &sac, &dir, &mut st, publisher.version, &mut persist)?;
     if outcome == Outcome::Succeeded {
@@ -274,20 +285,26 @@ fn start_state(
 }
 
 /// `train.persist_replay`: the replay's segment store, with a resumed job's replay read back
-/// into the job (up to the transitions its counters say were on disk).
+/// into the job (up to the transitions its counters say were on disk), or, for a new
+/// continuation with `train.init_replay`, the continued job's replay carried in (numbered before
+/// the job's own: `st.carried`) and written by the first checkpoint as the job's own.
 fn restore_replay(
     job: &ActiveJob,
     dir: &Path,
     resumed: bool,
-    st: &TrainState,
+    init: Option<&InitDep>,
+    st: &mut TrainState,
 ) -> Result<(ReplayStore, u64), LearnerError> {
     let store = ReplayStore::new(dir.join("replay"));
     if !resumed {
-        return Ok((store, 0));
+        return match init.filter(|_| job.cfg.train.init_replay) {
+            Some(from) => carry_replay(job, from, st).map(|()| (store, 0)),
+            None => Ok((store, 0)),
+        };
     }
     let t = Instant::now();
     let (r, next) = store
-        .restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.counters.env_steps)
+        .restore(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, st.replay_inserted())
         .map_err(|source| LearnerError::Replay { action: "restoring", source })?;
     tracing::info!(
         job_id = job.id.get(),
@@ -298,6 +315,45 @@ fn restore_replay(
     job.metrics.replay_size.set(r.len() as i64);
     *lock(&job.replay) = r;
     Ok((store, next))
+}
+
+/// `train.init_replay`: reads the newest `replay_capacity` transitions of the continued job's
+/// replay (left as it is, for other continuations) into the job, numbered `0..carried`.
+fn carry_replay(job: &ActiveJob, from: &InitDep, st: &mut TrainState) -> Result<(), LearnerError> {
+    let refuse = |reason: String| LearnerError::Dependency {
+        field: "train.init_replay",
+        dep: from.job_id,
+        reason,
+    };
+    let t = Instant::now();
+    let theirs = load_state(&from.dir)?
+        .ok_or_else(|| refuse(format!("has no state.json in {}", from.dir.display())))?;
+    let replay = from.dir.join("replay");
+    if !replay.exists() {
+        return Err(refuse(format!(
+            "has no replay in {} (deleted when it finished, before this job was queued?)",
+            replay.display()
+        )));
+    }
+    let mut r = ReplayStore::new(&replay)
+        .read(job.cfg.train.replay_capacity, job.obs_len, job.action_dim, theirs.replay_inserted())
+        .map_err(|source| LearnerError::Replay { action: "carrying", source })?;
+    if r.is_empty() {
+        return Err(refuse(format!("has an empty replay in {}", replay.display())));
+    }
+    let carried = r.len() as u64;
+    r.renumber(carried);
+    st.carried = carried;
+    tracing::info!(
+        job_id = job.id.get(),
+        from = from.job_id.get(),
+        transitions = carried,
+        ms = t.elapsed().as_millis() as u64,
+        "replay carried from the continued job"
+    );
+    job.metrics.replay_size.set(r.len() as i64);
+    *lock(&job.replay) = r;
+    Ok(())
 }
 
 /// Publishes the actor to workers under version numbers that are never issued twice, even

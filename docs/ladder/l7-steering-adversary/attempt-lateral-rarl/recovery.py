@@ -2,7 +2,8 @@
 ego's success minus RL/IDM's (the recovery), and among IDM the same difference (what the round
 costs where it was not trained), each paired on the same (scenario, case, seed) starts with a
 95 % t interval and a paired t-test's p; the share of FailMaker's effect recovered; Holm's
-correction over every p the table prints.
+correction over every p the table prints. `--rarl NAME` (up to twice) names the RARL egos
+(default `RARL/FailMaker`); with two, the table adds the second minus the first.
 
     python3 docs/ladder/l7-steering-adversary/attempt-lateral-rarl/recovery.py docs/ladder/l7-steering-adversary/attempt-lateral-rarl/seed-*/results/episodes.csv
 """
@@ -27,7 +28,9 @@ def paired(a, b):
     return mean, half, p
 
 
-def main(paths):
+def main(paths, rarl_names):
+    """One row per (training seed, RARL ego); with two RARL egos, also the second minus the
+    first, among FailMaker and among IDM (paired)."""
     rows = []
     for path in paths:
         seed = path.split("seed-")[1].split("/")[0]
@@ -36,17 +39,36 @@ def main(paths):
             for r in csv.DictReader(f):
                 succ.setdefault((r["ego"], r["flow"]), {})[(r["scenario"], r["case"], r["seed"])] = float(r["success"])
         attack = paired(succ[("RL/IDM", "IDM")], succ[("RL/IDM", "FailMaker")])
-        rec = paired(succ[("RL/IDM", "FailMaker")], succ[("RARL/FailMaker", "FailMaker")])
-        cost = paired(succ[("RL/IDM", "IDM")], succ[("RARL/FailMaker", "IDM")])
-        rows.append((seed, attack, rec, cost))
-    adj = multipletests([x for _, a, r, c in rows for x in (a[2], r[2], c[2])], method="holm")[1]
-    print("| seed | FailMaker's effect on RL/IDM (points) | RARL - RL/IDM among FailMaker (recovery) | share recovered | RARL - RL/IDM among IDM |")
-    print("|---|---|---|---|---|")
-    for i, (seed, a, r, c) in enumerate(rows):
-        fmt = lambda x, p: f"{100 * x[0]:+.1f} +- {100 * x[1]:.1f} (p {x[2]:.1e}, Holm {p:.1e})"
-        share = r[0] / -a[0] if a[0] < 0 else float("nan")
-        print(f"| {seed} | {fmt(a, adj[3 * i])} | {fmt(r, adj[3 * i + 1])} | {100 * share:.0f} % | {fmt(c, adj[3 * i + 2])} |")
+        for i, name in enumerate(rarl_names):
+            rec = paired(succ[("RL/IDM", "FailMaker")], succ[(name, "FailMaker")])
+            cost = paired(succ[("RL/IDM", "IDM")], succ[(name, "IDM")])
+            # The attack's p is counted once per seed.
+            rows.append((seed, name, attack if i == 0 else None, rec, cost, attack))
+        if len(rarl_names) == 2:
+            a, b = rarl_names
+            among_fm = paired(succ[(a, "FailMaker")], succ[(b, "FailMaker")])
+            among_idm = paired(succ[(a, "IDM")], succ[(b, "IDM")])
+            rows.append((seed, f"{b} - {a}", None, among_fm, among_idm, None))
+    ps = [x[2] for _, _, a, r, c, _ in rows for x in (a, r, c) if x is not None]
+    adj = iter(multipletests(ps, method="holm")[1])
+    fmt = lambda x: f"{100 * x[0]:+.1f} +- {100 * x[1]:.1f} (p {x[2]:.1e}, Holm {next(adj):.1e})"
+    if len(rarl_names) == 1:
+        print("| seed | FailMaker's effect on RL/IDM (points) | RARL - RL/IDM among FailMaker (recovery) | share recovered | RARL - RL/IDM among IDM |")
+        print("|---|---|---|---|---|")
+    else:
+        print("| seed | RARL ego | FailMaker's effect on RL/IDM (points) | ego - RL/IDM among FailMaker (recovery) | share recovered | ego - RL/IDM among IDM |")
+        print("|---|---|---|---|---|---|")
+    for seed, name, a, r, c, effect in rows:
+        attack = fmt(a) if a is not None else ""
+        share = f"{100 * r[0] / -effect[0]:.0f} %" if effect is not None and effect[0] < 0 else ""
+        lead = f"| {seed} |" if len(rarl_names) == 1 else f"| {seed} | {name} |"
+        print(f"{lead} {attack} | {fmt(r)} | {share} | {fmt(c)} |")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    args = sys.argv[1:]
+    names = []
+    while args[:1] == ["--rarl"]:
+        names.append(args[1])
+        args = args[2:]
+    main(args, names or ["RARL/FailMaker"])
