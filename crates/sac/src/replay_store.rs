@@ -525,6 +525,43 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// A continuation's carried replay (`train.init_replay`): the source's transitions renumbered
+    /// `0..carried`, the job's own after them, all written to the job's own directory from 0,
+    /// comes back whole on resume (up to `carried + own`).
+    #[test]
+    fn a_carried_replay_is_written_and_restored_as_the_jobs_own() {
+        let (src_dir, dir) = (scratch("carry-src"), scratch("carry-own"));
+        let src = ReplayStore::new(&src_dir);
+        let theirs = filled(100, 70);
+        src.append(&Segment::snapshot(&theirs, 0), theirs.oldest()).expect("source");
+        let mut r = src.read(50, 4, 2, 70).expect("carried");
+        let carried = r.len() as u64;
+        r.renumber(carried);
+        assert_eq!((carried, r.oldest(), r.inserted()), (50, 0, 50));
+        assert_eq!(r.get(0).map(|t| t.reward), theirs.get(20).map(|t| t.reward));
+        let o = [9.0, 9.0, 9.0, 9.0];
+        for _ in 0..10 {
+            r.push(Transition {
+                obs: &o,
+                action: &[0.0, 0.0],
+                reward: -1.0,
+                next_obs: &o,
+                terminal: false,
+                steps: 1,
+                map_id: 0,
+            })
+            .expect("own");
+        }
+        let own = ReplayStore::new(&dir);
+        own.append(&Segment::snapshot(&r, 0), r.oldest()).expect("first checkpoint");
+        let (back, next) = own.restore(50, 4, 2, carried + 10).expect("resume");
+        same(&r, &back);
+        assert_eq!(next, 60);
+        assert_eq!(src.segments().expect("source").len(), 1, "the source is left as it was");
+        let _ = std::fs::remove_dir_all(&src_dir);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     #[test]
     fn a_restored_fifo_wraps_like_the_original() {
         let dir = scratch("wrap");
