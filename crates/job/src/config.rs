@@ -576,6 +576,13 @@ pub struct TrainSection {
     #[serde(default)]
     pub init_replay: bool,
 }
+impl TrainSection {
+    /// Whether the job continues another (`train.init_job`, or `train.init_from` by name).
+    pub fn continues(&self) -> bool {
+        self.init_job.is_some() || self.init_from.is_some()
+    }
+}
+
 fn d_spi() -> f64 {
     0.25
 }
@@ -841,7 +848,7 @@ impl JobConfig {
             return bad("train.init_from", "not together with train.init_job");
         }
         if self.train.init_replay {
-            if self.train.init_job.is_none() && self.train.init_from.is_none() {
+            if !self.train.continues() {
                 return bad(
                     "train.init_replay",
                     "carries the replay of the job a continuation starts from: set train.init_job or train.init_from",
@@ -1014,8 +1021,7 @@ impl JobConfig {
                 ),
             );
         }
-        let continues = self.train.init_job.is_some() || self.train.init_from.is_some();
-        if s.warmup_policy == WarmupPolicy::Policy && !continues {
+        if s.warmup_policy == WarmupPolicy::Policy && !self.train.continues() {
             return bad("sac.warmup_policy", "\"policy\" warms up with the policy a continuation starts from: set train.init_job or train.init_from");
         }
         if self.env.action != ActionMode::Direct && s.warmup_policy == WarmupPolicy::Random {

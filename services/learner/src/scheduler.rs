@@ -8,9 +8,9 @@
 //! ([`Scheduler::occupy`]); one records how either ends and frees the slot
 //! ([`Scheduler::finish`]), then deletes the replays no unfinished job carries any more.
 //! While the disk refuses writes it starts nothing, and [`Scheduler::recover_storage`] probes
-//! until it takes them again. [`Scheduler::stop_all`]: shutdown. Invariant: a job is in its slot before it is marked RUNNING, so a CancelJob racing
-//! a start either finds it there (and stops it) or wrote CANCELLED first (and the start undoes
-//! itself). Must not: answer workers or clients (the experience side and the job table do), or
+//! until it takes them again. [`Scheduler::stop_all`]: shutdown. Invariant: a job is in its
+//! slot before it is marked RUNNING, so a CancelJob racing a start either finds it there (and
+//! stops it) or wrote CANCELLED first (and the start undoes itself). Must not: answer workers or clients (the experience side and the job table do), or
 //! change a final state (records change only through `JobRecord::advance`).
 
 use std::path::PathBuf;
@@ -354,13 +354,9 @@ impl Scheduler {
     /// (`train.init_replay`; [`deps::replays_to_release`]). A replay that cannot be deleted
     /// stays, with a warning: it costs disk, not correctness.
     async fn release_replays(&self) {
-        let all = self.jobs.list();
-        let dirs = deps::replays_to_release(&all, |r| self.jobs.spec(r).ok());
-        if dirs.is_empty() {
-            return;
-        }
+        let jobs = Arc::clone(&self.jobs);
         let done = blocking(move || {
-            for d in dirs {
+            for d in deps::replays_to_release(&jobs.list(), |r| jobs.spec(r).ok()) {
                 let replay = d.join("replay");
                 match std::fs::remove_dir_all(&replay) {
                     Ok(()) => tracing::info!(dir = %replay.display(), "replay released"),

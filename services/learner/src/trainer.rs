@@ -13,10 +13,10 @@
 //! with the curve's scalars and more (losses, alpha, rates, policy lag). With `train.persist_replay`
 //! (the default) `replay/` holds the replay in segments, one per checkpoint, read back on
 //! resume (or carried into a continuation, `train.init_replay`); the scheduler deletes it once
-//! the job has succeeded and no unfinished job carries it. With `[validation]`, `validation.csv` holds the
-//! held-out evaluation's points and `best_policy.bpk`/`.json` the best actor so far, which
-//! becomes `policy.bpk` (`policy.json` then says `"selected_by": "validation"` and at which
-//! update).
+//! the job has succeeded and no unfinished job carries it. With `[validation]`,
+//! `validation.csv` holds the held-out evaluation's points and `best_policy.bpk`/`.json` the
+//! best actor so far, which becomes `policy.bpk` (`policy.json` then says
+//! `"selected_by": "validation"` and at which update).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -312,9 +312,14 @@ fn restore_replay(
         ms = t.elapsed().as_millis() as u64,
         "replay restored"
     );
+    install_replay(job, r);
+    Ok((store, next))
+}
+
+/// Makes `r` the job's replay (before any worker can push).
+fn install_replay(job: &ActiveJob, r: sf_sac::Replay) {
     job.metrics.replay_size.set(r.len() as i64);
     *lock(&job.replay) = r;
-    Ok((store, next))
 }
 
 /// `train.init_replay`: reads the newest `replay_capacity` transitions of the continued job's
@@ -351,8 +356,7 @@ fn carry_replay(job: &ActiveJob, from: &InitDep, st: &mut TrainState) -> Result<
         ms = t.elapsed().as_millis() as u64,
         "replay carried from the continued job"
     );
-    job.metrics.replay_size.set(r.len() as i64);
-    *lock(&job.replay) = r;
+    install_replay(job, r);
     Ok(())
 }
 

@@ -8,9 +8,9 @@ correction over every p the table prints. `--rarl NAME` (up to twice) names the 
     python3 docs/ladder/l7-steering-adversary/attempt-lateral-rarl/recovery.py docs/ladder/l7-steering-adversary/attempt-lateral-rarl/seed-*/results/episodes.csv
 """
 
+import argparse
 import csv
 import math
-import sys
 
 from scipy import stats
 from statsmodels.stats.multitest import multipletests
@@ -66,9 +66,10 @@ def main(paths, rarl_names):
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    names = []
-    while args[:1] == ["--rarl"]:
-        names.append(args[1])
-        args = args[2:]
-    main(args, names or ["RARL/FailMaker"])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rarl", action="append", metavar="NAME", help="a RARL ego (at most two; default RARL/FailMaker)")
+    ap.add_argument("episodes", nargs="+", help="seed-N/results/episodes.csv files")
+    a = ap.parse_args()
+    if a.rarl and len(a.rarl) > 2:
+        ap.error("--rarl: at most two RARL egos")
+    main(a.episodes, a.rarl or ["RARL/FailMaker"])
