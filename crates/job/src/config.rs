@@ -121,6 +121,7 @@ pub enum Device {
     Cpu,
     Ndarray,
     Cuda,
+    Wgpu,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -89,6 +89,7 @@ pub enum DeviceArg {
     Cpu,
     Ndarray,
     Cuda,
+    Wgpu,
 }
 
 /// The observation and network configuration of a benchmark size.
@@ -120,6 +121,7 @@ fn sac_device(d: DeviceArg) -> sf_job::config::Device {
         DeviceArg::Cpu => sf_job::config::Device::Cpu,
         DeviceArg::Ndarray => sf_job::config::Device::Ndarray,
         DeviceArg::Cuda => sf_job::config::Device::Cuda,
+        DeviceArg::Wgpu => sf_job::config::Device::Wgpu,
     }
 }
 

@@ -12,6 +12,9 @@ pub enum DeviceKind {
     Cpu,
     /// An NVIDIA GPU (needs the `cuda` feature).
     Cuda,
+    /// Any GPU through burn's wgpu backend (Vulkan on Linux; WGSL shaders compiled by naga)
+    /// (needs the `wgpu` feature; builds from the package registries alone, unlike `cuda`).
+    Wgpu,
     /// burn's deprecated `ndarray` CPU backend (needs the `ndarray` or `openblas` feature);
     /// kept for backend measurements.
     Ndarray,
@@ -21,8 +24,8 @@ pub enum DeviceKind {
 pub enum DeviceError {
     #[error("device `{0}` needs a build with the `{0}` feature of socialflow-nn")]
     NotBuilt(&'static str),
-    #[error("device `cuda` is built in but unusable here (no NVIDIA GPU or driver?): {0}")]
-    Unavailable(String),
+    #[error("device `{0}` is built in but unusable here (no GPU or driver?): {1}")]
+    Unavailable(&'static str, String),
 }
 
 /// The inference device of a kind (no autodiff).
@@ -30,9 +33,19 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
     match kind {
         DeviceKind::Cpu => Ok(Device::flex()),
         #[cfg(feature = "cuda")]
-        DeviceKind::Cuda => probe_cuda(),
+        DeviceKind::Cuda => {
+            static PROBE: std::sync::OnceLock<Result<(), DeviceError>> = std::sync::OnceLock::new();
+            probe(&PROBE, "cuda", || Device::cuda(0))
+        }
         #[cfg(not(feature = "cuda"))]
         DeviceKind::Cuda => Err(DeviceError::NotBuilt("cuda")),
+        #[cfg(feature = "wgpu")]
+        DeviceKind::Wgpu => {
+            static PROBE: std::sync::OnceLock<Result<(), DeviceError>> = std::sync::OnceLock::new();
+            probe(&PROBE, "wgpu", || Device::wgpu(burn::tensor::DeviceKind::DefaultDevice))
+        }
+        #[cfg(not(feature = "wgpu"))]
+        DeviceKind::Wgpu => Err(DeviceError::NotBuilt("wgpu")),
         #[cfg(feature = "ndarray")]
         DeviceKind::Ndarray => Ok(Device::ndarray()),
         #[cfg(not(feature = "ndarray"))]
@@ -40,18 +53,21 @@ pub fn device(kind: DeviceKind) -> Result<Device, DeviceError> {
     }
 }
 
-/// CUDA device 0 after a round trip of one small tensor: burn initialises CUDA lazily and
-/// panics deep inside on a machine without a GPU; this turns that into an error at the first
-/// look (before a learner binds its ports or a job is accepted). Checked once per process.
-#[cfg(feature = "cuda")]
-fn probe_cuda() -> Result<Device, DeviceError> {
-    use std::sync::OnceLock;
-    static PROBE: OnceLock<Result<(), DeviceError>> = OnceLock::new();
-    let r = PROBE.get_or_init(|| {
+/// A GPU device after a round trip of one small tensor: burn initialises its GPU runtimes
+/// lazily and panics deep inside on a machine without the GPU or its driver; this turns that into
+/// an error at the first look (before a learner binds its ports or a job is accepted). Checked
+/// once per process and kind (`once`).
+#[cfg(any(feature = "cuda", feature = "wgpu"))]
+fn probe(
+    once: &'static std::sync::OnceLock<Result<(), DeviceError>>,
+    name: &'static str,
+    make: fn() -> Device,
+) -> Result<Device, DeviceError> {
+    let r = once.get_or_init(|| {
         let quiet = std::panic::take_hook();
         std::panic::set_hook(Box::new(|_| {}));
         let r = std::panic::catch_unwind(|| {
-            let d = Device::cuda(0);
+            let d = make();
             let t = burn::tensor::Tensor::<1>::from_data(
                 burn::tensor::TensorData::new(vec![1.0f32, 2.0], [2]),
                 &d,
@@ -61,18 +77,20 @@ fn probe_cuda() -> Result<Device, DeviceError> {
         std::panic::set_hook(quiet);
         match r {
             Ok(2) => Ok(()),
-            Ok(n) => {
-                Err(DeviceError::Unavailable(format!("a test tensor came back with {n} values")))
-            }
+            Ok(n) => Err(DeviceError::Unavailable(
+                name,
+                format!("a test tensor came back with {n} values"),
+            )),
             Err(p) => Err(DeviceError::Unavailable(
+                name,
                 p.downcast_ref::<String>()
                     .cloned()
                     .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "CUDA initialisation panicked".into()),
+                    .unwrap_or_else(|| format!("{name} initialisation panicked")),
             )),
         }
     });
-    r.clone().map(|()| Device::cuda(0))
+    r.clone().map(|()| make())
 }
 
 /// The training device of a kind (autodiff enabled).

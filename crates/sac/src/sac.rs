@@ -478,6 +478,7 @@ pub fn device_kind(d: sf_job::config::Device) -> device::DeviceKind {
         Job::Cpu => device::DeviceKind::Cpu,
         Job::Ndarray => device::DeviceKind::Ndarray,
         Job::Cuda => device::DeviceKind::Cuda,
+        Job::Wgpu => device::DeviceKind::Wgpu,
     }
 }
 

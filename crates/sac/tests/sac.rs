@@ -324,6 +324,56 @@ fn checkpoint_restore_continues_exactly() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The learner on wgpu (Vulkan; Mesa's software lavapipe in CI) against the CPU one: the same
+/// seed starts both from the same weights (drawn on the host), and the same batches and
+/// host-drawn noise then give the same losses and weights, up to the order of float sums. Needs
+/// the `wgpu` feature and a Vulkan driver; without the driver it fails, naming the device,
+/// rather than passing.
+#[cfg(feature = "wgpu")]
+#[test]
+fn the_wgpu_learner_updates_as_the_cpu_learner_does() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let batches: Vec<Batch> = (0..4).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
+    let learner = |device| {
+        let cfg = SacConfig {
+            seed: 4,
+            batch_size: 16,
+            reward_scale: 1.0,
+            device,
+            ..SacConfig::default()
+        };
+        let spec = sf_sim::ObsSpec::new(&sim.obs);
+        let segs = MapSegments::build(&m, sim.obs.segment_points);
+        Sac::new(cfg, tiny_net(), spec, sim.dt_s, &[&segs])
+    };
+    let mut cpu = learner(sf_job::config::Device::Cpu).expect("cpu learner");
+    let mut gpu = match learner(sf_job::config::Device::Wgpu) {
+        Ok(s) => s,
+        Err(e) => panic!("{e} (install a Vulkan driver, e.g. Debian's mesa-vulkan-drivers)"),
+    };
+    assert_eq!(flat(&cpu.actor), flat(&gpu.actor), "both start from the host-drawn weights");
+    let close = |a: f32, b: f32, what: &str| {
+        assert!((a - b).abs() <= 2e-3 * a.abs().max(b.abs()).max(1.0), "{what}: cpu {a}, wgpu {b}");
+    };
+    for (i, b) in batches.iter().enumerate() {
+        let (lc, lg) = (cpu.update(b), gpu.update(b));
+        close(lc.critic, lg.critic, &format!("critic loss, update {i}"));
+        close(lc.actor, lg.actor, &format!("actor loss, update {i}"));
+        close(lc.alpha, lg.alpha, &format!("alpha, update {i}"));
+    }
+    for (what, a, b) in [
+        ("actor", flat(&cpu.actor), flat(&gpu.actor)),
+        ("critic", flat(&cpu.critic), flat(&gpu.critic)),
+        ("target", flat(&cpu.target), flat(&gpu.target)),
+    ] {
+        assert_eq!(a.len(), b.len());
+        let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(worst <= 1e-3, "{what} weights differ by up to {worst} after four updates");
+    }
+}
+
 /// The IDM warm-up's cloning phase: for the first `bc_updates` updates the actor's mean action
 /// is fitted to the stored actions (here a route follower's, a function of the observation) and
 /// alpha stays put; the first update after them tunes alpha again.
