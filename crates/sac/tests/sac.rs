@@ -336,23 +336,16 @@ fn the_wgpu_learner_updates_as_the_cpu_learner_does() {
     let (r, m) = replay_from_sim(&sim, 64);
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let batches: Vec<Batch> = (0..4).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
-    let learner = |device| {
-        let cfg = SacConfig {
-            seed: 4,
-            batch_size: 16,
-            reward_scale: 1.0,
-            device,
-            ..SacConfig::default()
-        };
-        let spec = sf_sim::ObsSpec::new(&sim.obs);
-        let segs = MapSegments::build(&m, sim.obs.segment_points);
-        Sac::new(cfg, tiny_net(), spec, sim.dt_s, &[&segs])
+    let cfg = |device| SacConfig {
+        seed: 4,
+        batch_size: 16,
+        reward_scale: 1.0,
+        device,
+        ..SacConfig::default()
     };
-    let mut cpu = learner(sf_job::config::Device::Cpu).expect("cpu learner");
-    let mut gpu = match learner(sf_job::config::Device::Wgpu) {
-        Ok(s) => s,
-        Err(e) => panic!("{e} (install a Vulkan driver, e.g. Debian's mesa-vulkan-drivers)"),
-    };
+    let mut cpu = sac_with(&sim, &m, cfg(sf_job::config::Device::Cpu), tiny_net());
+    // Without a usable driver this panics with the device error, which names `wgpu`.
+    let mut gpu = sac_with(&sim, &m, cfg(sf_job::config::Device::Wgpu), tiny_net());
     assert_eq!(flat(&cpu.actor), flat(&gpu.actor), "both start from the host-drawn weights");
     let close = |a: f32, b: f32, what: &str| {
         assert!((a - b).abs() <= 2e-3 * a.abs().max(b.abs()).max(1.0), "{what}: cpu {a}, wgpu {b}");
