@@ -3,7 +3,8 @@ ego's success minus RL/IDM's (the recovery), and among IDM the same difference (
 costs where it was not trained), each paired on the same (scenario, case, seed) starts with a
 95 % t interval and a paired t-test's p; the share of FailMaker's effect recovered; Holm's
 correction over every p the table prints. `--rarl NAME` (up to twice) names the RARL egos
-(default `RARL/FailMaker`); with two, the table adds the second minus the first.
+(default `RARL/FailMaker`); with two, the table adds the second minus the first. `--flow NAME`
+names the hostile flow (default `FailMaker`).
 
     python3 docs/ladder/l7-steering-adversary/attempt-lateral-rarl/recovery.py docs/ladder/l7-steering-adversary/attempt-lateral-rarl/seed-*/results/episodes.csv
 """
@@ -28,7 +29,7 @@ def paired(a, b):
     return mean, half, p
 
 
-def main(paths, rarl_names):
+def main(paths, rarl_names, fm="FailMaker"):
     """One row per (training seed, RARL ego); with two RARL egos, also the second minus the
     first, among FailMaker and among IDM (paired)."""
     rows = []
@@ -38,15 +39,15 @@ def main(paths, rarl_names):
         with open(path) as f:
             for r in csv.DictReader(f):
                 succ.setdefault((r["ego"], r["flow"]), {})[(r["scenario"], r["case"], r["seed"])] = float(r["success"])
-        attack = paired(succ[("RL/IDM", "IDM")], succ[("RL/IDM", "FailMaker")])
+        attack = paired(succ[("RL/IDM", "IDM")], succ[("RL/IDM", fm)])
         for i, name in enumerate(rarl_names):
-            rec = paired(succ[("RL/IDM", "FailMaker")], succ[(name, "FailMaker")])
+            rec = paired(succ[("RL/IDM", fm)], succ[(name, fm)])
             cost = paired(succ[("RL/IDM", "IDM")], succ[(name, "IDM")])
             # The attack's p is counted once per seed.
             rows.append((seed, name, attack if i == 0 else None, rec, cost, attack))
         if len(rarl_names) == 2:
             a, b = rarl_names
-            among_fm = paired(succ[(a, "FailMaker")], succ[(b, "FailMaker")])
+            among_fm = paired(succ[(a, fm)], succ[(b, fm)])
             among_idm = paired(succ[(a, "IDM")], succ[(b, "IDM")])
             rows.append((seed, f"{b} - {a}", None, among_fm, among_idm, None))
     ps = [x[2] for _, _, a, r, c, _ in rows for x in (a, r, c) if x is not None]
@@ -68,8 +69,9 @@ def main(paths, rarl_names):
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rarl", action="append", metavar="NAME", help="a RARL ego (at most two; default RARL/FailMaker)")
+    ap.add_argument("--flow", default="FailMaker", metavar="NAME", help="the hostile flow (default FailMaker)")
     ap.add_argument("episodes", nargs="+", help="seed-N/results/episodes.csv files")
     a = ap.parse_args()
     if a.rarl and len(a.rarl) > 2:
         ap.error("--rarl: at most two RARL egos")
-    main(a.episodes, a.rarl or ["RARL/FailMaker"])
+    main(a.episodes, a.rarl or ["RARL/FailMaker"], a.flow)
