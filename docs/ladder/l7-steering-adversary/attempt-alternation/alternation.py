@@ -19,7 +19,10 @@ import sys
 
 from statsmodels.stats.multitest import multipletests
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "attempt-lateral-rarl"))
+here = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(here, "..", "attempt-lateral-rarl"))
+sys.path.insert(0, os.path.join(here, "..", "attempt-hostile"))
+from effects import ends  # noqa: E402
 from recovery import paired  # noqa: E402
 
 EGOS = ["RL/IDM", "RARL-1", "RARL-2", "RARL-3"]
@@ -37,17 +40,6 @@ def load(path):
 
 def column(cells, name):
     return {cell: {k: float(r[name]) for k, r in eps.items()} for cell, eps in cells.items()}
-
-
-def ends(eps):
-    """Shares of episodes that end in a collision, in another failure (off the road or the
-    lane), or safely but not arrived, and the share of the ego's episodes with a lane change."""
-    n = len(eps)
-    col = sum(float(r["collision"]) for r in eps.values()) / n
-    unsafe = sum(1 - float(r["safety"]) for r in eps.values()) / n
-    stuck = sum(float(r["safety"]) * (1 - float(r["success"])) for r in eps.values()) / n
-    lane = sum(float(r["lane_change"] or 0) for r in eps.values()) / n
-    return col, unsafe - col, stuck, lane
 
 
 def rows_for(succ):

@@ -6,15 +6,28 @@ interval and a paired t-test's p; and how the episodes among FailMaker end.
 """
 
 import csv
-import math
+import os
 import sys
 
-from scipy import stats
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "attempt-lateral-rarl"))
+from recovery import paired  # noqa: E402
 
 
 def load(path):
     with open(path) as f:
         return list(csv.DictReader(f))
+
+
+def ends(eps):
+    """Shares of the episodes (`{start: row}`) that end in a collision, in another failure (off
+    the road or the lane), or safely but not arrived, and the share with a lane change (0 where
+    the file predates the `lane_change` column)."""
+    n = len(eps)
+    col = sum(float(r["collision"]) for r in eps.values()) / n
+    unsafe = sum(1 - float(r["safety"]) for r in eps.values()) / n
+    stuck = sum(float(r["safety"]) * (1 - float(r["success"])) for r in eps.values()) / n
+    lane = sum(float(r.get("lane_change") or 0) for r in eps.values()) / n
+    return col, unsafe - col, stuck, lane
 
 
 def main(paths):
@@ -30,18 +43,13 @@ def main(paths):
                     by.setdefault(r["flow"], {})[(r["scenario"], r["case"], r["seed"])] = r
             idm, fm = by["IDM"], by["FailMaker"]
             keys = sorted(idm.keys() & fm.keys())
-            d = [float(fm[k]["success"]) - float(idm[k]["success"]) for k in keys]
-            n = len(d)
-            mean = sum(d) / n
-            sd = math.sqrt(sum((x - mean) ** 2 for x in d) / (n - 1))
-            half = stats.t.ppf(0.975, n - 1) * sd / math.sqrt(n)
-            p = stats.ttest_rel([float(fm[k]["success"]) for k in keys], [float(idm[k]["success"]) for k in keys]).pvalue
-            a = sum(float(idm[k]["success"]) for k in keys) / n
-            b = sum(float(fm[k]["success"]) for k in keys) / n
-            col = sum(float(fm[k]["collision"]) for k in keys) / n
-            unsafe = sum(1 - float(fm[k]["safety"]) for k in keys) / n
-            stuck = sum(float(fm[k]["safety"]) * (1 - float(fm[k]["success"])) for k in keys) / n
-            print(f"| {seed} | {ego} | {a:.3f} | {b:.3f} | {100 * mean:+.1f} | +-{100 * half:.1f} | {p:.1e} | {col:.3f} / {unsafe - col:.3f} / {stuck:.3f} |")
+            success = lambda eps: {k: float(eps[k]["success"]) for k in keys}
+            mean, half, p = paired(success(idm), success(fm))
+            n = len(keys)
+            a = sum(success(idm).values()) / n
+            b = sum(success(fm).values()) / n
+            col, other, stuck, _ = ends({k: fm[k] for k in keys})
+            print(f"| {seed} | {ego} | {a:.3f} | {b:.3f} | {100 * mean:+.1f} | +-{100 * half:.1f} | {p:.1e} | {col:.3f} / {other:.3f} / {stuck:.3f} |")
 
 
 if __name__ == "__main__":
