@@ -660,6 +660,7 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
         speed: 0.5,
         collision: 0.0,
         lane_change: None,
+        road_closed: None,
     };
     let short = pb::EvalResults {
         job_id: job.job_id,

@@ -13,7 +13,7 @@ from . import _socialflow
 from ._common import Action, Flow, Layout, ObsFormat, PathLike, check_choice, flow_arg
 from .envs import split_obs
 
-EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision", "lane_change")
+EPISODE_COLUMNS = ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles", "case", "seed", "success", "safety", "speed", "collision", "lane_change", "road_closed")
 _GRID_KEYS = {"flows", "scenarios", "cases", "seeds", "envs", "vehicles", "svo_deg", "experiment", "ego"}
 
 
@@ -148,8 +148,8 @@ def evaluate(
 
             rows = _socialflow.evaluate(loaded if loaded is not None else wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
             mine = [
-                dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision, lane_change)))
-                for case, seed, success, safety, speed, collision, lane_change in rows
+                dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision, lane_change, road_closed)))
+                for case, seed, success, safety, speed, collision, lane_change, road_closed in rows
             ]
             result.rows.extend(mine)
             s = {"flow": name, "scenario": scenario, "episodes": len(mine)}

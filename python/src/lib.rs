@@ -166,8 +166,9 @@ impl Core {
 /// Observation rows and their `alive` flags.
 type Observation<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray1<bool>>);
 
-/// One evaluated episode: `(case, seed, success, safety, speed, collision, lane_change)`.
-type EpisodeRow = (u32, u32, f32, f32, f32, f32, Option<f32>);
+/// One evaluated episode: `(case, seed, success, safety, speed, collision, lane_change,
+/// road_closed)`.
+type EpisodeRow = (u32, u32, f32, f32, f32, f32, Option<f32>, Option<f32>);
 
 /// What one `step` returns, per row Python sees.
 type StepOut<'py> = (
@@ -743,7 +744,7 @@ impl LoadedPolicy {
 /// Runs `policy` (a callable `[n, obs_len] float32 -> [n, action_dim] float32`) in the ego's
 /// seat over the first `cases` stored cases x `seeds` among the flow, through the loop of
 /// `socialflow eval`'s cells. Returns `(case, seed, success, safety, speed, collision,
-/// lane_change)` per episode in (seed, case) order.
+/// lane_change, road_closed)` per episode in (seed, case) order.
 #[pyfunction]
 #[pyo3(signature = (policy, scenario_name, flow=None, layout=None, action="direct", cases=200, seeds=10, envs=16, vehicles=None, svo_deg=None))]
 #[allow(clippy::too_many_arguments)]
@@ -853,7 +854,8 @@ fn evaluate(
         .into_iter()
         .map(|r| {
             let s = r.scores;
-            (r.case, r.seed, s.success, s.safety, s.speed, r.collision, r.lane_change)
+            let (lane_change, road_closed) = (r.lane_change, r.road_closed);
+            (r.case, r.seed, s.success, s.safety, s.speed, r.collision, lane_change, road_closed)
         })
         .collect())
 }

@@ -68,9 +68,11 @@ def test_direct_policy_and_dict_observations(tmp_path):
     assert len(res.rows) == 4 and seen and len(seen[0]) == 3
     # A car that never moves never succeeds, nor leaves its lane.
     assert all(r["success"] == 0.0 and r["lane_change"] == 0.0 for r in res.rows)
+    # Every episode records whether standing cars closed the road ahead at its timeout.
+    assert all(r["road_closed"] in (0.0, 1.0) for r in res.rows)
     res.to_csv(tmp_path / "episodes.csv")
     header = (tmp_path / "episodes.csv").read_text().splitlines()[0]
-    assert header == "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change"
+    assert header == "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change,road_closed"
 
 
 def test_bad_policy_and_grid():

@@ -101,6 +101,22 @@ pub struct Gifs {
     pub scenarios: Vec<String>,
     #[serde(default)]
     pub case: u32,
+    /// The longer side of each flow's panel in pixels (default [`Gifs::DEFAULT_SIZE_PX`]);
+    /// panels of maps more than twice as wide as tall are stacked top to bottom, others placed
+    /// side by side.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub size_px: Option<u32>,
+}
+
+impl Gifs {
+    pub const DEFAULT_SIZE_PX: u32 = 320;
+    /// The accepted range of `size_px`.
+    pub const SIZE_PX: std::ops::RangeInclusive<u32> = 64..=2048;
+
+    /// The longer side of each panel in pixels.
+    pub fn size_px(&self) -> u32 {
+        self.size_px.unwrap_or(Self::DEFAULT_SIZE_PX)
+    }
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -249,6 +265,10 @@ pub struct EvalEpisode {
     /// change, a cut-in, or drifting out of it); `None` where it was not recorded (results
     /// written before it was, and Python's `evaluate`).
     pub lane_change: Option<f32>,
+    /// The share of the scored agents that timed out with standing vehicles closing the road
+    /// ahead of them (`sf_sim::passage`); `None` where it was not recorded (results written
+    /// before 2026-11-29, Python's `evaluate`).
+    pub road_closed: Option<f32>,
 }
 
 impl EvalEpisode {
@@ -260,6 +280,7 @@ impl EvalEpisode {
             ("speed", self.scores.speed),
             ("collision", self.collision),
             ("lane_change", self.lane_change.unwrap_or(0.0)),
+            ("road_closed", self.road_closed.unwrap_or(0.0)),
         ] {
             if !(0.0..=1.0).contains(&value) {
                 return Err(MetricRangeError { case: self.case, seed: self.seed, metric, value });
@@ -425,6 +446,14 @@ impl EvalConfig {
             }
         }
         if let Some(g) = &e.gifs {
+            if !Gifs::SIZE_PX.contains(&g.size_px()) {
+                return bad(format!(
+                    "eval config field `experiments.gifs.size_px`: {} is not in {}..={} pixels",
+                    g.size_px(),
+                    Gifs::SIZE_PX.start(),
+                    Gifs::SIZE_PX.end()
+                ));
+            }
             need_flows.extend(g.flows.iter().map(|f| ("experiments.gifs.flows", f)));
             if !g.ego.is_empty() {
                 need_egos.push(("experiments.gifs.ego", &g.ego));
@@ -627,6 +656,15 @@ mod tests {
         );
         let e = EvalConfig::from_toml(&gifs("ego = \"F\", ")).expect_err("unknown ego");
         assert!(e.0.contains("experiments.gifs.ego") && e.0.contains("`F`"), "{e}");
+        // The panel size: 320 px unless given, given ones kept, absurd ones refused by name.
+        assert_eq!(g.size_px(), Gifs::DEFAULT_SIZE_PX);
+        assert!(!alone.to_toml().contains("size_px"), "an absent size stays absent");
+        let big = EvalConfig::from_toml(&gifs("size_px = 960, ")).expect("960 px");
+        assert_eq!(big.experiments.gifs.as_ref().map(Gifs::size_px), Some(960));
+        for bad in ["size_px = 0, ", "size_px = 100000, "] {
+            let e = EvalConfig::from_toml(&gifs(bad)).expect_err(bad);
+            assert!(e.0.contains("experiments.gifs.size_px"), "{bad}: {e}");
+        }
     }
 
     #[test]

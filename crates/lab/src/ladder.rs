@@ -596,6 +596,7 @@ fn render_gifs(
             cases,
             runners,
             &path,
+            sf_job::eval::Gifs::DEFAULT_SIZE_PX,
         )
         .map_err(anyhow::Error::msg)
         .with_context(|| format!("rendering {}", path.display()))?;

@@ -286,6 +286,7 @@ pub fn eval_episode_to_wire(e: &EvalEpisode) -> pb::EvalEpisode {
         speed: e.scores.speed,
         collision: e.collision,
         lane_change: e.lane_change,
+        road_closed: e.road_closed,
     }
 }
 
@@ -297,6 +298,7 @@ pub fn eval_episode_from_wire(e: &pb::EvalEpisode) -> Result<EvalEpisode, WireEr
         scores: Scores { success: e.success, safety: e.safety, speed: e.speed },
         collision: e.collision,
         lane_change: e.lane_change,
+        road_closed: e.road_closed,
     };
     ep.validate().map_err(|e| WireError { field: "episodes", reason: e.to_string() })?;
     Ok(ep)
@@ -635,6 +637,7 @@ mod tests {
             scores: Scores { success: 1.0, safety: 0.5, speed: 0.7 },
             collision: 0.0,
             lane_change: Some(0.25),
+            road_closed: Some(1.0),
         };
         assert_eq!(eval_episode_from_wire(&eval_episode_to_wire(&e)), Ok(e));
         // A worker that predates the lane-change share leaves it unset: read as not recorded.
@@ -643,6 +646,11 @@ mod tests {
         assert_eq!(eval_episode_from_wire(&m), Ok(EvalEpisode { lane_change: None, ..e }));
         m.lane_change = Some(2.0);
         assert!(eval_episode_from_wire(&m).expect_err("range").reason.contains("lane_change"));
+        let mut m = eval_episode_to_wire(&e);
+        m.road_closed = None;
+        assert_eq!(eval_episode_from_wire(&m), Ok(EvalEpisode { road_closed: None, ..e }));
+        m.road_closed = Some(-0.5);
+        assert!(eval_episode_from_wire(&m).expect_err("range").reason.contains("road_closed"));
         let mut m = eval_episode_to_wire(&e);
         m.speed = f32::NAN;
         assert_eq!(eval_episode_from_wire(&m).expect_err("nan").field, "episodes");

@@ -273,14 +273,20 @@ fn valid_eval_results() -> impl Strategy<Value = pb::EvalResults> {
         fraction(),
         fraction(),
         prop::option::of(fraction()),
+        prop::option::of(fraction()),
     )
-        .prop_map(|(case, seed, success, safety, speed, collision, lane_change)| EvalEpisode {
-            case,
-            seed,
-            scores: sf_job::Scores { success, safety, speed },
-            collision,
-            lane_change,
-        });
+        .prop_map(
+            |(case, seed, success, safety, speed, collision, lane_change, road_closed)| {
+                EvalEpisode {
+                    case,
+                    seed,
+                    scores: sf_job::Scores { success, safety, speed },
+                    collision,
+                    lane_change,
+                    road_closed,
+                }
+            },
+        );
     (1u64.., any::<u64>(), any::<u64>(), prop::collection::vec(episode, 0..6)).prop_map(
         |(job_id, worker_id, cell_id, episodes)| pb::EvalResults {
             job_id,

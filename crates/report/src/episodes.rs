@@ -6,9 +6,10 @@
 //! so a cell is stored whole or not at all), [`Meta`] and [`read_meta`]. Must not: compute
 //! statistics or draw anything (the report does).
 //!
-//! Two formats are read: [`EPISODES_HEADER`] (with the lane-change share, written since
-//! 2026-11-28) and [`EPISODES_HEADER_V1`] (without it: older results and Python's `evaluate`).
-//! A file keeps the format it was started in, so appending to an older file never mixes rows.
+//! Three formats are read: [`EPISODES_HEADER`] (with the lane-change share and the closed-road
+//! share, written since 2026-11-29), [`EPISODES_HEADER_V2`] (with the lane-change share only,
+//! 2026-11-28) and [`EPISODES_HEADER_V1`] (neither: older results). A file keeps the format it
+//! was started in, so appending to an older file never mixes rows.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -17,6 +18,10 @@ use serde::{Deserialize, Serialize};
 use sf_job::eval::{Cell, EvalConfig, EvalEpisode};
 
 pub const EPISODES_HEADER: &str =
+    "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change,road_closed";
+
+/// The header of files written before the closed-road share was recorded (2026-11-28).
+pub const EPISODES_HEADER_V2: &str =
     "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision,lane_change";
 
 /// The header of files written before the lane-change share was recorded.
@@ -26,8 +31,11 @@ pub const EPISODES_HEADER_V1: &str =
 /// Which of the two line formats a file holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Format {
-    /// 13 fields, the last the lane-change share (empty when not recorded).
+    /// 14 fields, the last two the lane-change and closed-road shares (each empty when not
+    /// recorded).
     Current,
+    /// 13 fields, the last the lane-change share.
+    V2,
     /// 12 fields, no lane-change share.
     V1,
 }
@@ -36,6 +44,7 @@ impl Format {
     fn of_header(h: &str) -> Option<Self> {
         match h {
             EPISODES_HEADER => Some(Self::Current),
+            EPISODES_HEADER_V2 => Some(Self::V2),
             EPISODES_HEADER_V1 => Some(Self::V1),
             _ => None,
         }
@@ -44,6 +53,7 @@ impl Format {
     fn header(self) -> &'static str {
         match self {
             Self::Current => EPISODES_HEADER,
+            Self::V2 => EPISODES_HEADER_V2,
             Self::V1 => EPISODES_HEADER_V1,
         }
     }
@@ -82,7 +92,8 @@ impl EpisodeRow {
         self.to_csv_in(Format::Current)
     }
 
-    /// The row as a line of `format` (V1 drops the lane-change share).
+    /// The row as a line of `format` (V2 drops the closed-road share, V1 the lane-change share
+    /// too).
     pub fn to_csv_in(&self, format: Format) -> String {
         let (c, e) = (&self.cell, &self.ep);
         let o = |v: Option<String>| v.unwrap_or_default();
@@ -101,8 +112,12 @@ impl EpisodeRow {
             e.scores.speed,
             e.collision
         );
+        let lane_change = o(e.lane_change.map(|v| v.to_string()));
         match format {
-            Format::Current => format!("{line},{}", o(e.lane_change.map(|v| v.to_string()))),
+            Format::Current => {
+                format!("{line},{lane_change},{}", o(e.road_closed.map(|v| v.to_string())))
+            }
+            Format::V2 => format!("{line},{lane_change}"),
             Format::V1 => line,
         }
     }
@@ -151,6 +166,10 @@ impl EpisodeRow {
             lane_change: match f.get(12) {
                 None | Some(&"") => None,
                 Some(_) => Some(num(12, "lane_change")?),
+            },
+            road_closed: match f.get(13) {
+                None | Some(&"") => None,
+                Some(_) => Some(num(13, "road_closed")?),
             },
         };
         Ok(Self { cell, ep, replicate: 0 })
@@ -348,14 +367,20 @@ mod tests {
                 scores: sf_job::Scores { success: 0.25, safety: 0.25, speed: 0.5 },
                 collision: 0.0,
                 lane_change: Some(0.5),
+                road_closed: Some(0.25),
             },
         );
         assert_eq!(EpisodeRow::parse(&r.to_csv(), Format::Current), Ok(r.clone()));
-        let unrecorded = EpisodeRow { ep: EvalEpisode { lane_change: None, ..r.ep }, ..r.clone() };
+        let unrecorded = EpisodeRow {
+            ep: EvalEpisode { lane_change: None, road_closed: None, ..r.ep },
+            ..r.clone()
+        };
         assert_eq!(
             EpisodeRow::parse(&unrecorded.to_csv(), Format::Current),
             Ok(unrecorded.clone())
         );
+        let v2 = EpisodeRow { ep: EvalEpisode { road_closed: None, ..r.ep }, ..r.clone() };
+        assert_eq!(EpisodeRow::parse(&r.to_csv_in(Format::V2), Format::V2), Ok(v2));
         assert_eq!(EpisodeRow::parse(&r.to_csv_in(Format::V1), Format::V1), Ok(unrecorded));
         let dir = std::env::temp_dir().join(format!("sf-report-rows-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
@@ -371,7 +396,7 @@ mod tests {
         std::fs::write(&p, format!("{EPISODES_HEADER}\n{}\n", r.to_csv_in(Format::V1)))
             .expect("write");
         let e = read_episodes(&p).expect_err("short line").to_string();
-        assert!(e.contains("line 2") && e.contains("12 fields, expected 13"), "{e}");
+        assert!(e.contains("line 2") && e.contains("12 fields, expected 14"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -391,6 +416,7 @@ mod tests {
                 scores: sf_job::Scores { success: 1.0, safety: 1.0, speed: 0.9 },
                 collision: 0.0,
                 lane_change,
+                road_closed: lane_change.map(|v| 1.0 - v),
             },
         )
     }
@@ -414,6 +440,19 @@ mod tests {
             rows.iter().map(|r| (r.ep.case, r.ep.lane_change)).collect::<Vec<_>>(),
             [(0, None), (1, None)]
         );
+        // A file of 2026-11-28 (lane changes, no closed roads) keeps its 13 fields.
+        let v2 = dir.join("v2.csv");
+        std::fs::write(
+            &v2,
+            format!("{EPISODES_HEADER_V2}\n{}\n", row(0, Some(0.5)).to_csv_in(Format::V2)),
+        )
+        .expect("write");
+        EpisodesWriter::open(&v2).expect("open").append(&[row(1, Some(1.0))]).expect("append");
+        let rows = read_episodes(&v2).expect("still readable");
+        assert_eq!(
+            rows.iter().map(|r| (r.ep.lane_change, r.ep.road_closed)).collect::<Vec<_>>(),
+            [(Some(0.5), None), (Some(1.0), None)]
+        );
 
         let new = dir.join("new.csv");
         let mut w = EpisodesWriter::open(&new).expect("open");
@@ -422,8 +461,8 @@ mod tests {
         EpisodesWriter::open(&new).expect("reopen").append(&[row(1, Some(0.0))]).expect("append");
         let rows = read_episodes(&new).expect("read");
         assert_eq!(
-            rows.iter().map(|r| r.ep.lane_change).collect::<Vec<_>>(),
-            [Some(0.5), Some(0.0)]
+            rows.iter().map(|r| (r.ep.lane_change, r.ep.road_closed)).collect::<Vec<_>>(),
+            [(Some(0.5), Some(0.5)), (Some(0.0), Some(1.0))]
         );
         assert!(std::fs::read_to_string(&new).expect("text").starts_with(EPISODES_HEADER));
 

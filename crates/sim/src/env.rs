@@ -106,6 +106,10 @@ pub struct AgentOutcome {
     /// decision step: it changed lanes (or left the road).
     #[serde(default)]
     pub left_lane: bool,
+    /// It timed out with standing vehicles closing the road ahead of it
+    /// ([`Env::road_closed_ahead`]); set by [`Env::outcomes`], false from [`Agent::outcome`].
+    #[serde(default)]
+    pub road_closed: bool,
 }
 
 /// One vehicle's full state.
@@ -179,6 +183,7 @@ impl Agent {
             },
             steps: self.steps,
             left_lane: self.left_lane,
+            road_closed: false,
         }
     }
 }
@@ -411,9 +416,47 @@ impl Env {
         self.agents[j].svo_deg
     }
 
-    /// Agents' outcomes (meaningful once they have ended).
+    /// Agents' outcomes (meaningful once they have ended); an agent that timed out is also told
+    /// whether standing vehicles closed the road ahead of it then (every timeout falls on the
+    /// episode's last step, so this is the state it ended in).
     pub fn outcomes(&self) -> impl Iterator<Item = AgentOutcome> + '_ {
-        self.agents.iter().map(Agent::outcome)
+        self.agents.iter().enumerate().map(|(i, a)| {
+            let mut o = a.outcome();
+            o.road_closed =
+                a.termination == Some(Termination::Timeout) && self.road_closed_ahead(i).is_some();
+            o
+        })
+    }
+
+    /// The distance along agent `i`'s route at which the other vehicles standing on the road now
+    /// (live, or timed out with the episode) close every corridor a car fits through ([`crate::passage`] with its default rule), if any.
+    pub fn road_closed_ahead(&self, i: usize) -> Option<f32> {
+        let a = self.agents.get(i)?;
+        let rule = crate::passage::PassageRule::default();
+        let standing: Vec<crate::passage::Obstacle> = self
+            .agents
+            .iter()
+            .enumerate()
+            // Vehicles that timed out with the episode stand where they stopped.
+            .filter(|&(j, b)| {
+                j != i
+                    && (b.alive || b.termination == Some(Termination::Timeout))
+                    && b.state.speed_mps < rule.stopped_mps
+            })
+            .map(|(_, b)| crate::passage::Obstacle {
+                pos: b.state.pos(),
+                theta_rad: b.state.theta_rad,
+            })
+            .collect();
+        crate::passage::closed_ahead(
+            &self.map,
+            &self.cfg,
+            a.route,
+            a.s_m,
+            a.lateral_m,
+            &standing,
+            &rule,
+        )
     }
 
     /// Advances one decision step. `actions[i]` drives agent `i` when its controller is

@@ -54,6 +54,10 @@ pub struct EpisodeMetrics {
     /// ([`AgentOutcome::left_lane`]).
     #[serde(default)]
     pub lane_change: f32,
+    /// The share of scored agents that timed out with standing vehicles closing the road ahead
+    /// ([`AgentOutcome::road_closed`]): blocked, not merely slow.
+    #[serde(default)]
+    pub road_closed: f32,
 }
 
 impl EpisodeMetrics {
@@ -72,6 +76,7 @@ impl EpisodeMetrics {
             m.scores.safety += !o.termination.is_some_and(Termination::is_failure) as u32 as f32;
             m.scores.speed += o.speed_ratio;
             m.lane_change += o.left_lane as u32 as f32;
+            m.road_closed += o.road_closed as u32 as f32;
             match o.termination {
                 Some(Termination::Collision) => m.collision += 1.0,
                 Some(Termination::OffRoad) => m.off_road += 1.0,
@@ -95,6 +100,7 @@ impl EpisodeMetrics {
                 &mut m.timeout,
                 &mut m.destination,
                 &mut m.lane_change,
+                &mut m.road_closed,
             ] {
                 *v /= n;
             }
@@ -115,6 +121,7 @@ mod tests {
             speed_ratio: speed,
             steps: 10,
             left_lane: false,
+            road_closed: t == Termination::Timeout,
         }
     }
 
@@ -134,6 +141,19 @@ mod tests {
         assert!((m.scores.speed - 0.5).abs() < 1e-6);
         let e = EpisodeMetrics::from_outcomes(outs, true);
         assert_eq!((e.agents, e.scores.success, e.scores.safety), (1, 1.0, 1.0));
+    }
+
+    #[test]
+    fn road_closed_is_the_share_of_scored_agents_blocked_at_their_timeout() {
+        let outs = [
+            o(Role::Learner, false, Termination::Timeout, 0.1),
+            o(Role::Background, false, Termination::Timeout, 0.1),
+            o(Role::Background, true, Termination::Destination, 0.9),
+            o(Role::Background, false, Termination::Collision, 0.3),
+        ];
+        assert_eq!(EpisodeMetrics::from_outcomes(outs, false).road_closed, 0.5);
+        assert_eq!(EpisodeMetrics::from_outcomes(outs, true).road_closed, 1.0);
+        assert_eq!(EpisodeMetrics::from_outcomes(outs[2..].to_vec(), false).road_closed, 0.0);
     }
 
     #[test]

@@ -154,13 +154,19 @@ impl Renderer {
         }
     }
 
-    /// Draws the current state of `env` over the map.
+    /// Draws the current state of `env` over the map: the live vehicles and those that ended on
+    /// the last step (where they ended, so an episode's last frame shows how it ended). The ego
+    /// of an ego episode (agent 0, the one learner among background vehicles) gets a thick green
+    /// outline, whatever the colouring.
     pub fn frame(&self, env: &Env) -> Pixmap {
         let mut pm = self.background.clone();
         let t = Transform::identity();
         let vp = &env.cfg.vehicle;
-        for (i, a) in env.agents().iter().enumerate() {
-            if !a.alive {
+        let agents = env.agents();
+        let ego = agents.first().is_some_and(|a| a.role == Role::Learner)
+            && agents.iter().any(|a| a.role == Role::Background);
+        for (i, a) in agents.iter().enumerate() {
+            if !a.alive && !env.ended_now().get(i).copied().unwrap_or(false) {
                 continue;
             }
             let (r, g, b) = self.colour(i, a.role, a.svo_deg);
@@ -182,7 +188,12 @@ impl Renderer {
             let corners = [[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]].map(|c| f.to_world(c));
             if let Some(p) = self.path(&corners, true) {
                 pm.fill_path(&p, &rgba(r, g, b, 255), FillRule::Winding, t, None);
-                pm.stroke_path(&p, &rgba(20, 20, 20, 255), &self.stroke(0.12, false), t, None);
+                let (outline, width_m) = if ego && i == 0 {
+                    (rgba(50, 205, 50, 255), 0.6)
+                } else {
+                    (rgba(20, 20, 20, 255), 0.12)
+                };
+                pm.stroke_path(&p, &outline, &self.stroke(width_m, false), t, None);
             }
             let nose = [
                 f.to_world([hl - 0.6, hw - 0.3]),
@@ -201,26 +212,52 @@ impl Renderer {
     }
 }
 
-/// Frames of equal height placed left to right with a 4-pixel white gap (comparisons of the
-/// same case under different flows). `None` if there are no frames or a size is invalid.
+/// Frames placed left to right with a 4-pixel white gap (comparisons of the same case under
+/// different flows). `None` if there are no frames or a size is invalid.
 pub fn side_by_side(frames: &[&Pixmap]) -> Option<Pixmap> {
+    tile(frames, false)
+}
+
+/// Frames placed top to bottom with a 4-pixel white gap.
+pub fn stacked(frames: &[&Pixmap]) -> Option<Pixmap> {
+    tile(frames, true)
+}
+
+/// Frames of the same map composed for viewing: stacked if a frame is more than twice as wide
+/// as tall (the bottleneck's long road), else side by side.
+pub fn panels(frames: &[&Pixmap]) -> Option<Pixmap> {
+    let f = frames.first()?;
+    tile(frames, f.width() > 2 * f.height())
+}
+
+fn tile(frames: &[&Pixmap], down: bool) -> Option<Pixmap> {
     let gap = 4;
-    let w =
-        frames.iter().map(|f| f.width()).sum::<u32>() + gap * frames.len().saturating_sub(1) as u32;
-    let h = frames.iter().map(|f| f.height()).max()?;
+    let gaps = gap * frames.len().saturating_sub(1) as u32;
+    let (w, h) = if down {
+        (
+            frames.iter().map(|f| f.width()).max()?,
+            frames.iter().map(|f| f.height()).sum::<u32>() + gaps,
+        )
+    } else {
+        (
+            frames.iter().map(|f| f.width()).sum::<u32>() + gaps,
+            frames.iter().map(|f| f.height()).max()?,
+        )
+    };
     let mut out = Pixmap::new(w, h)?;
     out.fill(tiny_skia::Color::WHITE);
-    let mut x = 0i32;
+    let mut at = 0i32;
     for f in frames {
+        let (x, y) = if down { (0, at) } else { (at, 0) };
         out.draw_pixmap(
             x,
-            0,
+            y,
             f.as_ref(),
             &tiny_skia::PixmapPaint::default(),
             Transform::identity(),
             None,
         );
-        x += (f.width() + gap) as i32;
+        at += (if down { f.height() } else { f.width() } + gap) as i32;
     }
     Some(out)
 }
@@ -269,6 +306,58 @@ fn encode_err(e: gif::EncodingError) -> RenderError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wide_panels_stack_and_others_sit_side_by_side() {
+        let (wide, tall) = (Pixmap::new(100, 20).expect("px"), Pixmap::new(50, 40).expect("px"));
+        let s = panels(&[&wide, &wide]).expect("stacked");
+        assert_eq!((s.width(), s.height()), (100, 44));
+        let s = panels(&[&tall, &tall, &tall]).expect("side by side");
+        assert_eq!((s.width(), s.height()), (158, 40));
+        assert_eq!(side_by_side(&[&wide]).map(|p| (p.width(), p.height())), Some((100, 20)));
+        assert!(panels(&[]).is_none());
+    }
+
+    /// Pixels of the ego's outline colour.
+    fn green(pm: &Pixmap) -> usize {
+        pm.pixels().iter().filter(|p| (p.red(), p.green(), p.blue()) == (50, 205, 50)).count()
+    }
+
+    /// The last frame of an ego episode shows the ego where it ended, outlined; a flow's frame
+    /// outlines nobody.
+    #[test]
+    fn the_ego_is_outlined_and_drawn_where_its_episode_ended() {
+        use crate::case::{Case, CaseVehicle};
+        use crate::env::{Controller, Mode};
+        let map = std::sync::Arc::new(
+            Map::from_file(&crate::scenarios::bottleneck(), "bottleneck").expect("map"),
+        );
+        let spawn =
+            |k: usize| map.spawns.iter().position(|s| s.routes.contains(&0)).expect("spawn") + k;
+        let case = Case {
+            id: 0,
+            vehicles: [0, 3]
+                .map(|k| CaseVehicle {
+                    spawn: spawn(k) as u32,
+                    route: 0,
+                    svo_deg: 0.0,
+                    max_speed_mps: None,
+                })
+                .to_vec(),
+        };
+        let r = Renderer::new(&map, 960, ColourBy::Svo).expect("renderer");
+        let mut env = Env::new(map.clone(), std::sync::Arc::new(crate::SimConfig::default()));
+        env.reset(&case, Mode::Ego { background: Controller::Idm }, None).expect("reset");
+        assert!(green(&r.frame(&env)) > 0, "the ego is outlined");
+        let idle = vec![crate::Action::default(); 2];
+        while !env.done() {
+            env.step(&idle).expect("step");
+        }
+        assert!(!env.agents()[0].alive);
+        assert!(green(&r.frame(&env)) > 0, "the ego is drawn where it ended");
+        env.reset(&case, Mode::MultiAgent, None).expect("reset");
+        assert_eq!(green(&r.frame(&env)), 0, "no ego among learners only");
+    }
 
     /// A writer on a full disk.
     struct Full;

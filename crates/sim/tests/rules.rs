@@ -326,3 +326,30 @@ fn the_idm_demonstrator_drives_every_route_and_brakes_for_a_stopped_leader() {
     assert_eq!(free, 1.0, "free road: full reference speed");
     assert!(near < 0.0, "a stopped car 8 m ahead: brake (got {near})");
 }
+
+#[test]
+fn a_timeout_behind_a_car_standing_in_the_narrow_is_a_closed_road_and_not_otherwise() {
+    let m = map("bottleneck");
+    // Route 0 runs east on the inner lane (y = -1.75) through the one-lane narrow (|x| < 12).
+    let r = 0;
+    let outcomes = |other: ([f32; 2], f32)| {
+        let mut e = env(&m);
+        let c = case(&[(spawn_for(&m, r, 0), r, 0.0), (spawn_for(&m, r, 4), r, 0.0)]);
+        e.reset(&c, Mode::MultiAgent, None).expect("reset");
+        e.place_agent(0, [-20.0, -1.75], 0.0, 0.0);
+        e.place_agent(1, other.0, other.1, 0.0);
+        while !e.done() {
+            e.step(&[stop(), stop()]).expect("step");
+        }
+        e.outcomes().collect::<Vec<_>>()
+    };
+    // A car standing in the narrow 20 m ahead: nothing gets past it but the opposite lane.
+    let o = outcomes(([0.0, -1.75], 0.0));
+    assert_eq!(o[0].termination, Some(Termination::Timeout));
+    assert!(o[0].road_closed, "the car behind is blocked");
+    assert!(!o[1].road_closed, "nothing stands ahead of the car in front");
+    // The same car on the opposite carriageway closes nothing.
+    let o = outcomes(([0.0, 1.75], std::f32::consts::PI));
+    assert_eq!(o[0].termination, Some(Termination::Timeout));
+    assert!(!o[0].road_closed);
+}

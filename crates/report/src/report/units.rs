@@ -158,6 +158,7 @@ mod tests {
                 scores: sf_job::Scores { success, safety: success, speed: 0.5 },
                 collision: 0.0,
                 lane_change: None,
+                road_closed: None,
             },
             replicate,
         }

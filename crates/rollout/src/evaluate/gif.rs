@@ -17,7 +17,9 @@ use super::{cell_setup, io, EgoDef, EvalError, FlowDef, Resolved, Runners};
 use crate::drive;
 
 /// One episode of stored case `case` with `ego` (its name and policy) under each of `flows`, or
-/// each flow alone with no ego, rendered side by side into a GIF at `path`.
+/// each flow alone with no ego, rendered into a GIF at `path`: one panel per flow whose longer
+/// side is `size_px`, side by side (stacked for maps more than twice as wide as tall).
+#[allow(clippy::too_many_arguments)]
 pub fn render_gif(
     ego: Option<(&str, &EgoDef)>,
     flows: &[(&str, &FlowDef)],
@@ -26,13 +28,14 @@ pub fn render_gif(
     cases: &CaseFile,
     runners: &mut Runners,
     path: &Path,
+    size_px: u32,
 ) -> Result<(), EvalError> {
-    use sf_sim::render::{side_by_side, ColourBy, GifWriter, Renderer};
+    use sf_sim::render::{panels, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
     let case = cases.cases.get(case as usize).ok_or_else(|| {
         EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}"))
     })?;
-    let renderer = Renderer::new(map, 320, ColourBy::Svo)?;
+    let renderer = Renderer::new(map, size_px, ColourBy::Svo)?;
     let mut films = Vec::new();
     for (name, flow) in flows {
         let cell = Cell {
@@ -66,7 +69,7 @@ pub fn render_gif(
     for k in 0..len {
         let row: Vec<&sf_sim::render::Pixmap> =
             films.iter().filter_map(|f| f.get(k).or_else(|| f.last())).collect();
-        let pm = side_by_side(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
+        let pm = panels(&row).ok_or_else(|| EvalError::Run("composing frames".into()))?;
         if let Some(o) = out.take() {
             gif = Some(GifWriter::new(o, pm.width(), pm.height(), 10)?);
         }
@@ -111,7 +114,7 @@ impl Resolved {
             let (map, cases) = maps
                 .get(s)
                 .ok_or_else(|| EvalError::Misfit(format!("scenario `{s}` is not loaded")))?;
-            render_gif(ego, &flows, g.case, map, cases, runners, &path)
+            render_gif(ego, &flows, g.case, map, cases, runners, &path, g.size_px())
                 .map_err(|e| EvalError::Gif { path: path.clone(), source: Box::new(e) })?;
             written.push(path);
         }

@@ -409,6 +409,7 @@ pub fn run_stored(
                 scores: m.scores,
                 collision: m.collision,
                 lane_change: Some(m.lane_change),
+                road_closed: Some(m.road_closed),
             });
         }
     }
