@@ -387,7 +387,7 @@ mod tests {
         let p = dir.join("episodes.csv");
         std::fs::write(
             &p,
-            format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0,\n", r.to_csv()),
+            format!("{EPISODES_HEADER}\n{}\ncross,a,b,merge,,,1,0,NaN,1,1,0,,\n", r.to_csv()),
         )
         .expect("write");
         let e = read_episodes(&p).expect_err("NaN").to_string();
