@@ -28,7 +28,7 @@ pub const EPISODES_HEADER_V2: &str =
 pub const EPISODES_HEADER_V1: &str =
     "experiment,ego,flow,scenario,svo_deg,vehicles,case,seed,success,safety,speed,collision";
 
-/// Which of the two line formats a file holds.
+/// Which of the three line formats a file holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Format {
     /// 14 fields, the last two the lane-change and closed-road shares (each empty when not
@@ -139,6 +139,11 @@ impl EpisodeRow {
                 Err(RowError::NotFinite { what })
             }
         };
+        // A share that may be unrecorded: an empty or absent field is `None`.
+        let share = |i: usize, what: &'static str| match f.get(i) {
+            None | Some(&"") => Ok(None),
+            Some(_) => num(i, what).map(Some),
+        };
         let opt = |i: usize, what: &'static str| {
             if f[i].is_empty() {
                 Ok(None)
@@ -163,14 +168,8 @@ impl EpisodeRow {
                 speed: num(10, "speed")?,
             },
             collision: num(11, "collision")?,
-            lane_change: match f.get(12) {
-                None | Some(&"") => None,
-                Some(_) => Some(num(12, "lane_change")?),
-            },
-            road_closed: match f.get(13) {
-                None | Some(&"") => None,
-                Some(_) => Some(num(13, "road_closed")?),
-            },
+            lane_change: share(12, "lane_change")?,
+            road_closed: share(13, "road_closed")?,
         };
         Ok(Self { cell, ep, replicate: 0 })
     }

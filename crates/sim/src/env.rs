@@ -429,7 +429,8 @@ impl Env {
     }
 
     /// The distance along agent `i`'s route at which the other vehicles standing on the road now
-    /// (live, or timed out with the episode) close every corridor a car fits through ([`crate::passage`] with its default rule), if any.
+    /// (live, or timed out with the episode) close every corridor a car fits through
+    /// ([`crate::passage`] with its default rule), if any.
     pub fn road_closed_ahead(&self, i: usize) -> Option<f32> {
         let a = self.agents.get(i)?;
         let rule = crate::passage::PassageRule::default();
