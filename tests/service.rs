@@ -559,8 +559,8 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// An evaluation grid over one trained ego and the IDM driver in the ego's seat in the IDM
-/// flow, `runs` / `out` for `socialflow eval`.
+/// An evaluation grid over one trained ego and the two scripted drivers (IDM, IDM with MOBIL's
+/// lane changes) in the ego's seat in the IDM flow, `runs` / `out` for `socialflow eval`.
 fn eval_grid(data: &Path, out: &Path, ego_job: &str) -> String {
     format!(
         r#"kind = "eval"
@@ -572,7 +572,7 @@ cases = 2
 seeds = 2
 envs = 4
 flows = [{{ name = "IDM", job = "idm" }}]
-egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}, {{ name = "IDM ego", job = "idm" }}]
+egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}, {{ name = "IDM ego", job = "idm" }}, {{ name = "IDM+MOBIL", job = "idm-mobil" }}]
 [experiments]
 flow_quality = ["IDM"]
 cross_validation = ["IDM"]
@@ -640,8 +640,8 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
         "the names are pinned: {}",
         job.config_toml
     );
-    // Flow quality, cross-validation (the trained ego and the IDM driver), density.
-    let cells = 2 + 2 * 2 + 2;
+    // Flow quality, cross-validation (the trained ego and the two scripted drivers), density.
+    let cells = 2 + 3 * 2 + 2;
     assert_eq!(progress(&job).target_env_steps, cells * 4);
     let leased = wait_for("a cell for the lost worker", Duration::from_secs(60), || {
         let r = rt
@@ -694,6 +694,11 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
         rows.iter().filter(|r| r.starts_with("cross,IDM ego,IDM,")).count(),
         2 * 4,
         "the IDM driver's cells, run by workers: {rows:?}"
+    );
+    assert_eq!(
+        rows.iter().filter(|r| r.starts_with("cross,IDM+MOBIL,IDM,")).count(),
+        2 * 4,
+        "the MOBIL driver's cells, run by workers: {rows:?}"
     );
     let metrics = http_get(&l.admin, "/metrics").expect("metrics");
     assert!(

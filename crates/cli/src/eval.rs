@@ -98,6 +98,10 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
             grid.egos.insert(e.name.clone(), evaluate::EgoDef::Idm);
             continue;
         }
+        if e.is_idm_mobil() {
+            grid.egos.insert(e.name.clone(), evaluate::EgoDef::IdmMobil);
+            continue;
+        }
         let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
         // A probe places a Stage-1 flow's actor in the ego's seat, zero-shot.
         let stage1_flow =

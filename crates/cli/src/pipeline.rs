@@ -274,7 +274,7 @@ pub fn replicate(
 fn replicate_grid(grid: &EvalConfig, seed: u64) -> EvalConfig {
     let mut g = grid.clone();
     g.name = replicate_name(&g.name, seed);
-    for n in g.flows.iter_mut().chain(g.egos.iter_mut()).filter(|n| !n.is_idm()) {
+    for n in g.flows.iter_mut().chain(g.egos.iter_mut()).filter(|n| !n.is_scripted()) {
         n.job = replicate_name(&n.job, seed);
     }
     g

@@ -774,10 +774,10 @@ impl JobConfig {
                 format!("`{}` must be non-empty ASCII letters, digits, '-', '_' or '.'", self.name),
             );
         }
-        if self.name == "idm" {
+        if self.name == "idm" || self.name == crate::eval::IDM_MOBIL {
             return bad(
                 "name",
-                "`idm` is reserved: evaluation grids read `job = \"idm\"` as the IDM driver",
+                format!("`{}` is reserved: evaluation grids read `job = \"idm\"` as the IDM driver and `job = \"{}\"` as IDM with MOBIL's lane changes", self.name, crate::eval::IDM_MOBIL),
             );
         }
         self.validate_env()?;
@@ -1402,6 +1402,9 @@ mod tests {
         let e =
             JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm\"")).expect_err("idm");
         assert!(e.to_string().contains("name") && e.to_string().contains("reserved"), "{e}");
+        let e = JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm-mobil\""))
+            .expect_err("idm-mobil");
+        assert!(e.to_string().contains("`idm-mobil` is reserved"), "{e}");
     }
 
     #[test]

@@ -28,13 +28,51 @@ fn bad<T>(msg: impl Into<String>) -> Result<T, EvalConfigError> {
     Err(EvalConfigError(msg.into()))
 }
 
+/// The reserved job name of IDM with MOBIL's lane changes in the ego's seat.
+pub const IDM_MOBIL: &str = "idm-mobil";
+
+/// A scripted driver in an evaluation cell's ego seat (an ego of `job = "idm"` or
+/// `job = "idm-mobil"`): no policy travels for it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScriptedEgo {
+    /// The IDM driver (lane keeping).
+    Idm,
+    /// IDM with MOBIL's lane changes.
+    IdmMobil,
+}
+
+/// Which scripted egos a worker can seat (what it registered with); cells with another
+/// scripted ego are never leased to it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ScriptedSeats {
+    pub idm: bool,
+    pub mobil: bool,
+}
+
+impl ScriptedSeats {
+    /// Every scripted ego.
+    pub const ALL: Self = Self { idm: true, mobil: true };
+
+    /// Whether a cell with this ego seat can go to the worker (a cell without a scripted ego
+    /// always can).
+    pub fn runs(self, ego: Option<ScriptedEgo>) -> bool {
+        match ego {
+            None => true,
+            Some(ScriptedEgo::Idm) => self.idm,
+            Some(ScriptedEgo::IdmMobil) => self.mobil,
+        }
+    }
+}
+
 /// A named flow (`idm`, or the job whose final policy it is) or ego policy.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Named {
     pub name: String,
     /// The job's name (the newest succeeded job of that name), or `idm`: the IDM flow, or as an
-    /// ego the IDM driver in the ego's seat (the zero residual: what every trained ego starts from).
+    /// ego the IDM driver in the ego's seat (the zero residual: what every trained ego starts
+    /// from); or, as an ego only, `idm-mobil`: IDM with MOBIL's lane changes, a reference driver
+    /// that steers.
     pub job: String,
     /// Pins the job by id. The learner fills it in when it accepts an evaluation job, so the
     /// job evaluates what existed at submission.
@@ -57,6 +95,25 @@ pub struct Named {
 impl Named {
     pub fn is_idm(&self) -> bool {
         self.job == "idm"
+    }
+
+    /// IDM with MOBIL's lane changes in the ego's seat.
+    pub fn is_idm_mobil(&self) -> bool {
+        self.job == IDM_MOBIL
+    }
+
+    /// A scripted driver (`idm` or `idm-mobil`), not a stored job.
+    pub fn is_scripted(&self) -> bool {
+        self.scripted().is_some()
+    }
+
+    /// As an ego: the scripted driver it names, if any.
+    pub fn scripted(&self) -> Option<ScriptedEgo> {
+        match self.job.as_str() {
+            "idm" => Some(ScriptedEgo::Idm),
+            IDM_MOBIL => Some(ScriptedEgo::IdmMobil),
+            _ => None,
+        }
     }
 
     /// Whether the entry asks for an evaluation probe (a message constant or a flow's actor in
@@ -304,8 +361,9 @@ pub struct EvalWork {
     /// coordinator's Gaussians) and SocialCommAdv's adversary (`Adversary`). No `Background`:
     /// the IDM flow. Their weights are each job's final policy (GetPolicy, version 0).
     pub policies: Vec<Frozen>,
-    /// The IDM driver sits in the ego's seat (an ego of `job = "idm"`; no `Ego` policy then).
-    pub ego_idm: bool,
+    /// A scripted driver sits in the ego's seat (an ego of `job = "idm"` or `"idm-mobil"`; no
+    /// `Ego` policy then).
+    pub scripted_ego: Option<ScriptedEgo>,
 }
 
 impl EvalConfig {
@@ -380,13 +438,19 @@ impl EvalConfig {
                 "eval config field `egos`: at most one ego may be the IDM driver (`job = \"idm\"`)",
             );
         }
-        if let Some(n) =
-            self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.job_id.is_some())
-        {
-            return bad(format!("eval config field `job_id` of `{}`: `job = \"idm\"` is the IDM driver, not a stored job", n.name));
+        if self.egos.iter().filter(|e| e.is_idm_mobil()).count() > 1 {
+            return bad(format!("eval config field `egos`: at most one ego may be the MOBIL driver (`job = \"{IDM_MOBIL}\"`)"));
         }
-        if let Some(e) = self.egos.iter().find(|e| e.is_idm() && e.trained_in.is_some()) {
-            return bad(format!("eval config field `egos.trained_in` of `{}`: the IDM driver (`job = \"idm\"`) was not trained in a flow", e.name));
+        if let Some(n) = self.flows.iter().find(|n| n.is_idm_mobil()) {
+            return bad(format!("eval config field `flows.job` of `{}`: `{IDM_MOBIL}` drives the ego's seat only, not a flow", n.name));
+        }
+        if let Some(n) =
+            self.flows.iter().chain(&self.egos).find(|n| n.is_scripted() && n.job_id.is_some())
+        {
+            return bad(format!("eval config field `job_id` of `{}`: `job = \"{}\"` is a scripted driver, not a stored job", n.name, n.job));
+        }
+        if let Some(e) = self.egos.iter().find(|e| e.is_scripted() && e.trained_in.is_some()) {
+            return bad(format!("eval config field `egos.trained_in` of `{}`: the scripted driver `job = \"{}\"` was not trained in a flow", e.name, e.job));
         }
         if let Some(n) = self.flows.iter().find(|n| n.flow_actor) {
             return bad(format!(
@@ -400,8 +464,13 @@ impl EvalConfig {
                 n.name
             ));
         }
-        if let Some(n) = self.flows.iter().chain(&self.egos).find(|n| n.is_idm() && n.is_probe()) {
-            return bad(format!("eval config entry `{}`: a probe (`messages`, `flow_actor`) needs a learned job, not `job = \"idm\"`", n.name));
+        if let Some(n) = self
+            .flows
+            .iter()
+            .chain(&self.egos)
+            .find(|n| n.is_scripted() && (!n.messages.is_off() || n.flow_actor))
+        {
+            return bad(format!("eval config entry `{}`: a probe (`messages`, `flow_actor`) needs a learned job, not `job = \"{}\"`", n.name, n.job));
         }
         if let Some((n, (field, v))) =
             self.flows.iter().find_map(|n| n.messages.out_of_range().map(|o| (n, o)))
@@ -411,9 +480,10 @@ impl EvalConfig {
         if let Some(o) = self.ours.as_ref().filter(|o| !egos.contains(o.as_str())) {
             return bad(format!("eval config field `ours`: `{o}` is not one of `egos`"));
         }
-        if let Some(o) = self.ours.as_ref().filter(|o| self.ego(o).is_some_and(Named::is_idm)) {
+        if let Some(o) = self.ours.as_ref().filter(|o| self.ego(o).is_some_and(Named::is_scripted))
+        {
             return bad(format!(
-                "eval config field `ours`: `{o}` is the IDM driver, not a trained ego"
+                "eval config field `ours`: `{o}` is a scripted driver, not a trained ego"
             ));
         }
         for e in &self.egos {
@@ -609,7 +679,13 @@ mod tests {
             ("kind = \"eval\"", "kind = \"ego\"", "`kind`"),
             ("cases = 2", "cases = 0", "`cases`"),
             ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm\", trained_in = \"IDM\"", "`egos.trained_in` of `E`"),
-            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"I\"\negos = [{ name = \"I\", job = \"idm\" }]", "`ours`: `I` is the IDM driver"),
+            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"I\"\negos = [{ name = \"I\", job = \"idm\" }]", "`ours`: `I` is a scripted driver"),
+            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"M\"\negos = [{ name = \"M\", job = \"idm-mobil\" }]", "`ours`: `M` is a scripted driver"),
+            ("egos = [{ name = \"E\", job = \"ego-a\" }]", "egos = [{ name = \"M\", job = \"idm-mobil\" }, { name = \"N\", job = \"idm-mobil\" }]", "at most one ego may be the MOBIL driver"),
+            ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"idm-mobil\" }", "`flows.job` of `IDM`: `idm-mobil` drives the ego's seat only"),
+            ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm-mobil\", job_id = 4", "`job_id` of `E`: `job = \"idm-mobil\"` is a scripted driver"),
+            ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm-mobil\", trained_in = \"IDM\"", "`egos.trained_in` of `E`"),
+            ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm-mobil\", flow_actor = true", "needs a learned job, not `job = \"idm-mobil\"`"),
             ("egos = [{ name = \"E\", job = \"ego-a\" }]", "egos = [{ name = \"I\", job = \"idm\" }, { name = \"J\", job = \"idm\" }]", "at most one ego may be the IDM driver"),
             ("{ name = \"IDM\", job = \"idm\" }", "{ name = \"IDM\", job = \"idm\", job_id = 3 }", "`job_id` of `IDM`"),
             ("flow_quality = [\"IDM\"]", "flow_quality = []", "no cells"),
@@ -681,6 +757,29 @@ mod tests {
         let cross: Vec<String> =
             c.cells().into_iter().filter(|c| c.experiment == "cross").map(|c| c.ego).collect();
         assert_eq!(cross, ["E", "IDM ego"], "one cross cell per ego, the IDM driver's included");
+    }
+
+    /// The MOBIL driver is a scripted ego of a grid beside the IDM driver; a worker gets a cell
+    /// with a scripted ego only if it seats that driver.
+    #[test]
+    fn the_mobil_driver_is_a_scripted_ego() {
+        let text = BASE.replace(
+            "egos = [{ name = \"E\", job = \"ego-a\" }]",
+            "egos = [{ name = \"I\", job = \"idm\" }, { name = \"M\", job = \"idm-mobil\" }]",
+        );
+        let c = EvalConfig::from_toml(&format!("{text}cross_validation = [\"IDM\"]\n"))
+            .expect("an IDM and a MOBIL ego");
+        let m = c.ego("M").expect("MOBIL ego");
+        assert!(m.is_idm_mobil() && m.is_scripted() && !m.is_idm() && !m.is_probe());
+        assert_eq!(m.scripted(), Some(ScriptedEgo::IdmMobil));
+        let i = c.ego("I").expect("IDM ego");
+        assert!(i.is_scripted() && !i.is_idm_mobil() && i.scripted() == Some(ScriptedEgo::Idm));
+        assert_eq!(c.ego("E"), None);
+        let idm_only = ScriptedSeats { idm: true, mobil: false };
+        assert!(idm_only.runs(None) && idm_only.runs(Some(ScriptedEgo::Idm)));
+        assert!(!idm_only.runs(Some(ScriptedEgo::IdmMobil)));
+        assert!(ScriptedSeats::ALL.runs(Some(ScriptedEgo::IdmMobil)));
+        assert!(!ScriptedSeats::default().runs(Some(ScriptedEgo::Idm)));
     }
 
     /// Regression (found by `tests/fuzz.rs`): a huge SVO-sweep count was accepted by the

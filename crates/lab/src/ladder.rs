@@ -3,7 +3,8 @@
 //! `--data-dir`), evaluates each final policy with its mean action (or, `eval.sampled`, its
 //! sampled actions) on the stored cases against the IDM driver in the ego's seat (the same
 //! episodes, paired), checks the rung's gate and writes the curves, episodes and a summary to
-//! `--out`.
+//! `--out`. With `--scripted idm-mobil` it trains nothing and judges IDM with MOBIL's lane
+//! changes in the policy's seat instead (a reference for rungs that need steering).
 //!
 //! Owns: the rung file format ([`Rung`]), the paired ego-vs-IDM evaluation and the gate.
 //! Must not: change how jobs train (it submits ordinary job configs) or how episodes run
@@ -22,15 +23,15 @@ use sf_embedded::client::watch;
 use sf_embedded::runs::{find_job, load_job};
 use sf_embedded::{runtime, Ctx, Embedded};
 use sf_job::{JobConfig, JobState};
-use sf_rollout::drive::{self, Actor, Drivers};
-use sf_rollout::evaluate::{EgoDef, FlowDef, Policy, Runners};
+use sf_rollout::evaluate::{Policy, Runners};
 use sf_service::client::{list, submit};
-use sf_sim::env::{Controller, Mode};
-use sf_sim::metrics::EpisodeMetrics;
-use sf_sim::vec_env::{CaseDraw, EpisodeSpec, SlowLeader, VecEnv};
-use sf_sim::{CaseFile, DriveAction, Map, SimConfig};
+use sf_sim::vec_env::{CaseDraw, SlowLeader};
+use sf_sim::{CaseFile, Map, SimConfig};
 
+mod episodes;
 mod report;
+
+use episodes::{evaluate, render_gifs, Driver};
 
 use report::{
     check_curve, plot_curves, plot_validation, read_curve, selected_updates, summarise, summary_md,
@@ -56,6 +57,11 @@ pub struct LadderArgs {
     /// Evaluate the jobs already trained; train nothing.
     #[arg(long)]
     pub eval_only: bool,
+    /// Put a scripted driver in the policy's seat instead of training: `idm-mobil` (IDM with
+    /// MOBIL's lane changes). Its episodes, the IDM ego's and the gate's verdict (without the
+    /// curve check: there is no curve) go to `--out`.
+    #[arg(long, conflicts_with_all = ["seeds", "eval_only"])]
+    pub scripted: Option<String>,
 }
 
 /// A rung of the ladder: a job, its training seeds, an evaluation and a gate.
@@ -265,6 +271,9 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let seeds = a.seeds.clone().unwrap_or_else(|| rung.seeds.clone());
     let maps = rung_cases(dirs, &rung)?;
+    if let Some(name) = &a.scripted {
+        return run_scripted(&rung, &maps, name, &out);
+    }
 
     // 1. Train (or find) one job per seed.
     let mut jobs = Vec::new();
@@ -285,10 +294,10 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     // The IDM ego does not depend on the training seed: its episodes run once.
     let mut idm = Vec::new();
     for (map, cases) in &maps {
-        idm.extend(evaluate(&rung.eval, 0, map, cases, None, &mut runners)?);
+        idm.extend(evaluate(&rung.eval, 0, map, cases, Driver::Idm, &mut runners)?);
     }
     if let Some((map, cases)) = maps.first() {
-        render_gifs(&rung.eval, map, cases, None, &mut runners, &out)?;
+        render_gifs(&rung.eval, map, cases, Driver::Idm, &mut runners, &out)?;
     }
     for (seed, policy) in &jobs {
         let (summary, curve, mine) =
@@ -326,6 +335,46 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
         serde_json::json!({"rung": rung.rung, "name": rung.name, "passed": passed, "out": out.display().to_string()})
     );
     print!("{}", summary_md(&rung, &summaries, passed));
+    Ok(())
+}
+
+/// `--scripted`: the rung's episodes with a scripted driver in the policy's seat, paired with
+/// the IDM ego's, judged by the gate (no curve: the curve check is not made), into `out`
+/// (`episodes.csv` with both drivers' rows, `summary.json`, `summary.md`, GIFs of both).
+fn run_scripted(rung: &Rung, maps: &[(Arc<Map>, CaseFile)], name: &str, out: &Path) -> Result<()> {
+    let driver = match name {
+        sf_job::eval::IDM_MOBIL => Driver::IdmMobil,
+        _ => bail!(
+            "--scripted: `{name}` is not a scripted driver (expected `{}`)",
+            sf_job::eval::IDM_MOBIL
+        ),
+    };
+    let mut runners = Runners::new(
+        sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).map_err(anyhow::Error::msg)?,
+    );
+    let mut rows = Vec::new();
+    for (map, cases) in maps {
+        rows.extend(evaluate(&rung.eval, 0, map, cases, driver, &mut runners)?);
+        rows.extend(evaluate(&rung.eval, 0, map, cases, Driver::Idm, &mut runners)?);
+    }
+    if let Some((map, cases)) = maps.first() {
+        for d in [driver, Driver::Idm] {
+            render_gifs(&rung.eval, map, cases, d, &mut runners, out)?;
+        }
+    }
+    let s = summarise(0, Path::new(name), &rows, &rung.gate, 0, 0.0, driver.name())?;
+    let lines = std::iter::once(Row::HEADER.to_string()).chain(rows.iter().map(Row::csv));
+    std::fs::write(out.join("episodes.csv"), lines.map(|l| l + "\n").collect::<String>())?;
+    let passed = s.passed;
+    let json = serde_json::json!({"rung": rung.rung, "name": rung.name, "scripted": name, "gate": rung.gate, "eval": rung.eval, "passed": passed, "seeds": [&s]});
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&json)?)?;
+    let md = format!(
+        "The scripted driver `{name}` in the policy's seat (no training; the gate without its \
+         curve check). Seed 0 stands for the driver.\n\n{}",
+        summary_md(rung, std::slice::from_ref(&s), passed)
+    );
+    std::fs::write(out.join("summary.md"), &md)?;
+    print!("{md}");
     Ok(())
 }
 
@@ -382,14 +431,14 @@ fn evaluate_seed(
     let curve = read_curve(&dir.join("curve.csv"))?;
     let mut mine = Vec::new();
     for (map, cases) in maps {
-        mine.extend(evaluate(&rung.eval, seed, map, cases, Some(policy), runners)?);
+        mine.extend(evaluate(&rung.eval, seed, map, cases, Driver::Policy(policy), runners)?);
     }
     mine.extend(idm.iter().map(|r| Row { train_seed: seed, ..r.clone() }));
     if let Some((map, cases)) = maps.first() {
-        render_gifs(&rung.eval, map, cases, Some(policy), runners, &seed_out)?;
+        render_gifs(&rung.eval, map, cases, Driver::Policy(policy), runners, &seed_out)?;
     }
     let [updates, _, wall_s, _] = curve.last().copied().unwrap_or_default();
-    let mut s = summarise(seed, dir, &mine, &rung.gate, updates as u64, wall_s)?;
+    let mut s = summarise(seed, dir, &mine, &rung.gate, updates as u64, wall_s, "policy")?;
     s.selected_updates = selected_updates(dir)?;
     check_curve(&mut s, &rung.gate, &curve, policy.cfg.train.window);
     Ok((s, curve, mine))
@@ -486,122 +535,6 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
         emb.stop().await?;
         result
     })
-}
-
-/// The evaluation episodes of one scenario: the policy's mean action (sampled actions with
-/// `eval.sampled`) in the ego's seat, or (`policy = None`) the IDM driver there (an
-/// acceleration residual of zero: IDM exactly).
-fn evaluate(
-    e: &RungEval,
-    train_seed: u64,
-    map: &Arc<Map>,
-    cases: &CaseFile,
-    policy: Option<&Policy>,
-    runners: &mut Runners,
-) -> Result<Vec<Row>> {
-    let n = e.cases as usize;
-    if n > cases.cases.len() {
-        bail!("eval.cases: {n} exceeds the {} stored cases of {}", cases.cases.len(), map.name);
-    }
-    let sim = Arc::new(match policy {
-        Some(p) => p.resolved().sim.clone(),
-        None => SimConfig::default(),
-    });
-    let runner =
-        policy.map(|p| runners.get(p, map, &sim)).transpose().map_err(anyhow::Error::msg)?;
-    let drivers = Drivers {
-        alive: match &runner {
-            Some(r) if e.sampled => Actor::sampled(r),
-            Some(r) => Actor::mean(r),
-            None => Actor::Demo { noise: 0.0, action: DriveAction::IdmAccelResidual },
-        },
-        background: None,
-        adversary: None,
-    };
-    let vehicles = |c: usize| {
-        if e.vehicles.is_empty() {
-            None
-        } else {
-            Some(e.vehicles[c % e.vehicles.len()])
-        }
-    };
-    let mut rows = Vec::new();
-    for seed in 0..e.seeds {
-        let eps: Vec<EpisodeSpec> = (0..n)
-            .map(|c| EpisodeSpec {
-                case: cases.cases[c].clone(),
-                vehicles: vehicles(c),
-                svo_deg: None,
-                tag: (seed as u64) << 32 | c as u64,
-            })
-            .collect();
-        let mut v = VecEnv::from_episodes(
-            Arc::clone(map),
-            Arc::clone(&sim),
-            Mode::Ego { background: Controller::Idm },
-            e.envs,
-            eps,
-        )
-        .map_err(anyhow::Error::msg)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
-        let mut done: Vec<Option<EpisodeMetrics>> = vec![None; n];
-        for (tag, m) in drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {}) {
-            done[(tag & 0xffff_ffff) as usize] = Some(m);
-        }
-        for (c, m) in done.into_iter().enumerate() {
-            let m = m.with_context(|| format!("case {c} did not finish"))?;
-            rows.push(Row {
-                train_seed,
-                driver: if policy.is_some() { "policy" } else { "idm" },
-                scenario: map.name.clone(),
-                case: cases.cases[c].id,
-                seed,
-                vehicles: vehicles(c)
-                    .unwrap_or(cases.cases[c].vehicles.len())
-                    .min(cases.cases[c].vehicles.len()),
-                success: m.scores.success,
-                collision: m.collision,
-                other_failure: m.off_road + m.off_route + m.wrong_lane,
-                timeout: m.timeout,
-                speed: m.scores.speed,
-                lane_change: m.lane_change,
-            });
-        }
-    }
-    Ok(rows)
-}
-
-/// `eval.gifs` episodes of `map`'s first cases with `policy` (or the IDM driver) in the ego's
-/// seat among IDM cars, one GIF each into `dir`.
-fn render_gifs(
-    e: &RungEval,
-    map: &Arc<Map>,
-    cases: &CaseFile,
-    policy: Option<&Policy>,
-    runners: &mut Runners,
-    dir: &Path,
-) -> Result<()> {
-    let ego = match policy {
-        Some(p) => EgoDef::Learned(p.clone()),
-        None => EgoDef::Idm,
-    };
-    for c in 0..e.gifs.min(cases.cases.len() as u32) {
-        let suffix = if policy.is_some() { "" } else { "-idm" };
-        let path = dir.join(format!("gif-{}-case-{c}{suffix}.gif", map.name));
-        sf_rollout::evaluate::render_gif(
-            Some(("ego", &ego)),
-            &[("IDM", &FlowDef::Idm)],
-            c,
-            map,
-            cases,
-            runners,
-            &path,
-            sf_job::eval::Gifs::DEFAULT_SIZE_PX,
-        )
-        .map_err(anyhow::Error::msg)
-        .with_context(|| format!("rendering {}", path.display()))?;
-    }
-    Ok(())
 }
 
 #[cfg(test)]
@@ -714,6 +647,7 @@ mod tests {
                 &gate,
                 0,
                 0.0,
+                "policy",
             )
             .expect("summary")
         };
@@ -732,5 +666,15 @@ mod tests {
             "success above IDM's 0 is not enough: {:?}",
             reckless.failed_checks
         );
+        // `--scripted`: the gate judges the named driver's rows, and only those.
+        let rows: Vec<Row> = (0..4)
+            .map(|c| row("idm-mobil", c, 1.0, 0.9, 1.0, 0.0))
+            .chain((0..4).map(|c| row("policy", c, 0.0, 0.3, 0.0, 0.0)))
+            .chain(idm.clone())
+            .collect();
+        let mobil = summarise(0, Path::new("."), &rows, &gate, 0, 0.0, "idm-mobil").expect("mobil");
+        assert!(mobil.passed && mobil.episodes == 4, "{:?}", mobil.failed_checks);
+        let policy = summarise(0, Path::new("."), &rows, &gate, 0, 0.0, "policy").expect("policy");
+        assert!(!policy.passed && policy.success == 0.0);
     }
 }

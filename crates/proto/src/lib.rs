@@ -9,7 +9,7 @@
 //! service, the worker's session and the rollout thread's outgoing batches).
 
 use half::f16;
-use sf_job::eval::{Cell, EvalEpisode, EvalWork};
+use sf_job::eval::{Cell, EvalEpisode, EvalWork, ScriptedEgo};
 use sf_job::{
     ActedBy, Assignment, Ends, EpisodeResult, Frozen, FrozenRole, JobId, JobRecord, JobState,
     Learning, PolicyRequest, PolicyVersion, Progress, Scores, TransitionBatch,
@@ -214,7 +214,8 @@ pub fn eval_work_to_wire(w: &EvalWork) -> pb::EvalAssignment {
         seeds: w.seeds,
         envs: w.envs,
         policies: w.policies.iter().map(frozen_to_wire).collect(),
-        ego_idm: w.ego_idm,
+        ego_idm: w.scripted_ego.is_some(),
+        ego_mobil: w.scripted_ego == Some(ScriptedEgo::IdmMobil),
     }
 }
 
@@ -247,6 +248,12 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
     // Who sits in the ego's seat: a cell that names an ego gets exactly one of the IDM
     // driver and an EGO policy; a cell without one (a flow on its own) gets neither.
     let ego_policy = policies.iter().any(|p| p.role == FrozenRole::Ego);
+    if w.ego_mobil && !w.ego_idm {
+        return wire(
+            "eval.ego_mobil",
+            "MOBIL's lane changes need the IDM driver (ego_idm) in the seat",
+        );
+    }
     match (cell.ego.is_empty(), w.ego_idm, ego_policy) {
         (true, false, false) | (false, true, false) | (false, false, true) => {}
         (true, _, _) => {
@@ -273,7 +280,11 @@ pub fn eval_work_from_wire(w: &pb::EvalAssignment) -> Result<EvalWork, WireError
         seeds: w.seeds,
         envs: w.envs,
         policies,
-        ego_idm: w.ego_idm,
+        scripted_ego: match (w.ego_idm, w.ego_mobil) {
+            (false, _) => None,
+            (true, false) => Some(ScriptedEgo::Idm),
+            (true, true) => Some(ScriptedEgo::IdmMobil),
+        },
     })
 }
 
@@ -592,7 +603,7 @@ mod tests {
             seeds: 2,
             envs: 40,
             policies: vec![Frozen::new(FrozenRole::Background, 2.into(), "name = \"flow\"".into())],
-            ego_idm: false,
+            scripted_ego: None,
         };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&w)), Ok(w.clone()));
         // Who sits in the ego's seat: exactly one of the IDM driver and an EGO policy when the
@@ -604,10 +615,18 @@ mod tests {
                 svo_deg: None,
                 ..w.cell.clone()
             },
-            ego_idm: true,
+            scripted_ego: Some(ScriptedEgo::Idm),
             ..w.clone()
         };
         assert_eq!(eval_work_from_wire(&eval_work_to_wire(&idm_ego)), Ok(idm_ego.clone()));
+        let mobil_ego = EvalWork { scripted_ego: Some(ScriptedEgo::IdmMobil), ..idm_ego.clone() };
+        let m = eval_work_to_wire(&mobil_ego);
+        assert!(m.ego_idm && m.ego_mobil);
+        assert_eq!(eval_work_from_wire(&m), Ok(mobil_ego));
+        let mut m = eval_work_to_wire(&idm_ego);
+        m.ego_idm = false;
+        m.ego_mobil = true;
+        assert_eq!(eval_work_from_wire(&m).expect_err("MOBIL alone").field, "eval.ego_mobil");
         let mut m = eval_work_to_wire(&idm_ego);
         m.policies.push(frozen_to_wire(&Frozen::new(
             FrozenRole::Ego,

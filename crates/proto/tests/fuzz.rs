@@ -258,7 +258,7 @@ fn valid_eval_work() -> impl Strategy<Value = EvalWork> {
                     seeds,
                     envs,
                     policies,
-                    ego_idm: seat == Some(true),
+                    scripted_ego: (seat == Some(true)).then_some(sf_job::eval::ScriptedEgo::Idm),
                 }
             },
         )

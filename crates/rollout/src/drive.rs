@@ -2,11 +2,11 @@
 //! background rows and the SocialCommAdv adversary, each with one batched inference over every
 //! scenario's environments.
 //!
-//! Owns: [`Drivers`] (the actor of each role: uniform, the IDM demonstrator, or a policy),
-//! [`decide`] (the adversary's message first, communicated before anyone drives, then the
-//! driving actions as the roles chose them), [`apply`] (steps the environments with them, adding
-//! the IDM driver's action for roles whose actions are residuals) and [`run_episodes`] (stored
-//! episodes to their end). Shared by rollout workers and evaluation, so both run a flow the same
+//! Owns: [`Drivers`] (the actor of each role: uniform, the IDM demonstrator, IDM with MOBIL's
+//! lane changes, or a policy), [`decide`] (the adversary's message first, communicated before
+//! anyone drives, then the driving actions as the roles chose them), [`apply`] (steps the
+//! environments with them, adding the IDM driver's action for roles whose actions are
+//! residuals) and [`run_episodes`] (stored episodes to their end). Shared by rollout workers and evaluation, so both run a flow the same
 //! way. Must not: record transitions or choose which role is being trained.
 
 use rand::Rng;
@@ -28,6 +28,10 @@ pub enum Actor<'a> {
     /// kinds: zero) with Gaussian noise of this standard deviation per component, clipped to
     /// [-1, 1] (the IDM warm-up; a noise of 0 draws no random numbers). Driving roles only.
     Demo { noise: f32, action: DriveAction },
+    /// IDM with MOBIL's lane changes ([`sf_sim::mobil::action`]) as an `idm-residual-lateral`
+    /// action: the lane MOBIL chooses, a zero residual once there (a reference driver that
+    /// steers). Driving roles only.
+    Mobil(sf_sim::mobil::MobilParams),
     /// A policy: sampled, or its mean action when `deterministic` (evaluation).
     Policy { runner: &'a PolicyRunner, deterministic: bool },
     /// Actions chosen outside (a Python policy, or actions handed in by an environment's
@@ -51,6 +55,7 @@ impl<'a> Actor<'a> {
         match self {
             Actor::Random { .. } => DriveAction::Direct,
             Actor::Demo { action, .. } => *action,
+            Actor::Mobil(_) => DriveAction::IdmResidualLateral,
             Actor::Policy { runner, .. } => runner.net().action,
             Actor::External { action, .. } => *action,
         }
@@ -61,6 +66,7 @@ impl<'a> Actor<'a> {
         match self {
             Actor::Random { dim } => *dim,
             Actor::Demo { action, .. } => action.dim(),
+            Actor::Mobil(_) => DriveAction::IdmResidualLateral.dim(),
             Actor::Policy { runner, .. } => runner.net().action_dim,
             Actor::External { action, .. } => action.dim(),
         }
@@ -196,6 +202,11 @@ fn act(
             }
             a
         }
+        Actor::Mobil(p) => venvs
+            .iter()
+            .zip(rows)
+            .flat_map(|(v, rs)| rs.iter().flat_map(move |&r| v.mobil_action(r, &p)))
+            .collect(),
         Actor::Policy { .. } | Actor::External { .. } if n == 0 => Vec::new(),
         Actor::Policy { runner, deterministic } => {
             let (obs, ids) = gather(venvs, rows, n);

@@ -167,6 +167,16 @@ impl Agent {
         self.hist[self.hist_head] = [s.x_m, s.y_m, s.theta_rad, s.speed_mps];
     }
 
+    /// Where the `idm-residual-lateral` action has its followed path go, m left of the route
+    /// (its target), and where the path is now; zero for every other driver.
+    pub fn lateral_target_m(&self) -> f32 {
+        self.lateral_target_m
+    }
+
+    pub fn lateral_offset_m(&self) -> f32 {
+        self.lateral_offset_m
+    }
+
     pub fn frame(&self) -> Frame {
         Frame::new(self.state.pos(), self.state.theta_rad)
     }
@@ -420,10 +430,17 @@ impl Env {
     /// whether standing vehicles closed the road ahead of it then (every timeout falls on the
     /// episode's last step, so this is the state it ended in).
     pub fn outcomes(&self) -> impl Iterator<Item = AgentOutcome> + '_ {
-        self.agents.iter().enumerate().map(|(i, a)| {
+        self.outcomes_judged(true)
+    }
+
+    /// [`Env::outcomes`], with the corridor test run for timeouts only when `passage` (it is
+    /// what evaluation reports; training's episode metrics leave `road_closed` false).
+    pub fn outcomes_judged(&self, passage: bool) -> impl Iterator<Item = AgentOutcome> + '_ {
+        self.agents.iter().enumerate().map(move |(i, a)| {
             let mut o = a.outcome();
-            o.road_closed =
-                a.termination == Some(Termination::Timeout) && self.road_closed_ahead(i).is_some();
+            o.road_closed = passage
+                && a.termination == Some(Termination::Timeout)
+                && self.road_closed_ahead(i).is_some();
             o
         })
     }

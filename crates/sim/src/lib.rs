@@ -3,7 +3,7 @@
 //! Owns: maps as data ([`map`]), the four scenarios' geometry ([`scenarios`]), vehicles
 //! ([`vehicle`]), IDM traffic ([`idm`]), episodes with collisions, failure/success rules and
 //! rewards ([`env`]), observations in two layouts ([`obs`]), evaluation cases ([`case`]),
-//! metrics ([`metrics`]), whether standing vehicles close the road ahead ([`passage`]), batched stepping ([`vec_env`]) and rendering ([`render`]).
+//! metrics ([`metrics`]), IDM with MOBIL's lane changes ([`mobil`]), whether standing vehicles close the road ahead ([`passage`]), batched stepping ([`vec_env`]) and rendering ([`render`]).
 //! Must not: depend on burn, tokio or prost; anything learned reaches it only as actions.
 //!
 //! Determinism: no randomness inside a step and no hash-map iteration; the same scenario
@@ -18,6 +18,7 @@ pub mod geom;
 pub mod idm;
 pub mod map;
 pub mod metrics;
+pub mod mobil;
 pub mod obs;
 pub mod passage;
 pub mod policy;

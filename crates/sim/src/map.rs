@@ -253,6 +253,23 @@ impl Map {
         best.1
     }
 
+    /// Whether a car at `p` heading `heading_rad` drives on a lane the right way: within
+    /// `reach_m` of a lane's centre line whose heading there is within `max_heading_rad` of its
+    /// own (any lane inside a junction, where the wrong-lane rule is off). The opposite
+    /// carriageway and the space beside the road are not. Shared by the corridor test
+    /// ([`crate::passage`]) and MOBIL's choice of lanes ([`crate::mobil`]).
+    pub fn lane_runs_along(
+        &self,
+        p: P2,
+        heading_rad: f32,
+        max_heading_rad: f32,
+        reach_m: f32,
+    ) -> bool {
+        self.nearest_lane_heading(p, reach_m).is_some_and(|h| {
+            self.in_junction(p) || geom::wrap_angle(h - heading_rad).abs() <= max_heading_rad
+        })
+    }
+
     /// Static polylines (lane centre-lines with their widths, then edges with width 0).
     pub fn static_polylines(&self) -> impl Iterator<Item = (PolyKind, &[P2], f32)> {
         self.lanes

@@ -55,7 +55,8 @@ pub struct EpisodeMetrics {
     #[serde(default)]
     pub lane_change: f32,
     /// The share of scored agents that timed out with standing vehicles closing the road ahead
-    /// ([`AgentOutcome::road_closed`]): blocked, not merely slow.
+    /// ([`AgentOutcome::road_closed`]): blocked, not merely slow. Judged in stored episodes
+    /// (evaluation) only; 0 in training's metrics.
     #[serde(default)]
     pub road_closed: f32,
 }

@@ -99,9 +99,11 @@ pub fn closed_ahead(
         let junction = map.in_junction(centre);
         for i in -side..=side {
             let q = geom::add(centre, geom::scale(normal, i as f32 * rule.lateral_step_m));
-            let drivable = map.nearest_lane_heading(q, lane_reach_m).is_some_and(|h| {
-                junction || map.in_junction(q) || geom::wrap_angle(h - heading).abs() <= max_heading
-            });
+            let drivable = if junction {
+                map.nearest_lane_heading(q, lane_reach_m).is_some()
+            } else {
+                map.lane_runs_along(q, heading, max_heading, lane_reach_m)
+            };
             let covered = near.iter().any(|o| {
                 let f = geom::Frame::new(o.pos, o.theta_rad).to_local(q);
                 f[0].abs() <= half_l && f[1].abs() <= half_w

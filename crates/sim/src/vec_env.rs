@@ -531,6 +531,11 @@ impl VecEnv {
         self.slots[r / self.max_agents].env.demo_action(r % self.max_agents)
     }
 
+    /// Row `r`'s agent's `idm-residual-lateral` action under MOBIL ([`crate::mobil::action`]).
+    pub fn mobil_action(&self, r: usize, p: &crate::mobil::MobilParams) -> [f32; 2] {
+        crate::mobil::action(&self.slots[r / self.max_agents].env, r % self.max_agents, p)
+    }
+
     /// Per row: what the last step did.
     pub fn row_steps(&self) -> &[RowStep] {
         &self.steps
@@ -592,7 +597,9 @@ impl VecEnv {
                 if s.env.done() {
                     s.finished.push((
                         s.tag,
-                        EpisodeMetrics::from_outcomes(s.env.outcomes(), learners_only),
+                        // Stored episodes (evaluation) say whether a timeout was walled in;
+                        // training's endless resets skip the corridor test.
+                        EpisodeMetrics::from_outcomes(s.env.outcomes_judged(queued), learners_only),
                     ));
                     if queued {
                         s.idle = true;

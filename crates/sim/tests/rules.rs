@@ -341,7 +341,14 @@ fn a_timeout_behind_a_car_standing_in_the_narrow_is_a_closed_road_and_not_otherw
         while !e.done() {
             e.step(&[stop(), stop()]).expect("step");
         }
-        e.outcomes().collect::<Vec<_>>()
+        // Training's metrics skip the corridor test: the same ends, none judged closed.
+        let unjudged: Vec<_> = e.outcomes_judged(false).collect();
+        assert!(unjudged.iter().all(|o| !o.road_closed));
+        let judged: Vec<_> = e.outcomes().collect();
+        for (u, j) in unjudged.iter().zip(&judged) {
+            assert_eq!((u.termination, u.success, u.steps), (j.termination, j.success, j.steps));
+        }
+        judged
     };
     // A car standing in the narrow 20 m ahead: nothing gets past it but the opposite lane.
     let o = outcomes(([0.0, -1.75], 0.0));

@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use sf_job::config::JobKind;
-use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork};
+use sf_job::eval::{Cell, EvalConfig, EvalEpisode, EvalWork, ScriptedEgo, ScriptedSeats};
 use sf_job::{CellId, Frozen, FrozenRole, JobId, JobRecord, JobState, Progress, WorkerId};
 use sf_report::episodes::{EpisodeRow, EpisodesWriter, Meta};
 use sf_rollout::evaluate::{EgoDef, Resolved};
@@ -35,7 +35,7 @@ pub fn resolve_names(cfg: &mut EvalConfig, jobs: &[JobRecord]) -> Result<(), Lea
     let pin = |field: &'static str, n: &mut sf_job::eval::Named| -> Result<(), LearnerError> {
         let bad =
             |reason: String| LearnerError::BadEvalConfig { field, name: n.name.clone(), reason };
-        if n.is_idm() {
+        if n.is_scripted() {
             n.job_id = None;
             return Ok(());
         }
@@ -147,10 +147,18 @@ pub fn resolve_policies(
     }
     let mut egos = BTreeMap::new();
     for e in &cfg.egos {
-        // The IDM driver: no policy travels, the work item says so (`EvalWork::ego_idm`).
-        if e.is_idm() {
-            grid.egos.insert(e.name.clone(), EgoDef::Idm);
-            continue;
+        // A scripted driver: no policy travels, the work item says so
+        // (`EvalWork::scripted_ego`).
+        match e.scripted() {
+            Some(ScriptedEgo::Idm) => {
+                grid.egos.insert(e.name.clone(), EgoDef::Idm);
+                continue;
+            }
+            Some(ScriptedEgo::IdmMobil) => {
+                grid.egos.insert(e.name.clone(), EgoDef::IdmMobil);
+                continue;
+            }
+            None => {}
         }
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());
@@ -334,12 +342,12 @@ impl EvalJob {
         *lock(&self.stop)
     }
 
-    /// Whether cell `c` has the IDM driver in the ego's seat.
-    fn idm_ego_cell(&self, c: usize) -> bool {
-        self.cfg.ego(&self.cells[c].ego).is_some_and(sf_job::eval::Named::is_idm)
+    /// The scripted driver in cell `c`'s ego seat, if any.
+    fn scripted_ego(&self, c: usize) -> Option<ScriptedEgo> {
+        self.cfg.ego(&self.cells[c].ego).and_then(sf_job::eval::Named::scripted)
     }
 
-    /// The next queued cell for `worker` (not an IDM-ego cell unless it `runs_idm_ego`).
+    /// The next queued cell for `worker` (not one with a scripted ego it does not seat).
     /// Leases of workers not in `live` (forgotten for missing heartbeats) and the worker's own
     /// earlier lease (it asks again, so it gave that cell up) go back to the queue first.
     /// `None`: nothing queued now for this worker (cells may still be leased to others).
@@ -347,7 +355,7 @@ impl EvalJob {
         &self,
         worker: WorkerId,
         live: &BTreeSet<WorkerId>,
-        runs_idm_ego: bool,
+        seats: ScriptedSeats,
     ) -> Option<EvalWork> {
         if self.stop_reason().is_some() {
             return None;
@@ -371,9 +379,9 @@ impl EvalJob {
                 s.queued.push_front(c);
             }
         }
-        let c = take_first(&mut s.queued, |c| runs_idm_ego || !self.idm_ego_cell(c))?;
+        let c = take_first(&mut s.queued, |c| seats.runs(self.scripted_ego(c)))?;
         s.leased.insert(c, (worker, Instant::now()));
-        let (cell, ego_idm) = (self.cells[c].clone(), self.idm_ego_cell(c));
+        let (cell, scripted_ego) = (self.cells[c].clone(), self.scripted_ego(c));
         let (cases, seeds) = self.cfg.size_of(&cell);
         Some(EvalWork {
             job_id: self.id,
@@ -383,7 +391,7 @@ impl EvalJob {
             seeds,
             envs: self.cfg.envs as u32,
             policies: self.work[c].clone(),
-            ego_idm,
+            scripted_ego,
         })
     }
 

@@ -61,8 +61,8 @@ impl Experience {
         Self { jobs, slots, workers, storage, assignments: AtomicU64::new(0) }
     }
 
-    pub fn register(&self, name: &str, runs_idm_ego: bool) -> WorkerId {
-        self.workers.register(name, runs_idm_ego)
+    pub fn register(&self, name: &str, seats: sf_job::eval::ScriptedSeats) -> WorkerId {
+        self.workers.register(name, seats)
     }
 
     pub fn heartbeat(&self, worker_id: WorkerId) -> Result<(), LearnerError> {
@@ -76,7 +76,7 @@ impl Experience {
             return Ok(Work::Train(a));
         }
         let Some(e) = self.slots.eval() else { return Ok(Work::Wait { retry_after_ms: 1000 }) };
-        match e.lease(worker_id, &self.workers.live(), self.workers.runs_idm_ego(worker_id)) {
+        match e.lease(worker_id, &self.workers.live(), self.workers.seats(worker_id)) {
             Some(w) => Ok(Work::Eval(w)),
             // An evaluation's last cells are leased to others: ask again soon, one may come back.
             None => Ok(Work::Wait { retry_after_ms: 250 }),

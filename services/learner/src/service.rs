@@ -139,7 +139,8 @@ impl JobService for Jobs {
 impl ExperienceService for Experience {
     async fn register(&self, req: Request<pb::RegisterRequest>) -> Res<pb::RegisterResponse> {
         let r = req.into_inner();
-        let id = self.experience.register(&r.name, r.runs_idm_ego);
+        let seats = sf_job::eval::ScriptedSeats { idm: r.runs_idm_ego, mobil: r.runs_mobil_ego };
+        let id = self.experience.register(&r.name, seats);
         done::<_, ServiceError>(
             &self.metrics,
             "Register",

@@ -16,6 +16,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use prometheus_client::metrics::gauge::Gauge;
+use sf_job::eval::ScriptedSeats;
 use sf_job::{JobId, WorkerId};
 use sf_service::sync::lock;
 
@@ -24,8 +25,8 @@ use crate::error::LearnerError;
 struct WorkerInfo {
     name: String,
     last_seen: Instant,
-    /// It runs evaluation cells with the IDM driver in the ego's seat.
-    runs_idm_ego: bool,
+    /// The scripted drivers it seats in evaluation cells.
+    seats: ScriptedSeats,
     /// The training job it was last assigned, until it is moved or asks again.
     job: Option<JobId>,
 }
@@ -50,26 +51,21 @@ impl Workers {
         }
     }
 
-    pub fn register(&self, name: &str, runs_idm_ego: bool) -> WorkerId {
+    pub fn register(&self, name: &str, seats: ScriptedSeats) -> WorkerId {
         let id = WorkerId::new(self.next.fetch_add(1, Ordering::Relaxed));
         let mut w = lock(&self.map);
         w.insert(
             id,
-            WorkerInfo {
-                name: name.to_string(),
-                last_seen: Instant::now(),
-                runs_idm_ego,
-                job: None,
-            },
+            WorkerInfo { name: name.to_string(), last_seen: Instant::now(), seats, job: None },
         );
         self.gauge.set(w.len() as i64);
         tracing::info!(worker_id = id.get(), name, "worker registered");
         id
     }
 
-    /// Whether worker `id` registered as running IDM-ego evaluation cells.
-    pub fn runs_idm_ego(&self, id: WorkerId) -> bool {
-        lock(&self.map).get(&id).is_some_and(|w| w.runs_idm_ego)
+    /// The scripted egos worker `id` registered as seating (none if it is unknown).
+    pub fn seats(&self, id: WorkerId) -> ScriptedSeats {
+        lock(&self.map).get(&id).map(|w| w.seats).unwrap_or_default()
     }
 
     /// Records a call from worker `id`; refused when it is not (or no longer) registered.
@@ -186,12 +182,13 @@ mod tests {
     fn silent_workers_are_forgotten_and_refused_while_callers_stay() {
         let gauge = Gauge::default();
         let w = Workers::new(0, Duration::from_millis(50), gauge.clone());
-        let (a, b) = (w.register("a", true), w.register("b", false));
+        let idm_only = ScriptedSeats { idm: true, mobil: false };
+        let (a, b) = (w.register("a", idm_only), w.register("b", ScriptedSeats::default()));
         assert!(
             a.get() >= 1 && b.get() == a.get() + 1,
             "ids start at 1 and are never reused: {a} {b}"
         );
-        assert!(w.runs_idm_ego(a) && !w.runs_idm_ego(b), "what each worker registered with");
+        assert_eq!((w.seats(a), w.seats(b)), (idm_only, ScriptedSeats::default()), "as registered");
         assert_eq!(gauge.get(), 2);
         std::thread::sleep(Duration::from_millis(80));
         // `a` calls after the timeout: it stays (its own call keeps it), `b` goes.
@@ -209,7 +206,8 @@ mod tests {
     #[test]
     fn workers_spread_over_running_jobs_and_move_when_a_job_starts_or_ends() {
         let w = Workers::new(1, Duration::from_secs(60), Gauge::default());
-        let ids: Vec<WorkerId> = (0..3).map(|k| w.register(&format!("w{k}"), false)).collect();
+        let ids: Vec<WorkerId> =
+            (0..3).map(|k| w.register(&format!("w{k}"), ScriptedSeats::default())).collect();
         let (j10, j11) = (JobId::new(10), JobId::new(11));
         // One job: everyone on it.
         for &id in &ids {

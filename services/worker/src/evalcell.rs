@@ -94,7 +94,7 @@ impl Cells {
         let (state, result) = tokio::task::spawn_blocking(move || {
             let r = (|| {
                 let (flow, ego) = evaluate::from_frozen(&work.policies, &weights)?;
-                let ego = evaluate::EgoDef::of_work(ego, work.ego_idm)?;
+                let ego = evaluate::EgoDef::of_work(ego, work.scripted_ego)?;
                 let (map, cases) = maps
                     .get(&work.cell.scenario)
                     .ok_or_else(|| evaluate::EvalError::Misfit("scenario not loaded".into()))?;

@@ -35,7 +35,11 @@ pub async fn register(
 ) -> anyhow::Result<Registration> {
     let reg = client
         .register(req(
-            pb::RegisterRequest { name: cfg.name.clone(), runs_idm_ego: true },
+            pb::RegisterRequest {
+                name: cfg.name.clone(),
+                runs_idm_ego: true,
+                runs_mobil_ego: true,
+            },
             cfg.rpc_timeout,
         ))
         .await

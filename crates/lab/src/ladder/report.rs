@@ -27,8 +27,11 @@ pub(super) fn summarise(
     g: &Gate,
     updates: u64,
     wall_s: f64,
+    judged: &str,
 ) -> Result<SeedSummary> {
-    let pol: Vec<&Row> = rows.iter().filter(|r| r.driver == "policy").collect();
+    // `judged`: the driver whose rows the gate judges against the IDM ego's (`policy`, or a
+    // scripted driver's name).
+    let pol: Vec<&Row> = rows.iter().filter(|r| r.driver == judged).collect();
     let idm: Vec<&Row> = rows.iter().filter(|r| r.driver == "idm").collect();
     // Rows are paired: the same (scenario, case, seed) in the same order.
     let a: Vec<f64> = pol.iter().map(|r| r.success as f64).collect();

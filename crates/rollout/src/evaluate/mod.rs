@@ -175,6 +175,7 @@ enum Seat {
     /// No ego: the flow drives every vehicle.
     Empty,
     Idm,
+    IdmMobil,
     Policy(Arc<PolicyRunner>),
 }
 
@@ -189,6 +190,11 @@ impl Acting {
         match (&self.ego, &self.background) {
             (Seat::Policy(e), _) => Drivers { alive: Actor::mean(e), background, adversary },
             (Seat::Idm, _) => Drivers { alive: IDM_EGO, background, adversary },
+            (Seat::IdmMobil, _) => Drivers {
+                alive: Actor::Mobil(sf_sim::mobil::MobilParams::default()),
+                background,
+                adversary,
+            },
             (Seat::Empty, Some(f)) => {
                 Drivers { alive: Actor::sampled(f), background: None, adversary: None }
             }
@@ -222,15 +228,16 @@ fn cell_setup(
 ) -> Result<(Arc<SimConfig>, Mode, Acting), EvalError> {
     check_cell(cell, flow, ego)?;
     let ego = match ego {
-        // The IDM driver observes in the flow's settings, as `eval-flow --ego idm` runs it.
-        Some(EgoDef::Idm) => {
+        // The scripted drivers observe in the flow's settings, as `eval-flow --ego idm` runs
+        // the IDM driver.
+        Some(scripted @ (EgoDef::Idm | EgoDef::IdmMobil)) => {
             let f = FlowSetup::new(flow, map, None, runners)?;
             let svo_gaussian = f.svo_gaussian.filter(|_| cell.svo_deg.is_none());
             return Ok((
                 f.sim,
                 f.mode,
                 Acting {
-                    ego: Seat::Idm,
+                    ego: if matches!(scripted, EgoDef::Idm) { Seat::Idm } else { Seat::IdmMobil },
                     background: f.background,
                     adversary: f.adversary,
                     svo_gaussian,

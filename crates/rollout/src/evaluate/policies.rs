@@ -7,7 +7,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use sf_job::config::JobKind;
-use sf_job::eval::Cell;
+use sf_job::eval::{Cell, ScriptedEgo};
 use sf_job::{Frozen, FrozenRole, JobConfig, SvoGaussian};
 use sf_sim::config::MessageProbe;
 use sf_sim::SimConfig;
@@ -155,27 +155,33 @@ impl FlowDef {
     }
 }
 
-/// Who drives a cell's ego seat: a trained ego policy (its mean action), or the IDM driver
-/// (an evaluation grid's `job = "idm"` ego: the zero residual every trained ego starts from,
-/// the baseline they are tested against).
+/// Who drives a cell's ego seat: a trained ego policy (its mean action), the IDM driver (an
+/// evaluation grid's `job = "idm"` ego: the zero residual every trained ego starts from, the
+/// baseline they are tested against), or IDM with MOBIL's lane changes (`job = "idm-mobil"`,
+/// [`sf_sim::mobil`]: a reference driver that steers).
 #[derive(Clone)]
 // A handful per grid, built once: boxing the policy would buy nothing.
 #[allow(clippy::large_enum_variant)]
 pub enum EgoDef {
     Idm,
+    IdmMobil,
     Learned(Policy),
 }
 
 impl EgoDef {
-    /// A work item's ego seat: the IDM driver when `idm` (the wire's `ego_idm`), else its EGO
-    /// policy if it has one.
-    pub fn of_work(ego: Option<Policy>, idm: bool) -> Result<Option<Self>, EvalError> {
-        match (ego, idm) {
-            (Some(_), true) => Err(EvalError::Misfit(
-                "the IDM driver and an ego policy both given for the ego's seat".into(),
+    /// A work item's ego seat: its scripted driver (the wire's `ego_idm`, `ego_mobil`), else
+    /// its EGO policy if it has one.
+    pub fn of_work(
+        ego: Option<Policy>,
+        scripted: Option<ScriptedEgo>,
+    ) -> Result<Option<Self>, EvalError> {
+        match (ego, scripted) {
+            (Some(_), Some(_)) => Err(EvalError::Misfit(
+                "a scripted driver and an ego policy both given for the ego's seat".into(),
             )),
-            (None, true) => Ok(Some(Self::Idm)),
-            (ego, false) => Ok(ego.map(Self::Learned)),
+            (None, Some(ScriptedEgo::Idm)) => Ok(Some(Self::Idm)),
+            (None, Some(ScriptedEgo::IdmMobil)) => Ok(Some(Self::IdmMobil)),
+            (ego, None) => Ok(ego.map(Self::Learned)),
         }
     }
 
@@ -183,6 +189,7 @@ impl EgoDef {
     pub fn key(&self) -> String {
         match self {
             Self::Idm => "idm".into(),
+            Self::IdmMobil => "idm-mobil".into(),
             Self::Learned(p) => p.key.clone(),
         }
     }
@@ -253,8 +260,8 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(
         )));
     }
     let ego = match ego {
-        // The IDM driver ignores what it observes: it fits every flow.
-        Some(EgoDef::Idm) => return Ok(()),
+        // The scripted drivers ignore what they observe: they fit every flow.
+        Some(EgoDef::Idm | EgoDef::IdmMobil) => return Ok(()),
         Some(EgoDef::Learned(p)) => Some(p),
         None => None,
     };
