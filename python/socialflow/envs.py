@@ -52,7 +52,9 @@ class EgoEnv(gym.Env):
 
     `reset(seed=s)` draws random cases from `s`; `reset(options={"case": i})` runs stored
     evaluation case `i` (`socialflow eval`'s cases). `info` carries `success`, `termination`
-    and `idm_action` (the IDM driver's choice as a `direct` action)."""
+    and `idm_action` (the IDM driver's choice as a `direct` action); with
+    `action="idm-residual-lateral"` also `mobil_action` (IDM with MOBIL's lane changes as that
+    action: a demonstrator that changes lanes, for warm-up or cloning)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
@@ -90,7 +92,10 @@ class EgoEnv(gym.Env):
         return split_obs(self._spec, row) if self.obs_format == "dict" else row
 
     def _info(self):
-        return {"idm_action": self._core.idm_action()[0]}
+        info = {"idm_action": self._core.idm_action()[0]}
+        if self._core.action == "idm-residual-lateral":
+            info["mobil_action"] = self._core.mobil_action()[0]
+        return info
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
@@ -118,6 +123,8 @@ class EgoEnv(gym.Env):
             self._running = False
             row = final_obs[0]
             info["idm_action"] = np.zeros(2, np.float32)
+            if self._core.action == "idm-residual-lateral":
+                info["mobil_action"] = np.zeros(2, np.float32)
         else:
             row = obs[0]
             info.update(self._info())

@@ -311,6 +311,12 @@ impl Core {
         self.action.dim()
     }
 
+    /// The action kind Python's actions drive (`"direct"`, `"idm-residual-lateral"`, ...).
+    #[getter]
+    fn action(&self) -> &'static str {
+        self.action.as_str()
+    }
+
     #[getter]
     fn max_agents(&self) -> usize {
         self.venv.max_agents
@@ -502,6 +508,22 @@ impl Core {
                 let a = self.venv.demo_action(r);
                 out[j * 2] = a.ref_speed;
                 out[j * 2 + 1] = a.steer;
+            }
+        }
+        PyArray1::from_vec(py, out).reshape([rows.len(), 2])
+    }
+
+    /// IDM with MOBIL's lane changes for every row Python sees, as the `idm-residual-lateral`
+    /// action `[acceleration residual, lateral target]` (`sf_sim::mobil`; zeros for rows not
+    /// alive): a demonstrator that steers. Zeros while it keeps its lane, so only for the
+    /// lateral action is it more than the IDM driver.
+    fn mobil_action<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let rows = self.rows();
+        let params = sf_sim::mobil::MobilParams::default();
+        let mut out = vec![0f32; rows.len() * 2];
+        for (j, &r) in rows.iter().enumerate() {
+            if self.venv.alive()[r] == 1.0 {
+                out[j * 2..j * 2 + 2].copy_from_slice(&self.venv.mobil_action(r, &params));
             }
         }
         PyArray1::from_vec(py, out).reshape([rows.len(), 2])

@@ -63,6 +63,26 @@ def test_stored_case_and_idm_zero_residual_end_the_episode():
         fresh.step(np.zeros(2, np.float32))
 
 
+def test_the_mobil_driver_is_a_lateral_demonstrator_that_changes_lanes():
+    env = socialflow.make_ego(scenario="bottleneck", action="idm-residual-lateral", obs_format="flat")
+    lateral = set()
+    for case in range(10):
+        obs, info = env.reset(options={"case": case})
+        done = False
+        while not done:
+            a = info["mobil_action"]
+            assert a.shape == (2,) and a.dtype == np.float32
+            assert -1.0 <= a[0] <= 0.0, "the residual only brakes, while it changes lanes"
+            lateral.add(float(a[1]))
+            obs, r, term, trunc, info = env.step(a)
+            done = term or trunc
+        assert info["termination"] != "wrong-lane", "never the opposite carriageway"
+    assert lateral <= {-1.0, 0.0, 1.0} and len(lateral) > 1, f"lane targets {lateral}"
+    # Only the lateral action carries it.
+    _, info = socialflow.make_ego(scenario="bottleneck", action="idm-accel-residual").reset(seed=0)
+    assert "mobil_action" not in info
+
+
 def test_render_rgb_array():
     env = socialflow.make_ego(scenario="bottleneck", render_mode="rgb_array")
     env.reset(seed=0)
