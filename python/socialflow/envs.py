@@ -142,7 +142,10 @@ class EgoVectorEnv(VectorEnv):
     call per step for all of them: observations, rewards and flags come back as NumPy arrays.
     Finished episodes restart at once (Gymnasium's same-step autoreset): `infos["final_obs"]`
     holds the last observation of the simulators flagged in `infos["_final_obs"]`.
-    `reset(options={"cases": [i0, i1, ...]})` runs stored cases, one per simulator, once."""
+    `reset(options={"cases": [i0, i1, ...]})` runs stored cases, one per simulator, once. With
+    `action="idm-residual-lateral"` the infos carry `mobil_action` `[num_envs, 2]`: IDM with
+    MOBIL's lane changes as that action for each simulator's current observation (zeros where
+    the ego is not alive)."""
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
@@ -187,7 +190,12 @@ class EgoVectorEnv(VectorEnv):
         if isinstance(seed, (list, tuple)):
             raise ValueError("seed: give one integer; the simulators' seeds derive from it")
         obs, alive = self._core.reset(seed_arg(seed), cases)
-        return self._format(obs), {"alive": alive}
+        return self._format(obs), self._with_mobil({"alive": alive})
+
+    def _with_mobil(self, infos):
+        if self._core.action == "idm-residual-lateral":
+            infos["mobil_action"] = self._core.mobil_action()
+        return infos
 
     def step(self, actions):
         a = _check_actions(actions, self.num_envs, self._core.action_dim)
@@ -201,7 +209,7 @@ class EgoVectorEnv(VectorEnv):
                 finals[r] = self._format(final_obs[j])
             infos["final_obs"] = finals
             infos["_final_obs"] = mask
-        return self._format(obs), reward, terminated, truncated, infos
+        return self._format(obs), reward, terminated, truncated, self._with_mobil(infos)
 
     def render(self):
         check_choice("render_mode", self.render_mode, self.metadata["render_modes"])

@@ -81,6 +81,16 @@ def test_the_mobil_driver_is_a_lateral_demonstrator_that_changes_lanes():
     # Only the lateral action carries it.
     _, info = socialflow.make_ego(scenario="bottleneck", action="idm-accel-residual").reset(seed=0)
     assert "mobil_action" not in info
+    # The vector environment carries one per simulator, for the observations it returns.
+    vec = socialflow.make_ego_vec(num_envs=3, scenario="bottleneck", action="idm-residual-lateral")
+    _, infos = vec.reset(seed=1)
+    for _ in range(30):
+        a = infos["mobil_action"]
+        assert a.shape == (3, 2) and a.dtype == np.float32
+        assert np.all(np.isin(a[:, 1], [-1.0, 0.0, 1.0]))
+        _, _, _, _, infos = vec.step(a)
+    _, infos = socialflow.make_ego_vec(num_envs=2, action="idm-accel-residual").reset(seed=1)
+    assert "mobil_action" not in infos
 
 
 def test_render_rgb_array():
