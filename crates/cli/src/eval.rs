@@ -94,12 +94,8 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         );
     }
     for e in &cfg.egos {
-        if e.is_idm() {
-            grid.egos.insert(e.name.clone(), evaluate::EgoDef::Idm);
-            continue;
-        }
-        if e.is_idm_mobil() {
-            grid.egos.insert(e.name.clone(), evaluate::EgoDef::IdmMobil);
+        if let Some(s) = e.scripted() {
+            grid.egos.insert(e.name.clone(), s.into());
             continue;
         }
         let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;

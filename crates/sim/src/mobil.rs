@@ -69,6 +69,9 @@ impl Default for MobilParams {
 
 /// Where a path's offset counts as arrived at its target, m.
 const SETTLED_M: f32 = 0.05;
+/// Where the car's body counts as arrived in its target lane (no more braking for the lane it
+/// left), m.
+const BODY_SETTLED_M: f32 = 0.5;
 /// Sections checked along a lane, m apart.
 const LANE_CHECK_STEP_M: f32 = 5.0;
 /// How far behind the car its followers are searched for, m.
@@ -156,7 +159,7 @@ pub fn action(env: &Env, i: usize, p: &MobilParams) -> [f32; 2] {
     let lateral = lateral_target(env, i, p);
     let to_m = lateral * env.cfg.lateral.max_offset_m;
     let path_m = a.lateral_offset_m();
-    if (path_m - to_m).abs() <= SETTLED_M && (a.lateral_m - to_m).abs() <= SETTLED_M.max(0.5) {
+    if (path_m - to_m).abs() <= SETTLED_M && (a.lateral_m - to_m).abs() <= BODY_SETTLED_M {
         return [0.0, lateral];
     }
     let v = a.state.speed_mps;
@@ -189,11 +192,11 @@ pub fn lateral_target(env: &Env, i: usize, p: &MobilParams) -> f32 {
         return norm(now_m);
     }
     let v = a.state.speed_mps;
+    let me = Some(Near { ds_m: 0.0, speed_mps: v });
     let (lead, follow) = neighbours(env, i, now_m);
     let own_now = accel(env, v, 0.0, lead);
     // The car behind now: it would follow our leader once we leave.
     let old_follower_change = follow.map_or(0.0, |f| {
-        let me = Some(Near { ds_m: 0.0, speed_mps: v });
         accel(env, f.speed_mps, f.ds_m, lead) - accel(env, f.speed_mps, f.ds_m, me)
     });
     let mut best = (now_m, p.gain_threshold_mps2);
@@ -202,7 +205,6 @@ pub fn lateral_target(env: &Env, i: usize, p: &MobilParams) -> f32 {
             continue;
         }
         let (new_lead, new_follow) = neighbours(env, i, to_m);
-        let me = Some(Near { ds_m: 0.0, speed_mps: v });
         // Safety: the new follower brakes no harder than allowed behind us.
         let new_follower_change = match new_follow {
             Some(f) => {

@@ -178,13 +178,7 @@ fn a_lane_change_passes_a_stopped_car_that_idm_waits_behind() {
 fn slow_leader_cases_put_a_capped_car_ahead_in_the_egos_lane() {
     let m = map("bottleneck");
     let sim = std::sync::Arc::new(SimConfig::default());
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-    let draw = CaseDraw {
-        conflict_share: None,
-        slow_leader: Some(SlowLeader { share: 1.0, speed_mps: 1.5 }),
-    };
-    for id in 0..50 {
-        let c = draw_case(&m, &sim, &mut rng, id, (2, 6), draw);
+    for c in common::slow_leader_cases(&m, 3, 50) {
         c.check(&m).expect("a valid case");
         let (ego, lead) = (&c.vehicles[0], &c.vehicles[1]);
         let (se, sl) = (&m.spawns[ego.spawn as usize], &m.spawns[lead.spawn as usize]);
@@ -201,6 +195,7 @@ fn slow_leader_cases_put_a_capped_car_ahead_in_the_egos_lane() {
             .all(|v| m.spawns[v.spawn as usize].routes != se.routes && v.max_speed_mps.is_none()));
         assert!((2..=6).contains(&c.vehicles.len()));
     }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let none = CaseDraw {
         conflict_share: None,
         slow_leader: Some(SlowLeader { share: 0.0, speed_mps: 1.5 }),

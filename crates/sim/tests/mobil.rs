@@ -6,13 +6,10 @@
 mod common;
 
 use common::{env, map, spawn_for};
-use rand::SeedableRng;
 use sf_sim::case::{Case, CaseVehicle};
 use sf_sim::env::{Controller, Env, Mode, Termination};
 use sf_sim::mobil::{action, lateral_target, MobilParams};
-use sf_sim::vec_env::{draw_case, CaseDraw, SlowLeader};
 use sf_sim::vehicle::{Action, DriveAction};
-use sf_sim::SimConfig;
 
 /// Bottleneck, direction +x: route 2 starts on the outer lane (y = -5.25 m), route 0 on the
 /// inner lane (y = -1.75 m), whose left neighbour is the opposite carriageway.
@@ -127,15 +124,8 @@ fn it_never_takes_the_opposite_carriageway() {
 #[test]
 fn it_passes_most_of_l6s_slow_leaders() {
     let m = map("bottleneck");
-    let sim = std::sync::Arc::new(SimConfig::default());
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
-    let draw = CaseDraw {
-        conflict_share: None,
-        slow_leader: Some(SlowLeader { share: 1.0, speed_mps: 1.5 }),
-    };
     let (mut success, mut failed, n) = (0, 0, 40);
-    for id in 0..n {
-        let c = draw_case(&m, &sim, &mut rng, id, (2, 6), draw);
+    for c in common::slow_leader_cases(&m, 2026, n) {
         let mut e = env(&m);
         e.reset(&c, Mode::Ego { background: Controller::Idm }, None).expect("reset");
         run(&mut e);

@@ -149,16 +149,9 @@ pub fn resolve_policies(
     for e in &cfg.egos {
         // A scripted driver: no policy travels, the work item says so
         // (`EvalWork::scripted_ego`).
-        match e.scripted() {
-            Some(ScriptedEgo::Idm) => {
-                grid.egos.insert(e.name.clone(), EgoDef::Idm);
-                continue;
-            }
-            Some(ScriptedEgo::IdmMobil) => {
-                grid.egos.insert(e.name.clone(), EgoDef::IdmMobil);
-                continue;
-            }
-            None => {}
+        if let Some(s) = e.scripted() {
+            grid.egos.insert(e.name.clone(), s.into());
+            continue;
         }
         let r = pinned(e)?;
         let fz = Frozen::new(FrozenRole::Ego, r.id, r.config_toml.clone());

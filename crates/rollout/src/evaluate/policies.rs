@@ -168,6 +168,16 @@ pub enum EgoDef {
     Learned(Policy),
 }
 
+impl From<ScriptedEgo> for EgoDef {
+    /// The seat of a grid's scripted ego (`job = "idm"` or `"idm-mobil"`).
+    fn from(s: ScriptedEgo) -> Self {
+        match s {
+            ScriptedEgo::Idm => Self::Idm,
+            ScriptedEgo::IdmMobil => Self::IdmMobil,
+        }
+    }
+}
+
 impl EgoDef {
     /// A work item's ego seat: its scripted driver (the wire's `ego_idm`, `ego_mobil`), else
     /// its EGO policy if it has one.
@@ -179,8 +189,7 @@ impl EgoDef {
             (Some(_), Some(_)) => Err(EvalError::Misfit(
                 "a scripted driver and an ego policy both given for the ego's seat".into(),
             )),
-            (None, Some(ScriptedEgo::Idm)) => Ok(Some(Self::Idm)),
-            (None, Some(ScriptedEgo::IdmMobil)) => Ok(Some(Self::IdmMobil)),
+            (None, Some(s)) => Ok(Some(s.into())),
             (ego, None) => Ok(ego.map(Self::Learned)),
         }
     }

@@ -48,6 +48,20 @@ pub fn env(map: &Arc<Map>) -> Env {
     Env::new(map.clone(), Arc::new(SimConfig::default()))
 }
 
+/// `n` of rung L6's generated cases on `map` (2-6 vehicles, a car capped at 1.5 m/s ahead of the
+/// ego in its lane in every case), drawn from `seed`.
+pub fn slow_leader_cases(map: &Arc<Map>, seed: u64, n: u32) -> Vec<Case> {
+    use rand::SeedableRng;
+    use sf_sim::vec_env::{draw_case, CaseDraw, SlowLeader};
+    let sim = Arc::new(SimConfig::default());
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let draw = CaseDraw {
+        conflict_share: None,
+        slow_leader: Some(SlowLeader { share: 1.0, speed_mps: 1.5 }),
+    };
+    (0..n).map(|id| draw_case(map, &sim, &mut rng, id, (2, 6), draw)).collect()
+}
+
 /// Rung L0 for an action: on the first 25 stored cases of every scenario, an ego driven by
 /// `ego_action(k)` in case `k` follows the same trajectory as the same vehicle driven by IDM
 /// (every vehicle IDM), to the last bit, and ends the same way.

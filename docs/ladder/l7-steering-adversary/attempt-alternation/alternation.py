@@ -38,8 +38,19 @@ def load(path):
     return cells
 
 
+def values(eps, name="success", keys=None):
+    """{(scenario, case, seed): float(row[name])} of one cell's episodes (only `keys` if given)."""
+    return {k: float(r[name]) for k, r in eps.items() if keys is None or k in keys}
+
+
 def column(cells, name):
-    return {cell: {k: float(r[name]) for k, r in eps.items()} for cell, eps in cells.items()}
+    return {cell: values(eps, name) for cell, eps in cells.items()}
+
+
+def attack(among_idm, among_flow):
+    """Per start: success among a flow minus among IDM, for one ego's two cells."""
+    a, b = values(among_idm), values(among_flow)
+    return {k: b[k] - a[k] for k in b}
 
 
 def rows_for(succ):

@@ -30,7 +30,7 @@ import sys
 here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(here, ".."))
 sys.path.insert(0, os.path.join(here, "..", "..", "attempt-lateral-rarl"))
-from alternation import load  # noqa: E402
+from alternation import load, values  # noqa: E402
 from recovery import paired  # noqa: E402
 
 FM = "FailMaker-1"
@@ -104,9 +104,8 @@ def splits(paths, column, rule, base_from=None):
     for seed, c in cells.items():
         for ego in ("RL/IDM", "RARL-3", "IDM driver"):
             a, b = c[(ego, "IDM")], c[(ego, FM)]
-            get = lambda eps, k: {s: float(r[k]) for s, r in eps.items()}  # noqa: E731
-            m, h, _ = paired(get(a, "success"), get(b, "success"))
-            mc, hc, _ = paired(get(a, column), get(b, column))
+            m, h, _ = paired(values(a), values(b))
+            mc, hc, _ = paired(values(a, column), values(b, column))
             print(f"| {seed} | {ego} | {100 * m:+.1f} +- {100 * h:.1f} | {100 * mc:+.1f} +- {100 * hc:.1f} |")
     print()
     print("| seed | starts | RL/IDM's road closed | ... where RARL-3 / the IDM driver / any arrives | other starts: RL/IDM's loss | RARL-3's recovery there (points, 95 % CI, share of the loss) |")

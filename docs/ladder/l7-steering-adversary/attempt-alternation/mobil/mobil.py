@@ -31,16 +31,12 @@ here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(here, ".."))
 sys.path.insert(0, os.path.join(here, "..", "blockade"))
 sys.path.insert(0, os.path.join(here, "..", "..", "attempt-lateral-rarl"))
-from alternation import load  # noqa: E402
+from alternation import load, values as col  # noqa: E402
 from blockade import FM, pct, seed_of, shares  # noqa: E402
 from recovery import paired  # noqa: E402
 
 MOBIL = "IDM+MOBIL"
 EGOS = ("IDM driver", MOBIL, "RL/IDM", "RARL-3")
-
-
-def col(eps, k, keys=None):
-    return {s: float(r[k]) for s, r in eps.items() if keys is None or s in keys}
 
 
 def main(paths, others):

@@ -20,16 +20,12 @@ from statsmodels.stats.multitest import multipletests
 here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(here, ".."))
 sys.path.insert(0, os.path.join(here, "..", "..", "attempt-lateral-rarl"))
-from alternation import load  # noqa: E402
+from alternation import load, values as success  # noqa: E402
 from recovery import paired  # noqa: E402
 
 FLOWS = ("IDM", "MACAD", "CoPO", "SocialComm", "FailMaker-1")
 LEARNED = ("RL/IDM", "RARL-3")
 SCRIPTED = ("IDM driver", "IDM+MOBIL")
-
-
-def success(eps):
-    return {s: float(r["success"]) for s, r in eps.items()}
 
 
 def main(paths):

@@ -27,22 +27,16 @@ from statsmodels.stats.multitest import multipletests
 here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(here, ".."))
 sys.path.insert(0, os.path.join(here, "..", "..", "attempt-lateral-rarl"))
-from alternation import load  # noqa: E402
+from alternation import attack, load, values as success  # noqa: E402
 from recovery import paired  # noqa: E402
 
 ATTACKED = {1: "RL/IDM", 2: "RARL-1", 3: "RARL-2"}
 REFS = ("IDM driver", "IDM+MOBIL")
 
 
-def success(eps):
-    return {s: float(r["success"]) for s, r in eps.items()}
-
-
 def did(c, ego, ref, fm):
     """Per start: (ego's attack) - (ref's attack)."""
-    a = {s: success(c[(ego, fm)])[s] - success(c[(ego, "IDM")])[s] for s in c[(ego, fm)]}
-    b = {s: success(c[(ref, fm)])[s] - success(c[(ref, "IDM")])[s] for s in c[(ref, fm)]}
-    return paired(b, a)
+    return paired(attack(c[(ref, "IDM")], c[(ref, fm)]), attack(c[(ego, "IDM")], c[(ego, fm)]))
 
 
 def main(paths):

@@ -25,17 +25,8 @@ from statsmodels.stats.multitest import multipletests
 here = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(here, "..", ".."))
 sys.path.insert(0, os.path.join(here, "..", "..", "..", "attempt-lateral-rarl"))
-from alternation import load  # noqa: E402
+from alternation import attack, load  # noqa: E402
 from recovery import paired  # noqa: E402
-
-
-def success(eps):
-    return {s: float(r["success"]) for s, r in eps.items()}
-
-
-def attack(among_idm, among_f):
-    a, b = success(among_idm), success(among_f)
-    return {s: b[s] - a[s] for s in b}
 
 
 def main(paths):
