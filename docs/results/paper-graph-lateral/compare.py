@@ -10,6 +10,11 @@ import json
 import sys
 
 
+def stem(claim):
+    """A claim without the pooled numbers some carry in their text (e.g. "(pooled success ...")."""
+    return claim.split(" (pooled success")[0]
+
+
 def cell(c):
     if c is None:
         return "-"
@@ -19,11 +24,7 @@ def cell(c):
 def main():
     lateral = json.load(open(sys.argv[1]))
     residual = json.load(open(sys.argv[2]))
-    lat = {c["claim"]: c for c in lateral["checks"]}
-    # Claims carry pooled numbers in their text (e.g. "pooled success ..."); match on the stem.
-    def stem(claim):
-        return claim.split(" (pooled success")[0]
-    lat = {stem(k): v for k, v in lat.items()}
+    lat = {stem(c["claim"]): c for c in lateral["checks"]}
     print("| finding | residual, seed 5 | residual, seed 6 | lateral, seed 9 |")
     print("|---|---|---|---|")
     for f in residual["across"]:
