@@ -110,6 +110,10 @@ pub struct Transition<'a> {
     pub steps: u8,
     /// Index of the map the observation refers to (query-centric segment ids).
     pub map_id: u32,
+    /// The IDM driver's action in `obs`'s state, expressed in the job's action
+    /// (`sac.bc_target = "oracle"`: the label the cloning term pulls towards); empty when the
+    /// job asks for none.
+    pub oracle: &'a [f32],
 }
 
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -132,6 +136,9 @@ pub struct TransitionBatch {
     /// over them and it bootstraps with `gamma^steps`); 1 for one-step transitions.
     pub steps: Vec<u8>,
     pub map_ids: Vec<u32>,
+    /// `count x action_dim` oracle labels ([`Transition::oracle`]), or empty: a batch has a
+    /// label for every transition or for none.
+    pub oracle_actions: Vec<f32>,
     pub episodes: Vec<EpisodeResult>,
     /// Decision steps of all vehicles simulated since the previous batch.
     pub sim_steps: u64,
@@ -171,6 +178,7 @@ impl TransitionBatch {
             terminal,
             steps: 1,
             map_id,
+            oracle: &[],
         });
     }
 
@@ -183,6 +191,7 @@ impl TransitionBatch {
         self.terminals.push(t.terminal);
         self.steps.push(t.steps);
         self.map_ids.push(t.map_id);
+        self.oracle_actions.extend_from_slice(t.oracle);
         self.count += 1;
     }
 
@@ -195,6 +204,7 @@ impl TransitionBatch {
         self.terminals.clear();
         self.steps.clear();
         self.map_ids.clear();
+        self.oracle_actions.clear();
         self.episodes.clear();
         self.count = 0;
         self.sim_steps = 0;
@@ -239,6 +249,9 @@ impl TransitionBatch {
         shape("terminals", self.terminals.len(), n)?;
         shape("steps", self.steps.len(), n)?;
         shape("map_ids", self.map_ids.len(), n)?;
+        if !self.oracle_actions.is_empty() {
+            shape("oracle_actions", self.oracle_actions.len(), n * self.action_dim)?;
+        }
         if let Some(i) = self.steps.iter().position(|&s| s == 0) {
             return Err(BatchError::Invalid {
                 field: "steps",
@@ -269,6 +282,17 @@ impl TransitionBatch {
             });
         }
         finite32("rewards", &self.rewards)?;
+        finite32("oracle_actions", &self.oracle_actions)?;
+        if let Some(i) = self.oracle_actions.iter().position(|a| !(-1.0..=1.0).contains(a)) {
+            return Err(BatchError::Invalid {
+                field: "oracle_actions",
+                reason: format!(
+                    "transition {}: {} is outside the action space [-1, 1]",
+                    i / self.action_dim,
+                    self.oracle_actions[i]
+                ),
+            });
+        }
         for (i, e) in self.episodes.iter().enumerate() {
             let [c, r, o, w, t] = e.ends.values();
             for (field, v) in [
@@ -346,5 +370,39 @@ mod tests {
         let mut b = one();
         b.steps.clear();
         assert_eq!(b.validate(), Err(BatchError::Shape { field: "steps", got: 0, want: 1 }));
+    }
+
+    #[test]
+    fn oracle_labels_come_for_every_transition_or_none() {
+        let mut b = one();
+        b.oracle_actions = vec![0.25, -1.0];
+        assert_eq!(b.validate(), Ok(()));
+        b.oracle_actions.pop();
+        assert_eq!(
+            b.validate(),
+            Err(BatchError::Shape { field: "oracle_actions", got: 1, want: 2 })
+        );
+        b.oracle_actions = vec![0.25, f32::NAN];
+        assert_eq!(b.validate(), Err(BatchError::NotFinite { field: "oracle_actions", index: 1 }));
+        b.oracle_actions = vec![0.25, 1.5];
+        assert!(matches!(b.validate(), Err(BatchError::Invalid { field: "oracle_actions", .. })));
+        // Labelled transitions fill the column row by row; clearing empties it.
+        let mut b = TransitionBatch::new(1.into(), 2.into(), 1, 2);
+        for label in [[0.5, 0.0], [-0.5, 0.25]] {
+            b.push_transition(Transition {
+                obs: &[0.0],
+                action: &[0.0, 0.0],
+                reward: 0.0,
+                next_obs: &[0.0],
+                terminal: false,
+                steps: 1,
+                map_id: 0,
+                oracle: &label,
+            });
+        }
+        assert_eq!(b.oracle_actions, vec![0.5, 0.0, -0.5, 0.25]);
+        assert_eq!(b.validate(), Ok(()));
+        b.clear();
+        assert!(b.oracle_actions.is_empty());
     }
 }

@@ -396,9 +396,11 @@ pub struct SacConfig {
     /// `huber_delta` of the target, linear beyond, on the scaled reward's units).
     pub critic_loss: CriticLoss,
     pub huber_delta: f32,
-    /// What the cloning term pulls the mean action to: the replayed actions (`"replay"`), or
-    /// zero (`"zero"`: the IDM driver itself, for residual actions), only in states where the
-    /// critic rates the zero action at least as high as the policy's (`bc_q_filter`).
+    /// What the cloning term pulls the mean action to: the replayed actions (`"replay"`), zero
+    /// (`"zero"`: the IDM driver itself, for residual actions), or the IDM driver's action in
+    /// each stored state as the worker recorded it (`"oracle"`: any action kind, on the
+    /// policy's own states too); with `bc_q_filter` only in states where the critic rates
+    /// that action at least as high as the policy's.
     pub bc_target: BcTarget,
     pub bc_q_filter: bool,
     /// AWAC-style advantage weights on the cloning term towards the replayed actions
@@ -476,6 +478,23 @@ pub enum BcTarget {
     Replay,
     /// The zero action (residual kinds: the IDM driver).
     Zero,
+    /// The IDM driver's action in each stored state, expressed in the job's action (the
+    /// direct action's reference speed and steer; zeros for residual kinds), recorded by the
+    /// worker at every step of the job's agents: DAgger-style labels on the policy's own
+    /// states, not only the demonstrator's.
+    Oracle,
+}
+
+impl BcTarget {
+    /// The cloning term's target comes from IDM itself, not from the replayed actions, so it
+    /// needs no demonstrator's warm-up.
+    pub fn is_idm(self, action: ActionMode) -> bool {
+        match self {
+            Self::Replay => false,
+            Self::Zero => action != ActionMode::Direct,
+            Self::Oracle => true,
+        }
+    }
 }
 
 /// Who acts during the warm-up (`sac.warmup_policy`).
@@ -1082,8 +1101,8 @@ impl JobConfig {
                 return bad("sac.bc_awac_lambda", "weights the cloning term that stays after the cloning updates: set sac.bc_weight > 0");
             }
         }
-        if s.bc_q_filter && s.bc_target != BcTarget::Zero {
-            return bad("sac.bc_q_filter", "the Q filter compares the policy with the zero action: set sac.bc_target = \"zero\"");
+        if s.bc_q_filter && s.bc_target == BcTarget::Replay {
+            return bad("sac.bc_q_filter", "the Q filter compares the policy with the IDM driver's action: set sac.bc_target = \"zero\" (residual actions) or \"oracle\"");
         }
         if !(1..=MAX_N_STEP).contains(&s.n_step) {
             return bad("sac.n_step", format!("{} must be in 1..={MAX_N_STEP}", s.n_step));
@@ -1097,17 +1116,17 @@ impl JobConfig {
                 "behaviour cloning needs a demonstrator: set sac.warmup_policy = \"idm\"",
             );
         }
-        if s.bc_from_warmup && (s.bc_updates == 0 || s.bc_target != BcTarget::Replay) {
-            return bad("sac.bc_from_warmup", "draws the cloning updates' batches from the demonstrator's warm-up: set sac.bc_updates > 0 and sac.bc_target = \"replay\"");
+        if s.bc_from_warmup && (s.bc_updates == 0 || s.bc_target == BcTarget::Zero) {
+            return bad("sac.bc_from_warmup", "draws the cloning updates' batches from the demonstrator's warm-up: set sac.bc_updates > 0 and sac.bc_target = \"replay\" or \"oracle\"");
         }
         if !(s.bc_weight.is_finite() && s.bc_weight >= 0.0) {
             return bad("sac.bc_weight", format!("{} must be a non-negative number", s.bc_weight));
         }
-        // Cloning towards the zero residual needs no demonstrator's data: zero is IDM.
-        let zero_target = s.bc_target == BcTarget::Zero && self.env.action != ActionMode::Direct;
+        // Cloning towards the zero residual or the recorded IDM labels needs no
+        // demonstrator's data.
         if (s.bc_weight > 0.0 || s.bc_decay_updates > 0)
             && s.warmup_policy != WarmupPolicy::Idm
-            && !zero_target
+            && !s.bc_target.is_idm(self.env.action)
         {
             return bad(
                 "sac.bc_weight",
@@ -1576,6 +1595,16 @@ mod tests {
             (1, Some(10), CriticLoss::Huber, BcTarget::Zero)
         );
         assert_eq!(JobConfig::from_toml(&ok.to_toml()).expect("round trip"), ok);
+        // IDM's recorded labels, Q-filtered, with the direct action: no demonstrator needed.
+        let oracle = JobConfig::from_toml(&format!(
+            "{MIN}[sac]\nwarmup_steps = 100\nbc_target = \"oracle\"\nbc_q_filter = true\nbc_weight = 1.0\n"
+        ))
+        .expect("oracle labels");
+        assert_eq!(
+            (oracle.env.action, oracle.sac.bc_target),
+            (ActionMode::Direct, BcTarget::Oracle)
+        );
+        assert_eq!(JobConfig::from_toml(&oracle.to_toml()).expect("round trip"), oracle);
         for (text, field) in [
             (format!("{env}[sac]\nwarmup_steps = 100\n"), "sac.warmup_policy"),
             (format!("{MIN}[sac]\nwarmup_steps = 100\nwarmup_policy = \"idm\"\nbc_target = \"zero\"\n"), "sac.bc_target"),

@@ -74,6 +74,7 @@ fn fill(venv: &mut VecEnv, cfg: &SimConfig, r: &mut Replay, n: usize) -> Result<
                 terminal: step.terminal(),
                 steps: 1,
                 map_id: 0,
+                oracle: &[],
             })
             .context("pushing a simulator transition")?;
             pushed += 1;

@@ -282,6 +282,7 @@ fn fill_replay(
                 terminal: false,
                 steps: 1,
                 map_id: 0,
+                oracle: &[],
             })?;
         }
     }

@@ -376,6 +376,7 @@ pub fn batch_to_wire(b: &TransitionBatch) -> pb::TransitionBatch {
         // One-step batches leave the field empty (what older learners and workers know).
         steps: if b.steps.iter().all(|&s| s == 1) { Vec::new() } else { b.steps.clone() },
         map_ids: b.map_ids.clone(),
+        oracle_actions: b.oracle_actions.clone(),
         episodes: b
             .episodes
             .iter()
@@ -451,6 +452,7 @@ pub fn batch_from_wire(m: pb::TransitionBatch) -> Result<TransitionBatch, WireEr
         terminals,
         steps,
         map_ids: m.map_ids,
+        oracle_actions: m.oracle_actions,
         episodes: m
             .episodes
             .iter()
@@ -512,6 +514,12 @@ mod tests {
         let mut m = batch_to_wire(&b);
         m.obs_f16[0..2].copy_from_slice(&f16::NAN.to_bits().to_le_bytes());
         assert!(batch_from_wire(m).expect_err("nan obs").reason.contains("obs_f16"));
+        // Oracle labels travel with their batch; a short column is named.
+        b.oracle_actions = vec![0.5, -0.25];
+        assert_eq!(batch_from_wire(batch_to_wire(&b)).expect("labelled round trip"), b);
+        let mut m = batch_to_wire(&b);
+        m.oracle_actions.pop();
+        assert!(batch_from_wire(m).expect_err("labels shape").reason.contains("oracle_actions"));
     }
 
     /// The wire's version 0 means warm-up data in a batch and "the latest" in a policy

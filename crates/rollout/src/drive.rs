@@ -168,6 +168,24 @@ fn gather(venvs: &[VecEnv], rows: &[Vec<usize>], n: usize) -> (Vec<f32>, Vec<u32
     (obs, ids)
 }
 
+/// The IDM driver's action in the current state of every listed row, expressed as `action`
+/// (`action.dim()` floats per row, per environment batch): the demonstrator's noise-free
+/// action, and the oracle labels of `sac.bc_target = "oracle"`. Residual kinds are IDM at
+/// zero: no IDM action to compute.
+pub fn oracle_labels(venvs: &[VecEnv], rows: &[Vec<usize>], action: DriveAction) -> Vec<Vec<f32>> {
+    venvs
+        .iter()
+        .zip(rows)
+        .map(|(v, rs)| {
+            if action == DriveAction::Direct {
+                rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r))).collect()
+            } else {
+                vec![0.0; rs.len() * action.dim()]
+            }
+        })
+        .collect()
+}
+
 /// `actor.dim()` actions per listed row of every batch, one inference for all of them.
 fn act(
     venvs: &[VecEnv],
@@ -180,18 +198,7 @@ fn act(
     let flat = match actor {
         Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
         Actor::Demo { noise, action } => {
-            // Residual kinds demonstrate with zeros: no IDM action to compute.
-            let mut a: Vec<f32> = if action == DriveAction::Direct {
-                venvs
-                    .iter()
-                    .zip(rows)
-                    .flat_map(|(v, rs)| {
-                        rs.iter().flat_map(|&r| action.demonstrator(v.demo_action(r)))
-                    })
-                    .collect()
-            } else {
-                vec![0.0; n * dim]
-            };
+            let mut a: Vec<f32> = oracle_labels(venvs, rows, action).concat();
             // Noise-free demonstrations draw nothing, so the stream other roles sample from (a
             // learned flow's) is the one an outside actor with the same actions would leave.
             if noise > 0.0 {

@@ -85,7 +85,7 @@ fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
 
 /// `drive` with IDM residuals: the role records its raw action (the residual, here zero) while
 /// the vehicles drive the IDM demonstrator's action, so a zero residual replays the
-/// demonstrator exactly.
+/// demonstrator exactly; the oracle labels are those actions.
 #[test]
 fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
     use sf_rollout::drive::{apply, decide, Actor, Drivers};
@@ -108,6 +108,12 @@ fn a_zero_idm_residual_drives_exactly_like_the_demonstrator() {
         for _ in 0..30 {
             let dec = decide(&mut v, &d, &mut rng);
             assert_eq!(dec.alive_action, action);
+            // The oracle labels (`sac.bc_target = "oracle"`) of the same rows in the same
+            // state are the noise-free demonstrator's actions, row for row.
+            assert_eq!(
+                sf_rollout::drive::oracle_labels(&v, &dec.alive_rows, action),
+                dec.alive_actions
+            );
             recorded.extend_from_slice(&dec.alive_actions[0]);
             apply(&mut v, &dec);
         }

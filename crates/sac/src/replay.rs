@@ -3,7 +3,9 @@
 //! Owns: [`Replay`] and [`Batch`]. Every agent's transitions go into the one buffer
 //! (parameter sharing). Observations are stored as f16 (positions are normalised to about
 //! [-1, 1], so the error is below 3 cm at 50 m; segment ids are exact below 2048), actions,
-//! rewards and flags as f32. Memory grows with use up to the capacity. Must not: do IO.
+//! rewards and flags as f32; the IDM driver's action in each state (`sac.bc_target =
+//! "oracle"`) as a column that exists once a labelled transition arrives, NaN for rows stored
+//! without one. Memory grows with use up to the capacity. Must not: do IO.
 
 use half::f16;
 use rand::Rng;
@@ -22,6 +24,9 @@ pub struct Batch {
     /// Decision steps each row spans (see [`Transition::steps`]).
     pub steps: Vec<u8>,
     pub map_ids: Vec<u32>,
+    /// Each row's oracle label (`act_dim` floats, NaN where the transition came without
+    /// one), or empty when the buffer holds no labels.
+    pub oracle: Vec<f32>,
 }
 
 impl Batch {
@@ -68,6 +73,10 @@ pub struct Replay {
     terminals: Vec<f32>,
     steps: Vec<u8>,
     map_ids: Vec<u32>,
+    /// Oracle labels, `act_dim` per slot (NaN: none), once `labelled`.
+    oracle: Vec<f32>,
+    /// A labelled transition was pushed: `oracle` keeps a label (or NaN) for every slot.
+    labelled: bool,
     len: usize,
     head: usize,
     inserted: u64,
@@ -86,6 +95,20 @@ pub struct Stored<'a> {
     pub terminal: bool,
     pub steps: u8,
     pub map_id: u32,
+    /// The oracle label ([`Transition::oracle`]): `act_dim` floats, or empty for none (a
+    /// stored row without one reads back empty).
+    pub oracle: &'a [f32],
+}
+
+/// An oracle label is `act_dim` finite floats, or absent.
+fn check_label(label: &[f32], act_dim: usize) -> Result<(), ReplayError> {
+    if !label.is_empty() && label.len() != act_dim {
+        return Err(ReplayError::Shape { field: "oracle", got: label.len(), want: act_dim });
+    }
+    if !label.iter().all(|x| x.is_finite()) {
+        return Err(ReplayError::NotFinite("oracle"));
+    }
+    Ok(())
 }
 
 fn check_steps(steps: u8) -> Result<(), ReplayError> {
@@ -116,6 +139,8 @@ impl Replay {
             terminals: Vec::new(),
             steps: Vec::new(),
             map_ids: Vec::new(),
+            oracle: Vec::new(),
+            labelled: false,
             len: 0,
             head: 0,
             inserted: first,
@@ -151,6 +176,7 @@ impl Replay {
         }
         let i = ((k - self.offset) % self.capacity as u64) as usize;
         let o = i * self.obs_len;
+        let label = self.oracle.get(i * self.act_dim..(i + 1) * self.act_dim).unwrap_or(&[]);
         Some(Stored {
             obs: &self.obs[o..o + self.obs_len],
             next_obs: &self.next_obs[o..o + self.obs_len],
@@ -159,12 +185,19 @@ impl Replay {
             terminal: self.terminals[i] != 0.0,
             steps: self.steps[i],
             map_id: self.map_ids[i],
+            oracle: if label.iter().any(|x| x.is_nan()) { &[] } else { label },
         })
     }
 
     /// Bytes one stored transition takes.
     pub fn bytes_per_transition(&self) -> usize {
-        2 * self.obs_len * std::mem::size_of::<f16>() + self.act_dim * 4 + 4 + 4 + 1 + 4
+        let labels = if self.labelled { self.act_dim * 4 } else { 0 };
+        2 * self.obs_len * std::mem::size_of::<f16>() + self.act_dim * 4 + 4 + 4 + 1 + 4 + labels
+    }
+
+    /// The buffer holds oracle labels (some pushed transition carried one).
+    pub fn is_labelled(&self) -> bool {
+        self.labelled
     }
 
     /// Bytes the buffer takes when full.
@@ -202,6 +235,7 @@ impl Replay {
         check("obs", t.obs.len(), self.obs_len)?;
         check("next_obs", t.next_obs.len(), self.obs_len)?;
         check("action", t.action.len(), self.act_dim)?;
+        check_label(t.oracle, self.act_dim)?;
         for (field, v) in [
             ("obs", t.obs),
             ("next_obs", t.next_obs),
@@ -223,6 +257,7 @@ impl Replay {
             terminal: t.terminal,
             steps: t.steps,
             map_id: t.map_id,
+            oracle: t.oracle,
         });
         Ok(())
     }
@@ -249,6 +284,7 @@ impl Replay {
         if !(t.action.iter().all(|x| x.is_finite()) && t.reward.is_finite()) {
             return Err(ReplayError::NotFinite("action or reward"));
         }
+        check_label(t.oracle, self.act_dim)?;
         check_steps(t.steps)?;
         self.store(t);
         Ok(())
@@ -257,6 +293,21 @@ impl Replay {
     /// Writes a checked transition at the head, evicting the oldest when full.
     fn store(&mut self, t: Stored<'_>) {
         let i = self.head;
+        // The label column starts with the first labelled row, NaN for the rows before it.
+        if !self.labelled && !t.oracle.is_empty() {
+            self.oracle = vec![f32::NAN; self.actions.len()];
+            self.labelled = true;
+        }
+        if self.labelled {
+            let label = |k: usize| if t.oracle.is_empty() { f32::NAN } else { t.oracle[k] };
+            if self.len < self.capacity && i == self.len {
+                self.oracle.extend((0..self.act_dim).map(label));
+            } else {
+                for k in 0..self.act_dim {
+                    self.oracle[i * self.act_dim + k] = label(k);
+                }
+            }
+        }
         if self.len < self.capacity && i == self.len {
             self.obs.extend_from_slice(t.obs);
             self.next_obs.extend_from_slice(t.next_obs);
@@ -311,6 +362,7 @@ impl Replay {
         out.terminals.clear();
         out.steps.clear();
         out.map_ids.clear();
+        out.oracle.clear();
         let all = end - first == self.len as u64;
         for _ in 0..n {
             // The whole buffer draws a position directly (as it always has, so seeded runs keep
@@ -328,6 +380,10 @@ impl Replay {
             out.terminals.push(self.terminals[i]);
             out.steps.push(self.steps[i]);
             out.map_ids.push(self.map_ids[i]);
+            if self.labelled {
+                out.oracle
+                    .extend_from_slice(&self.oracle[i * self.act_dim..(i + 1) * self.act_dim]);
+            }
         }
         Ok(())
     }
@@ -355,6 +411,7 @@ mod tests {
             terminal: v > 2.0,
             steps: 1,
             map_id: 1,
+            oracle: &[],
         }
     }
 
@@ -430,6 +487,7 @@ mod tests {
                 terminal: k as f32 > 2.0,
                 steps: 1,
                 map_id: 1,
+                oracle: &[],
             })
             .expect("push_f16");
         }
@@ -444,7 +502,8 @@ mod tests {
                 reward: 0.0,
                 terminal: false,
                 steps: 1,
-                map_id: 0
+                map_id: 0,
+                oracle: &[],
             }),
             Err(ReplayError::NotFinite("obs"))
         );
@@ -481,6 +540,50 @@ mod tests {
         assert_eq!(r.push(Transition { steps: 0, ..t(0.0, &o) }), Err(ReplayError::ZeroSteps));
         assert_eq!(r.len(), 0);
         assert_eq!(r.sample(&mut ChaCha8Rng::seed_from_u64(0), 1), Err(ReplayError::Empty));
+    }
+
+    /// Oracle labels: the column starts with the first labelled row (NaN before it), rows
+    /// keep their labels through sampling and eviction, bad labels are refused.
+    #[test]
+    fn oracle_labels_stay_with_their_rows() {
+        let mut r = Replay::new(3, 3, 2);
+        let o = [0.0; 3];
+        r.push(t(0.0, &o)).expect("unlabelled");
+        assert!(!r.is_labelled());
+        let before = r.bytes_per_transition();
+        assert!(r.sample(&mut ChaCha8Rng::seed_from_u64(0), 4).expect("sample").oracle.is_empty());
+        for k in 1..5 {
+            let label = [0.1 * k as f32, -0.1 * k as f32];
+            r.push(Transition { oracle: &label, ..t(k as f32, &o) }).expect("labelled");
+        }
+        assert!(r.is_labelled());
+        assert_eq!(r.bytes_per_transition(), before + 8);
+        // Rows 2, 3, 4 are held; each row's label is 0.1 x its reward.
+        let b = r.sample(&mut ChaCha8Rng::seed_from_u64(1), 30).expect("sample");
+        assert_eq!(b.oracle.len(), 60);
+        for (i, &reward) in b.rewards.iter().enumerate() {
+            assert!((b.oracle[2 * i] - 0.1 * reward).abs() < 1e-6, "row {i}");
+            assert!((b.oracle[2 * i + 1] + 0.1 * reward).abs() < 1e-6, "row {i}");
+        }
+        assert_eq!(r.get(4).expect("held").oracle, &[0.4f32, -0.4][..]);
+        // A row pushed without a label reads back without one, and samples as NaN.
+        r.push(t(9.0, &o)).expect("unlabelled again");
+        assert!(r.get(5).expect("held").oracle.is_empty());
+        let b = r.sample(&mut ChaCha8Rng::seed_from_u64(2), 30).expect("sample");
+        let nan_rows = (0..b.len()).filter(|&i| b.oracle[2 * i].is_nan()).count();
+        assert_eq!(nan_rows, b.rewards.iter().filter(|&&x| x == 9.0).count());
+        assert_eq!(
+            r.push(Transition { oracle: &[0.0], ..t(0.0, &o) }),
+            Err(ReplayError::Shape { field: "oracle", got: 1, want: 2 })
+        );
+        assert_eq!(
+            r.push(Transition { oracle: &[0.0, f32::NAN], ..t(0.0, &o) }),
+            Err(ReplayError::NotFinite("oracle"))
+        );
+        // A labelled buffer of one-row capacity: the first push creates the column.
+        let mut one = Replay::new(1, 3, 2);
+        one.push(Transition { oracle: &[0.5, 0.5], ..t(1.0, &o) }).expect("first");
+        assert_eq!(one.get(0).expect("held").oracle, &[0.5f32, 0.5][..]);
     }
 
     /// n-step targets: a row bootstraps with gamma^steps unless it ends its episode.

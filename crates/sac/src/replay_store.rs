@@ -5,8 +5,10 @@
 //! writes only what is new; segments whose transitions have all left the FIFO are deleted. A
 //! segment stores every distinct observation row once (an agent's next observation is usually
 //! the observation of its following transition) as f16, then per transition two row indices,
-//! the action, reward, terminal flag, map id and (format 2) the steps it spans; format 1
-//! segments (one-step transitions) are still read. A CRC-32 closes the file, which is written to
+//! the action, reward, terminal flag, map id, (format 2) the steps it spans and (format 3, only
+//! for a replay holding oracle labels) the IDM label, NaN where a row has none; format 1
+//! segments (one-step transitions) and 2 are still read, and a replay without labels still
+//! writes format 2. A CRC-32 closes the file, which is written to
 //! a temporary name and renamed, so a crash leaves whole segments only. What a crash loses:
 //! the transitions since the last checkpoint, which the job's counters (written after the
 //! segment) do not count either, so workers collect them again. Must not: know about jobs,
@@ -22,6 +24,8 @@ use crate::replay::{Replay, ReplayError, Stored};
 
 const MAGIC: &[u8; 8] = b"SFREPLAY";
 const VERSION: u32 = 2;
+/// Format 2 plus each transition's oracle label (`act_dim` f32, NaN for none).
+const VERSION_LABELLED: u32 = 3;
 /// The first format: one-step transitions, no per-transition step counts.
 const VERSION_ONE_STEP: u32 = 1;
 
@@ -71,6 +75,8 @@ pub struct Segment {
     pub map_ids: Vec<u32>,
     /// Decision steps each transition spans.
     pub steps: Vec<u8>,
+    /// `len x act_dim` oracle labels (NaN: none), or empty when the replay holds none.
+    pub oracle: Vec<f32>,
 }
 
 impl Segment {
@@ -102,8 +108,15 @@ impl Segment {
             bucket.push(k);
             k
         };
+        let labelled = r.is_labelled();
         for k in first..r.inserted() {
             let Some(t) = r.get(k) else { continue };
+            if labelled {
+                match t.oracle.len() {
+                    0 => s.oracle.extend(std::iter::repeat_n(f32::NAN, ad)),
+                    _ => s.oracle.extend_from_slice(t.oracle),
+                }
+            }
             let o = row_of(&mut s.rows, t.obs);
             let n = row_of(&mut s.rows, t.next_obs);
             s.obs_row.push(o);
@@ -123,7 +136,8 @@ impl Segment {
         let mut b =
             Vec::with_capacity(48 + self.rows.len() * 2 + self.len() * (17 + 4 * self.act_dim));
         b.extend_from_slice(MAGIC);
-        for v in [VERSION, self.obs_len as u32, self.act_dim as u32] {
+        let version = if self.oracle.is_empty() { VERSION } else { VERSION_LABELLED };
+        for v in [version, self.obs_len as u32, self.act_dim as u32] {
             b.extend_from_slice(&v.to_le_bytes());
         }
         b.extend_from_slice(&self.first.to_le_bytes());
@@ -141,6 +155,7 @@ impl Segment {
         b.extend(self.terminals.iter().map(|&t| t as u8));
         self.map_ids.iter().for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
         b.extend_from_slice(&self.steps);
+        self.oracle.iter().for_each(|v| b.extend_from_slice(&v.to_le_bytes()));
         let crc = crc32fast::hash(&b);
         b.extend_from_slice(&crc.to_le_bytes());
         b
@@ -171,9 +186,9 @@ impl Segment {
         let u64_of =
             |s: &[u8]| u64::from_le_bytes([s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]]);
         let version = u32_at(take(4)?);
-        if version != VERSION && version != VERSION_ONE_STEP {
+        if !(VERSION_ONE_STEP..=VERSION_LABELLED).contains(&version) {
             return Err(bad(&format!(
-                "format version {version}; this build reads {VERSION_ONE_STEP} and {VERSION}"
+                "format version {version}; this build reads {VERSION_ONE_STEP} to {VERSION_LABELLED}"
             )));
         }
         let obs_len = u32_at(take(4)?) as usize;
@@ -207,6 +222,11 @@ impl Segment {
         if steps.contains(&0) {
             return Err(bad("a transition spanning 0 steps"));
         }
+        let oracle = if version == VERSION_LABELLED {
+            f32s(take(n4.checked_mul(act_dim).ok_or_else(|| bad("count overflows"))?)?)
+        } else {
+            Vec::new()
+        };
         if at != body.len() {
             return Err(bad("trailing bytes"));
         }
@@ -225,6 +245,7 @@ impl Segment {
             terminals,
             map_ids,
             steps,
+            oracle,
         })
     }
 
@@ -250,6 +271,12 @@ impl Segment {
                 terminal: self.terminals[i],
                 steps: self.steps[i],
                 map_id: self.map_ids[i],
+                // NaN: the row was stored without a label.
+                oracle: self
+                    .oracle
+                    .get(i * ad..(i + 1) * ad)
+                    .filter(|l| !l.iter().any(|x| x.is_nan()))
+                    .unwrap_or(&[]),
             })?;
             n += 1;
         }
@@ -417,6 +444,7 @@ mod tests {
                 terminal: k % 5 == 4,
                 steps: 1 + (k % 3) as u8,
                 map_id: (k % 3) as u32,
+                oracle: &[],
             })
             .expect("push");
         }
@@ -434,6 +462,43 @@ mod tests {
         let d = std::env::temp_dir().join(format!("sf-replay-store-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         d
+    }
+
+    /// A replay with oracle labels on some rows writes format 3 and reads back with every
+    /// row's label, or its lack of one; a replay without labels still writes format 2.
+    #[test]
+    fn oracle_labels_round_trip_through_segments() {
+        let plain = filled(50, 20);
+        let seg = Segment::snapshot(&plain, 0);
+        assert_eq!(u32::from_le_bytes(seg.encode()[8..12].try_into().expect("4 bytes")), VERSION);
+        let mut r = Replay::new(50, 4, 2);
+        for k in 0..20u64 {
+            let o = [k as f32, 0.0, 0.0, 0.0];
+            let label = [0.01 * k as f32, -0.5];
+            r.push(Transition {
+                obs: &o,
+                action: &[0.0, 0.0],
+                reward: k as f32,
+                next_obs: &o,
+                terminal: false,
+                steps: 1,
+                map_id: 0,
+                // Rows 0-4 come before the first label; every third row after has none.
+                oracle: if k < 5 || k % 3 == 0 { &[] } else { &label },
+            })
+            .expect("push");
+        }
+        let bytes = Segment::snapshot(&r, 0).encode();
+        assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes")), VERSION_LABELLED);
+        let seg = Segment::decode(&bytes, Path::new("labelled.bin")).expect("decode");
+        let mut back = Replay::new(50, 4, 2);
+        assert_eq!(seg.push_into(&mut back, u64::MAX).expect("push_into"), 20);
+        same(&r, &back);
+        assert_eq!(back.get(7).expect("held").oracle, &[0.07f32, -0.5][..]);
+        assert!(
+            back.get(6).expect("held").oracle.is_empty()
+                && back.get(2).expect("held").oracle.is_empty()
+        );
     }
 
     #[test]
@@ -490,6 +555,7 @@ mod tests {
                     terminal: false,
                     steps: 1,
                     map_id: 0,
+                    oracle: &[],
                 })
                 .expect("push");
                 k += 1;
@@ -549,6 +615,7 @@ mod tests {
                 terminal: false,
                 steps: 1,
                 map_id: 0,
+                oracle: &[],
             })
             .expect("own");
         }

@@ -320,13 +320,20 @@ impl Sac {
         };
         let (a_new, logp) = sf_nn::policy::tanh_gaussian_sample(mean_s, log_std_s, eps);
         let loss_a = if cloning {
-            // 3'. Cloning updates (the first `bc_updates`): the replayed actions.
-            self.cloning_loss(mean, log_std, c.act, None)
+            // 3'. Cloning updates (the first `bc_updates`): the replayed actions, or IDM's
+            // recorded labels where the rows have them.
+            if self.cfg.bc_target == BcTarget::Oracle {
+                let (target, labelled) = self.oracle_target(batch);
+                self.cloning_loss(mean, log_std, target, Some(labelled))
+            } else {
+                self.cloning_loss(mean, log_std, c.act, None)
+            }
         } else {
             self.actor_objective(
                 Sampled { mean, log_std, a_new, logp: logp.clone() },
                 fc,
                 c.act,
+                batch,
                 alpha,
             )
         };
@@ -369,11 +376,40 @@ impl Sac {
         err + log_std.sub_scalar(self.cfg.bc_log_std(self.actor.log_std_min)).square().mean()
     }
 
+    /// The batch's oracle labels as a cloning target (`[b, act_dim]`, rows without a label at
+    /// 0) and a `[b, 1]` column of 1 for the rows that have one (all 0 for a batch without
+    /// labels).
+    fn oracle_target(&self, batch: &Batch) -> (Tensor<2>, Tensor<2>) {
+        let (b, a_dim) = (batch.len(), self.net.action_dim);
+        let mut labels = vec![0.0; b * a_dim];
+        let mut labelled = vec![0.0; b];
+        if batch.oracle.len() == b * a_dim {
+            for (i, row) in batch.oracle.chunks_exact(a_dim).enumerate() {
+                if row.iter().all(|x| x.is_finite()) {
+                    labels[i * a_dim..(i + 1) * a_dim].copy_from_slice(row);
+                    labelled[i] = 1.0;
+                }
+            }
+        }
+        (
+            Tensor::<2>::from_data(TensorData::new(labels, [b, a_dim]), &self.ad),
+            column(&labelled, &self.ad),
+        )
+    }
+
     /// 3. SAC's actor loss `alpha log pi - min Q`, plus the behaviour-cloning term while
     ///    `bc_weight` (constant, or fading over `bc_decay_updates`) is positive: towards the
-    ///    replayed actions, or towards the zero residual on the rows where the critic does not
-    ///    prefer the policy's action (`bc_q_filter`), scaled by the batch's mean |Q|.
-    fn actor_objective(&self, pi: Sampled, fc: Tensor<2>, act: Tensor<2>, alpha: f32) -> Tensor<1> {
+    ///    replayed actions, the zero residual or IDM's recorded labels (`bc_target`), with
+    ///    `bc_q_filter` only on the rows where the critic rates IDM's action at least as high
+    ///    as the policy's, scaled by the batch's mean |Q|.
+    fn actor_objective(
+        &self,
+        pi: Sampled,
+        fc: Tensor<2>,
+        act: Tensor<2>,
+        batch: &Batch,
+        alpha: f32,
+    ) -> Tensor<1> {
         let critic_ng = self.critic.clone().no_grad();
         let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), pi.a_new);
         let q_pi = q1_pi.min_pair(q2_pi);
@@ -399,16 +435,28 @@ impl Sac {
                 });
                 self.cloning_loss(pi.mean, pi.log_std, act, rows)
             }
-            BcTarget::Zero => {
-                let [b, a_dim] = act.dims();
-                let zeros = Tensor::<2>::zeros([b, a_dim], &self.ad);
-                let rows = self.cfg.bc_q_filter.then(|| {
-                    let (q1_0, q2_0) = critic_ng.heads(fc, zeros.clone());
-                    let q_zero = q1_0.min_pair(q2_0);
-                    let keep = q_zero.greater_equal(q_pi.detach()).float();
-                    Tensor::<2>::from_data(keep.into_data(), &self.ad)
-                });
-                self.cloning_loss(pi.mean, pi.log_std, zeros, rows)
+            BcTarget::Zero | BcTarget::Oracle => {
+                // IDM's action: zero for residual kinds, else the worker's recorded label
+                // (rows without one left out).
+                let (target, labelled) = if self.cfg.bc_target == BcTarget::Oracle {
+                    let (t, l) = self.oracle_target(batch);
+                    (t, Some(l))
+                } else {
+                    (Tensor::<2>::zeros(act.dims(), &self.ad), None)
+                };
+                let rows = if self.cfg.bc_q_filter {
+                    let (q1_0, q2_0) = critic_ng.heads(fc, target.clone());
+                    let q_idm = q1_0.min_pair(q2_0);
+                    let keep = q_idm.greater_equal(q_pi.detach()).float();
+                    let keep = match labelled {
+                        Some(l) => keep * l,
+                        None => keep,
+                    };
+                    Some(Tensor::<2>::from_data(keep.into_data(), &self.ad))
+                } else {
+                    labelled
+                };
+                self.cloning_loss(pi.mean, pi.log_std, target, rows)
             }
         };
         sac + term.mul_scalar(w * q_scale)

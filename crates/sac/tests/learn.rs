@@ -85,6 +85,7 @@ fn learns_a_contextual_bandit_with_a_known_optimum() {
                     terminal: true,
                     steps: 1,
                     map_id: 0,
+                    oracle: &[],
                 })
                 .expect("push");
         }

@@ -60,6 +60,7 @@ fn replay_from_sim(sim: &Arc<SimConfig>, n: usize) -> (Replay, Arc<Map>) {
                     terminal: false,
                     steps: 1,
                     map_id: 0,
+                    oracle: &[],
                 })
                 .expect("valid transition");
             }
@@ -632,19 +633,27 @@ fn awac_weighted_cloning_updates_run_and_stay_finite() {
     }
 }
 
-/// The cloning term towards the zero action with the Q filter: where the critic rates zero at
-/// least as high as the policy's action (here a critic flat in the action), the term pulls the
-/// mean action to zero; where it rates the policy's action higher (a critic rewarding positive
-/// actions) the rows are filtered out and the mean action is left to the critic.
+/// The cloning term towards IDM's action with the Q filter, for the zero residual and for the
+/// worker's recorded oracle labels: where the critic rates IDM's action at least as high as the
+/// policy's (here a critic flat in the action), the term pulls the mean action to it; where it
+/// rates the policy's action higher (a critic rewarding positive actions) the rows are filtered
+/// out and the mean action is left to the critic. Rows without a label are left out.
 #[test]
-fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it() {
+fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
+    use sf_sac::replay::Stored;
     use sf_sac::sac::BcTarget;
     let sim = Arc::new(SimConfig::default());
     let (r, m) = replay_from_sim(&sim, 256);
+    // The same transitions, each labelled with IDM's action (-0.4, -0.4).
+    let mut labelled = Replay::new(10_000, r.obs_len(), 2);
+    for k in r.oldest()..r.inserted() {
+        let t = r.get(k).expect("held");
+        labelled.push_f16(Stored { oracle: &[-0.4, -0.4], ..t }).expect("labelled");
+    }
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(2), 64).expect("probe");
-    let run = |slope: f32| -> (f32, f32) {
+    let run = |slope: f32, bc_target: BcTarget, r: &Replay| -> (f32, f32) {
         let cfg = SacConfig {
             seed: 5,
             batch_size: 32,
@@ -652,7 +661,7 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
             lr_critic: 1e-12,
             initial_alpha: 1e-4,
             bc_weight: 5.0,
-            bc_target: BcTarget::Zero,
+            bc_target,
             bc_q_filter: true,
             reward_scale: 1.0,
             ..SacConfig::default()
@@ -710,14 +719,31 @@ fn the_q_filtered_zero_cloning_term_clones_zero_only_where_the_critic_prefers_it
         }
         (before, mean(&sac))
     };
-    let (before, flat) = run(0.0);
+    let (before, flat) = run(0.0, BcTarget::Zero, &r);
     assert!(
         flat.abs() < 0.5 * before.abs(),
         "flat critic: the term pulls to zero ({before} -> {flat})"
     );
-    let (before, rising) = run(1.0);
+    let (before, rising) = run(1.0, BcTarget::Zero, &r);
     assert!(
         rising > before,
         "a critic preferring larger actions filters the term out ({before} -> {rising})"
+    );
+    let (before, flat) = run(0.0, BcTarget::Oracle, &labelled);
+    assert!(
+        (flat + 0.4).abs() < 0.5 * (before + 0.4).abs() && flat < 0.0,
+        "flat critic: the term pulls to the oracle's -0.4 ({before} -> {flat})"
+    );
+    let (before, rising) = run(1.0, BcTarget::Oracle, &labelled);
+    assert!(
+        rising > before,
+        "a critic preferring larger actions filters the oracle term out ({before} -> {rising})"
+    );
+    // A row without a label weighs what a filtered-out row weighs: nothing. The same batches
+    // without labels train exactly as the labelled ones whose every row the filter removed.
+    let (_, unlabelled) = run(1.0, BcTarget::Oracle, &r);
+    assert!(
+        (unlabelled - rising).abs() < 1e-6,
+        "rows without a label are not cloned ({unlabelled} against {rising} with every row filtered)"
     );
 }

@@ -338,6 +338,7 @@ impl ActiveJob {
                 terminal: b.terminals[i],
                 steps: b.steps[i],
                 map_id: b.map_ids[i],
+                oracle: b.oracle_actions.get(i * ad..(i + 1) * ad).unwrap_or(&[]),
             };
             if let Err(e) = r.push_f16(row) {
                 drop(r);

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_job::config::{JobKind, WarmupPolicy};
+use sf_job::config::{BcTarget, JobKind, WarmupPolicy};
 use sf_job::{
     ActedBy, Assignment, FrozenRole, JobConfig, JobId, PolicyVersion, TransitionBatch, WorkerId,
 };
@@ -310,12 +310,16 @@ fn rollout(
         if let Some(b) = brakes.as_mut() {
             b.overlay(&mut d, &mut rng);
         }
+        let (trained_rows, trained_actions) = seat.trained(&d);
+        // IDM's action in each trained row's state, before the step moves it
+        // (`sac.bc_target = "oracle"`).
+        let oracle = (job.sac.bc_target == BcTarget::Oracle)
+            .then(|| drive::oracle_labels(&venvs, trained_rows, net.action));
         drive::apply(&mut venvs, &d);
         if let Some(b) = brakes.as_mut() {
             b.after_step(&venvs);
         }
-        let (trained_rows, trained_actions) = seat.trained(&d);
-        writer.add(&mut venvs, &before, trained_rows, trained_actions, job);
+        writer.add(&mut venvs, &before, trained_rows, trained_actions, oracle.as_deref(), job);
         if writer.send_if_full()?.is_break() {
             return Ok(());
         }

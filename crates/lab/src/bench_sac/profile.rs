@@ -100,7 +100,7 @@ fn update_rows(sac: &Sac, segs: &MapSegments, phase: Phase) -> Vec<Row> {
         add("actor", Pass::InputGrad, vec![cost::critic_heads(net, b)]);
         let bc_extra = match cfg.bc_target {
             BcTarget::Replay => cfg.bc_awac_lambda.is_some(),
-            BcTarget::Zero => cfg.bc_q_filter,
+            BcTarget::Zero | BcTarget::Oracle => cfg.bc_q_filter,
         };
         if bc_weight_now(sac) > 0.0 && bc_extra {
             add("actor", Pass::Forward, vec![cost::critic_heads(net, b)]);

@@ -154,6 +154,7 @@ pub fn collect(
                     terminal: p.terminal,
                     steps: 1,
                     map_id: p.map_id,
+                    oracle: &[],
                 })?;
             } else {
                 test.obs.extend_from_slice(&p.obs);

@@ -17,6 +17,8 @@ use sf_job::Transition;
 struct Pending {
     obs: Vec<f32>,
     action: Vec<f32>,
+    /// IDM's action in `obs`'s state, if the job records it (empty otherwise).
+    oracle: Vec<f32>,
     /// Discounted reward summed so far.
     reward: f32,
     steps: u8,
@@ -69,6 +71,7 @@ impl NStep {
         w.pending.push_back(Pending {
             obs: s.obs.to_vec(),
             action: s.action.to_vec(),
+            oracle: s.oracle.to_vec(),
             reward: 0.0,
             steps: 0,
         });
@@ -82,6 +85,7 @@ impl NStep {
                 out(Transition {
                     obs: &p.obs,
                     action: &p.action,
+                    oracle: &p.oracle,
                     reward: p.reward,
                     next_obs: s.next_obs,
                     terminal: s.terminal,
@@ -96,6 +100,7 @@ impl NStep {
                 out(Transition {
                     obs: &p.obs,
                     action: &p.action,
+                    oracle: &p.oracle,
                     reward: p.reward,
                     next_obs: s.next_obs,
                     terminal: false,
@@ -118,6 +123,7 @@ impl NStep {
                 out(Transition {
                     obs: &p.obs,
                     action: &p.action,
+                    oracle: &p.oracle,
                     reward: p.reward,
                     next_obs: &w.next_obs,
                     terminal: false,
@@ -152,6 +158,8 @@ mod tests {
         let mut ns = NStep::new(n, 0.5);
         let mut got = Vec::new();
         let mut out = |s: Transition<'_>| {
+            // A step's oracle label leaves with the transition that starts at it.
+            assert_eq!(s.oracle, &[10.0 * s.obs[0]]);
             got.push(Out {
                 obs: s.obs[0],
                 reward: s.reward,
@@ -161,7 +169,7 @@ mod tests {
             })
         };
         for (t, &(reward, next, ended, terminal)) in steps.iter().enumerate() {
-            let obs = [t as f32];
+            let (obs, oracle) = ([t as f32], [10.0 * t as f32]);
             ns.step(
                 1,
                 2,
@@ -173,6 +181,7 @@ mod tests {
                     terminal,
                     steps: 1,
                     map_id: 0,
+                    oracle: &oracle,
                 },
                 ended,
                 &mut out,

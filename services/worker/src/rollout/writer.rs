@@ -110,14 +110,15 @@ impl TransitionWriter {
     }
 
     /// One step of every simulator: its simulated steps, the `rows`' transitions (`before`: each
-    /// simulator's observations before the step; `actions`: `act_dim` floats per row) and the
-    /// episodes that finished.
+    /// simulator's observations before the step; `actions`, and `oracle` when the job records
+    /// IDM's labels: `act_dim` floats per row) and the episodes that finished.
     pub(super) fn add(
         &mut self,
         venvs: &mut [VecEnv],
         before: &[Vec<f32>],
         rows: &[Vec<usize>],
         actions: &[Vec<f32>],
+        oracle: Option<&[Vec<f32>]>,
         job: &JobConfig,
     ) {
         let (len, act_dim) = (self.batch.obs_len, self.batch.action_dim);
@@ -137,6 +138,7 @@ impl TransitionWriter {
                     terminal: st.terminal(),
                     steps: 1,
                     map_id: k as u32,
+                    oracle: oracle.map_or(&[][..], |o| &o[k][j * act_dim..(j + 1) * act_dim]),
                 };
                 let batch = &mut self.batch;
                 self.nstep.step(k, r, step, st.ended.is_some() || st.truncated, &mut |t| {
@@ -254,6 +256,7 @@ mod tests {
                 terminal: false,
                 steps: 1,
                 map_id: 0,
+                oracle: &[],
             };
             w.nstep.step(0, 0, step, false, &mut |t| batch.push_transition(t));
         }
