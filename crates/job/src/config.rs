@@ -314,6 +314,13 @@ pub struct NetSection {
     pub log_std_min: Option<f32>,
 }
 
+/// `sac.cql_samples` when the config leaves it out.
+pub const DEFAULT_CQL_SAMPLES: usize = 10;
+
+fn is_default_cql_samples(n: &usize) -> bool {
+    *n == DEFAULT_CQL_SAMPLES
+}
+
 fn is_zero(v: &f32) -> bool {
     *v == 0.0
 }
@@ -411,6 +418,19 @@ pub struct SacConfig {
     /// (the term it weighs); the `bc_updates` cloning phase stays unweighted.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bc_awac_lambda: Option<f32>,
+    /// A conservative critic (CQL(H), Kumar et al. 2020): every critic update adds, per head,
+    /// `cql_weight * (logsumexp_a Q(s, a) - Q(s, a_replay))`, the log-sum-exp over
+    /// `cql_samples` uniform actions and `cql_samples` samples of the current policy in the
+    /// batch's states (each weighed by its density), so Q falls on the actions the replay has not
+    /// shown and rises on those it has: the actor is not led off the data by the critic's
+    /// extrapolation when it starts to move. On the scaled reward's units (`reward_scale`).
+    /// 0: none (the paper). Written only when set.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub cql_weight: f32,
+    /// Actions per state of each kind (uniform, policy) in `cql_weight`'s log-sum-exp. Written
+    /// only when not the default.
+    #[serde(skip_serializing_if = "is_default_cql_samples")]
+    pub cql_samples: usize,
     /// A Polyak average of the actor's weights (`avg <- (1 - t) avg + t actor` after every
     /// update; absent: none). With it, validation scores and the final policy is the average,
     /// while rollouts keep acting with the online actor. Smooths the policy's oscillation
@@ -544,6 +564,8 @@ impl Default for SacConfig {
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
             bc_awac_lambda: None,
+            cql_weight: 0.0,
+            cql_samples: DEFAULT_CQL_SAMPLES,
             actor_average_tau: None,
             act_with_average: false,
             shared_encoder: false,
@@ -1101,6 +1123,12 @@ impl JobConfig {
                 return bad("sac.bc_awac_lambda", "weights the cloning term that stays after the cloning updates: set sac.bc_weight > 0");
             }
         }
+        if !(s.cql_weight.is_finite() && s.cql_weight >= 0.0) {
+            return bad("sac.cql_weight", format!("{} must be finite and >= 0", s.cql_weight));
+        }
+        if !(1..=100).contains(&s.cql_samples) {
+            return bad("sac.cql_samples", format!("{} must be in 1..=100", s.cql_samples));
+        }
         if s.bc_q_filter && s.bc_target == BcTarget::Replay {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the IDM driver's action: set sac.bc_target = \"zero\" (residual actions) or \"oracle\"");
         }
@@ -1424,6 +1452,32 @@ mod tests {
         let e = JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm-mobil\""))
             .expect_err("idm-mobil");
         assert!(e.to_string().contains("`idm-mobil` is reserved"), "{e}");
+    }
+
+    #[test]
+    fn the_conservative_critic_validates_and_round_trips_only_when_set() {
+        let base = format!("{MIN}[sac]\n");
+        let plain = JobConfig::from_toml(&base).expect("none");
+        assert_eq!((plain.sac.cql_weight, plain.sac.cql_samples), (0.0, DEFAULT_CQL_SAMPLES));
+        let text = plain.to_toml();
+        assert!(!text.contains("cql_"), "absent stays absent: {text}");
+        let ok = JobConfig::from_toml(&format!("{base}cql_weight = 2.0\ncql_samples = 4\n"))
+            .expect("set");
+        let back = JobConfig::from_toml(&ok.to_toml()).expect("round trip");
+        assert_eq!((back.sac.cql_weight, back.sac.cql_samples), (2.0, 4));
+        for (extra, field, needle) in [
+            ("cql_weight = -1.0", "sac.cql_weight", "finite and >= 0"),
+            ("cql_weight = nan", "sac.cql_weight", "finite and >= 0"),
+            ("cql_weight = inf", "sac.cql_weight", "finite and >= 0"),
+            ("cql_samples = 0", "sac.cql_samples", "1..=100"),
+            ("cql_samples = 101", "sac.cql_samples", "1..=100"),
+        ] {
+            let e = JobConfig::from_toml(&format!("{base}{extra}\n")).expect_err(extra);
+            assert!(
+                e.to_string().contains(field) && e.to_string().contains(needle),
+                "{extra}: {e}"
+            );
+        }
     }
 
     #[test]

@@ -259,17 +259,27 @@ impl Sac {
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
         let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder)
             .then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
+        // The conservative term's heads read the same features (`cql_weight`).
+        let f_cql = (self.cfg.cql_weight > 0.0).then(|| f_critic.clone());
         let (q1, q2) = self.critic.heads(f_critic, act.clone());
         // Detached: a node on q1 that no backward consumes would stay in the autodiff graph and
         // slow every later critic-only update (`critic_pretrain_updates`), which has no actor
         // backward (`bench sac --phase critic`).
         let q_mean = q1.clone().detach().mean().into_scalar::<f32>();
+        let q1_data = (q1.clone(), q2.clone());
         let loss_c = match self.cfg.critic_loss {
             CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
             // 2 x Huber, so that it equals the squared error within delta of the target.
             CriticLoss::Huber => (huber(q1 - y.clone(), self.cfg.huber_delta)
                 + huber(q2 - y, self.cfg.huber_delta))
             .mul_scalar(2.0),
+        };
+        let loss_c = match f_cql {
+            Some(f) => {
+                let term = self.conservative_term(batch, f, q1_data.0, q1_data.1);
+                loss_c + term.mul_scalar(self.cfg.cql_weight)
+            }
+            None => loss_c,
         };
         let loss = loss_c.clone().into_scalar::<f32>();
         let grads = GradientsParams::from_grads(loss_c.backward(), &self.critic);
@@ -278,6 +288,58 @@ impl Sac {
             self.actor.enc = self.critic.enc.clone();
         }
         CriticStep { obs, act, features, q_mean, loss }
+    }
+
+    /// 2'. CQL(H)'s regulariser, summed over both heads: `logsumexp_a Q(s, a) - Q(s, a_replay)`
+    ///    averaged over the batch, the log-sum-exp over `cql_samples` uniform actions in
+    ///    `[-1, 1]^A` and as many samples of the current policy (off the graph) per state, each
+    ///    minus its log-density, so that it estimates `log` of the integral of `exp Q` over the
+    ///    action box. `f` are the critic's features of the batch (with gradients), `q1`, `q2`
+    ///    its heads on the replayed actions.
+    fn conservative_term(
+        &mut self,
+        batch: &Batch,
+        f: Tensor<2>,
+        q1: Tensor<2>,
+        q2: Tensor<2>,
+    ) -> Tensor<1> {
+        let (b, a_dim, n) = (batch.len(), self.net.action_dim, self.cfg.cql_samples);
+        let d = f.dims()[1];
+        // Row i * n + j: state i's j-th sample.
+        let rep =
+            |t: Tensor<2>, w: usize| t.unsqueeze_dim::<3>(1).repeat_dim(1, n).reshape([b * n, w]);
+        let actor_v = self.actor.valid();
+        let obs = self.batch_on(&batch.obs, &batch.map_ids, &self.plain);
+        let table = self.seg_plain.as_ref().map(|s| actor_v.enc.segment_table(s));
+        let (mean, log_std) = actor_v.dist(&obs, table.as_ref());
+        let plain = self.plain.clone();
+        let eps = self.noise(b * n, &plain);
+        let (a_pi, logp_pi) =
+            sf_nn::policy::tanh_gaussian_sample(rep(mean, a_dim), rep(log_std, a_dim), eps);
+        let a_pi = Tensor::<2>::from_data(a_pi.into_data(), &self.ad);
+        let logp_pi = Tensor::<2>::from_data(logp_pi.into_data(), &self.ad).reshape([b, n]);
+        let uniform: Vec<f32> =
+            (0..b * n * a_dim).map(|_| self.rng.random_range(-1.0f32..1.0)).collect();
+        let a_uni = Tensor::<2>::from_data(TensorData::new(uniform, [b * n, a_dim]), &self.ad);
+        // The uniform density on the box is 2^-A.
+        let log_uniform = -(a_dim as f32) * std::f32::consts::LN_2;
+        let f_rep = rep(f, d);
+        let (u1, u2) = self.critic.heads(f_rep.clone(), a_uni);
+        let (p1, p2) = self.critic.heads(f_rep, a_pi);
+        let head = |u: Tensor<2>, p: Tensor<2>, q_data: Tensor<2>| -> Tensor<1> {
+            let x = Tensor::cat(
+                vec![
+                    u.reshape([b, n]).sub_scalar(log_uniform),
+                    p.reshape([b, n]) - logp_pi.clone(),
+                ],
+                1,
+            );
+            let m = x.clone().detach().max_dim(1);
+            let lse = (x - m.clone().repeat_dim(1, 2 * n)).exp().sum_dim(1).log() + m;
+            // Minus log(2n): the log of the samples' mean, not their sum (a constant).
+            lse.mean().sub_scalar((2.0 * n as f32).ln()) - q_data.mean()
+        };
+        head(u1, p1, q1) + head(u2, p2, q2)
     }
 
     /// 3. Actor: maximise min(Q1, Q2)(s, a~pi) - alpha log pi, critic features taken without

@@ -6,8 +6,8 @@ Usage:
 Each argument names a pooled report (`socialflow report run-1/results run-2/results ...`'s
 findings.json, whose `across` holds every finding per run and the verdict over the runs), the
 seeds of its runs in order, and the file, e.g.
-  residual:5,6:docs/report/findings.json
-  lateral:9:docs/results/paper-graph-lateral/report/findings.json
+  residual:5,6:docs/archive/2026-11-27-report-residual-seeds-5-6/findings.json
+  lateral:9,10:docs/report/findings.json
 A report of one run (no `across`) is read from its `checks`. Prints one markdown table: each
 finding's effect in points with its Holm-adjusted p and verdict per run, and for a report of
 several runs their random-effects estimate +- its 95 % half-width (DerSimonian-Laird, the
@@ -34,7 +34,7 @@ def parse(arg):
         name, seeds, path = arg.split(":", 2)
         seeds = [s for s in seeds.split(",") if s]
     except ValueError:
-        sys.exit(f"argument {arg!r}: expected NAME:SEEDS:FINDINGS, e.g. residual:5,6:docs/report/findings.json")
+        sys.exit(f"argument {arg!r}: expected NAME:SEEDS:FINDINGS, e.g. residual:5,6:docs/archive/2026-11-27-report-residual-seeds-5-6/findings.json")
     try:
         with open(path) as f:
             data = json.load(f)

@@ -1,7 +1,7 @@
 """How often the lateral graph's egos leave their route's lane, from the grid's episodes.
 
 Usage: python lanes.py LABEL=<episodes.csv> [LABEL=<episodes.csv> ...] > lanes.md
-e.g.   python lanes.py "seed 9=docs/results/paper-graph-lateral/report/results/episodes.csv"
+e.g.   python lanes.py "seed 9=docs/report/run-1/results/episodes.csv" "seed 10=docs/report/run-2/results/episodes.csv"
 
 `lane_change` is the share of an episode's scored agents that left their route's lane at some
 point; in cross-validation that is the ego. Prints, per run, each ego's share per evaluation

@@ -80,6 +80,18 @@ fn update_rows(sac: &Sac, segs: &MapSegments, phase: Phase) -> Vec<Row> {
     let critic: Vec<Part> = encoder().into_iter().chain([cost::critic_heads(net, b)]).collect();
     add("critic", Pass::Forward, critic.clone());
     add("critic", Pass::Backward, critic);
+    if sac.cfg.cql_weight > 0.0 {
+        // The conservative term: the actor's samples in the batch's states, both heads on
+        // `cql_samples` uniform and as many policy actions per state.
+        let n = 2 * sac.cfg.cql_samples * b;
+        add(
+            "critic",
+            Pass::Forward,
+            encoder().into_iter().chain([cost::actor_heads(net, b)]).collect(),
+        );
+        add("critic", Pass::Forward, vec![cost::critic_heads(net, n)]);
+        add("critic", Pass::Backward, vec![cost::critic_heads(net, n)]);
+    }
     if phase == Phase::Critic {
         return rows;
     }
