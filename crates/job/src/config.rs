@@ -321,6 +321,10 @@ fn is_default_cql_samples(n: &usize) -> bool {
     *n == DEFAULT_CQL_SAMPLES
 }
 
+fn is_zero_u64(v: &u64) -> bool {
+    *v == 0
+}
+
 fn is_zero(v: &f32) -> bool {
     *v == 0.0
 }
@@ -352,6 +356,12 @@ pub struct SacConfig {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lr_actor_final: Option<f64>,
     pub lr_actor_decay_updates: u64,
+    /// The actor's SAC phase (after the cloning and critic pre-training updates) starts with
+    /// its learning rate ramped linearly from 0 over this many updates (0: none), so that
+    /// Adam's second moments, fitted to the cloning loss's small gradients, adapt to SAC's
+    /// larger ones before the steps grow. Written only when set.
+    #[serde(skip_serializing_if = "is_zero_u64")]
+    pub lr_actor_ramp_updates: u64,
     pub lr_critic: f64,
     pub lr_alpha: f64,
     pub batch_size: usize,
@@ -473,10 +483,20 @@ impl SacConfig {
     }
 
     pub fn actor_lr(&self, updates: u64) -> f64 {
-        let Some(last) = self.lr_actor_final else { return self.lr_actor };
-        let since = updates.saturating_sub(self.bc_updates + self.critic_pretrain_updates);
-        let frac = (since as f64 / self.lr_actor_decay_updates.max(1) as f64).min(1.0);
-        self.lr_actor + (last - self.lr_actor) * frac
+        let start = self.bc_updates + self.critic_pretrain_updates;
+        let since = updates.saturating_sub(start);
+        let lr = match self.lr_actor_final {
+            None => self.lr_actor,
+            Some(last) => {
+                let frac = (since as f64 / self.lr_actor_decay_updates.max(1) as f64).min(1.0);
+                self.lr_actor + (last - self.lr_actor) * frac
+            }
+        };
+        if self.lr_actor_ramp_updates > 0 && updates >= start {
+            lr * ((since + 1) as f64 / self.lr_actor_ramp_updates as f64).min(1.0)
+        } else {
+            lr
+        }
     }
 }
 
@@ -543,6 +563,7 @@ impl Default for SacConfig {
             lr_actor: 1e-4,
             lr_actor_final: None,
             lr_actor_decay_updates: 0,
+            lr_actor_ramp_updates: 0,
             lr_critic: 5e-4,
             lr_alpha: 1e-4,
             batch_size: 128,
@@ -1452,6 +1473,35 @@ mod tests {
         let e = JobConfig::from_toml(&MIN.replace("name = \"t\"", "name = \"idm-mobil\""))
             .expect_err("idm-mobil");
         assert!(e.to_string().contains("`idm-mobil` is reserved"), "{e}");
+    }
+
+    #[test]
+    fn the_actor_rate_ramps_up_from_zero_when_the_sac_phase_starts() {
+        let cfg = SacConfig {
+            lr_actor: 1e-4,
+            bc_updates: 100,
+            critic_pretrain_updates: 50,
+            lr_actor_ramp_updates: 10,
+            ..SacConfig::default()
+        };
+        // Cloning at the full rate; the actor's first SAC update at a tenth, then up to full.
+        assert_eq!(cfg.actor_lr(0), 1e-4);
+        assert!((cfg.actor_lr(150) - 1e-5).abs() < 1e-12, "{}", cfg.actor_lr(150));
+        assert!((cfg.actor_lr(154) - 5e-5).abs() < 1e-12, "{}", cfg.actor_lr(154));
+        assert_eq!(cfg.actor_lr(159), 1e-4);
+        assert_eq!(cfg.actor_lr(10_000), 1e-4);
+        // With the decay the ramp multiplies the decayed rate.
+        let decay =
+            SacConfig { lr_actor_final: Some(0.0), lr_actor_decay_updates: 20, ..cfg.clone() };
+        assert!((decay.actor_lr(159) - 1e-4 * 11.0 / 20.0).abs() < 1e-12);
+        assert_eq!(decay.actor_lr(170), 0.0);
+        let plain = SacConfig { lr_actor_ramp_updates: 0, ..cfg };
+        assert_eq!(plain.actor_lr(150), 1e-4);
+        let text = JobConfig::from_toml(&format!("{MIN}[sac]\nlr_actor_ramp_updates = 10\n"))
+            .expect("set")
+            .to_toml();
+        assert!(text.contains("lr_actor_ramp_updates = 10"), "{text}");
+        assert!(!JobConfig::from_toml(MIN).expect("none").to_toml().contains("lr_actor_ramp"));
     }
 
     #[test]
