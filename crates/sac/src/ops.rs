@@ -2,7 +2,7 @@
 //! of the cloning term and columns built from host values.
 //!
 //! Owns: pure functions of tensors (and modules, for Polyak). Must not: hold training state,
-//! draw random numbers or know the SAC config (its callers in [`crate::sac`] pass what they use).
+//! draw random numbers or read the SAC config (their callers in [`crate::sac`] pass what they use).
 
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Device, Tensor, TensorData};

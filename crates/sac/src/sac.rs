@@ -248,14 +248,14 @@ impl Sac {
         let f_critic = self.critic.enc.forward(&obs, table.as_ref());
         let features = (self.cfg.reuse_critic_features || self.cfg.shared_encoder)
             .then(|| Tensor::<2>::from_data(f_critic.clone().into_data(), &self.ad));
-        // The conservative term's heads read the same features (`cql_weight`).
-        let f_cql = (self.cfg.cql_weight > 0.0).then(|| f_critic.clone());
-        let (q1, q2) = self.critic.heads(f_critic, act.clone());
+        let (q1, q2) = self.critic.heads(f_critic.clone(), act.clone());
+        // The conservative term (`cql_weight`) on the same features and replayed-action heads.
+        let cql = (self.cfg.cql_weight > 0.0)
+            .then(|| self.conservative_term(batch, f_critic, q1.clone(), q2.clone()));
         // Detached: a node on q1 that no backward consumes would stay in the autodiff graph and
         // slow every later critic-only update (`critic_pretrain_updates`), which has no actor
         // backward (`bench sac --phase critic`).
         let q_mean = q1.clone().detach().mean().into_scalar::<f32>();
-        let q1_data = (q1.clone(), q2.clone());
         let loss_c = match self.cfg.critic_loss {
             CriticLoss::Mse => (q1 - y.clone()).square().mean() + (q2 - y).square().mean(),
             // 2 x Huber, so that it equals the squared error within delta of the target.
@@ -263,11 +263,8 @@ impl Sac {
                 + huber(q2 - y, self.cfg.huber_delta))
             .mul_scalar(2.0),
         };
-        let loss_c = match f_cql {
-            Some(f) => {
-                let term = self.conservative_term(batch, f, q1_data.0, q1_data.1);
-                loss_c + term.mul_scalar(self.cfg.cql_weight)
-            }
+        let loss_c = match cql {
+            Some(term) => loss_c + term.mul_scalar(self.cfg.cql_weight),
             None => loss_c,
         };
         let loss = loss_c.clone().into_scalar::<f32>();
