@@ -46,8 +46,10 @@ enum Cmd {
     /// One rung of the learning ladder: trains its ego job per seed, evaluates each policy
     /// against the IDM driver on the same stored cases and checks the rung's gate.
     Ladder(sf_lab::ladder::LadderArgs),
-    /// The critic probe: trains a job's critic on demonstrator data alone and scores how well
-    /// it predicts failures on held-out episodes (AUROC, failure-row error).
+    /// Probes of a job on its IDM demonstrator's data: `--kind critic` scores how well its
+    /// critic predicts failures on held-out episodes (AUROC, failure-row error); `--kind
+    /// handover` follows a direct-action clone into SAC's updates (drift from IDM's action, the
+    /// critic's gradient and best action per component, closed-loop success).
     Probe(sf_lab::probe::ProbeArgs),
     /// Writes a finished job's actor (its deterministic action) as an ONNX model, with a check
     /// file of stored observations and burn's actions for them.

@@ -226,7 +226,7 @@ pub struct EnvSection {
     pub ego_from: Option<String>,
     /// How a driving policy's action moves its vehicle: `"direct"` (the paper: reference speed
     /// and steer), `"idm-residual"` (added to the IDM driver's action and clipped, so a zero
-    /// action drives like IDM: session 5's budget lever, see `configs/paper-small/README.md`) or
+    /// action drives like IDM; see `configs/paper-small/README.md`) or
     /// `"idm-accel-residual"` (one number moving the IDM driver's acceleration linearly to full
     /// braking at -1 and full acceleration at +1, steering left to IDM's pure pursuit: zero is
     /// IDM exactly).
@@ -420,6 +420,14 @@ pub struct SacConfig {
     /// that action at least as high as the policy's.
     pub bc_target: BcTarget,
     pub bc_q_filter: bool,
+    /// With `bc_q_filter`: action components (0-based) the cloning term holds in every
+    /// labelled row, whatever the critic rates higher; the filter applies to the others. For a
+    /// component whose effect the critic cannot resolve (the direct action's steer, whose
+    /// best offset the critic rates within noise of IDM's: `socialflow probe --kind handover`)
+    /// while the clone's closed loop fails at a mean deviation of ~0.02. Empty: the filter
+    /// applies to every component.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub bc_hold_dims: Vec<usize>,
     /// AWAC-style advantage weights on the cloning term towards the replayed actions
     /// (`bc_target = "replay"`; absent: every row weighs 1): row i weighs
     /// `exp((min Q(s, a_replay) - min Q(s, a~pi)) / lambda)`, clipped at [`AWAC_MAX_WEIGHT`]
@@ -584,6 +592,7 @@ impl Default for SacConfig {
             huber_delta: 10.0,
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
+            bc_hold_dims: Vec::new(),
             bc_awac_lambda: None,
             cql_weight: 0.0,
             cql_samples: DEFAULT_CQL_SAMPLES,
@@ -1150,6 +1159,24 @@ impl JobConfig {
         if !(1..=100).contains(&s.cql_samples) {
             return bad("sac.cql_samples", format!("{} must be in 1..=100", s.cql_samples));
         }
+        if !s.bc_hold_dims.is_empty() {
+            if !s.bc_q_filter {
+                return bad("sac.bc_hold_dims", "holds components out of the Q filter: set sac.bc_q_filter = true (without it the term holds every component)");
+            }
+            let dim = self.action_dim();
+            if let Some(k) = s.bc_hold_dims.iter().find(|&&k| k >= dim) {
+                return bad(
+                    "sac.bc_hold_dims",
+                    format!("component {k} does not exist: the action has {dim} (0-based)"),
+                );
+            }
+            let mut seen = s.bc_hold_dims.clone();
+            seen.sort_unstable();
+            seen.dedup();
+            if seen.len() != s.bc_hold_dims.len() {
+                return bad("sac.bc_hold_dims", "lists a component twice");
+            }
+        }
         if s.bc_q_filter && s.bc_target == BcTarget::Replay {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the IDM driver's action: set sac.bc_target = \"zero\" (residual actions) or \"oracle\"");
         }
@@ -1502,6 +1529,32 @@ mod tests {
             .to_toml();
         assert!(text.contains("lr_actor_ramp_updates = 10"), "{text}");
         assert!(!JobConfig::from_toml(MIN).expect("none").to_toml().contains("lr_actor_ramp"));
+    }
+
+    #[test]
+    fn held_components_need_the_filter_exist_once_and_round_trip_only_when_set() {
+        let dim = JobConfig::from_toml(MIN).expect("min").action_dim();
+        let base = format!("{MIN}[sac]\nbc_target = \"oracle\"\nbc_q_filter = true\n");
+        let ok = JobConfig::from_toml(&format!("{base}bc_hold_dims = [{}]\n", dim - 1))
+            .expect("the last component");
+        assert_eq!(ok.sac.bc_hold_dims, vec![dim - 1]);
+        let back = JobConfig::from_toml(&ok.to_toml()).expect("round trip");
+        assert_eq!(back.sac.bc_hold_dims, vec![dim - 1]);
+        assert!(!JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_hold_dims"));
+        for (text, why) in [
+            (format!("{base}bc_hold_dims = [{dim}]\n"), "does not exist"),
+            (format!("{base}bc_hold_dims = [0, 0]\n"), "twice"),
+            (
+                format!("{MIN}[sac]\nbc_target = \"oracle\"\nbc_hold_dims = [0]\n"),
+                "bc_q_filter = true",
+            ),
+        ] {
+            let e = JobConfig::from_toml(&text).expect_err(why);
+            assert!(
+                e.to_string().contains("sac.bc_hold_dims") && e.to_string().contains(why),
+                "{e}"
+            );
+        }
     }
 
     #[test]

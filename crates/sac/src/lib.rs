@@ -8,6 +8,7 @@
 
 pub mod checkpoint;
 pub mod curve;
+pub mod diagnostics;
 pub mod ops;
 pub mod rate_limiter;
 pub mod replay;

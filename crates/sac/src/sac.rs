@@ -102,8 +102,8 @@ pub struct Sac {
     pub(crate) opt_critic: burn::optim::ModuleOptimizer,
     pub(crate) opt_alpha: burn::optim::ModuleOptimizer,
     /// Query-centric: every map's segments on each device.
-    seg_plain: Option<SegmentInput>,
-    seg_ad: Option<SegmentInput>,
+    pub(crate) seg_plain: Option<SegmentInput>,
+    pub(crate) seg_ad: Option<SegmentInput>,
     pub updates: u64,
     pub(crate) rng: ChaCha8Rng,
 }
@@ -160,7 +160,7 @@ impl Sac {
         })
     }
 
-    fn batch_on(&self, rows: &[f32], map_ids: &[u32], device: &Device) -> ObsBatch {
+    pub(crate) fn batch_on(&self, rows: &[f32], map_ids: &[u32], device: &Device) -> ObsBatch {
         let offsets = self.seg_plain.as_ref().map_or(&[][..], |s| &s.offsets[..]);
         ObsBatch::from_rows(
             rows,
@@ -449,7 +449,8 @@ impl Sac {
     ///    `bc_weight` (constant, or fading over `bc_decay_updates`) is positive: towards the
     ///    replayed actions, the zero residual or IDM's recorded labels (`bc_target`), with
     ///    `bc_q_filter` only on the rows where the critic rates IDM's action at least as high
-    ///    as the policy's, scaled by the batch's mean |Q|.
+    ///    as the policy's (in every row for the components of `bc_hold_dims`), scaled by the
+    ///    batch's mean |Q|.
     fn actor_objective(
         &self,
         pi: Sampled,
@@ -496,6 +497,7 @@ impl Sac {
                     let (q1_0, q2_0) = critic_ng.heads(fc, target.clone());
                     let q_idm = q1_0.min_pair(q2_0);
                     let keep = q_idm.greater_equal(q_pi.detach()).float();
+                    let keep = self.hold_components(keep);
                     let keep = match labelled {
                         Some(l) => keep * l,
                         None => keep,
@@ -508,6 +510,22 @@ impl Sac {
             }
         };
         sac + term.mul_scalar(w * q_scale)
+    }
+
+    /// The Q filter's `[b, 1]` keep column widened to `[b, act_dim]` with 1 in the columns of
+    /// `bc_hold_dims` (cloned in every row); unchanged without them.
+    fn hold_components(&self, keep: Tensor<2>) -> Tensor<2> {
+        if self.cfg.bc_hold_dims.is_empty() {
+            return keep;
+        }
+        let (b, a_dim) = (keep.dims()[0], self.net.action_dim);
+        let mut hold = vec![0.0f32; a_dim];
+        for &k in &self.cfg.bc_hold_dims {
+            hold[k] = 1.0;
+        }
+        let hold =
+            Tensor::<2>::from_data(TensorData::new(hold, [1, a_dim]), &self.ad).repeat_dim(0, b);
+        keep.repeat_dim(1, a_dim) * hold.clone().neg().add_scalar(1.0) + hold
     }
 
     /// An inference copy of the actor and, for query-centric observations, its segment table
@@ -539,26 +557,6 @@ impl Sac {
             Some(avg) => sf_nn::weights::to_bytes(avg),
             None => self.actor_bytes(),
         }
-    }
-
-    /// `min(Q1, Q2)(s, a)` of the online critic for rows of observations and actions, in
-    /// chunks on the plain device (the critic probe, diagnostics).
-    pub fn q_min(&self, obs: &[f32], actions: &[f32], map_ids: &[u32]) -> Vec<f32> {
-        let (len, a_dim) = (self.spec.len, self.net.action_dim);
-        let critic = self.critic.valid();
-        let table = self.seg_plain.as_ref().map(|s| critic.enc.segment_table(s));
-        let mut out = Vec::with_capacity(map_ids.len());
-        for start in (0..map_ids.len()).step_by(256) {
-            let end = (start + 256).min(map_ids.len());
-            let ob = self.batch_on(&obs[start * len..end * len], &map_ids[start..end], &self.plain);
-            let a = Tensor::<2>::from_data(
-                TensorData::new(actions[start * a_dim..end * a_dim].to_vec(), [end - start, a_dim]),
-                &self.plain,
-            );
-            let (q1, q2) = critic.forward(&ob, table.as_ref(), a);
-            out.extend(q1.min_pair(q2).into_data().try_to_vec::<f32>().expect("Q values are f32"));
-        }
-        out
     }
 
     /// Builds an inference batch on the plain device.

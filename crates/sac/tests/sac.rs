@@ -653,7 +653,12 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
     let spec = sf_sim::ObsSpec::new(&sim.obs);
     let segs = MapSegments::build(&m, sim.obs.segment_points);
     let probe = r.sample(&mut ChaCha8Rng::seed_from_u64(2), 64).expect("probe");
-    let run = |slope: f32, bc_target: BcTarget, r: &Replay| -> (f32, f32) {
+    // Each component's mean action over the probe, before and after 80 updates.
+    let run_held = |slope: f32,
+                    bc_target: BcTarget,
+                    r: &Replay,
+                    bc_hold_dims: Vec<usize>|
+     -> ([f32; 2], [f32; 2]) {
         let cfg = SacConfig {
             seed: 5,
             batch_size: 32,
@@ -663,18 +668,20 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
             bc_weight: 5.0,
             bc_target,
             bc_q_filter: true,
+            bc_hold_dims,
             reward_scale: 1.0,
             ..SacConfig::default()
         };
         let mut sac = Sac::new(cfg, tiny_net(), spec.clone(), sim.dt_s, &[&segs]).expect("sac");
-        let mean = |sac: &Sac| -> f32 {
+        let mean = |sac: &Sac| -> [f32; 2] {
             let (actor, table) = sac.policy();
             let a: Vec<f32> = actor
                 .act_mean(&sac.obs_batch(&probe.obs, &probe.map_ids), table.as_ref())
                 .into_data()
                 .try_to_vec()
                 .expect("f32");
-            a.iter().sum::<f32>() / a.len() as f32
+            let n = (a.len() / 2) as f32;
+            [0, 1].map(|k| a.iter().skip(k).step_by(2).sum::<f32>() / n)
         };
         // Start the mean action at tanh(0.5) in both components.
         let last = sac.actor.mean.layers.last_mut().expect("layers");
@@ -719,6 +726,10 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
         }
         (before, mean(&sac))
     };
+    let both = |(b, a): ([f32; 2], [f32; 2])| ((b[0] + b[1]) / 2.0, (a[0] + a[1]) / 2.0);
+    let run = |slope: f32, bc_target: BcTarget, r: &Replay| {
+        both(run_held(slope, bc_target, r, Vec::new()))
+    };
     let (before, flat) = run(0.0, BcTarget::Zero, &r);
     assert!(
         flat.abs() < 0.5 * before.abs(),
@@ -745,6 +756,14 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
     assert!(
         (unlabelled - rising).abs() < 1e-6,
         "rows without a label are not cloned ({unlabelled} against {rising} with every row filtered)"
+    );
+    // `bc_hold_dims = [1]`: the critic prefers larger actions, so the filter removes every row
+    // for component 0, which rises; component 1 is cloned anyway and falls towards -0.4.
+    let (before, after) = run_held(1.0, BcTarget::Oracle, &labelled, vec![1]);
+    assert!(after[0] > before[0], "component 0 follows the critic ({before:?} -> {after:?})");
+    assert!(
+        (after[1] + 0.4).abs() < 0.5 * (before[1] + 0.4).abs(),
+        "component 1 is held at the oracle's -0.4 ({before:?} -> {after:?})"
     );
 }
 
@@ -790,4 +809,46 @@ fn the_conservative_critic_lowers_q_off_the_replayed_actions() {
         conservative > plain + 2.0,
         "the conservative critic's gap {conservative} (Q at the data {q_cql}) vs plain {plain} ({q_plain})"
     );
+}
+
+#[test]
+fn the_action_gradient_matches_finite_differences_and_leaves_the_learner_as_it_was() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 256);
+    let mut sac = sac_for(&sim, &m, 4);
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for _ in 0..30 {
+        sac.update(&r.sample(&mut rng, 16).expect("batch"));
+    }
+    let probe = r.sample(&mut rng, 16).expect("probe");
+    let (critic, actor, updates) = (flat(&sac.critic), flat(&sac.actor), sac.updates);
+    let g = sac.q_action_gradient(&probe.obs, &probe.actions, &probe.map_ids);
+    let (mean, log_std) = sac.action_dist(&probe.obs, &probe.map_ids, false);
+    assert_eq!(flat(&sac.critic), critic, "the probe leaves the critic as it was");
+    assert_eq!(flat(&sac.actor), actor, "and the actor");
+    assert_eq!(sac.updates, updates);
+    assert_eq!((g.len(), mean.len(), log_std.len()), (32, 32, 32));
+    assert!(mean.iter().all(|a| a.abs() < 1.0), "mean actions are squashed: {mean:?}");
+    // Central differences of min(Q1, Q2) along each component; min's kink may fall between
+    // the two probes of a row, so most rows, not all, must agree.
+    let h = 1e-3f32;
+    let (mut agree, mut largest) = (0, 0.0f32);
+    for k in 0..2 {
+        let q_at = |d: f32| {
+            let mut a = probe.actions.clone();
+            for row in a.chunks_exact_mut(2) {
+                row[k] += d;
+            }
+            sac.q_min(&probe.obs, &a, &probe.map_ids)
+        };
+        let (up, down) = (q_at(h), q_at(-h));
+        for i in 0..probe.len() {
+            let fd = (up[i] - down[i]) / (2.0 * h);
+            let an = g[i * 2 + k];
+            largest = largest.max(an.abs());
+            agree += ((fd - an).abs() <= 0.02 + 0.05 * an.abs()) as usize;
+        }
+    }
+    assert!(largest > 1e-3, "the gradient is not trivially zero: largest |dQ/da| {largest}");
+    assert!(agree >= 28, "{agree} of 32 components agree with central differences");
 }

@@ -1,7 +1,8 @@
 //! The critic probe: does a job's critic learn which states lead to failure?
 //!
 //! Drives the job's ego with its IDM demonstrator (the warm-up's actor, noise and braking
-//! segments) among the job's traffic, labels every transition "a failure within `horizon`
+//! segments) among the job's traffic ([`collect`], also the hand-over probe's data; IDM's
+//! noise-free action is recorded in every state), labels every transition "a failure within `horizon`
 //! decision steps", trains the job's SAC on the first 80 % of the episodes with the actor
 //! frozen after cloning (policy evaluation only), then scores the critic on the held-out 20 %:
 //! the AUROC of `-Q(s, a)` for the label, and the error on failure rows (whose target is
@@ -31,12 +32,16 @@ pub enum ProbeError {
     /// The replay refused a transition or a sample (the replay's error names the field).
     #[error(transparent)]
     Replay(#[from] ReplayError),
+    /// The hand-over probe's closed-loop episodes could not run (the reason named).
+    #[error("closed-loop episodes: {0}")]
+    Eval(String),
 }
 
 /// Demonstrator transitions with their failure labels, split by episode.
 pub struct ProbeData {
     pub train: Replay,
-    /// Held-out rows: observation, action, map id, label, and whether the row itself failed.
+    /// Held-out rows: observation, action, map id and IDM's noise-free action (`oracle`); the
+    /// failure label and whether the row itself failed beside them.
     pub test: Batch,
     pub test_labels: Vec<bool>,
     pub test_failed: Vec<bool>,
@@ -52,6 +57,8 @@ struct Pending {
     terminal: bool,
     map_id: u32,
     failed: bool,
+    /// IDM's noise-free action in the row's state (direct action; zeros for residual kinds).
+    oracle: Vec<f32>,
 }
 
 /// Runs the demonstrator for at least `transitions` ego transitions over the job's scenarios.
@@ -107,6 +114,7 @@ pub fn collect(
         if let Some(b) = brakes.as_mut() {
             b.overlay(&mut d, &mut rng);
         }
+        let labels = drive::oracle_labels(&venvs, &d.alive_rows, net.action);
         drive::apply(&mut venvs, &d);
         if let Some(b) = brakes.as_mut() {
             b.after_step(&venvs);
@@ -127,6 +135,7 @@ pub fn collect(
                     terminal: st.terminal(),
                     map_id: k as u32,
                     failed,
+                    oracle: labels[k][j * dim..(j + 1) * dim].to_vec(),
                 });
                 n += 1;
                 if st.ended.is_some() {
@@ -137,6 +146,8 @@ pub fn collect(
         }
     }
     let n_train = episodes.len() * 4 / 5;
+    // The training rows carry IDM's labels where the job clones towards them.
+    let labelled = job.sac.bc_target == sf_job::config::BcTarget::Oracle;
     let total: usize = episodes.iter().map(Vec::len).sum();
     let mut train = Replay::new(total.max(1), len, net.action_dim);
     let mut test = Batch::default();
@@ -154,7 +165,7 @@ pub fn collect(
                     terminal: p.terminal,
                     steps: 1,
                     map_id: p.map_id,
-                    oracle: &[],
+                    oracle: if labelled { &p.oracle } else { &[] },
                 })?;
             } else {
                 test.obs.extend_from_slice(&p.obs);
@@ -164,6 +175,7 @@ pub fn collect(
                 test.terminals.push(p.terminal as u8 as f32);
                 test.steps.push(1);
                 test.map_ids.push(p.map_id);
+                test.oracle.extend_from_slice(&p.oracle);
                 test_labels.push(fail_at.is_some_and(|f| f >= t && f - t < horizon));
                 test_failed.push(p.failed);
             }
