@@ -72,21 +72,28 @@ pub fn run(dirs: &Ctx, a: ProbeArgs) -> Result<()> {
         a.transitions >= 1000 && a.horizon >= 1,
         "--transitions must be at least 1000 and --horizon at least 1"
     );
+    let r = setup::resolve(&job, None);
+    if a.kind == ProbeKind::Handover {
+        // Refused before any data is collected.
+        anyhow::ensure!(
+            r.net.action == sf_sim::vehicle::DriveAction::Direct,
+            "--kind handover needs a job with the direct action (env.action = \"direct\"): IDM's \
+             action is the clone's reference"
+        );
+        anyhow::ensure!(
+            job.kind == sf_job::config::JobKind::Ego && job.env.background_job.is_none(),
+            "--kind handover drives the clone among IDM cars: give it an ego job without \
+             env.background_job"
+        );
+        anyhow::ensure!(a.every >= 1, "--every must be at least 1");
+    }
     let maps = job.env.scenarios.iter().map(|s| dirs.map(s)).collect::<Result<Vec<_>>>()?;
     let data = critic::collect(&job, &maps, a.transitions, a.horizon, a.seed)
         .map_err(anyhow::Error::msg)?;
     let segs = critic::segments(&maps, &job);
     let seg_refs: Vec<_> = segs.iter().collect();
-    let r = setup::resolve(&job, None);
-    let direct = r.net.action == sf_sim::vehicle::DriveAction::Direct;
     let mut sac = Sac::new(r.sac, r.net, r.obs, r.sim.dt_s, &seg_refs)?;
     if a.kind == ProbeKind::Handover {
-        anyhow::ensure!(
-            direct,
-            "--kind handover needs a job with the direct action (env.action = \"direct\"): IDM's \
-             action is the clone's reference"
-        );
-        anyhow::ensure!(a.every >= 1, "--every must be at least 1");
         let settings = handover::HandoverSettings {
             sac_updates: a.sac_updates,
             every: a.every,
