@@ -108,7 +108,7 @@ pub fn run(
     mut emit: impl FnMut(&HandoverPoint),
 ) -> Result<Vec<HandoverPoint>, ProbeError> {
     let handover = sac.cfg.bc_updates + sac.cfg.critic_pretrain_updates;
-    let test = held_out(&data.test, s.rows, sac.net.action_dim);
+    let test = held_out(&data.test, s.rows, sac.spec.len, sac.net.action_dim);
     let mut loop_ = ClosedLoop::new(job, maps, s.episodes, s.seed);
     let gif_path = |since: u64| {
         s.gif_dir
@@ -138,9 +138,8 @@ pub fn run(
 }
 
 /// The first `rows` held-out rows with their IDM labels.
-fn held_out(test: &Batch, rows: usize, a_dim: usize) -> Batch {
+fn held_out(test: &Batch, rows: usize, len: usize, a_dim: usize) -> Batch {
     let n = test.len().min(rows);
-    let len = if !test.is_empty() { test.obs.len() / test.len() } else { 0 };
     Batch {
         obs: test.obs[..n * len].to_vec(),
         actions: test.actions[..n * a_dim].to_vec(),
@@ -186,34 +185,45 @@ fn measure(
             away as f64 / counted.max(1) as f64
         })
         .collect();
-    let q_mean = sac.q_min(&t.obs, &mean, &t.map_ids);
-    let q_idm = sac.q_min(&t.obs, idm, &t.map_ids);
-    let q_mean_minus_idm =
-        q_mean.iter().zip(&q_idm).map(|(a, b)| (a - b) as f64).sum::<f64>() / n.max(1) as f64;
-    let idm_rated_higher =
-        q_mean.iter().zip(&q_idm).filter(|(a, b)| b >= a).count() as f64 / n.max(1) as f64;
-    let (mut axis_best, mut axis_best_abs, mut axis_gain) = (vec![], vec![], vec![]);
+    // Every action set the critic rates, encoded once: the mean, IDM's, then along each
+    // component (the other at IDM's) IDM's action moved by each grid offset.
+    let mut sets: Vec<Vec<f32>> = vec![mean.clone(), idm.clone()];
     for k in 0..a_dim {
-        // Q on the grid along component k: row i's offsets in grid order.
-        let mut best = vec![(0.0f32, f32::NEG_INFINITY); n];
         for &d in &AXIS_GRID {
             let mut acts = idm.clone();
-            for i in 0..n {
-                acts[i * a_dim + k] = (acts[i * a_dim + k] + d).clamp(-1.0, 1.0);
+            for row in acts.chunks_exact_mut(a_dim) {
+                row[k] = (row[k] + d).clamp(-1.0, 1.0);
             }
-            for (i, q) in sac.q_min(&t.obs, &acts, &t.map_ids).into_iter().enumerate() {
-                if q > best[i].1 {
-                    best[i] = (d, q);
+            sets.push(acts);
+        }
+    }
+    let set_refs: Vec<&[f32]> = sets.iter().map(Vec::as_slice).collect();
+    let q = sac.q_min_each(&t.obs, &set_refs, &t.map_ids);
+    let (q_mean, q_idm) = (&q[0], &q[1]);
+    let nn = n.max(1) as f64;
+    let q_mean_minus_idm = q_mean.iter().zip(q_idm).map(|(a, b)| (a - b) as f64).sum::<f64>() / nn;
+    let idm_rated_higher = q_mean.iter().zip(q_idm).filter(|(a, b)| b >= a).count() as f64 / nn;
+    let (mut axis_best, mut axis_best_abs, mut axis_gain) = (vec![], vec![], vec![]);
+    for along in q[2..].chunks_exact(AXIS_GRID.len()) {
+        // Row i's best offset on the grid along this component, and its Q.
+        let mut best = vec![(0.0f32, f32::NEG_INFINITY); n];
+        for (&d, qs) in AXIS_GRID.iter().zip(along) {
+            for (b, &v) in best.iter_mut().zip(qs) {
+                if v > b.1 {
+                    *b = (d, v);
                 }
             }
         }
-        let nn = n.max(1) as f64;
         axis_best.push(best.iter().map(|b| b.0 as f64).sum::<f64>() / nn);
         axis_best_abs.push(best.iter().map(|b| b.0.abs() as f64).sum::<f64>() / nn);
-        axis_gain.push(best.iter().zip(&q_idm).map(|(b, q)| (b.1 - q) as f64).sum::<f64>() / nn);
+        axis_gain.push(best.iter().zip(q_idm).map(|(b, q)| (b.1 - q) as f64).sum::<f64>() / nn);
     }
-    let averaged = loop_.score(sac, sac.selected_actor_bytes(), "averaged", gif.as_ref())?;
-    let actor = loop_.score(sac, sac.actor_bytes(), "actor", gif.as_ref())?;
+    let bytes = |w: Result<Vec<u8>, sf_nn::weights::WeightsError>| {
+        w.map_err(|e| ProbeError::Eval(format!("the actor's weights: {e}")))
+    };
+    let averaged =
+        loop_.score(sac, bytes(sac.selected_actor_bytes())?, "averaged", gif.as_ref())?;
+    let actor = loop_.score(sac, bytes(sac.actor_bytes())?, "actor", gif.as_ref())?;
     Ok(HandoverPoint {
         updates: sac.updates,
         since_handover: sac.updates - handover,
@@ -248,8 +258,8 @@ pub struct Scored {
     pub gif: Option<String>,
 }
 
-/// Fresh cases among IDM traffic (the ego jobs this probe is for), driven by the averaged
-/// actor's mean action, on the job's first scenario.
+/// Fresh cases among IDM traffic (the ego jobs this probe is for) on the job's first scenario,
+/// each actor scored on the same ones with its mean action.
 struct ClosedLoop {
     job: JobConfig,
     map: Option<Arc<Map>>,
@@ -288,13 +298,12 @@ impl ClosedLoop {
     fn score(
         &mut self,
         sac: &Sac,
-        weights: Result<Vec<u8>, sf_nn::weights::WeightsError>,
+        weights: Vec<u8>,
         which: &str,
         gif: Option<&PathBuf>,
     ) -> Result<Option<Scored>, ProbeError> {
         let Some(map) = &self.map else { return Ok(None) };
         let eval = |e: EvalError| ProbeError::Eval(e.to_string());
-        let weights = weights.map_err(|e| ProbeError::Eval(e.to_string()))?;
         let key = format!("handover-{which}@{}", sac.updates);
         let policy = Policy::new(key.clone(), self.job.clone(), Arc::new(weights), Vec::new());
         let ego = EgoDef::Learned(policy);
