@@ -195,7 +195,13 @@ old=$(containers "$learner_svc")
 snap && [ "$st" = running ] || fail "job $job is $st just before the learner kill"
 ver_before=$ver steps_before=$steps
 docker kill --signal KILL "$old" >/dev/null
-# The killed container's log is complete now: its last checkpoint is what the job resumes from.
+# Wait for the container to have stopped before reading its log. Even then the last checkpoint
+# it logged is a floor, not the answer: the "checkpoint written" line comes after the checkpoint
+# file, the replay segment, the curves and the plot, and twice in a row on 2026-11-30 the job
+# resumed from the next checkpoint (due ~5 s after the logged one: logged 5380, resumed 5992;
+# logged 5227, resumed 5911) whose line never reached Docker's log. The job must resume from the
+# logged checkpoint or a later one the killed learner wrote, never an earlier one or from scratch.
+timeout 30 docker wait "$old" >/dev/null 2>&1 || true
 field() { sed -n "s/.*\\b$1=\\([0-9]*\\).*/\\1/p"; }
 last_ckpt=$(docker logs "$old" 2>&1 | log_fields "checkpoint written" | grep -E "(^| )job_id=$job( |$)" | tail -n1 || true)
 [ -n "$last_ckpt" ] || fail "the killed learner wrote no checkpoint of job $job"
@@ -214,7 +220,8 @@ resumed_line() {
 }
 wait_until 60 "'resumed from checkpoint' in the new learner's log" resumed_line
 resumed_steps=$(echo "$resumed" | field env_steps) resumed_upd=$(echo "$resumed" | field updates)
-[ "$resumed_upd" = "$ckpt_upd" ] || fail "job $job resumed at updates=$resumed_upd; the last checkpoint before the kill had updates=$ckpt_upd"
+[ "${resumed_upd:-0}" -ge "$ckpt_upd" ] || fail "job $job resumed at updates=${resumed_upd:-?}; the last checkpoint the killed learner logged had updates=$ckpt_upd"
+[ "$resumed_upd" = "$ckpt_upd" ] || say "NOTE: resumed at updates=$resumed_upd, after the last logged checkpoint ($ckpt_upd): a later checkpoint of the killed learner whose log line is missing"
 [ "${resumed_steps:-0}" -gt 0 ] || fail "job $job resumed at env_steps=${resumed_steps:-?}: from scratch"
 say "CHECK learner kill: job $job RUNNING again; new learner's log: resumed from checkpoint ($resumed)"
 floor=$((ver_before > ckpt_ver ? ver_before : ckpt_ver))
