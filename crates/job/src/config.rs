@@ -428,6 +428,12 @@ pub struct SacConfig {
     /// applies to every component.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub bc_hold_dims: Vec<usize>,
+    /// The components of `bc_hold_dims` learn from the cloning term alone: the actor loss's
+    /// `min Q` sees them detached, so the critic's gradient (which, for a component it cannot
+    /// resolve, pushes the mean off IDM's label in most states) does not reach them, and SAC
+    /// learns only the other components. Needs `bc_hold_dims`. Written only when set.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub bc_hold_clone_only: bool,
     /// AWAC-style advantage weights on the cloning term towards the replayed actions
     /// (`bc_target = "replay"`; absent: every row weighs 1): row i weighs
     /// `exp((min Q(s, a_replay) - min Q(s, a~pi)) / lambda)`, clipped at [`AWAC_MAX_WEIGHT`]
@@ -593,6 +599,7 @@ impl Default for SacConfig {
             bc_target: BcTarget::Replay,
             bc_q_filter: false,
             bc_hold_dims: Vec::new(),
+            bc_hold_clone_only: false,
             bc_awac_lambda: None,
             cql_weight: 0.0,
             cql_samples: DEFAULT_CQL_SAMPLES,
@@ -1177,6 +1184,15 @@ impl JobConfig {
                 return bad("sac.bc_hold_dims", "lists a component twice");
             }
         }
+        if s.bc_hold_clone_only && s.bc_hold_dims.is_empty() {
+            return bad(
+                "sac.bc_hold_clone_only",
+                "applies to the held components: list them in sac.bc_hold_dims",
+            );
+        }
+        if s.bc_hold_clone_only && s.bc_decay_updates > 0 {
+            return bad("sac.bc_hold_clone_only", "the held components learn from the cloning term alone: it cannot fade (set sac.bc_decay_updates = 0)");
+        }
         if s.bc_q_filter && s.bc_target == BcTarget::Replay {
             return bad("sac.bc_q_filter", "the Q filter compares the policy with the IDM driver's action: set sac.bc_target = \"zero\" (residual actions) or \"oracle\"");
         }
@@ -1532,7 +1548,7 @@ mod tests {
     }
 
     #[test]
-    fn held_components_need_the_filter_exist_once_and_round_trip_only_when_set() {
+    fn held_components_need_the_filter_exist_once_and_round_trip_only_when_set_as_clone_only() {
         let dim = JobConfig::from_toml(MIN).expect("min").action_dim();
         let base = format!("{MIN}[sac]\nbc_target = \"oracle\"\nbc_q_filter = true\n");
         let ok = JobConfig::from_toml(&format!("{base}bc_hold_dims = [{}]\n", dim - 1))
@@ -1541,6 +1557,29 @@ mod tests {
         let back = JobConfig::from_toml(&ok.to_toml()).expect("round trip");
         assert_eq!(back.sac.bc_hold_dims, vec![dim - 1]);
         assert!(!JobConfig::from_toml(&base).expect("none").to_toml().contains("bc_hold_dims"));
+        let only = JobConfig::from_toml(&format!(
+            "{base}bc_hold_dims = [{}]\nbc_hold_clone_only = true\n",
+            dim - 1
+        ))
+        .expect("clone only");
+        assert!(only.sac.bc_hold_clone_only);
+        assert!(JobConfig::from_toml(&only.to_toml()).expect("round trip").sac.bc_hold_clone_only);
+        assert!(!ok.to_toml().contains("bc_hold_clone_only"));
+        for (text, why) in [
+            (format!("{base}bc_hold_clone_only = true\n"), "sac.bc_hold_dims"),
+            (
+                format!(
+                    "{base}bc_hold_dims = [0]\nbc_hold_clone_only = true\nbc_decay_updates = 100\n"
+                ),
+                "sac.bc_decay_updates",
+            ),
+        ] {
+            let e = JobConfig::from_toml(&text).expect_err(why);
+            assert!(
+                e.to_string().contains("sac.bc_hold_clone_only") && e.to_string().contains(why),
+                "{e}"
+            );
+        }
         for (text, why) in [
             (format!("{base}bc_hold_dims = [{dim}]\n"), "does not exist"),
             (format!("{base}bc_hold_dims = [0, 0]\n"), "twice"),

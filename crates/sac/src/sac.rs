@@ -449,8 +449,8 @@ impl Sac {
     ///    `bc_weight` (constant, or fading over `bc_decay_updates`) is positive: towards the
     ///    replayed actions, the zero residual or IDM's recorded labels (`bc_target`), with
     ///    `bc_q_filter` only on the rows where the critic rates IDM's action at least as high
-    ///    as the policy's (in every row for the components of `bc_hold_dims`), scaled by the
-    ///    batch's mean |Q|.
+    ///    as the policy's (in every row for the components of `bc_hold_dims`, which with
+    ///    `bc_hold_clone_only` get no gradient from Q), scaled by the batch's mean |Q|.
     fn actor_objective(
         &self,
         pi: Sampled,
@@ -460,7 +460,7 @@ impl Sac {
         alpha: f32,
     ) -> Tensor<1> {
         let critic_ng = self.critic.clone().no_grad();
-        let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), pi.a_new);
+        let (q1_pi, q2_pi) = critic_ng.heads(fc.clone(), self.detach_held(pi.a_new));
         let q_pi = q1_pi.min_pair(q2_pi);
         let since = self.updates - self.cfg.bc_updates - self.cfg.critic_pretrain_updates;
         let w = match self.cfg.bc_decay_updates {
@@ -512,20 +512,37 @@ impl Sac {
         sac + term.mul_scalar(w * q_scale)
     }
 
+    /// The policy's sampled actions as the actor loss's critic sees them: with
+    /// `bc_hold_clone_only`, the components of `bc_hold_dims` detached (same values, no
+    /// gradient from Q), so only the cloning term and the entropy bonus train them; unchanged
+    /// otherwise.
+    fn detach_held(&self, a: Tensor<2>) -> Tensor<2> {
+        if !self.cfg.bc_hold_clone_only || self.cfg.bc_hold_dims.is_empty() {
+            return a;
+        }
+        let hold = self.hold_mask(a.dims()[0]);
+        let free = hold.clone().neg().add_scalar(1.0);
+        a.clone() * free + a.detach() * hold
+    }
+
+    /// `[b, act_dim]`: 1 in the columns of `bc_hold_dims`, 0 elsewhere.
+    fn hold_mask(&self, b: usize) -> Tensor<2> {
+        let a_dim = self.net.action_dim;
+        let mut hold = vec![0.0f32; a_dim];
+        for &k in &self.cfg.bc_hold_dims {
+            hold[k] = 1.0;
+        }
+        Tensor::<2>::from_data(TensorData::new(hold, [1, a_dim]), &self.ad).repeat_dim(0, b)
+    }
+
     /// The Q filter's `[b, 1]` keep column widened to `[b, act_dim]` with 1 in the columns of
     /// `bc_hold_dims` (cloned in every row); unchanged without them.
     fn hold_components(&self, keep: Tensor<2>) -> Tensor<2> {
         if self.cfg.bc_hold_dims.is_empty() {
             return keep;
         }
-        let (b, a_dim) = (keep.dims()[0], self.net.action_dim);
-        let mut hold = vec![0.0f32; a_dim];
-        for &k in &self.cfg.bc_hold_dims {
-            hold[k] = 1.0;
-        }
-        let hold =
-            Tensor::<2>::from_data(TensorData::new(hold, [1, a_dim]), &self.ad).repeat_dim(0, b);
-        keep.repeat_dim(1, a_dim) * hold.clone().neg().add_scalar(1.0) + hold
+        let hold = self.hold_mask(keep.dims()[0]);
+        keep.repeat_dim(1, self.net.action_dim) * hold.clone().neg().add_scalar(1.0) + hold
     }
 
     /// An inference copy of the actor and, for query-centric observations, its segment table

@@ -657,7 +657,8 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
     let run_held = |slope: f32,
                     bc_target: BcTarget,
                     r: &Replay,
-                    bc_hold_dims: Vec<usize>|
+                    bc_hold_dims: Vec<usize>,
+                    bc_hold_clone_only: bool|
      -> ([f32; 2], [f32; 2]) {
         let cfg = SacConfig {
             seed: 5,
@@ -669,6 +670,7 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
             bc_target,
             bc_q_filter: true,
             bc_hold_dims,
+            bc_hold_clone_only,
             reward_scale: 1.0,
             ..SacConfig::default()
         };
@@ -728,7 +730,7 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
     };
     let both = |(b, a): ([f32; 2], [f32; 2])| ((b[0] + b[1]) / 2.0, (a[0] + a[1]) / 2.0);
     let run = |slope: f32, bc_target: BcTarget, r: &Replay| {
-        both(run_held(slope, bc_target, r, Vec::new()))
+        both(run_held(slope, bc_target, r, Vec::new(), false))
     };
     let (before, flat) = run(0.0, BcTarget::Zero, &r);
     assert!(
@@ -759,11 +761,20 @@ fn the_q_filtered_cloning_term_clones_idm_only_where_the_critic_prefers_it() {
     );
     // `bc_hold_dims = [1]`: the critic prefers larger actions, so the filter removes every row
     // for component 0, which rises; component 1 is cloned anyway and falls towards -0.4.
-    let (before, after) = run_held(1.0, BcTarget::Oracle, &labelled, vec![1]);
+    let (before, after) = run_held(1.0, BcTarget::Oracle, &labelled, vec![1], false);
     assert!(after[0] > before[0], "component 0 follows the critic ({before:?} -> {after:?})");
     assert!(
         (after[1] + 0.4).abs() < 0.5 * (before[1] + 0.4).abs(),
         "component 1 is held at the oracle's -0.4 ({before:?} -> {after:?})"
+    );
+    // `bc_hold_clone_only`: the critic's pull towards larger actions no longer reaches the held
+    // component, so it ends nearer the oracle's -0.4 than when the critic pulls against the
+    // term, while component 0 still follows the critic.
+    let (_, only) = run_held(1.0, BcTarget::Oracle, &labelled, vec![1], true);
+    assert!(only[0] > before[0], "component 0 follows the critic ({before:?} -> {only:?})");
+    assert!(
+        (only[1] + 0.4).abs() < (after[1] + 0.4).abs(),
+        "the held component is nearer the label without Q's gradient ({after:?} with, {only:?} without)"
     );
 }
 
