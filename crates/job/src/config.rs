@@ -1565,34 +1565,30 @@ mod tests {
         assert!(only.sac.bc_hold_clone_only);
         assert!(JobConfig::from_toml(&only.to_toml()).expect("round trip").sac.bc_hold_clone_only);
         assert!(!ok.to_toml().contains("bc_hold_clone_only"));
-        for (text, why) in [
-            (format!("{base}bc_hold_clone_only = true\n"), "sac.bc_hold_dims"),
+        // Each refusal names the field it refuses and why.
+        for (text, field, why) in [
+            (format!("{base}bc_hold_dims = [{dim}]\n"), "sac.bc_hold_dims", "does not exist"),
+            (format!("{base}bc_hold_dims = [0, 0]\n"), "sac.bc_hold_dims", "twice"),
+            (
+                format!("{MIN}[sac]\nbc_target = \"oracle\"\nbc_hold_dims = [0]\n"),
+                "sac.bc_hold_dims",
+                "bc_q_filter = true",
+            ),
+            (
+                format!("{base}bc_hold_clone_only = true\n"),
+                "sac.bc_hold_clone_only",
+                "sac.bc_hold_dims",
+            ),
             (
                 format!(
                     "{base}bc_hold_dims = [0]\nbc_hold_clone_only = true\nbc_decay_updates = 100\n"
                 ),
+                "sac.bc_hold_clone_only",
                 "sac.bc_decay_updates",
             ),
         ] {
             let e = JobConfig::from_toml(&text).expect_err(why);
-            assert!(
-                e.to_string().contains("sac.bc_hold_clone_only") && e.to_string().contains(why),
-                "{e}"
-            );
-        }
-        for (text, why) in [
-            (format!("{base}bc_hold_dims = [{dim}]\n"), "does not exist"),
-            (format!("{base}bc_hold_dims = [0, 0]\n"), "twice"),
-            (
-                format!("{MIN}[sac]\nbc_target = \"oracle\"\nbc_hold_dims = [0]\n"),
-                "bc_q_filter = true",
-            ),
-        ] {
-            let e = JobConfig::from_toml(&text).expect_err(why);
-            assert!(
-                e.to_string().contains("sac.bc_hold_dims") && e.to_string().contains(why),
-                "{e}"
-            );
+            assert!(e.to_string().contains(field) && e.to_string().contains(why), "{e}");
         }
     }
 

@@ -520,19 +520,22 @@ impl Sac {
         if !self.cfg.bc_hold_clone_only || self.cfg.bc_hold_dims.is_empty() {
             return a;
         }
-        let hold = self.hold_mask(a.dims()[0]);
-        let free = hold.clone().neg().add_scalar(1.0);
+        let (hold, free) = self.hold_masks(a.dims()[0]);
         a.clone() * free + a.detach() * hold
     }
 
-    /// `[b, act_dim]`: 1 in the columns of `bc_hold_dims`, 0 elsewhere.
-    fn hold_mask(&self, b: usize) -> Tensor<2> {
+    /// `[b, act_dim]` masks: 1 in the columns of `bc_hold_dims` (held) and its complement
+    /// (free).
+    fn hold_masks(&self, b: usize) -> (Tensor<2>, Tensor<2>) {
         let a_dim = self.net.action_dim;
         let mut hold = vec![0.0f32; a_dim];
         for &k in &self.cfg.bc_hold_dims {
             hold[k] = 1.0;
         }
-        Tensor::<2>::from_data(TensorData::new(hold, [1, a_dim]), &self.ad).repeat_dim(0, b)
+        let hold =
+            Tensor::<2>::from_data(TensorData::new(hold, [1, a_dim]), &self.ad).repeat_dim(0, b);
+        let free = hold.clone().neg().add_scalar(1.0);
+        (hold, free)
     }
 
     /// The Q filter's `[b, 1]` keep column widened to `[b, act_dim]` with 1 in the columns of
@@ -541,8 +544,8 @@ impl Sac {
         if self.cfg.bc_hold_dims.is_empty() {
             return keep;
         }
-        let hold = self.hold_mask(keep.dims()[0]);
-        keep.repeat_dim(1, self.net.action_dim) * hold.clone().neg().add_scalar(1.0) + hold
+        let (hold, free) = self.hold_masks(keep.dims()[0]);
+        keep.repeat_dim(1, self.net.action_dim) * free + hold
     }
 
     /// An inference copy of the actor and, for query-centric observations, its segment table
