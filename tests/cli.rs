@@ -227,7 +227,7 @@ fn train_runs_a_job_embedded_and_writes_its_artifacts() {
     std::fs::write(&cfg, socialflow_e2e::tiny_job(r#""roundabout""#, "tiny", 1000))
         .expect("config");
     let data = dir.join("data");
-    let v = json_of(&socialflow(
+    let out = socialflow(
         &[
             "train",
             &cfg.display().to_string(),
@@ -235,10 +235,12 @@ fn train_runs_a_job_embedded_and_writes_its_artifacts() {
             "2",
             "--data-dir",
             &data.display().to_string(),
-            "--quiet",
+            "--set",
+            "sac.seed=7",
         ],
         T,
-    ));
+    );
+    let v = json_of(&out);
     assert_eq!(v["state"], "succeeded");
     assert_eq!(v["progress"]["env_steps"], 1000);
     assert!(v["progress"]["updates"].as_u64().unwrap_or(0) > 20, "{v}");
@@ -246,6 +248,30 @@ fn train_runs_a_job_embedded_and_writes_its_artifacts() {
     for f in ["curve.csv", "curve.png", "policy.bpk", "config.toml", "checkpoint/actor.bpk"] {
         assert!(art.join(f).exists(), "missing {f}");
     }
+    // `--set` is recorded in the job's stored config.
+    let stored = std::fs::read_to_string(art.join("config.toml")).expect("config.toml");
+    assert!(stored.contains("seed = 7"), "{stored}");
+    // Not a terminal: progress lines, not the service's log, which goes to the data directory.
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("job 1 running:") && err.contains("transitions"), "{err}");
+    assert!(!err.contains(" INFO "), "INFO lines stay off the terminal:\n{err}");
+    let log = std::fs::read_to_string(data.join("socialflow.log")).expect("socialflow.log");
+    assert!(log.contains("job started") && log.contains("checkpoint written"), "{log}");
+    // A misspelt override is refused naming the key, before anything is created.
+    let bad = socialflow(
+        &[
+            "train",
+            &cfg.display().to_string(),
+            "--data-dir",
+            &dir.join("d2").display().to_string(),
+            "--set",
+            "sac.seeed=1",
+        ],
+        T,
+    );
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("seeed"));
+    assert!(!dir.join("d2").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -320,7 +346,7 @@ fn train_with_validation_keeps_the_best_validated_actor() {
     let job = socialflow_e2e::tiny_job(r#""roundabout", "merge""#, "tiny-val", 1000)
         + "[validation]\nevery_updates = 20\nepisodes = 3\nenvs = 3\n";
     std::fs::write(&cfg, job).expect("config");
-    let v = json_of(&socialflow(
+    let out = socialflow(
         &[
             "train",
             &cfg.display().to_string(),
@@ -331,7 +357,8 @@ fn train_with_validation_keeps_the_best_validated_actor() {
             "--quiet",
         ],
         T,
-    ));
+    );
+    let v = json_of(&out);
     assert_eq!(v["state"], "succeeded", "{v}");
     let updates = v["progress"]["updates"].as_u64().expect("updates");
     let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
@@ -363,11 +390,22 @@ fn train_with_validation_keeps_the_best_validated_actor() {
         std::fs::read(art.join("policy.bpk")).expect("policy"),
         std::fs::read(art.join("best_policy.bpk")).expect("best")
     );
-    // `train` ends with the policy's and the IDM driver's scores on the same held-out episodes.
+    // `train` ends with the policy's and the IDM driver's scores on the same held-out episodes:
+    // the test cases (another seed), which chose nothing, not the validation cases that did.
     assert_eq!(meta["idm"]["episodes"], 6, "{meta}");
+    assert_eq!(meta["test"]["used_for_selection"], false, "{meta}");
+    assert_eq!(v["held_out"]["cases"], "test", "{v}");
+    assert_eq!(v["held_out"]["used_for_selection"], false, "{v}");
+    assert_eq!(v["held_out"]["cases_seed"], meta["test"]["seed"], "{v}");
+    assert_ne!(meta["test"]["seed"].as_u64(), None, "{meta}");
     assert_eq!(v["held_out"]["episodes"], 6, "{v}");
-    assert_eq!(v["held_out"]["policy"]["success"], meta["validation"]["success"], "{v}");
-    assert_eq!(v["held_out"]["idm"]["collision"], meta["idm"]["collision"], "{v}");
+    assert_eq!(v["held_out"]["policy"]["success"], meta["test"]["policy"]["success"], "{v}");
+    assert_eq!(v["held_out"]["idm"]["collision"], meta["test"]["idm"]["collision"], "{v}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("test cases, seed") && stderr.contains("they chose nothing"),
+        "{stderr}"
+    );
     assert!(
         v["held_out"]["idm"]["success"].as_f64().is_some_and(|s| (0.0..=1.0).contains(&s)),
         "{v}"
@@ -1062,4 +1100,155 @@ adversary = { egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC t
 /// results in `out`.
 fn eval_toml(data: &str, out: &std::path::Path, seeds: u32, envs: u32) -> String {
     format!("kind = \"eval\"\nruns = \"{data}\"\nout = \"{}\"\nscenarios = [\"merge\"]\ncases = 2\nseeds = {seeds}\nenvs = {envs}\n", out.display())
+}
+
+/// `train --continue-from`: a run goes on from a copy of its job directory that has no replay
+/// (as a committed run has), from exactly the state it stopped in, refills its replay and trains
+/// to the new total; directories it cannot continue are refused naming the field.
+#[test]
+fn train_continues_a_run_from_a_copied_job_directory_without_its_replay() {
+    use sha2::Digest;
+    let dir = socialflow_e2e::scratch("continue");
+    let validation = "[validation]\nevery_updates = 10\nepisodes = 3\nenvs = 3\n";
+    let cfg = |steps: u64, kind: &str| {
+        socialflow_e2e::tiny_job(r#""merge""#, "run", steps).replacen(
+            '\n',
+            &format!("\nkind = \"{kind}\"\n"),
+            1,
+        ) + "keep_actors_at_placeholder\n"
+            + validation
+    };
+    // keep_actors_at belongs to [train]; put it after env_steps.
+    let write = |name: &str, steps: u64, kind: &str| {
+        let p = dir.join(name);
+        let text = cfg(steps, kind).replace("keep_actors_at_placeholder\n", "").replacen(
+            &format!("env_steps = {steps}\n"),
+            &format!("env_steps = {steps}\nkeep_actors_at = [5]\n"),
+            1,
+        );
+        std::fs::write(&p, text).expect("config");
+        p.display().to_string()
+    };
+    let first = write("first.toml", 600, "macad");
+    let data1 = dir.join("data1").display().to_string();
+    let v = json_of(&socialflow(
+        &["train", &first, "--workers", "1", "--quiet", "--data-dir", &data1],
+        T,
+    ));
+    let art = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+    assert!(
+        art.join("kept/actor-5.bpk").is_file(),
+        "train.keep_actors_at keeps the actor at 5 updates"
+    );
+    // What a commit keeps: everything but the replay (and TensorBoard's files).
+    let committed = dir.join("committed");
+    for sub in ["", "checkpoint", "kept"] {
+        std::fs::create_dir_all(committed.join(sub)).expect("dir");
+        for e in std::fs::read_dir(art.join(sub)).expect("read") {
+            let p = e.expect("entry").path();
+            if p.is_file() {
+                std::fs::copy(&p, committed.join(sub).join(p.file_name().expect("name")))
+                    .expect("copy");
+            }
+        }
+    }
+    let src_state: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(committed.join("checkpoint/state.json")).expect("state"),
+    )
+    .expect("json");
+    let src_updates = src_state["updates"].as_u64().expect("updates");
+    let src_validation =
+        std::fs::read_to_string(committed.join("validation.csv")).expect("validation.csv");
+    let from = committed.display().to_string();
+
+    let second = write("second.toml", 1200, "macad");
+    let data2 = dir.join("data2").display().to_string();
+    let args = [
+        "train",
+        &second,
+        "--workers",
+        "1",
+        "--quiet",
+        "--data-dir",
+        &data2,
+        "--continue-from",
+        &from,
+    ];
+    let v = json_of(&socialflow(&args, T));
+    assert_eq!(v["state"], "succeeded", "{v}");
+    let art2 = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+    let marker: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(art2.join("continued_from.json")).expect("marker"))
+            .expect("json");
+    let sha = |p: &std::path::Path| {
+        sha2::Sha256::digest(std::fs::read(p).expect("weights"))
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect::<String>()
+    };
+    assert_eq!(marker["updates"].as_u64(), Some(src_updates), "{marker}");
+    assert_eq!(marker["replay"], false, "{marker}");
+    assert_eq!(
+        marker["actor_sha256"].as_str(),
+        Some(sha(&committed.join("checkpoint/actor.bpk")).as_str()),
+        "the first update starts from the source's final actor"
+    );
+    assert_eq!(
+        marker["critic_sha256"].as_str(),
+        Some(sha(&committed.join("checkpoint/critic.bpk")).as_str()),
+        "and its critic"
+    );
+    let state: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(art2.join("state.json")).expect("state"))
+            .expect("json");
+    assert!(state["counters"]["env_steps"].as_u64() >= Some(1200), "{state}");
+    let ckpt: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(art2.join("checkpoint/state.json")).expect("state"))
+            .expect("json");
+    assert!(
+        ckpt["updates"].as_u64() > Some(src_updates + 10),
+        "it trained on after the refill: {ckpt}"
+    );
+    let validation2 = std::fs::read_to_string(art2.join("validation.csv")).expect("validation.csv");
+    assert!(
+        validation2.starts_with(&src_validation) && validation2.len() > src_validation.len(),
+        "the curve goes on from the source's points:\n{validation2}"
+    );
+    assert!(art2.join("kept/actor-5.bpk").is_file(), "kept actors come along");
+    // The source is left as it was.
+    assert!(!committed.join("continued_from.json").exists());
+
+    // Refusals name the field, before anything starts.
+    let refused = |args: &[&str], field: &str| {
+        let out = socialflow(args, T);
+        assert!(!out.status.success(), "{args:?} was accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(field), "{field} not named: {err}");
+    };
+    let data3 = dir.join("data3").display().to_string();
+    let same = write("same.toml", 600, "macad");
+    refused(
+        &["train", &same, "--quiet", "--data-dir", &data3, "--continue-from", &from],
+        "train.env_steps",
+    );
+    let other = write("other.toml", 1200, "socialcomm");
+    refused(
+        &["train", &other, "--quiet", "--data-dir", &data3, "--continue-from", &from],
+        "train.continue_from",
+    );
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).expect("dir");
+    refused(
+        &[
+            "train",
+            &second,
+            "--quiet",
+            "--data-dir",
+            &data3,
+            "--continue-from",
+            &empty.display().to_string(),
+        ],
+        "train.continue_from",
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

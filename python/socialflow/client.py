@@ -25,7 +25,7 @@ import io
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Union
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 
 from . import _socialflow
 
@@ -107,6 +107,20 @@ def config_to_toml(config: Mapping[str, Any]) -> str:
     return "\n".join(top + [""] + sections) + "\n"
 
 
+def _override_list(overrides: Union[Mapping[str, Any], Sequence[str]]) -> List[str]:
+    """`section.key=value` strings from a dict of dotted keys or a list of such strings."""
+    if isinstance(overrides, Mapping):
+        out = []
+        for k, v in overrides.items():
+            if not isinstance(k, str) or not k:
+                raise ValueError(f"overrides: key {k!r} is not a dotted setting name")
+            out.append(f"{k}={_toml_value(v, k)}")
+        return out
+    if isinstance(overrides, (list, tuple)) and all(isinstance(s, str) for s in overrides):
+        return list(overrides)
+    raise ValueError(f"overrides: {overrides!r} is neither a dict nor a list of 'section.key=value' strings")
+
+
 class Client:
     """A connection to a learner's job API.
 
@@ -137,10 +151,17 @@ class Client:
         )
         self.url = url
 
-    def submit(self, config: Union[PathLike, str, Mapping[str, Any]]) -> Job:
+    def submit(
+        self,
+        config: Union[PathLike, str, Mapping[str, Any]],
+        *,
+        overrides: Optional[Union[Mapping[str, Any], Sequence[str]]] = None,
+    ) -> Job:
         """Queues a job config or evaluation grid: a path to a `.toml` file, TOML text, or a
-        dict (see `config_to_toml`). The learner validates it; a refusal raises `ValueError`
-        naming the field."""
+        dict (see `config_to_toml`). `overrides`: settings written over it, as the command
+        line's `--set`: `{"sac.seed": 12}` or `["sac.seed=12"]`; they are recorded in the job's
+        stored config. The learner validates the result; a refusal raises `ValueError` naming
+        the field."""
         if isinstance(config, Mapping):
             text = config_to_toml(config)
         elif isinstance(config, os.PathLike) or (
@@ -152,6 +173,8 @@ class Client:
             text = config
         else:
             raise ValueError(f"config: {config!r} is not a path, TOML text or dict")
+        if overrides is not None:
+            text = _socialflow.apply_overrides(text, _override_list(overrides))
         return Job._from_json(self._c.submit(text))
 
     def job(self, job_id: int) -> Job:

@@ -894,6 +894,14 @@ fn terminations() -> Vec<&'static str> {
     TERMINATIONS.iter().map(|t| t.as_str()).collect()
 }
 
+/// A job config's TOML text with `section.key=value` overrides written in (the command line's
+/// `--set`); `ValueError` names a malformed override. The result is validated where it is
+/// submitted, like any config.
+#[pyfunction]
+fn apply_overrides(text: &str, sets: Vec<String>) -> PyResult<String> {
+    sf_job::overrides::apply(text, &sets).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
 #[pymodule]
 fn _socialflow(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Core>()?;
@@ -903,5 +911,6 @@ fn _socialflow(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios, m)?)?;
     m.add_function(wrap_pyfunction!(terminations, m)?)?;
+    m.add_function(wrap_pyfunction!(apply_overrides, m)?)?;
     Ok(())
 }

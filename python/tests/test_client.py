@@ -118,6 +118,26 @@ def test_toml_text_and_files_submit_and_a_cancel_ends_the_job(learner, tmp_path)
     assert [p.state for p in c.watch(again.id)] == ["cancelled"]
 
 
+def test_overrides_are_written_into_the_stored_config_and_refused_by_name(learner, tmp_path):
+    c, _, _ = learner
+    path = tmp_path / "job.toml"
+    path.write_text(config_to_toml(tiny("py-set", 10_000_000)))
+    job = c.submit(path, overrides={"sac.seed": 12, "name": "py-set-12", "validation.episodes": 3})
+    stored = c.job(job.id).config_toml
+    assert job.name == "py-set-12"
+    assert "seed = 12" in stored and "episodes = 3" in stored, stored
+    assert c.cancel(job.id).state == "cancelled"
+    job = c.submit(path, overrides=["sac.seed=13", "name=py-set-13"])
+    assert "seed = 13" in c.job(job.id).config_toml
+    assert c.cancel(job.id).state == "cancelled"
+    with pytest.raises(ValueError, match="seeed"):
+        c.submit(path, overrides={"sac.seeed": 1})
+    with pytest.raises(ValueError, match="section.key=value"):
+        c.submit(path, overrides=["sac.seed"])
+    with pytest.raises(ValueError, match="overrides"):
+        c.submit(path, overrides=3)
+
+
 def test_refusals_name_what_is_wrong(learner):
     c, url, _ = learner
     bad = tiny("py-bad", 600)

@@ -48,6 +48,9 @@ fn flow_def(runs: &Path, f: &sf_job::eval::Named) -> Result<FlowDef> {
     if f.is_idm() {
         return Ok(FlowDef::Idm);
     }
+    if f.is_idm_noise() {
+        return Ok(FlowDef::IdmNoise { std: f.noise_std() });
+    }
     let t = find_job(runs, &f.job, f.job_id)?;
     let messages = f.messages;
     match t.cfg.kind {

@@ -229,6 +229,10 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         );
     }
     let cfg = std::sync::Arc::new(SimConfig::default());
+    // A learned flow: the mean standard deviation of its sampling noise per action component,
+    // over the rows it drove (every 4th step), the noise a noise-matched IDM flow should have.
+    let mut std_sum: Vec<f64> = Vec::new();
+    let mut std_rows = 0usize;
     let jobs: Vec<(usize, u32)> =
         (0..a.cases as usize).flat_map(|c| (0..a.seeds).map(move |s| (c, s))).collect();
     let results: Vec<EpisodeMetrics> = match learned {
@@ -271,8 +275,31 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
                         .map_err(anyhow::Error::msg)?;
                 v.set_svo_gaussian(gaussian);
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed as u64);
+                let mut step = 0usize;
                 let mut done =
-                    sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {});
+                    sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |v, _| {
+                        step += 1;
+                        if step % 4 != 0 {
+                            return;
+                        }
+                        let len = v.spec.len;
+                        let rows: Vec<usize> =
+                            (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0).collect();
+                        if rows.is_empty() {
+                            return;
+                        }
+                        let obs: Vec<f32> = rows
+                            .iter()
+                            .flat_map(|&r| v.observations()[r * len..(r + 1) * len].iter().copied())
+                            .collect();
+                        let sd = flow.runner.std_dev(&obs, &vec![0u32; rows.len()]);
+                        let dim = sd.len() / rows.len();
+                        std_sum.resize(dim, 0.0);
+                        for (k, x) in sd.iter().enumerate() {
+                            std_sum[k % dim] += *x as f64;
+                        }
+                        std_rows += rows.len();
+                    });
                 done.sort_by_key(|(tag, _)| *tag);
                 out.extend(done.into_iter().map(|(_, m)| m));
             }
@@ -292,6 +319,8 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         "timeout": col(|m| m.timeout).mean,
         "destination": col(|m| m.destination).mean,
     });
+    let action_std: Option<Vec<f64>> =
+        (std_rows > 0).then(|| std_sum.iter().map(|s| s / std_rows as f64).collect());
     if a.json {
         let s = |x: Summary| json!({"mean": x.mean, "ci95": x.ci95});
         let out = json!({
@@ -305,6 +334,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
             "safety": s(safety),
             "speed": s(speed),
             "failures": failures,
+            "action_std": action_std,
         });
         println!("{out}");
     } else {
@@ -312,6 +342,9 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
         println!("{flow_name} flow in {} over {} episodes", a.scenario, results.len());
         println!("  success {}\n  safety  {}\n  speed   {}", p(success), p(safety), p(speed));
         println!("  failures {failures}");
+        if let Some(sd) = &action_std {
+            println!("  sampling noise (std before tanh, per action component) {sd:.3?}");
+        }
     }
     Ok(())
 }

@@ -30,6 +30,11 @@ struct Cli {
     /// Directory holding the evaluation case files (`<name>.v1.json`).
     #[arg(long, global = true, default_value = "configs/cases", env = "SOCIALFLOW_CASES")]
     cases_dir: PathBuf,
+    /// The terminal's log filter for the commands that run a learner in this process (`train`,
+    /// `pipeline --embedded`, `ladder`), whose full log goes to `<data dir>/socialflow.log`:
+    /// `warn` by default (or `RUST_LOG`), `info` for every line, `RUST_LOG` syntax.
+    #[arg(long, global = true, value_name = "FILTER")]
+    log_level: Option<String>,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -113,7 +118,22 @@ pub fn main() -> ExitCode {
         Cmd::Worker(a) => a.log_json,
         _ => false,
     };
-    sf_service::logging::init(json);
+    // The commands with a learner in this process: progress on the terminal, the log in a file.
+    let log_file = match &cli.cmd {
+        Cmd::Train(a) => Some(a.data_dir.join("socialflow.log")),
+        Cmd::Pipeline(a) if a.embedded.is_some() => Some(a.data_dir.join("socialflow.log")),
+        Cmd::Ladder(a) => Some(a.data_dir.join("socialflow.log")),
+        _ => None,
+    };
+    match &log_file {
+        Some(f) => {
+            if let Err(e) = sf_service::logging::init_embedded(cli.log_level.as_deref(), f) {
+                eprintln!("error: {e}");
+                return ExitCode::FAILURE;
+            }
+        }
+        None => sf_service::logging::init(json),
+    }
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -57,12 +57,18 @@ pub struct PipelineArgs {
     /// Embedded: training jobs the learner runs at once (default: the machine's cores).
     #[arg(long, env = "SOCIALFLOW_MAX_RUNNING_JOBS")]
     pub max_running_jobs: Option<usize>,
+    /// Override a setting of every job config of the graph (repeatable): `--set
+    /// validation.every_updates=500`; validated like the files and recorded in each job's
+    /// stored config.
+    #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+    pub set: Vec<String>,
     #[command(flatten)]
     pub conn: Conn,
 }
 
-/// The configs of a pipeline directory in submission order (every job after its dependency).
-pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
+/// The configs of a pipeline directory in submission order (every job after its dependency),
+/// each with the `--set` overrides `sets` written in.
+pub fn load(dir: &Path, sets: &[String]) -> Result<Vec<(PathBuf, JobConfig, String)>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("reading pipeline directory {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -76,7 +82,7 @@ pub fn load(dir: &Path) -> Result<Vec<(PathBuf, JobConfig, String)>> {
     for f in files {
         let text =
             std::fs::read_to_string(&f).with_context(|| format!("reading {}", f.display()))?;
-        let cfg = JobConfig::from_toml(&text).with_context(|| f.display().to_string())?;
+        let (text, cfg) = remote::with_overrides(&f, &text, sets)?;
         if let Some((other, _, _)) = jobs.get(&cfg.name) {
             bail!("{} and {} both name their job `{}`", other.display(), f.display(), cfg.name);
         }
@@ -224,7 +230,7 @@ async fn follow(c: &mut JobsClient, ids: &[(String, JobId)]) -> Result<()> {
             for j in &mine {
                 println!(
                     "{}",
-                    json!({"name": j.name, "job_id": j.id, "state": j.state.as_str(), "message": j.message, "artifact_dir": j.artifact_dir, "progress": j.progress})
+                    json!({"name": j.name, "job_id": j.id, "state": j.state.as_str(), "message": j.message, "artifact_dir": j.artifact_dir, "progress": j.progress, "held_out": crate::train::held_out(Path::new(&j.artifact_dir))})
                 );
                 if j.state != JobState::Succeeded {
                     bad.push(format!("{} ({})", j.name, j.state.as_str()));
@@ -281,7 +287,7 @@ fn replicate_grid(grid: &EvalConfig, seed: u64) -> EvalConfig {
 }
 
 pub fn run(dirs: &crate::scenarios::Ctx, a: PipelineArgs) -> Result<()> {
-    let mut jobs = load(&a.dir)?;
+    let mut jobs = load(&a.dir, &a.set)?;
     if let Some(seed) = a.seed {
         reseed(&mut jobs, seed);
     }
@@ -357,7 +363,7 @@ mod tests {
     #[test]
     fn the_paper_small_graph_submits_flows_before_the_egos_that_need_them() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper-small");
-        let jobs = load(&dir).expect("a valid pipeline");
+        let jobs = load(&dir, &[]).expect("a valid pipeline");
         let pos = |n: &str| {
             jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"))
         };
@@ -455,7 +461,7 @@ mod tests {
     #[test]
     fn the_paper_graph_alternates_rarl_phases_in_order() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper");
-        let jobs = load(&dir).expect("a valid pipeline");
+        let jobs = load(&dir, &[]).expect("a valid pipeline");
         let pos = |n: &str| {
             jobs.iter().position(|(_, c, _)| c.name == n).unwrap_or_else(|| panic!("{n} missing"))
         };
@@ -483,7 +489,7 @@ mod tests {
     #[test]
     fn a_replicate_reseeds_every_job_and_only_the_seed() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/paper-small");
-        let before = load(&dir).expect("a valid pipeline");
+        let before = load(&dir, &[]).expect("a valid pipeline");
         let mut after = before.clone();
         reseed(&mut after, 7);
         assert_eq!(before.len(), after.len());
@@ -516,7 +522,7 @@ mod tests {
         };
         std::fs::write(dir.join("a.toml"), job("a", "b")).expect("write");
         std::fs::write(dir.join("b.toml"), job("b", "a")).expect("write");
-        let e = load(&dir).expect_err("a cycle");
+        let e = load(&dir, &[]).expect_err("a cycle");
         assert!(e.to_string().contains("cycle"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -526,7 +532,7 @@ mod tests {
     #[test]
     fn replicates_rename_their_jobs_and_references_and_differ_only_in_seed() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let jobs = load(&root.join("configs/paper-small")).expect("a valid pipeline");
+        let jobs = load(&root.join("configs/paper-small"), &[]).expect("a valid pipeline");
         let (r5, r6) = (replicate(&jobs, 5), replicate(&jobs, 6));
         let names: std::collections::BTreeSet<&str> =
             r5.iter().chain(&r6).map(|(_, c, _)| c.name.as_str()).collect();

@@ -2,7 +2,7 @@
 //! (the calls are `sf_service::client`'s; the progress display, shared with the embedded
 //! `train`, is `sf_embedded::client`'s).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::builder::TypedValueParser;
@@ -26,6 +26,10 @@ pub enum RemoteCmd {
         /// Then watch it until it ends.
         #[arg(long)]
         watch: bool,
+        /// Override a setting of the config (repeatable): `--set sac.seed=12`; validated like
+        /// the file and recorded in the job's stored config.
+        #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+        set: Vec<String>,
     },
     /// One job, or all jobs newest first.
     Status {
@@ -63,6 +67,31 @@ pub enum RemoteCmd {
     },
 }
 
+/// `text` (the file `path`) with the `--set` overrides `sets` written in; errors name the file.
+pub fn overridden(path: &Path, text: &str, sets: &[String]) -> Result<String> {
+    sf_job::overrides::apply(text, sets).with_context(|| path.display().to_string())
+}
+
+/// How an error names a config read with overrides: the file, and the overrides if any.
+pub fn with_sets(path: &Path, sets: &[String]) -> String {
+    if sets.is_empty() {
+        path.display().to_string()
+    } else {
+        format!("{} with --set {}", path.display(), sets.join(" --set "))
+    }
+}
+
+/// A training job's config file with its `--set` overrides, as the text to submit and parsed.
+pub fn with_overrides(
+    path: &Path,
+    text: &str,
+    sets: &[String],
+) -> Result<(String, sf_job::JobConfig)> {
+    let text = overridden(path, text, sets)?;
+    let cfg = sf_job::JobConfig::from_toml(&text).with_context(|| with_sets(path, sets))?;
+    Ok((text, cfg))
+}
+
 /// A job id as given on the command line: the bare number, parsed (and refused) as before.
 fn job_id_arg() -> impl TypedValueParser<Value = JobId> {
     clap::value_parser!(u64).map(JobId::new)
@@ -81,11 +110,12 @@ pub fn run(cmd: RemoteCmd) -> Result<()> {
         .context("starting the async runtime")?;
     rt.block_on(async move {
         match cmd {
-            RemoteCmd::Submit { config, conn, watch: w } => {
+            RemoteCmd::Submit { config, conn, watch: w, set } => {
                 let text = std::fs::read_to_string(&config)
                     .with_context(|| format!("reading {}", config.display()))?;
+                let text = overridden(&config, &text, &set)?;
                 // Checked here first, so a bad file is named before any connection.
-                sf_job::JobSpec::from_toml(&text).with_context(|| config.display().to_string())?;
+                sf_job::JobSpec::from_toml(&text).with_context(|| with_sets(&config, &set))?;
                 let mut c = connect(&conn).await?;
                 let j = submit(&mut c, text).await?;
                 println!("{}", job_json(&j));

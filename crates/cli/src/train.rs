@@ -10,7 +10,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 use sf_embedded::{runtime, Embedded};
-use sf_job::{JobConfig, JobState};
+use sf_job::JobState;
 
 use crate::remote;
 use crate::scenarios::Ctx;
@@ -28,12 +28,32 @@ pub struct TrainArgs {
     /// No progress bar (logs only).
     #[arg(long)]
     pub quiet: bool,
+    /// Continue the run in this job directory (a stopped or finished job's, copied or
+    /// committed) instead of starting from scratch: sets `train.continue_from`; the config's
+    /// `train.env_steps` is the run's total. Rerun with the same data directory, it resumes.
+    #[arg(long, value_name = "JOB_DIR")]
+    pub continue_from: Option<PathBuf>,
+    /// Override a setting of the config (repeatable): `--set sac.seed=12`; validated like
+    /// the file and recorded in the job's stored config.
+    #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+    pub set: Vec<String>,
 }
 
 pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
     let text = std::fs::read_to_string(&a.config)
         .with_context(|| format!("reading {}", a.config.display()))?;
-    let cfg = JobConfig::from_toml(&text).with_context(|| a.config.display().to_string())?;
+    let (text, cfg) = crate::remote::with_overrides(&a.config, &text, &a.set)?;
+    let mut cfg = cfg;
+    // The learner is in this process: the source directory as an absolute path of this host.
+    let text = match &a.continue_from {
+        Some(from) => {
+            let abs = std::fs::canonicalize(from)
+                .with_context(|| format!("--continue-from {}", from.display()))?;
+            cfg.train.continue_from = Some(abs.display().to_string());
+            cfg.to_toml()
+        }
+        None => text,
+    };
     if a.workers == 0 {
         bail!("--workers must be at least 1");
     }
@@ -123,13 +143,20 @@ fn checkpoint_line(artifact_dir: &Path) -> String {
     }
 }
 
-/// The final policy's and the IDM driver's scores on the job's held-out validation cases (its
-/// `policy.json`, when the job has `[validation]`).
-fn held_out(artifact_dir: &Path) -> Option<serde_json::Value> {
+/// The final policy's and the IDM driver's scores on held-out cases (its `policy.json`, when
+/// the job has `[validation]`): the test cases, which selected nothing, or for a job finished
+/// before they existed the validation cases, which chose the policy (`used_for_selection`).
+pub fn held_out(artifact_dir: &Path) -> Option<serde_json::Value> {
     let text = std::fs::read_to_string(artifact_dir.join("policy.json")).ok()?;
     let v: serde_json::Value = serde_json::from_str(&text).ok()?;
     let scores = |p: &serde_json::Value| json!({"success": p["success"], "collision": p["collision"], "speed": p["speed"]});
-    (v["validation"].is_object() && v["idm"].is_object()).then(|| json!({"episodes": v["validation"]["episodes"], "policy": scores(&v["validation"]), "idm": scores(&v["idm"])}))
+    let t = &v["test"];
+    if t["policy"].is_object() && t["idm"].is_object() {
+        return Some(
+            json!({"cases": "test", "cases_seed": t["seed"], "used_for_selection": false, "episodes": t["policy"]["episodes"], "policy": scores(&t["policy"]), "idm": scores(&t["idm"])}),
+        );
+    }
+    (v["validation"].is_object() && v["idm"].is_object()).then(|| json!({"cases": "validation", "used_for_selection": true, "episodes": v["validation"]["episodes"], "policy": scores(&v["validation"]), "idm": scores(&v["idm"])}))
 }
 
 /// [`held_out`] as a table for the terminal.
@@ -139,8 +166,13 @@ fn held_out_table(h: &serde_json::Value) -> String {
         format!("  {name:<16} {:>8} {:>10} {:>7}", f("success"), f("collision"), f("speed"))
     };
     let head = format!("  {:<16} {:>8} {:>10} {:>7}", "", "success", "collision", "speed");
+    let which = if h["used_for_selection"] == false {
+        format!("test cases, seed {}: they chose nothing", h["cases_seed"])
+    } else {
+        "validation cases: they chose the policy".to_string()
+    };
     format!(
-        "the same {} held-out episodes (validation cases):\n{head}\n{}\n{}",
+        "the same {} held-out episodes ({which}):\n{head}\n{}\n{}",
         h["episodes"],
         row("learned policy", &h["policy"]),
         row("IDM driver", &h["idm"])

@@ -165,11 +165,39 @@ pub struct ValidationSection {
     pub seed: u64,
     /// Simulators stepped together.
     pub envs: usize,
+    /// Seeds the test cases: generated like the validation cases but from this seed, and
+    /// scored once, at the end, with the kept actor and the IDM driver. They select nothing,
+    /// so the side-by-side a finished job reports is on cases apart from those that chose its
+    /// actor. Default: `seed + 1`; must differ from `seed`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub test_seed: Option<u64>,
+    /// Test cases per scenario (default: `episodes`); 0 skips the test.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub test_episodes: Option<u32>,
 }
 
 impl Default for ValidationSection {
     fn default() -> Self {
-        Self { every_updates: 500, episodes: 100, seed: 0x76_616c, envs: 25 }
+        Self {
+            every_updates: 500,
+            episodes: 100,
+            seed: 0x76_616c,
+            envs: 25,
+            test_seed: None,
+            test_episodes: None,
+        }
+    }
+}
+
+impl ValidationSection {
+    /// The seed of the test cases.
+    pub fn test_seed(&self) -> u64 {
+        self.test_seed.unwrap_or(self.seed.wrapping_add(1))
+    }
+
+    /// Test cases per scenario (0: no test).
+    pub fn test_episodes(&self) -> u32 {
+        self.test_episodes.unwrap_or(self.episodes)
     }
 }
 
@@ -654,6 +682,20 @@ pub struct TrainSection {
     /// carries it; both need `persist_replay` and the same `env.scenarios`.
     #[serde(default)]
     pub init_replay: bool,
+    /// Update counts at which the actor that validation would score is kept as
+    /// `kept/actor-<updates>.bpk` in the job directory (a long run's actors along its curve),
+    /// strictly increasing.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub keep_actors_at: Vec<u64>,
+    /// Continue a run from its job directory on the learner's host (a stopped or finished
+    /// job's, copied or committed): its whole SAC state (actor, critic, target, optimizer
+    /// moments, alpha, update counter, RNG), counters, curve, validation points, best and kept
+    /// actors, and its replay when the directory has one; without one the replay refills with
+    /// the continued policy (`sac.warmup_steps` transitions) before updates go on.
+    /// `train.env_steps` is the total, counted from the source's start. `socialflow train
+    /// --continue-from DIR` sets it as an absolute path.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub continue_from: Option<String>,
 }
 impl TrainSection {
     /// Whether the job continues another (`train.init_job`, or `train.init_from` by name).
@@ -1275,6 +1317,24 @@ impl JobConfig {
         if t.curve_every_steps == Some(0) {
             return bad("train.curve_every_steps", "must be positive");
         }
+        if let Some(from) = &t.continue_from {
+            if from.trim().is_empty() {
+                return bad("train.continue_from", "must name a job directory");
+            }
+            if self.train.continues() {
+                return bad(
+                    "train.continue_from",
+                    "continues a run's directory; train.init_job / init_from start from a job of this learner: set one of them",
+                );
+            }
+        }
+        if t.keep_actors_at.first() == Some(&0) || t.keep_actors_at.windows(2).any(|w| w[0] >= w[1])
+        {
+            return bad(
+                "train.keep_actors_at",
+                format!("{:?} must be positive and strictly increasing", t.keep_actors_at),
+            );
+        }
         if t.window == 0 {
             return bad("train.window", "must be positive");
         }
@@ -1340,6 +1400,18 @@ impl JobConfig {
             }
             if v.envs == 0 || v.envs > 256 {
                 return bad("validation.envs", format!("{} must be in 1..=256", v.envs));
+            }
+            if v.test_seed() == v.seed {
+                return bad(
+                    "validation.test_seed",
+                    format!("{} is the validation seed: the test cases must be apart from the cases that select the actor", v.seed),
+                );
+            }
+            if v.test_episodes() > 10_000 {
+                return bad(
+                    "validation.test_episodes",
+                    format!("{} must be in 0..=10000", v.test_episodes()),
+                );
             }
         }
         Ok(())

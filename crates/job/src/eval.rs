@@ -30,6 +30,12 @@ fn bad<T>(msg: impl Into<String>) -> Result<T, EvalConfigError> {
 
 /// The reserved job name of IDM with MOBIL's lane changes in the ego's seat.
 pub const IDM_MOBIL: &str = "idm-mobil";
+/// The reserved job name of the noise-matched IDM flow: the IDM driver plus a learned flow's
+/// sampling noise on each component of the lateral residual (`noise_std`).
+pub const IDM_NOISE: &str = "idm-noise";
+/// `noise_std` of an `idm-noise` flow by default: the standard deviation the learned flows'
+/// cloning term pulls their log-std to (`ln 0.3`).
+pub const DEFAULT_FLOW_NOISE_STD: f32 = 0.3;
 
 /// A scripted driver in an evaluation cell's ego seat (an ego of `job = "idm"` or
 /// `job = "idm-mobil"`): no policy travels for it.
@@ -90,6 +96,10 @@ pub struct Named {
     /// in the ego's seat, zero-shot. `socialflow eval` only.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub flow_actor: bool,
+    /// `job = "idm-noise"` flows only: the standard deviation of the noise on each action
+    /// component, in (0, 3] (default [`DEFAULT_FLOW_NOISE_STD`]). `socialflow eval` only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_std: Option<f32>,
 }
 
 impl Named {
@@ -102,9 +112,19 @@ impl Named {
         self.job == IDM_MOBIL
     }
 
-    /// A scripted driver (`idm` or `idm-mobil`), not a stored job.
+    /// The noise-matched IDM flow (`job = "idm-noise"`).
+    pub fn is_idm_noise(&self) -> bool {
+        self.job == IDM_NOISE
+    }
+
+    /// An `idm-noise` flow's noise standard deviation.
+    pub fn noise_std(&self) -> f32 {
+        self.noise_std.unwrap_or(DEFAULT_FLOW_NOISE_STD)
+    }
+
+    /// A scripted driver or flow (`idm`, `idm-mobil`, `idm-noise`), not a stored job.
     pub fn is_scripted(&self) -> bool {
-        self.scripted().is_some()
+        self.scripted().is_some() || self.is_idm_noise()
     }
 
     /// As an ego: the scripted driver it names, if any.
@@ -440,6 +460,22 @@ impl EvalConfig {
         }
         if self.egos.iter().filter(|e| e.is_idm_mobil()).count() > 1 {
             return bad(format!("eval config field `egos`: at most one ego may be the MOBIL driver (`job = \"{IDM_MOBIL}\"`)"));
+        }
+        if let Some(n) = self.egos.iter().find(|n| n.is_idm_noise()) {
+            return bad(format!("eval config field `egos.job` of `{}`: `{IDM_NOISE}` is a flow, not a driver of the ego's seat", n.name));
+        }
+        if let Some(n) =
+            self.flows.iter().chain(&self.egos).find(|n| n.noise_std.is_some() && !n.is_idm_noise())
+        {
+            return bad(format!("eval config field `noise_std` of `{}`: only a `job = \"{IDM_NOISE}\"` flow has a noise", n.name));
+        }
+        if let Some(n) = self.flows.iter().find(|n| !(n.noise_std() > 0.0 && n.noise_std() <= 3.0))
+        {
+            return bad(format!(
+                "eval config field `noise_std` of `{}`: {} is not in (0, 3]",
+                n.name,
+                n.noise_std()
+            ));
         }
         if let Some(n) = self.flows.iter().find(|n| n.is_idm_mobil()) {
             return bad(format!("eval config field `flows.job` of `{}`: `{IDM_MOBIL}` drives the ego's seat only, not a flow", n.name));

@@ -4,7 +4,8 @@
 //! Owns: [`JobConfig`] (the TOML a user submits; `deny_unknown_fields`, validated with errors
 //! that name the field), [`JobState`], [`JobRecord`], [`Progress`] and the [`Learning`] it
 //! shares with curve points, [`Assignment`], [`TransitionBatch`] with its shape and finiteness
-//! checks, evaluation grids ([`eval`]), and [`JobSpec`], the one parse of a submitted or stored
+//! checks, evaluation grids ([`eval`]), `--set` overrides of a config's text ([`overrides`]),
+//! and [`JobSpec`], the one parse of a submitted or stored
 //! text into either; [`WorkerId`], [`JobId`] and [`PolicyVersion`], typed ids that cross
 //! processes. Must not: depend on burn, tokio or the wire format (`sf_proto` converts to and
 //! from these types).
@@ -14,6 +15,7 @@ pub mod batch;
 pub mod config;
 pub mod eval;
 pub mod ids;
+pub mod overrides;
 pub mod spec;
 
 pub use batch::{
@@ -84,6 +86,18 @@ pub struct Progress {
     pub policy_version: PolicyVersion,
     pub env_steps_per_s: f64,
     pub dropped_stale: u64,
+    /// A job with `[validation]`: its last and best held-out points so far.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub validation: Option<ValidationProgress>,
+}
+
+/// Where a job's held-out validation stands: the last point and the best (the actor it keeps).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ValidationProgress {
+    pub updates: u64,
+    pub success: f32,
+    pub best_updates: u64,
+    pub best_success: f32,
 }
 
 /// A job as the store keeps it.

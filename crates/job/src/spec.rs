@@ -14,6 +14,8 @@ use crate::JobId;
 
 /// A submitted or stored job: what it runs, parsed and validated.
 #[derive(Clone, Debug, PartialEq)]
+// One per job, parsed once and kept: boxing the larger config would buy nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum JobSpec {
     /// A training job (`kind` = ego, a flow, or an adversary).
     Train(JobConfig),

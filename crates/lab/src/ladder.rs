@@ -62,6 +62,10 @@ pub struct LadderArgs {
     /// curve check: there is no curve) go to `--out`.
     #[arg(long, conflicts_with_all = ["seeds", "eval_only"])]
     pub scripted: Option<String>,
+    /// Override a setting of the rung's job config (repeatable): `--set sac.lr_actor=1e-4`;
+    /// validated like the file and recorded in each seed's stored config.
+    #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+    pub set: Vec<String>,
 }
 
 /// A rung of the ladder: a job, its training seeds, an evaluation and a gate.
@@ -236,6 +240,9 @@ struct SeedSummary {
     train_seed: u64,
     job_dir: String,
     episodes: usize,
+    /// Stored cases the paired test is over (its unit; absent in summaries written before).
+    #[serde(default)]
+    cases: usize,
     success: f64,
     idm_success: f64,
     collision: f64,
@@ -263,7 +270,11 @@ pub fn run(dirs: &Ctx, a: LadderArgs) -> Result<()> {
     let job_path = a.rung.parent().unwrap_or(Path::new(".")).join(&rung.job);
     let text = std::fs::read_to_string(&job_path)
         .with_context(|| format!("reading {}", job_path.display()))?;
-    let base = JobConfig::from_toml(&text).with_context(|| job_path.display().to_string())?;
+    let text =
+        sf_job::overrides::apply(&text, &a.set).with_context(|| job_path.display().to_string())?;
+    let base = JobConfig::from_toml(&text).with_context(|| {
+        format!("{}{}", job_path.display(), if a.set.is_empty() { "" } else { " with --set" })
+    })?;
     if base.kind != sf_job::config::JobKind::Ego {
         bail!("{}: a rung trains an ego job, not a {} job", job_path.display(), base.kind.as_str());
     }
@@ -551,6 +562,7 @@ mod tests {
             train_seed: 0,
             job_dir: String::new(),
             episodes: 0,
+            cases: 0,
             success: 0.0,
             idm_success: 0.0,
             collision: 0.0,
@@ -676,5 +688,51 @@ mod tests {
         assert!(mobil.passed && mobil.episodes == 4, "{:?}", mobil.failed_checks);
         let policy = summarise(0, Path::new("."), &rows, &gate, 0, 0.0, "policy").expect("policy");
         assert!(!policy.passed && policy.success == 0.0);
+    }
+
+    /// The paired test takes the stored case as its unit: an evaluation seed that repeats
+    /// another's episodes (what deterministic drivers give) leaves p as it was, and the summary
+    /// counts cases, not episodes.
+    #[test]
+    fn a_repeated_evaluation_seed_leaves_the_paired_test_unchanged() {
+        let row = |driver: &'static str, case: u32, seed: u32, success: f32| Row {
+            train_seed: 0,
+            driver,
+            scenario: if case % 2 == 0 { "merge".into() } else { "roundabout".into() },
+            case,
+            seed,
+            vehicles: 3,
+            success,
+            collision: 1.0 - success,
+            other_failure: 0.0,
+            timeout: 0.0,
+            speed: 0.9,
+            lane_change: 0.0,
+        };
+        // The policy succeeds in 14 of 20 cases, IDM in 9: a difference a paired test sees.
+        let one_seed = |seed: u32| -> Vec<Row> {
+            (0..20)
+                .flat_map(|c| {
+                    [
+                        row("policy", c, seed, if c % 10 < 7 { 1.0 } else { 0.0 }),
+                        row("idm", c, seed, if c % 20 < 9 { 1.0 } else { 0.0 }),
+                    ]
+                })
+                .collect()
+        };
+        let gate = Gate::default();
+        let once =
+            summarise(0, Path::new("."), &one_seed(0), &gate, 0, 0.0, "policy").expect("once");
+        let twice_rows: Vec<Row> = one_seed(0).into_iter().chain(one_seed(1)).collect();
+        let twice =
+            summarise(0, Path::new("."), &twice_rows, &gate, 0, 0.0, "policy").expect("twice");
+        assert!(
+            once.p_value < 0.2 && once.p_value > 1e-6,
+            "a test with something to see: {}",
+            once.p_value
+        );
+        assert_eq!(twice.p_value, once.p_value, "the repeated seed is not a second observation");
+        assert_eq!((once.cases, twice.cases), (20, 20));
+        assert_eq!((once.episodes, twice.episodes), (20, 40));
     }
 }

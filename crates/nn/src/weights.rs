@@ -19,6 +19,12 @@ pub fn to_bytes<M: Module + Clone>(m: &M) -> Result<Vec<u8>, WeightsError> {
     Ok(bytes.to_vec())
 }
 
+/// The SHA-256 of weight bytes, in lowercase hex: how files and logs name a set of weights.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    sha2::Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// Loads parameters into a module of the same architecture.
 pub fn from_bytes<M: Module>(m: M, bytes: &[u8]) -> Result<M, WeightsError> {
     let rec = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes.to_vec()))

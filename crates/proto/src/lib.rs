@@ -75,6 +75,12 @@ pub fn progress_to_wire(job_id: JobId, state: JobState, progress: &Progress) -> 
         env_steps_per_s: progress.env_steps_per_s,
         wall_s: p.wall_s,
         dropped_stale: progress.dropped_stale,
+        validation: progress.validation.map(|v| pb::ValidationProgress {
+            updates: v.updates,
+            success: v.success,
+            best_updates: v.best_updates,
+            best_success: v.best_success,
+        }),
     }
 }
 
@@ -96,8 +102,28 @@ pub fn progress_from_wire(p: &pb::JobProgress) -> Result<(JobState, Progress), W
             policy_version: p.policy_version.into(),
             env_steps_per_s: p.env_steps_per_s,
             dropped_stale: p.dropped_stale,
+            validation: p.validation.as_ref().map(validation_from_wire).transpose()?,
         },
     ))
+}
+
+fn validation_from_wire(
+    v: &pb::ValidationProgress,
+) -> Result<sf_job::ValidationProgress, WireError> {
+    for (field, x) in [
+        ("JobProgress.validation.success", v.success),
+        ("JobProgress.validation.best_success", v.best_success),
+    ] {
+        if !(0.0..=1.0).contains(&x) {
+            return wire(field, format!("{x} is not in [0, 1]"));
+        }
+    }
+    Ok(sf_job::ValidationProgress {
+        updates: v.updates,
+        success: v.success,
+        best_updates: v.best_updates,
+        best_success: v.best_success,
+    })
 }
 
 pub fn job_to_wire(j: &JobRecord) -> pb::Job {

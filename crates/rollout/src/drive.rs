@@ -28,6 +28,11 @@ pub enum Actor<'a> {
     /// kinds: zero) with Gaussian noise of this standard deviation per component, clipped to
     /// [-1, 1] (the IDM warm-up; a noise of 0 draws no random numbers). Driving roles only.
     Demo { noise: f32, action: DriveAction },
+    /// The IDM driver with a learned flow's sampling noise, for a residual `action` (zero is
+    /// IDM): each component `tanh(std * e)` with `e` standard normal, what a tanh-squashed
+    /// Gaussian policy with a zero mean and this standard deviation samples. The noise-matched
+    /// IDM flow of evaluation grids (`job = "idm-noise"`). Driving roles only.
+    IdmNoise { std: f32, action: DriveAction },
     /// IDM with MOBIL's lane changes ([`sf_sim::mobil::action`]) as an `idm-residual-lateral`
     /// action: the lane MOBIL chooses, a zero residual once there (a reference driver that
     /// steers). Driving roles only.
@@ -54,7 +59,7 @@ impl<'a> Actor<'a> {
     pub fn drive_action(&self) -> DriveAction {
         match self {
             Actor::Random { .. } => DriveAction::Direct,
-            Actor::Demo { action, .. } => *action,
+            Actor::Demo { action, .. } | Actor::IdmNoise { action, .. } => *action,
             Actor::Mobil(_) => DriveAction::IdmResidualLateral,
             Actor::Policy { runner, .. } => runner.net().action,
             Actor::External { action, .. } => *action,
@@ -65,7 +70,7 @@ impl<'a> Actor<'a> {
     pub fn dim(&self) -> usize {
         match self {
             Actor::Random { dim } => *dim,
-            Actor::Demo { action, .. } => action.dim(),
+            Actor::Demo { action, .. } | Actor::IdmNoise { action, .. } => action.dim(),
             Actor::Mobil(_) => DriveAction::IdmResidualLateral.dim(),
             Actor::Policy { runner, .. } => runner.net().action_dim,
             Actor::External { action, .. } => action.dim(),
@@ -209,6 +214,12 @@ fn act(
             }
             a
         }
+        Actor::IdmNoise { std, .. } => (0..n * dim)
+            .map(|_| {
+                let e: f32 = rng.sample(StandardNormal);
+                (std * e).tanh()
+            })
+            .collect(),
         Actor::Mobil(p) => venvs
             .iter()
             .zip(rows)

@@ -149,4 +149,11 @@ impl PolicyRunner {
     pub fn mean(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
         self.mean_of(&self.batch(rows, map_ids))
     }
+
+    /// The standard deviation `[B * A]` (row-major) of the Gaussian each row's action is
+    /// sampled from before its tanh: how much noise the policy samples with.
+    pub fn std_dev(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
+        let (_, log_std) = self.actor.dist(&self.batch(rows, map_ids), self.table.as_ref());
+        log_std.exp().into_data().try_to_vec::<f32>().expect("log-std is f32")
+    }
 }

@@ -320,3 +320,43 @@ fn evaluation_loading_errors_name_what_is_wrong() {
     );
     let _ = std::fs::remove_dir_all(&empty);
 }
+
+/// The noise-matched IDM flow (`FlowDef::IdmNoise`): with no noise it is the IDM flow exactly,
+/// on its own (every vehicle) and around the IDM driver in the ego's seat; with the learned
+/// flows' noise it drives differently, and its episodes follow the seed alone.
+#[test]
+fn the_noise_matched_idm_flow_without_noise_is_the_idm_flow() {
+    use sf_job::eval::Cell;
+    use sf_rollout::evaluate::{load_scenario, run_cell, CellSize, EgoDef, FlowDef, Runners};
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let (m, cases) =
+        load_scenario(&root.join("configs/scenarios"), &root.join("configs/cases"), "merge")
+            .expect("merge and its cases");
+    let mut runners =
+        Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu"));
+    let size = CellSize { cases: 12, seeds: 2, envs: 5 };
+    let cell = |ego: &str, flow: &str| Cell {
+        experiment: "flow_quality".into(),
+        ego: ego.into(),
+        flow: flow.into(),
+        scenario: "merge".into(),
+        svo_deg: None,
+        vehicles: None,
+    };
+    let mut run = |flow: &FlowDef, ego: Option<&EgoDef>, name: &str, envs: usize| {
+        let c = cell(if ego.is_some() { "IDM driver" } else { "" }, name);
+        run_cell(&c, CellSize { envs, ..size }, &m, &cases, flow, ego, &mut runners).expect("cell")
+    };
+    let idm = run(&FlowDef::Idm, None, "idm", 5);
+    let quiet = run(&FlowDef::IdmNoise { std: 0.0 }, None, "idm-noise", 5);
+    assert_eq!(quiet, idm, "a zero noise drives every vehicle as the IDM flow does");
+    let ego = EgoDef::Idm;
+    assert_eq!(
+        run(&FlowDef::IdmNoise { std: 0.0 }, Some(&ego), "idm-noise", 5),
+        run(&FlowDef::Idm, Some(&ego), "idm", 5),
+        "and around the IDM driver in the ego's seat"
+    );
+    let noisy = run(&FlowDef::IdmNoise { std: 0.3 }, None, "idm-noise", 5);
+    assert_ne!(noisy, idm, "the learned flows' noise changes the episodes");
+    assert_eq!(noisy, run(&FlowDef::IdmNoise { std: 0.3 }, None, "idm-noise", 5), "repeatable");
+}

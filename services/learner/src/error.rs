@@ -85,6 +85,9 @@ pub enum LearnerError {
     #[error("eval config entry `{name}`: probes (`messages`, `flow_actor`) run in `socialflow eval` only, not as a learner's evaluation job")]
     ProbeInService { name: String },
 
+    /// An evaluation grid with the noise-matched IDM flow, which only `socialflow eval` runs.
+    #[error("eval config flow `{name}`: the noise-matched IDM flow (`job = \"idm-noise\"`) runs in `socialflow eval` only, not as a learner's evaluation job")]
+    NoiseFlowInService { name: String },
     /// A submitted job's `sac.device` this learner cannot open.
     #[error("job config field `sac.device`: {0}")]
     DeviceField(#[source] sf_nn::device::DeviceError),
@@ -122,6 +125,9 @@ pub enum LearnerError {
     /// completes "job N ...".
     #[error("job config field `{field}`: job {dep} {reason}")]
     Dependency { field: &'static str, dep: JobId, reason: String },
+    /// `train.continue_from` names a directory the job cannot continue.
+    #[error("job config field `train.continue_from`: {reason}")]
+    Continuation { reason: String },
     /// A starting job's dependency could not be looked up.
     #[error("job {dep} ({field}): {source}")]
     DependencyLookup { dep: JobId, field: &'static str, source: ServiceError },
@@ -204,11 +210,13 @@ impl LearnerError {
             | L::NoBackgroundFlow { .. }
             | L::Coordinator(_)
             | L::Dependency { .. }
+            | L::Continuation { .. }
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
-            L::UnresolvedName { .. } | L::DeviceField(_) | L::ProbeInService { .. } => {
-                S::InvalidArgument
-            }
+            L::UnresolvedName { .. }
+            | L::DeviceField(_)
+            | L::ProbeInService { .. }
+            | L::NoiseFlowInService { .. } => S::InvalidArgument,
             L::ShuttingDown
             | L::StorageFault { .. }
             | L::Store(crate::store::StoreError::Storage { .. }) => S::Unavailable,

@@ -59,6 +59,8 @@ pub struct Stats {
     /// Policy lag of the batches since [`ActiveJob::take_mean_lag`] last read it.
     lag_sum: u64,
     lag_batches: u64,
+    /// `[validation]`: the last and best held-out points (what progress shows).
+    validation: Option<sf_job::ValidationProgress>,
 }
 
 /// The reply to one batch.
@@ -137,6 +139,7 @@ impl ActiveJob {
                 rate: VecDeque::new(),
                 lag_sum: 0,
                 lag_batches: 0,
+                validation: None,
             }),
             stop: Mutex::new(None),
             stopping: AtomicBool::new(false),
@@ -430,6 +433,17 @@ impl ActiveJob {
     }
 
     /// Called by the trainer after each update.
+    /// A validation point at `updates` with held-out success `success`, and the best point so
+    /// far (`best`: updates, success), for progress displays.
+    pub fn record_validation(&self, updates: u64, success: f32, best: (u64, f32)) {
+        lock(&self.stats).validation = Some(sf_job::ValidationProgress {
+            updates,
+            success,
+            best_updates: best.0,
+            best_success: best.1,
+        });
+    }
+
     pub fn record_update(&self, updates: u64, l: Losses) {
         let mut s = lock(&self.stats);
         s.updates = updates;
@@ -472,6 +486,7 @@ impl ActiveJob {
             policy_version: self.latest_version(),
             env_steps_per_s,
             dropped_stale: s.c.dropped_stale,
+            validation: s.validation,
         }
     }
 }

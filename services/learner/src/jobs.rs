@@ -170,6 +170,12 @@ impl Jobs {
                 return Err(refuse(&format!("is {}", rec.state.as_str())).into());
             }
         }
+        if cfg.train.continue_from.is_some() {
+            let c2 = cfg.clone();
+            tokio::task::spawn_blocking(move || crate::continuation::check(&c2))
+                .await
+                .map_err(|source| LearnerError::Task { task: "blocking task", source })??;
+        }
         let target = cfg.train.env_steps;
         let rec = self.queue(JobSpec::Train(cfg), toml_text, target).await?;
         tracing::info!(job_id = rec.id.get(), name = %rec.name, "job queued");
@@ -183,6 +189,10 @@ impl Jobs {
         // workers' cells carry neither, so the learner refuses it rather than run it unprobed.
         if let Some(n) = cfg.flows.iter().chain(&cfg.egos).find(|n| n.is_probe()) {
             return Err(LearnerError::ProbeInService { name: n.name.clone() }.into());
+        }
+        // Its noise is drawn where the cell runs, and workers are told only policies.
+        if let Some(n) = cfg.flows.iter().find(|n| n.is_idm_noise()) {
+            return Err(LearnerError::NoiseFlowInService { name: n.name.clone() }.into());
         }
         let jobs = self.list();
         eval::resolve_names(&mut cfg, &jobs)?;

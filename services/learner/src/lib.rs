@@ -23,6 +23,7 @@
 mod artifacts;
 pub mod cmd;
 pub mod config;
+pub mod continuation;
 mod deps;
 mod error;
 pub mod eval;

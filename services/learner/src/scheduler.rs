@@ -196,10 +196,26 @@ impl Scheduler {
     ) -> Result<(), LearnerError> {
         let maps = self.jobs.load_maps(&cfg.env.scenarios).await?;
         let dir = PathBuf::from(&rec.artifact_dir);
-        let dir2 = dir.clone();
-        let resume = blocking(move || trainer::load_state(&dir2)).await?;
+        let (dir2, cfg2) = (dir.clone(), cfg.clone());
+        // A continuation's first start copies its source's state in; then it resumes as any
+        // restarted job does.
+        let (seeded, resume) = blocking(move || {
+            let seeded = crate::continuation::seed(&cfg2, &dir2)?;
+            Ok::<_, LearnerError>((seeded, trainer::load_state(&dir2)?))
+        })
+        .await?;
+        if let Some(s) = seeded {
+            tracing::info!(
+                job_id = rec.id.get(),
+                replay = s.replay,
+                "continuing a run's directory (train.continue_from)"
+            );
+        }
         let capacity = cfg.train.replay_capacity as u64;
-        let fill = if resume.is_some() {
+        // A resumed job samples again soon; one whose replay is not on disk (a continuation
+        // from a directory without one) refills it with its policy first, as much as a warm-up.
+        let has_replay = dir.join("replay").is_dir();
+        let fill = if resume.is_some() && (has_replay || !cfg.train.persist_replay) {
             4 * cfg.sac.batch_size as u64
         } else {
             cfg.sac.warmup_steps.max(cfg.sac.batch_size as u64)

@@ -24,10 +24,9 @@ use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sf_job::{PolicyRequest, PolicyVersion};
+use sf_job::PolicyVersion;
 use sf_report::plot::{line_chart, Series};
 use sf_report::tensorboard::EventWriter;
-use sf_rollout::setup;
 use sf_sac::rate_limiter::RateLimitError;
 use sf_sac::replay_store::{ReplayStore, Segment};
 use sf_sac::CurvePoint;
@@ -43,9 +42,11 @@ use crate::job::{ActiveJob, Counters, StopReason};
 use crate::slot::Outcome;
 use crate::validation::{BestPolicy, ValidationPoint, Validator};
 use curve::CurveRecorder;
+use outputs::{fit_coordinator, keep_actor, validate, write_final_policy};
 use sf_service::sync::lock;
 
 mod curve;
+mod outputs;
 
 /// What survives a restart besides the SAC checkpoint.
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
@@ -168,6 +169,11 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
         )),
         None => None,
     };
+    if let (Some((_, best)), Some(last)) = (&validator, st.validation.last()) {
+        if let Some(b) = &best.point {
+            job.record_validation(last.updates, last.scores.success, (b.updates, b.scores.success));
+        }
+    }
     let mut publisher = Publisher::new(&job, &dir, st.policy_version);
     publisher.publish(&sac)?;
     job.record_update(sac.updates, Default::default());
@@ -206,6 +212,9 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
                     job.record_update(sac.updates, last_loss);
                     if sac.updates.is_multiple_of(cfg.train.publish_every_updates) {
                         publisher.publish(&sac)?;
+                    }
+                    if cfg.train.keep_actors_at.contains(&sac.updates) {
+                        keep_actor(&job, &sac, &dir)?;
                     }
                     if let Some((v, best)) = validator
                         .as_mut()
@@ -271,6 +280,7 @@ fn start_state(
             env_steps = st.counters.env_steps,
             "resumed from checkpoint"
         );
+        record_continuation(sac, dir)?;
         return Ok(true);
     }
     if let Some(InitDep { job_id, dir: init }) = init {
@@ -282,6 +292,30 @@ fn start_state(
         tracing::info!(job_id = job.id.get(), from = %init.display(), "started from another job's critic and final policy");
     }
     Ok(false)
+}
+
+/// A continuation's first start (`train.continue_from`): the marker the copy left gets the
+/// state the job starts from, so where a run came from is on disk beside it: the update
+/// counter and the SHA-256 of the actor and critic as restored (equal to the source
+/// checkpoint's `actor.bpk` and `critic.bpk`).
+fn record_continuation(sac: &Sac, dir: &Path) -> Result<(), LearnerError> {
+    let p = dir.join(crate::continuation::MARKER);
+    let Ok(text) = std::fs::read_to_string(&p) else { return Ok(()) };
+    let mut marker: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|source| LearnerError::StateFile { path: p.clone(), source })?;
+    if marker.get("updates").is_some() {
+        return Ok(());
+    }
+    let digest = |bytes: Result<Vec<u8>, sf_nn::weights::WeightsError>| {
+        bytes.map(|b| sf_nn::weights::sha256_hex(&b)).map_err(|source| LearnerError::Weights {
+            action: "serialising the restored state",
+            source,
+        })
+    };
+    marker["updates"] = sac.updates.into();
+    marker["actor_sha256"] = digest(sac.actor_bytes())?.into();
+    marker["critic_sha256"] = digest(sf_nn::weights::to_bytes(&sac.critic))?.into();
+    write_atomic(&p, marker.to_string().as_bytes())
 }
 
 /// `train.persist_replay`: the replay's segment store, with a resumed job's replay read back
@@ -390,158 +424,6 @@ impl<'a> Publisher<'a> {
         self.job.publish(self.version, bytes);
         Ok(())
     }
-}
-
-/// Writes the job's final policy (`policy.bpk`, `policy.json`) and returns its weights: the
-/// best validated actor with `[validation]` (`policy.json` then has its validation point and,
-/// as `idm`, the IDM driver's on the same held-out cases), else the averaged actor with
-/// `sac.actor_average_tau`, else the version just published. `policy.json`'s `version` names
-/// the job's final policy either way.
-fn write_final_policy(
-    job: &ActiveJob,
-    sac: &Sac,
-    validator: Option<&mut (Validator, BestPolicy)>,
-    dir: &Path,
-) -> Result<Vec<u8>, LearnerError> {
-    let last = job
-        .latest()
-        .ok_or(LearnerError::NoPolicyVersion { job_id: job.id, version: PolicyRequest::Latest })?;
-    let validated = match validator {
-        Some((v, best)) => {
-            best.take()?.map(|kept| Ok::<_, LearnerError>((kept, v.score_idm()?))).transpose()?
-        }
-        None => None,
-    };
-    let (weights, meta) = match validated {
-        Some(((bytes, p), idm)) => {
-            tracing::info!(
-                job_id = job.id.get(),
-                updates = p.updates,
-                success = p.scores.success,
-                idm_success = idm.scores.success,
-                last_updates = sac.updates,
-                "final policy: the best validated actor"
-            );
-            (
-                bytes,
-                serde_json::json!({"version": last.version, "updates": p.updates, "selected_by": "validation", "validation": p, "idm": idm}),
-            )
-        }
-        None if sac.actor_avg.is_some() => {
-            let bytes = sac.selected_actor_bytes().map_err(|source| LearnerError::Weights {
-                action: "serialising the averaged actor",
-                source,
-            })?;
-            (
-                bytes,
-                serde_json::json!({"version": last.version, "updates": sac.updates, "selected_by": "average"}),
-            )
-        }
-        None => (
-            last.weights.to_vec(),
-            serde_json::json!({"version": last.version, "updates": sac.updates}),
-        ),
-    };
-    write_atomic(&dir.join("policy.bpk"), &weights)?;
-    write_atomic(&dir.join("policy.json"), meta.to_string().as_bytes())?;
-    Ok(weights)
-}
-
-/// Scores the current actor on the validation cases, keeps it if it is the best so far and
-/// records the point (curve, TensorBoard, log).
-fn validate(
-    job: &ActiveJob,
-    sac: &Sac,
-    v: &mut Validator,
-    best: &mut BestPolicy,
-    st: &mut TrainState,
-    tb: Option<&mut EventWriter>,
-) -> Result<(), LearnerError> {
-    let weights = sac
-        .selected_actor_bytes()
-        .map_err(|source| LearnerError::Weights { action: "serialising the actor", source })?;
-    let p = v.score(&weights, sac.updates, job.progress().learning.env_steps)?;
-    let kept = best.offer(&p, &weights)?;
-    tracing::info!(
-        job_id = job.id.get(),
-        updates = p.updates,
-        success = p.scores.success,
-        safety = p.scores.safety,
-        collision = p.collision,
-        took_s = p.took_s,
-        best = kept,
-        "validation"
-    );
-    if let Some(w) = tb {
-        let scalars = [
-            ("validation/success", p.scores.success as f64),
-            ("validation/safety", p.scores.safety as f64),
-            ("validation/collision", p.collision as f64),
-            ("validation/speed", p.scores.speed as f64),
-        ];
-        if let Err(e) = w.scalars(p.env_steps, &scalars) {
-            tracing::warn!(job_id = job.id.get(), error = %e, "writing TensorBoard events");
-        }
-    }
-    st.validation.push(p);
-    Ok(())
-}
-
-/// CoPO Stage 2: fits the coordinator's Gaussian of every scenario of the job on its frozen
-/// final policy and writes `coordinator.json` (what ego jobs and evaluation read).
-fn fit_coordinator(
-    job: &ActiveJob,
-    maps: &[Arc<Map>],
-    segs: &[Arc<MapSegments>],
-    resolved: &setup::ResolvedJob,
-    c: &sf_job::config::CoordinatorSection,
-    weights: &[u8],
-    dir: &Path,
-) -> Result<(), LearnerError> {
-    use sf_rollout::coordinator::{fit_scenario, CoordinatorFile, FitSettings, ScenarioFit};
-    let cfg = &job.cfg;
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-    let sim = Arc::new(resolved.sim.clone());
-    let t = Instant::now();
-    let mut fits = Vec::new();
-    for (k, (map, seg)) in maps.iter().zip(segs).enumerate() {
-        let scenario = &cfg.env.scenarios[k];
-        let runner = sf_rollout::inference::PolicyRunner::from_bytes(
-            &resolved.net,
-            &resolved.obs,
-            sim.dt_s,
-            &[&**seg],
-            weights,
-            PolicyVersion::new(0),
-            &device,
-        )
-        .map_err(|source| LearnerError::Weights { action: "loading the final policy", source })?;
-        let settings = FitSettings {
-            iterations: c.iterations,
-            population: c.population,
-            episodes: c.episodes,
-            elite_frac: c.elite_frac,
-            envs: c.envs,
-            vehicles: (cfg.env.vehicles_min, cfg.env.vehicles_max),
-            seed: cfg.sac.seed ^ 0x636f_6f72 ^ k as u64,
-        };
-        let (coord, history) = fit_scenario(map, &sim, &runner, &settings, |l| {
-            tracing::info!(job_id = job.id.get(), scenario = %scenario, iteration = l.iteration, mean_deg = l.mean_deg, std_deg = l.std_deg, mean_reward = l.mean_reward, "coordinator");
-        })
-        .map_err(|source| LearnerError::FitCoordinator { scenario: scenario.clone(), source })?;
-        fits.push(ScenarioFit { scenario: scenario.clone(), gaussian: coord.gaussian(), history });
-    }
-    let file = CoordinatorFile { scenarios: fits };
-    write_atomic(
-        &dir.join(CoordinatorFile::FILE),
-        serde_json::to_string_pretty(&file)?.as_bytes(),
-    )?;
-    tracing::info!(
-        job_id = job.id.get(),
-        s = t.elapsed().as_secs_f32(),
-        "CoPO Stage 2: coordinator fitted"
-    );
-    Ok(())
 }
 
 /// A CSV file's text: the header, then one row per line.

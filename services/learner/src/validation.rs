@@ -1,11 +1,13 @@
-//! Policy selection by a held-out evaluation during training (a job's `[validation]`).
+//! Policy selection by a held-out evaluation during training (a job's `[validation]`), and
+//! the test that reports the selected policy on cases apart from those that selected it.
 //!
-//! Owns: the job's validation cases (generated once from the section's seed, like the
-//! training episodes), scoring a training actor on them in the job's own setting (an ego with
-//! its mean action among IDM or its frozen flow; a flow driving every vehicle with sampled
-//! actions, as flows act in evaluations), and which
-//! point is best ([`ValidationPoint::better_than`], [`BestPolicy`]). Must not: write files
-//! or touch the SAC state (the trainer does both), nor pick cases the final evaluation uses.
+//! Owns: the job's validation cases and test cases (generated once from the section's `seed`
+//! and `test_seed`, like the training episodes), scoring a training actor on them in the job's
+//! own setting (an ego with its mean action among IDM or its frozen flow; a flow driving every
+//! vehicle with sampled actions, as flows act in evaluations), and which point is best
+//! ([`ValidationPoint::better_than`], [`BestPolicy`]). Must not: write files or touch the SAC
+//! state (the trainer does both), nor let the test cases choose anything (they are scored only
+//! once the actor is chosen), nor pick cases the final evaluation grid uses.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -117,7 +119,20 @@ pub struct Validator {
     /// every vehicle itself.
     flow: Option<FlowDef>,
     cases: Vec<(Arc<Map>, Vec<Case>)>,
+    /// The test cases (`test_seed`); empty with `test_episodes = 0`.
+    test: Vec<(Arc<Map>, Vec<Case>)>,
     runners: Runners,
+}
+
+/// The kept actor and the IDM driver in its seat on the test cases, which selected nothing.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TestScores {
+    /// The seed the test cases were generated from (`validation.test_seed`).
+    pub seed: u64,
+    /// Always false: the test cases choose nothing.
+    pub used_for_selection: bool,
+    pub policy: ValidationPoint,
+    pub idm: ValidationPoint,
 }
 
 impl Validator {
@@ -135,24 +150,80 @@ impl Validator {
         let sim =
             Arc::new(setup::resolve(cfg, flow.as_ref().and_then(FlowDef::background_config)).sim);
         let vehicles = (cfg.env.vehicles_min, cfg.env.vehicles_max);
-        let cases = maps
-            .iter()
-            .enumerate()
-            .map(|(k, map)| {
-                let mut rng = ChaCha8Rng::seed_from_u64(section.seed ^ ((k as u64) << 32));
-                let cases = sf_sim::vec_env::draw_cases(
-                    map,
-                    &sim,
-                    &mut rng,
-                    section.episodes,
-                    vehicles,
-                    cfg.case_draw(),
-                );
-                (Arc::clone(map), cases)
-            })
-            .collect();
+        let draw = |seed: u64, episodes: u32| -> Vec<(Arc<Map>, Vec<Case>)> {
+            if episodes == 0 {
+                return Vec::new();
+            }
+            maps.iter()
+                .enumerate()
+                .map(|(k, map)| {
+                    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ ((k as u64) << 32));
+                    let cases = sf_sim::vec_env::draw_cases(
+                        map,
+                        &sim,
+                        &mut rng,
+                        episodes,
+                        vehicles,
+                        cfg.case_draw(),
+                    );
+                    (Arc::clone(map), cases)
+                })
+                .collect()
+        };
+        let cases = draw(section.seed, section.episodes);
+        let test = draw(section.test_seed(), section.test_episodes());
         let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
-        Ok(Self { section, cfg: cfg.clone(), flow, cases, runners: Runners::new(device) })
+        Ok(Self { section, cfg: cfg.clone(), flow, cases, test, runners: Runners::new(device) })
+    }
+
+    /// The kept actor `weights` (selected at `updates`) and the IDM driver in its seat on the
+    /// test cases; `None` with `test_episodes = 0`.
+    pub fn test(
+        &mut self,
+        weights: &[u8],
+        updates: u64,
+    ) -> Result<Option<TestScores>, LearnerError> {
+        if self.test.is_empty() {
+            return Ok(None);
+        }
+        let policy = self.policy(weights, &format!("test@{updates}"));
+        let (flow, ego) = self.seat(&policy);
+        let (idm_flow, idm_ego) = self.idm_seat();
+        let test = std::mem::take(&mut self.test);
+        let scored = self
+            .run_on(&test, &flow, ego.as_ref(), updates, 0)
+            .and_then(|p| Ok((p, self.run_on(&test, &idm_flow, idm_ego.as_ref(), 0, 0)?)));
+        self.test = test;
+        self.runners.forget(&policy.key);
+        let (policy, idm) = scored?;
+        Ok(Some(TestScores {
+            seed: self.section.test_seed(),
+            used_for_selection: false,
+            policy,
+            idm,
+        }))
+    }
+
+    fn policy(&self, weights: &[u8], key: &str) -> Policy {
+        Policy::new(key.to_string(), self.cfg.clone(), Arc::new(weights.to_vec()), Vec::new())
+    }
+
+    /// Where a learned `policy` of the job acts: in the ego's seat among the job's flow, or as
+    /// the flow itself.
+    fn seat(&self, policy: &Policy) -> (FlowDef, Option<EgoDef>) {
+        match &self.flow {
+            Some(flow) => (flow.clone(), Some(EgoDef::Learned(policy.clone()))),
+            None => (FlowDef::learned(policy.clone(), None), None),
+        }
+    }
+
+    /// The IDM driver in the job's seat: an ego job's IDM ego among its flow, a flow job's
+    /// all-IDM flow.
+    fn idm_seat(&self) -> (FlowDef, Option<EgoDef>) {
+        match &self.flow {
+            Some(flow) => (flow.clone(), Some(EgoDef::Idm)),
+            None => (FlowDef::Idm, None),
+        }
     }
 
     /// Scores the actor `weights` (mean action) on every scenario's cases.
@@ -162,17 +233,11 @@ impl Validator {
         updates: u64,
         env_steps: u64,
     ) -> Result<ValidationPoint, LearnerError> {
-        let policy = Policy::new(
-            format!("validation@{updates}"),
-            self.cfg.clone(),
-            Arc::new(weights.to_vec()),
-            Vec::new(),
-        );
-        let (flow, ego) = match &self.flow {
-            Some(flow) => (flow.clone(), Some(EgoDef::Learned(policy.clone()))),
-            None => (FlowDef::learned(policy.clone(), None), None),
-        };
-        let point = self.run(&flow, ego.as_ref(), updates, env_steps);
+        let policy = self.policy(weights, &format!("validation@{updates}"));
+        let (flow, ego) = self.seat(&policy);
+        let cases = std::mem::take(&mut self.cases);
+        let point = self.run_on(&cases, &flow, ego.as_ref(), updates, env_steps);
+        self.cases = cases;
         self.runners.forget(&policy.key);
         point
     }
@@ -180,15 +245,16 @@ impl Validator {
     /// The IDM driver in the job's seat on the same cases, the score a learned policy is read
     /// against: an ego job's IDM ego among its flow, a flow job's all-IDM flow.
     pub fn score_idm(&mut self) -> Result<ValidationPoint, LearnerError> {
-        let (flow, ego) = match &self.flow {
-            Some(flow) => (flow.clone(), Some(EgoDef::Idm)),
-            None => (FlowDef::Idm, None),
-        };
-        self.run(&flow, ego.as_ref(), 0, 0)
+        let (flow, ego) = self.idm_seat();
+        let cases = std::mem::take(&mut self.cases);
+        let point = self.run_on(&cases, &flow, ego.as_ref(), 0, 0);
+        self.cases = cases;
+        point
     }
 
-    fn run(
+    fn run_on(
         &mut self,
+        case_sets: &[(Arc<Map>, Vec<Case>)],
         flow: &FlowDef,
         ego: Option<&EgoDef>,
         updates: u64,
@@ -196,7 +262,7 @@ impl Validator {
     ) -> Result<ValidationPoint, LearnerError> {
         let t = std::time::Instant::now();
         let mut rows = Vec::new();
-        for (map, cases) in &self.cases {
+        for (map, cases) in case_sets {
             rows.extend(evaluate::run_cases(
                 map,
                 cases,

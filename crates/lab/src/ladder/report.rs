@@ -33,14 +33,7 @@ pub(super) fn summarise(
     // scripted driver's name).
     let pol: Vec<&Row> = rows.iter().filter(|r| r.driver == judged).collect();
     let idm: Vec<&Row> = rows.iter().filter(|r| r.driver == "idm").collect();
-    // Rows are paired: the same (scenario, case, seed) in the same order.
-    let a: Vec<f64> = pol.iter().map(|r| r.success as f64).collect();
-    let b: Vec<f64> = idm.iter().map(|r| r.success as f64).collect();
-    let p_value = match sf_report::paired_t_test(&a, &b) {
-        Ok(t) => t.p_value,
-        // Identical outcomes everywhere: no difference to test.
-        Err(_) => 1.0,
-    };
+    let (cases, p_value) = paired_by_case(&pol, &idm);
     let mut per_scenario = BTreeMap::new();
     for s in pol.iter().map(|r| r.scenario.clone()).collect::<std::collections::BTreeSet<_>>() {
         let m = |v: &[&Row]| mean(v.iter().filter(|r| r.scenario == s).map(|r| r.success));
@@ -51,6 +44,7 @@ pub(super) fn summarise(
         train_seed,
         job_dir: dir.display().to_string(),
         episodes: pol.len(),
+        cases,
         success: mean(pol.iter().map(|r| r.success)),
         idm_success: mean(idm.iter().map(|r| r.success)),
         collision: mean(pol.iter().map(|r| r.collision)),
@@ -119,6 +113,32 @@ pub(super) fn summarise(
     Ok(s)
 }
 
+/// The paired test of `a`'s success against `b`'s with the stored case as the unit: each
+/// (scenario, case)'s success averaged over its evaluation seeds for either driver, then a
+/// paired t-test over the cases both drove. A deterministic driver gives the same episode under
+/// every seed, and a second seed of it is not a second observation: counted per episode it
+/// would halve the variance's denominator. Returns the number of cases and the two-sided p (1
+/// when the two never differ, so there is nothing to test).
+pub(super) fn paired_by_case(a: &[&Row], b: &[&Row]) -> (usize, f64) {
+    fn by_case<'r>(rows: &[&'r Row]) -> BTreeMap<(&'r str, u32), f64> {
+        let mut m: BTreeMap<(&str, u32), (f64, usize)> = BTreeMap::new();
+        for r in rows {
+            let e = m.entry((r.scenario.as_str(), r.case)).or_default();
+            *e = (e.0 + r.success as f64, e.1 + 1);
+        }
+        m.into_iter().map(|(k, (s, n))| (k, s / n as f64)).collect()
+    }
+    let (ma, mb) = (by_case(a), by_case(b));
+    let (xs, ys): (Vec<f64>, Vec<f64>) =
+        ma.iter().filter_map(|(k, &x)| mb.get(k).map(|&y| (x, y))).unzip();
+    let p = match sf_report::paired_t_test(&xs, &ys) {
+        Ok(t) => t.p_value,
+        // Identical outcomes everywhere: no difference to test.
+        Err(_) => 1.0,
+    };
+    (xs.len(), p)
+}
+
 /// The update at which a job's final policy was selected by its validation (`policy.json`),
 /// `None` when the final policy is the last actor.
 pub(super) fn selected_updates(dir: &Path) -> Result<Option<u64>> {
@@ -182,7 +202,7 @@ pub(super) fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> Strin
             "The policies drove their sampled actions (`eval.sampled`), not their mean action.\n"
         );
     }
-    let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | lane change | p (paired) | gate |");
+    let _ = writeln!(m, "| seed | updates | success | IDM ego | collision | IDM coll. | other fail. | speed | IDM speed | lane change | p (paired by case) | gate |");
     let _ = writeln!(m, "|---|---|---|---|---|---|---|---|---|---|---|---|");
     for s in seeds {
         let _ = writeln!(
@@ -201,6 +221,13 @@ pub(super) fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> Strin
             s.lane_change,
             sf_report::report::fmt_p(s.p_value),
             if s.passed { "pass".to_string() } else { s.failed_checks.join("; ") }
+        );
+    }
+    if let Some(s) = seeds.first() {
+        let _ = writeln!(
+            m,
+            "\n{} episodes per seed over {} stored cases; p is a paired t-test over the cases (each case's success averaged over its evaluation seeds).",
+            s.episodes, s.cases
         );
     }
     let _ = writeln!(m, "\nPer scenario, success policy / IDM ego:\n");

@@ -1,10 +1,11 @@
 //! The egos' experiments: adversary degradation, cross-validation heatmaps, zero-shot transfer
 //! and the trained egos against the IDM driver in their seat, with the paper's ego findings
-//! tested on them.
+//! tested on them (over stored cases, [`super::units`]: the cross-validation's starts are a
+//! case under 4 flows, the adversary's pooled starts a case under 4 egos).
 
 use std::collections::BTreeMap;
 
-use super::units::{paired, paired_across_flows, summary, unit_columns};
+use super::units::{case_columns, paired, paired_across_flows, summary, CaseTest};
 use super::{
     by, fmt_p, holm_family, order, p_holm, p_is, paper_adversary, pct, stars, Ctx, Doc, Findings,
     ReportError, METRICS,
@@ -59,7 +60,7 @@ pub(super) fn adversary(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
                     });
                 }
                 tests.push(if flows.len() >= 2 {
-                    paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| t.p_value)
+                    paired_across_flows(&cell(&flows[1]), &cell(&flows[0]), m).map(|t| t.t.p_value)
                 } else {
                     None
                 });
@@ -104,7 +105,8 @@ fn adversary_findings(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, flows: &[S
         found.checks.push(Check::from_paired(
             format!("Egos succeed less in {} than in {} (pooled)", flows[1], flows[0]),
             &format!("success, {} - {}", flows[0], flows[1]),
-            t,
+            &t.t,
+            t.starts,
         ));
     }
     if let Some(t) = paired_across_flows(&first, &second, success) {
@@ -114,23 +116,35 @@ fn adversary_findings(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, flows: &[S
         );
         let key = format!("{} degrades egos more than {}", flows[2], flows[1]);
         found.checks.push(
-            Check::from_paired(claim, &format!("success, {} - {}", flows[1], flows[2]), &t)
-                .keyed(key),
+            Check::from_paired(
+                claim,
+                &format!("success, {} - {}", flows[1], flows[2]),
+                &t.t,
+                t.starts,
+            )
+            .keyed(key),
         );
     }
     // The paper: FailMaker costs egos about ten times what SocialCommAdv costs them. A ratio is
     // only given where its denominator, the first drop, is significantly positive.
     let second_drop = paired_across_flows(&base, &second, success);
-    let drop = |t: &Option<crate::PairedT>| {
-        t.map(|t| format!("{:+.1} points (p {})", 100.0 * t.mean_diff, fmt_p(t.p_value)))
-            .unwrap_or_else(|| "-".into())
+    let drop = |t: &Option<CaseTest>| {
+        t.map(|t| {
+            format!(
+                "{:+.1} points (raw p {}, {} stored cases)",
+                100.0 * t.t.mean_diff,
+                fmt_p(t.t.p_value),
+                t.t.n
+            )
+        })
+        .unwrap_or_else(|| "-".into())
     };
     let denominator_holds =
-        first_drop.is_some_and(|t| t.mean_diff > 0.0 && t.p_value < crate::findings::ALPHA);
-    let units = unit_columns([&base[..], &first[..], &second[..]], success);
+        first_drop.is_some_and(|t| t.t.mean_diff > 0.0 && t.t.p_value < crate::findings::ALPHA);
+    let units = case_columns([&base[..], &first[..], &second[..]], success);
     let ratio = match inference::bootstrap_ratio(&units, RATIO_DRAWS, RATIO_SEED) {
         Some(r) if denominator_holds => format!(
-            "drop ratio {:.1}x (95 % cluster-bootstrap interval {:.1}x to {:.1}x over {} starts, {} draws; the first drop is not positive in {:.0} % of draws)",
+            "drop ratio {:.1}x (95 % cluster-bootstrap interval {:.1}x to {:.1}x, resampling {} stored cases, {} draws; the first drop is not positive in {:.0} % of draws)",
             r.ratio,
             r.lo,
             r.hi,
@@ -148,18 +162,19 @@ fn adversary_findings(ctx: &Ctx, doc: &mut Doc, found: &mut Findings, flows: &[S
         flows[2],
         drop(&second_drop)
     ));
-    // Power: the starts a paired test of this grid's spread needs to see the paper's effects.
+    // Power: the stored cases a paired test of this grid's spread needs to see the paper's
+    // effects.
     let paper = paper_adversary("Success");
     let paper_mean =
         |k: usize| paper.values().map(|v| v[k]).sum::<f64>() / paper.len().max(1) as f64;
     let lines: Vec<String> = [(&first_drop, paper_mean(0) - paper_mean(1), flows[1].as_str()), (&second_drop, paper_mean(0) - paper_mean(2), flows[2].as_str())]
         .iter()
         .filter_map(|(t, effect, name)| {
-            let t = t.as_ref()?;
+            let CaseTest { t, starts } = t.as_ref()?;
             let sd = 100.0 * t.se * (t.n as f64).sqrt();
             let need = inference::units_needed(*effect, sd)?;
             Some(format!(
-                "{name}'s drop: this grid has {} starts (minimum detectable effect {:.1} points at 80 % power); the paper's {effect:.1} points need about {need} starts at this spread (sd {sd:.1} points per start)",
+                "{name}'s drop: this grid has {} stored cases ({starts} starts; minimum detectable effect {:.1} points at 80 % power); the paper's {effect:.1} points need about {need} stored cases at this spread (sd {sd:.1} points per case, its starts averaged)",
                 t.n,
                 inference::mde(100.0 * t.se, (t.n.max(2) - 1) as f64)
             ))
@@ -264,7 +279,7 @@ fn zero_shot(
                 }
             }
         }
-        let adj = holm_family(&tests.iter().map(|(_, _, t)| Some(t.p_value)).collect::<Vec<_>>());
+        let adj = holm_family(&tests.iter().map(|(_, _, t)| Some(t.t.p_value)).collect::<Vec<_>>());
         let mut lines = Vec::new();
         for ((s, e, t), a) in tests.iter().zip(&adj) {
             let a = a.unwrap_or(f64::NAN);
@@ -274,10 +289,11 @@ fn zero_shot(
             );
             groups[si][k].stars = stars(a).to_string();
             lines.push(format!(
-                "{s}: ours - {e} {mname} = {:+.1} points ({} starts), p {} {}",
-                100.0 * t.mean_diff,
-                t.n,
-                p_holm(t.p_value, a),
+                "{s}: ours - {e} {mname} = {:+.1} points ({} stored cases from {} (flow, case) starts), p {} {}",
+                100.0 * t.t.mean_diff,
+                t.t.n,
+                t.starts,
+                p_holm(t.t.p_value, a),
                 stars(a)
             ));
         }
@@ -292,7 +308,8 @@ fn zero_shot(
                             Check::from_paired(
                                 "",
                                 &format!("success, {ours} - {e}, pooled over evaluation flows"),
-                                t,
+                                &t.t,
+                                t.starts,
                             ),
                         )
                     })
@@ -314,7 +331,7 @@ fn zero_shot(
             egos,
             &groups,
         )?;
-        doc.figure(&file, &format!("{mname} of each ego pooled over the evaluation flows, 95 % intervals; stars: paired t-test of ours against each other trained ego, Holm over the figure's tests"))?;
+        doc.figure(&file, &format!("{mname} of each ego pooled over the evaluation flows, 95 % intervals over stored cases; stars: paired t-test over stored cases of ours against each other trained ego, Holm over the figure's tests"))?;
         for l in lines {
             doc.p(&l);
         }
@@ -342,7 +359,7 @@ fn against_idm_ego(
     };
     doc.h(2, "Trained egos against the IDM driver in their seat");
     doc.p(&format!(
-        "Success in percent over the cross-validation cells (every evaluation flow); in brackets the paired difference to `{idm}` (the IDM driver, the zero residual every trained ego starts from) on the same episode starts, its p-value and the Holm-adjusted p over this table's tests. The last column pools every scenario."
+        "Success in percent over the cross-validation cells (every evaluation flow); in brackets the paired difference to `{idm}` (the IDM driver, the zero residual every trained ego starts from) on the same episode starts, tested over stored cases (a case's flows averaged), its p-value and the Holm-adjusted p over this table's tests. The last column pools every scenario."
     ));
     let mut head = vec!["Ego".to_string()];
     head.extend(scen.iter().cloned());
@@ -371,21 +388,22 @@ fn against_idm_ego(
                     found.checks.push(Check::from_paired(
                         format!("{e} succeeds more often than the IDM driver in its seat (cross-validation, all flows and scenarios)"),
                         &format!("success, {e} - {idm}"),
-                        &t,
+                        &t.t,
+                        t.starts,
                     ));
                 }
             }
         }
         table.push(line);
     }
-    let adj = holm_family(&tests.iter().map(|(_, _, t)| Some(t.p_value)).collect::<Vec<_>>());
+    let adj = holm_family(&tests.iter().map(|(_, _, t)| Some(t.t.p_value)).collect::<Vec<_>>());
     for ((r, c, t), a) in tests.iter().zip(adj) {
         let a = a.unwrap_or(f64::NAN);
         table[*r][*c] = format!(
             "{} ({:+.1}, p {}, Holm {})",
             table[*r][*c],
-            100.0 * t.mean_diff,
-            p_is(t.p_value),
+            100.0 * t.t.mean_diff,
+            p_is(t.t.p_value),
             fmt_p(a)
         );
     }

@@ -1,9 +1,9 @@
 //! The flows' experiments: flow quality (tables, radar charts), the SVO sweep and the density
-//! sweep, and the paper's flow findings tested on them.
+//! sweep, and the paper's flow findings tested on them (over stored cases, [`super::units`]).
 
 use std::collections::BTreeSet;
 
-use super::units::{paired_across_flows, summary, unit_diffs};
+use super::units::{case_diffs, paired_across_flows, summary};
 use super::{by, holm_family, order, pct, stars, Ctx, Doc, Findings, ReportError, METRICS};
 use crate::findings::Check;
 use crate::plot::{self, Series};
@@ -47,7 +47,7 @@ pub(super) fn flow_quality(
         }
         doc.table(&head, &table);
         if lane_change {
-            doc.p("*Left its lane*: the share of the flow's vehicles that left their route's lane at some point in the episode (a lane change, a cut-in or drifting out of it), mean over episodes with its 95 % CI.");
+            doc.p("*Left its lane*: the share of the flow's vehicles that left their route's lane at some point in the episode (a lane change, a cut-in or drifting out of it), mean with its 95 % CI over stored cases.");
         }
         for s in &scen {
             let series: Vec<(String, Vec<(f64, f64)>)> = flows
@@ -98,7 +98,7 @@ pub(super) fn flow_quality(
                         r.ep.scores.success
                     })
                 {
-                    found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} (flow quality, all scenarios)"), &format!("success, SocialComm - {other}"), &t));
+                    found.checks.push(Check::from_paired(format!("SocialComm flow succeeds more often than {other} (flow quality, all scenarios)"), &format!("success, SocialComm - {other}"), &t.t, t.starts));
                 }
                 let (sc_merge, other_merge) = (fq("SocialComm", Some(true)), fq(other, Some(true)));
                 if let Some(t) =
@@ -107,21 +107,22 @@ pub(super) fn flow_quality(
                     found.checks.push(Check::from_paired(
                         format!("SocialComm flow succeeds more often than {other} in merge"),
                         &format!("success, SocialComm - {other}"),
-                        &t,
+                        &t.t,
+                        t.starts,
                     ));
                 }
-                // "Most in dense merge": SocialComm's per-start advantage in merge against its
-                // advantage in each other scenario (their starts are different episodes, so
+                // "Most in dense merge": SocialComm's per-case advantage in merge against its
+                // advantage in each other scenario (their stored cases are different, so
                 // Welch's test); the claim needs every one (intersection-union).
-                let in_merge = unit_diffs(&sc_merge, &other_merge, |r| r.ep.scores.success, false);
+                let in_merge = case_diffs(&sc_merge, &other_merge, |r| r.ep.scores.success, false);
                 let parts: Vec<(String, Check)> = scen
                     .iter()
                     .filter(|s| *s != "merge")
                     .filter_map(|s| {
                         let in_s = |f: &str| by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == f && &r.cell.scenario == s);
-                        let there = unit_diffs(&in_s("SocialComm"), &in_s(other), |r| r.ep.scores.success, false);
-                        let w = crate::welch_t_test(&in_merge, &there).ok()?;
-                        Some((format!("merge vs {s}"), Check::from_welch("", &format!("success difference SocialComm - {other} per start, merge vs {s}"), &w)))
+                        let there = case_diffs(&in_s("SocialComm"), &in_s(other), |r| r.ep.scores.success, false);
+                        let w = crate::welch_t_test(&in_merge.values, &there.values).ok()?;
+                        Some((format!("merge vs {s}"), Check::from_welch("", &format!("success difference SocialComm - {other} per case, merge vs {s}"), &w, in_merge.starts + there.starts)))
                     })
                     .collect();
                 if let Some(c) = Check::all_of(format!("SocialComm's advantage over {other} is larger in merge than in each other scenario"), &parts) {
@@ -207,23 +208,25 @@ pub(super) fn svo_sweep(ctx: &Ctx, doc: &mut Doc, found: &mut Findings) -> Resul
             }
         }
         // One family: the sweep's scenarios.
-        let adj = holm_family(&tests.iter().map(|(_, t)| Some(t.p_value)).collect::<Vec<_>>());
+        let adj = holm_family(&tests.iter().map(|(_, t)| Some(t.t.p_value)).collect::<Vec<_>>());
         for ((s, t), a) in tests.iter().zip(adj) {
             let a = a.unwrap_or(f64::NAN);
             doc.p(&format!(
-                "{s}: {} - {} success = {:+.1} points over all SVOs ({} starts), p = {} {}",
+                "{s}: {} - {} success = {:+.1} points over all SVOs ({} stored cases from {} starts, a case's SVOs averaged), p = {} {}",
                 flows[1],
                 flows[0],
-                100.0 * t.mean_diff,
-                t.n,
-                super::p_holm(t.p_value, a),
+                100.0 * t.t.mean_diff,
+                t.t.n,
+                t.starts,
+                super::p_holm(t.t.p_value, a),
                 stars(a)
             ));
             if flows[1] == "SocialComm" {
                 found.checks.push(Check::from_paired(
                     format!("SocialComm beats {} over the SVO sweep in {s}", flows[0]),
                     &format!("success, SocialComm - {}", flows[0]),
-                    t,
+                    &t.t,
+                    t.starts,
                 ));
             }
         }

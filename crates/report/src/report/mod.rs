@@ -6,7 +6,8 @@
 //! sweeps ([`flows`]), adversary degradation, cross-validation heatmaps, zero-shot transfer and
 //! the trained egos against the IDM driver ([`egos`]); the findings table (each run's family
 //! Holm-corrected, the training run as the unit across runs) and the power of each finding.
-//! Every mean, interval and test is over distinct episode starts ([`units`]). The paper's numbers
+//! Every mean, interval and test is over stored cases ([`units`]: a start's seeds averaged,
+//! then a case's starts under several flows, egos or SVOs). The paper's numbers
 //! are printed beside ours where the paper gives them in its text. Must not: run simulations,
 //! define the result files' format or decide a verdict ([`crate::findings`] does).
 
@@ -193,8 +194,8 @@ pub struct Findings {
     pub experiments: Vec<String>,
     /// The paper's findings this result set can test, each with its test, effect, raw and
     /// Holm-adjusted p (the family: these checks) and verdict. Over several replicates, the
-    /// tests of their episodes together (starts averaged over the replicates): conditional on
-    /// these trained instances, not the headline (see `across`).
+    /// tests of their episodes together (starts averaged over the replicates, then per stored
+    /// case): conditional on these trained instances, not the headline (see `across`).
     pub checks: Vec<Check>,
     /// With several replicates: each replicate's own findings, in replicate order.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -265,11 +266,11 @@ fn build_doc(
     let over = match replicates.len() {
         0 => String::new(),
         n => format!(
-            ", over {n} replicates of the graph (each trained from scratch with its own seed; each replicate's own report in run-1/ .. run-{n}/). Tables pool the replicates: a start's value is its mean over seeds and replicates, paired differences are taken within a replicate"
+            ", over {n} replicates of the graph (each trained from scratch with its own seed; each replicate's own report in run-1/ .. run-{n}/). Tables pool the replicates: a start's value is its mean over seeds and replicates, paired differences are taken within a replicate; the replicates were evaluated on the same stored cases"
         ),
     };
     doc.p(&format!(
-        "{} evaluated episodes ({}{over}). Values are percent, mean ± 95 % confidence half-width (Student t) over distinct episode starts: a start's seeds are averaged first, so an episode that repeats under another seed (the IDM flow and every mean action are deterministic) counts once. p-values: two-sided paired t-tests over the same starts, except the \"larger in merge\" comparisons (Welch t-tests between the independent starts of two scenarios). Each table's p-values are one family, Holm-corrected within it (\"Holm\"); stars (**** < 0.0001, *** < 0.001, ** < 0.01, * < 0.05) mark the corrected p.",
+        "{} evaluated episodes ({}{over}). Values are percent, mean ± 95 % confidence half-width (Student t) over stored cases: a start's seeds are averaged first, so an episode that repeats under another seed (the IDM flow and every mean action are deterministic) counts once; then a stored case's starts are averaged, so a case reused under several SVOs, flows or egos of one comparison counts once (its outcomes correlate across them). p-values: two-sided paired t-tests over the same stored cases, except the \"larger in merge\" comparisons (Welch t-tests between the stored cases of two scenarios). Each table's p-values are one family, Holm-corrected within it (\"Holm\"); stars (**** < 0.0001, *** < 0.001, ** < 0.01, * < 0.05) mark the corrected p.",
         rows.len(),
         meta.sizes_text()
     ));
@@ -322,7 +323,7 @@ fn build_doc(
     Ok(found)
 }
 
-const FAMILY_NOTE: &str = "The family: every finding of this table, Holm-Bonferroni at a family-wise 5 %; the verdict is decided on the adjusted p (\"opposite\": significant the other way). Effect: mean paired difference in points over distinct episode starts, positive where the paper says it should be. MDE: the smallest true effect this test detects with 80 % power at a two-sided 5 % (before the correction), from its standard error: a \"not significant\" with an MDE above the paper's effect says this grid cannot see it.";
+const FAMILY_NOTE: &str = "The family: every finding of this table, Holm-Bonferroni at a family-wise 5 %; the verdict is decided on the adjusted p. \"opposite\": significant the other way, the reverse of the claim shown (for a claim that needs several comparisons, every one goes the other way); \"refuted\": a claim that needs several comparisons (\"in each other scenario\", \"every other ego\", an intersection-union test) has one going the other way significantly, its p multiplied by the number of comparisons since it is the strongest of them, while the others do not all follow: the claim is false, its reverse is not shown. Effect: mean paired difference in points over stored cases, positive where the paper says it should be (for a refuted claim, the refuting comparison's). MDE: the smallest true effect this test detects with 80 % power at a two-sided 5 % (before the correction), from its standard error: a \"not significant\" with an MDE above the paper's effect says this grid cannot see it.";
 
 /// One result set's findings: effect, raw and adjusted p, MDE, verdict.
 fn findings_table(doc: &mut Doc, checks: &[Check]) {
@@ -358,14 +359,19 @@ fn across_table(doc: &mut Doc, across: &[AcrossRuns]) {
     let Some(k) = across.first().map(|a| a.runs.len()) else { return };
     doc.h(2, "The paper's findings across training runs");
     doc.p(&format!(
-        "A claim about a method is a claim across training runs, so the verdict takes the run as the unit: \"holds in every run\" needs each run's own test to hold after its family's correction (an intersection-union rule, level 5 %); \"runs conflict\": significant both ways; \"not replicated\": significant in some runs only. Each run: effect, raw p, Holm-adjusted p within that run's findings, MDE. Across runs: the runs' estimates combined by a DerSimonian-Laird random-effects model (between-run variance included), ± its 95 % interval, and I² (the share of the variation that is between runs). With {k} runs the between-run variance rests on {} degree(s) of freedom: the combined interval is a rough guide and a verdict from {k} runs is weak evidence; more training seeds are what would make it strong.",
+        "A claim about a method is a claim across training runs, so the verdict takes the run as the unit: \"holds in every run\" needs each run's own test to hold after its family's correction (an intersection-union rule, level 5 %); \"opposite in every run\": each run shows the reverse; \"refuted in every run\": each run is significant against the claim, not every one reversing it; \"runs conflict\": significant both ways; \"not replicated\": significant in some runs only. This rule is the verdict. Each run: effect, raw p, Holm-adjusted p within that run's findings, MDE. Pooled (descriptive, it decides no verdict): the runs' estimates combined by a DerSimonian-Laird random-effects model (between-run variance included) with a Hartung-Knapp-Sidik-Jonkman 95 % interval (Student t with {} degree(s) of freedom, the variance scaled by the runs' spread about the estimate, the scale floored at 1), and I² (the share of the variation that is between runs). The {k} runs were evaluated on the same stored cases (and the deterministic IDM episodes are the same in each), so their estimates are not independent: even this interval leaves their shared case-sampling error out. With {k} runs the between-run variance rests on {} degree(s) of freedom: a verdict from {k} runs is weak evidence; more training seeds are what would make it strong.",
+        k.saturating_sub(1),
         k.saturating_sub(1)
     ));
     doc.p(FAMILY_NOTE);
     let mut head: Vec<String> = vec!["Finding".into()];
     head.extend((1..=k).map(|r| format!("Run {r}: effect, p (Holm), MDE")));
     head.extend(
-        ["Random effects: effect ± 95 %, I²", "Verdict (runs as the unit)"].map(String::from),
+        [
+            "Verdict (runs as the unit)",
+            "Pooled, descriptive: effect ± 95 % (HKSJ, t with k - 1 df), I²",
+        ]
+        .map(String::from),
     );
     let table: Vec<Vec<String>> = across
         .iter()
@@ -388,13 +394,13 @@ fn across_table(doc: &mut Doc, across: &[AcrossRuns]) {
                 ),
                 None => "-".into(),
             }));
+            row.push(a.verdict.as_str().into());
             row.push(match &a.combined {
                 Some(re) => {
                     format!("{:+.1} ± {:.1}, I² {:.0} %", re.estimate, re.ci95, 100.0 * re.i2)
                 }
                 None => "-".into(),
             });
-            row.push(a.verdict.as_str().into());
             row
         })
         .collect();
@@ -464,13 +470,17 @@ mod tests {
         let (xr, yr): (Vec<&EpisodeRow>, Vec<&EpisodeRow>) =
             (x.iter().collect(), y.iter().collect());
         let t = paired_across_flows(&xr, &yr, |r| r.ep.scores.success).expect("a test");
-        assert_eq!(t.n, 40, "one pair per ego and episode start");
-        assert!(t.mean_diff.abs() < 1e-12 && t.p_value > 0.9, "{t:?}");
+        assert_eq!(
+            (t.t.n, t.starts),
+            (20, 40),
+            "one pair per ego and episode start, two starts per stored case"
+        );
+        assert!(t.t.mean_diff.abs() < 1e-12 && t.t.p_value > 0.9, "{t:?}");
         // Two egos on the same flow still pair across egos.
         let a: Vec<&EpisodeRow> = x.iter().filter(|r| r.cell.ego == "A").collect();
         let b: Vec<&EpisodeRow> = x.iter().filter(|r| r.cell.ego == "B").collect();
         let t = paired(&a, &b, |r| r.ep.scores.success).expect("a test");
-        assert_eq!(t.n, 20);
+        assert_eq!(t.t.n, 20);
     }
 
     #[test]
@@ -547,7 +557,7 @@ mod tests {
                     == "SocialComm flow succeeds more often than CoPO (flow quality, all scenarios)"
             })
             .expect("flow check");
-        assert_eq!(copo.n, 16, "the 16 starts, each averaged over both replicates");
+        assert_eq!(copo.n, 16, "the 16 stored cases, each averaged over both replicates");
         assert!(copo.holds() && (copo.effect_points - 11.0).abs() < 1.0, "{copo:?}");
         assert_eq!(f.replicates.len(), 2);
         for (k, r) in f.replicates.iter().enumerate() {
@@ -560,7 +570,8 @@ mod tests {
         let md = std::fs::read_to_string(out.join("report.md")).expect("md");
         assert!(
             md.contains("over 2 replicates")
-                && md.contains("| Finding | Run 1: effect, p (Holm), MDE | Run 2: effect, p (Holm), MDE | Random effects: effect ± 95 %, I² | Verdict (runs as the unit) |"),
+                && md.contains("| Finding | Run 1: effect, p (Holm), MDE | Run 2: effect, p (Holm), MDE | Verdict (runs as the unit) | Pooled, descriptive: effect ± 95 % (HKSJ, t with k - 1 df), I² |")
+                && md.contains("evaluated on the same stored cases"),
             "{md}"
         );
         let fm = md
@@ -571,7 +582,7 @@ mod tests {
             !fm.contains("| - |"),
             "each run's check is found by its key although its claim differs: {fm}"
         );
-        assert!(fm.ends_with("| holds in every run |"), "both runs hold: {fm}");
+        assert!(fm.contains("| holds in every run |"), "both runs hold: {fm}");
         // Run 1 drops 10 points under SocialCommAdv, run 2 20: ratios 5 and 2.5, each with its interval.
         let run = |k: usize| {
             std::fs::read_to_string(out.join(format!("run-{k}")).join("report.md"))
@@ -709,7 +720,8 @@ mod tests {
             .expect("the adversary check");
         assert!(fm.holds() && (fm.effect_points - 40.0).abs() < 1.0, "{fm:?}");
         assert!(
-            md.contains("drop ratio 5.0x (95 % cluster-bootstrap interval"),
+            md.contains("drop ratio 5.0x (95 % cluster-bootstrap interval")
+                && md.contains("resampling 12 stored cases"),
             "a significant first drop gives a ratio with its interval"
         );
         let copo = f
@@ -826,8 +838,8 @@ mod tests {
         let c = f.checks.iter().find(|c| c.claim == claim).expect("the merge check");
         assert_eq!(
             c.verdict,
-            crate::findings::Verdict::Opposite,
-            "bottleneck's advantage is larger: {c:?}"
+            crate::findings::Verdict::Refuted,
+            "bottleneck's advantage is larger, intersection's and roundabout's smaller: refuted, not reversed: {c:?}"
         );
         assert!(
             c.test.contains("decisive: merge vs bottleneck")
@@ -874,7 +886,10 @@ mod tests {
             "{md}"
         );
         assert!(md.contains("under FailMaker +40.0 points"), "both drops are reported: {md}");
-        assert!(md.contains("Power: SocialCommAdv's drop: this grid has 30 starts"), "{md}");
+        assert!(
+            md.contains("Power: SocialCommAdv's drop: this grid has 30 stored cases (30 starts;"),
+            "{md}"
+        );
         let _ = std::fs::remove_dir_all(&out);
     }
 }

@@ -165,6 +165,8 @@ struct Acting {
     ego: Seat,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
+    /// The noise-matched IDM flow's vehicles ([`FlowDef::noise_actor`]), in place of a policy.
+    noise: Option<Actor<'static>>,
     /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
     /// (not in cells that fix every SVO, the SVO sweep).
     svo_gaussian: Option<SvoGaussian>,
@@ -184,7 +186,7 @@ impl Acting {
     /// adversary sample.
     fn drivers(&self) -> Drivers<'_> {
         let (background, adversary) = (
-            self.background.as_deref().map(Actor::sampled),
+            self.background.as_deref().map(Actor::sampled).or(self.noise),
             self.adversary.as_deref().map(Actor::sampled),
         );
         match (&self.ego, &self.background) {
@@ -198,10 +200,13 @@ impl Acting {
             (Seat::Empty, Some(f)) => {
                 Drivers { alive: Actor::sampled(f), background: None, adversary: None }
             }
-            // The all-IDM flow: its vehicles' controllers ignore these actions.
-            (Seat::Empty, None) => {
-                Drivers { alive: Actor::Random { dim: 2 }, background: None, adversary: None }
-            }
+            // The noise-matched IDM flow drives every vehicle; the all-IDM flow's controllers
+            // ignore the actions they are given.
+            (Seat::Empty, None) => Drivers {
+                alive: self.noise.unwrap_or(Actor::Random { dim: 2 }),
+                background: None,
+                adversary: None,
+            },
         }
     }
 }
@@ -240,6 +245,7 @@ fn cell_setup(
                     ego: if matches!(scripted, EgoDef::Idm) { Seat::Idm } else { Seat::IdmMobil },
                     background: f.background,
                     adversary: f.adversary,
+                    noise: flow.noise_actor(),
                     svo_gaussian,
                 },
             ));
@@ -250,10 +256,12 @@ fn cell_setup(
     // The layout comes from whichever job acts; what the background's observations carry from the flow.
     let (sim, mode) = match (ego, flow) {
         (Some(e), FlowDef::Idm) => (ego_sim(flow, e), Mode::Ego { background: Controller::Idm }),
-        (Some(e), FlowDef::Learned { .. }) => {
+        (Some(e), FlowDef::Learned { .. } | FlowDef::IdmNoise { .. }) => {
             (ego_sim(flow, e), Mode::Ego { background: Controller::External })
         }
         (None, FlowDef::Idm) => (SimConfig::default(), Mode::AllIdm),
+        // Every vehicle a learner driven by the IDM driver plus noise, as a Stage-1 flow's.
+        (None, FlowDef::IdmNoise { .. }) => (SimConfig::default(), Mode::MultiAgent),
         (None, FlowDef::Learned { background, .. }) => {
             let mut sim = background.resolved().sim.clone();
             flow.probe(&mut sim);
@@ -262,7 +270,7 @@ fn cell_setup(
     };
     let ego = ego.map(|e| runners.get(e, map, &sim)).transpose()?;
     let (background, adversary) = match flow {
-        FlowDef::Idm => (None, None),
+        FlowDef::Idm | FlowDef::IdmNoise { .. } => (None, None),
         FlowDef::Learned { background, adversary, .. } => (
             Some(runners.get(background, map, &sim)?),
             adversary.as_ref().map(|a| runners.get(a, map, &sim)).transpose()?,
@@ -275,7 +283,8 @@ fn cell_setup(
         _ => None,
     };
     let ego = ego.map_or(Seat::Empty, Seat::Policy);
-    Ok((Arc::new(sim), mode, Acting { ego, background, adversary, svo_gaussian }))
+    let noise = flow.noise_actor();
+    Ok((Arc::new(sim), mode, Acting { ego, background, adversary, noise, svo_gaussian }))
 }
 
 /// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
@@ -432,6 +441,8 @@ pub struct FlowSetup {
     pub mode: Mode,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
+    /// The noise-matched IDM flow's vehicles.
+    noise: Option<Actor<'static>>,
     pub svo_gaussian: Option<SvoGaussian>,
 }
 
@@ -444,16 +455,21 @@ impl FlowSetup {
         runners: &mut Runners,
     ) -> Result<Self, EvalError> {
         match flow {
-            FlowDef::Idm => {
+            FlowDef::Idm | FlowDef::IdmNoise { .. } => {
                 let mut sim = SimConfig::default();
                 if let Some(l) = layout {
                     sim.obs.layout = l;
                 }
+                let noise = flow.noise_actor();
+                // The IDM flow's vehicles are the simulator's; the noisy one's act from outside.
+                let background =
+                    if noise.is_some() { Controller::External } else { Controller::Idm };
                 Ok(Self {
                     sim: Arc::new(sim),
-                    mode: Mode::Ego { background: Controller::Idm },
+                    mode: Mode::Ego { background },
                     background: None,
                     adversary: None,
+                    noise,
                     svo_gaussian: None,
                 })
             }
@@ -476,6 +492,7 @@ impl FlowSetup {
                     mode: Mode::Ego { background: Controller::External },
                     background: Some(bg),
                     adversary: adv,
+                    noise: None,
                     svo_gaussian,
                 })
             }
@@ -486,7 +503,7 @@ impl FlowSetup {
     pub fn drivers<'a>(&'a self, ego: Actor<'a>) -> Drivers<'a> {
         Drivers {
             alive: ego,
-            background: self.background.as_deref().map(Actor::sampled),
+            background: self.background.as_deref().map(Actor::sampled).or(self.noise),
             adversary: self.adversary.as_deref().map(Actor::sampled),
         }
     }

@@ -13,6 +13,7 @@ use sf_sim::config::MessageProbe;
 use sf_sim::SimConfig;
 
 use super::{io, EvalError};
+use crate::drive::Actor;
 use crate::setup;
 
 /// A finished job's final policy, with its job config resolved once ([`Policy::resolved`]).
@@ -69,6 +70,13 @@ impl Policy {
 #[allow(clippy::large_enum_variant)]
 pub enum FlowDef {
     Idm,
+    /// The noise-matched IDM flow (an evaluation grid's `job = "idm-noise"`): every vehicle the
+    /// IDM driver plus a learned flow's sampling noise of standard deviation `std` on each
+    /// component of the lateral residual action ([`Actor::IdmNoise`]), so "a learned flow beats
+    /// IDM" can be told apart from "noise beats IDM".
+    IdmNoise {
+        std: f32,
+    },
     /// `messages`: an evaluation probe's constants in place of the SVOs observers are told (off
     /// unless an evaluation grid's flow asks for it).
     Learned {
@@ -96,7 +104,7 @@ impl FlowDef {
     /// The kind of job the flow is (SocialCommAdv when it has an adversary); `None` for IDM.
     pub fn kind(&self) -> Option<JobKind> {
         match self {
-            Self::Idm => None,
+            Self::Idm | Self::IdmNoise { .. } => None,
             Self::Learned { adversary: Some(_), .. } => Some(JobKind::SocialcommAdv),
             Self::Learned { background, .. } => Some(background.cfg.kind),
         }
@@ -105,8 +113,18 @@ impl FlowDef {
     /// The config of the flow job whose policy drives the background; `None` for IDM.
     pub fn background_config(&self) -> Option<&JobConfig> {
         match self {
-            Self::Idm => None,
+            Self::Idm | Self::IdmNoise { .. } => None,
             Self::Learned { background, .. } => Some(&background.cfg),
+        }
+    }
+
+    /// The actor of the noise-matched IDM flow's vehicles; `None` for the other flows.
+    pub fn noise_actor(&self) -> Option<Actor<'static>> {
+        match self {
+            Self::IdmNoise { std } => {
+                Some(Actor::IdmNoise { std: *std, action: sf_sim::DriveAction::IdmResidualLateral })
+            }
+            _ => None,
         }
     }
 }
@@ -307,7 +325,7 @@ pub fn check_cell(cell: &Cell, flow: &FlowDef, ego: Option<&EgoDef>) -> Result<(
                 )));
             }
         }
-        (_, FlowDef::Idm) => {}
+        (_, FlowDef::Idm | FlowDef::IdmNoise { .. }) => {}
     }
     Ok(())
 }
