@@ -279,7 +279,7 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
                 let mut done =
                     sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |v, _| {
                         step += 1;
-                        if step % 4 != 0 {
+                        if !step.is_multiple_of(4) {
                             return;
                         }
                         let len = v.spec.len;

@@ -698,7 +698,7 @@ mod tests {
         let row = |driver: &'static str, case: u32, seed: u32, success: f32| Row {
             train_seed: 0,
             driver,
-            scenario: if case % 2 == 0 { "merge".into() } else { "roundabout".into() },
+            scenario: if case.is_multiple_of(2) { "merge".into() } else { "roundabout".into() },
             case,
             seed,
             vehicles: 3,

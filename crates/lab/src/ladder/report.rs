@@ -226,7 +226,7 @@ pub(super) fn summary_md(r: &Rung, seeds: &[SeedSummary], passed: bool) -> Strin
     if let Some(s) = seeds.first() {
         let _ = writeln!(
             m,
-            "\n{} episodes per seed over {} stored cases; p is a paired t-test over the cases (each case's success averaged over its evaluation seeds).",
+            "\n{} episodes per seed over {} cases: the rung's evaluation cases, apart from the validation cases that kept each actor (they chose nothing); p is a paired t-test over the cases (each case's success averaged over its evaluation seeds).",
             s.episodes, s.cases
         );
     }

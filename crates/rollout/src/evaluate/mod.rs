@@ -165,8 +165,8 @@ struct Acting {
     ego: Seat,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
-    /// The noise-matched IDM flow's vehicles ([`FlowDef::noise_actor`]), in place of a policy.
-    noise: Option<Actor<'static>>,
+    /// The noise-matched IDM flow's noise ([`FlowDef::IdmNoise`]), in place of a policy.
+    noise: Option<f32>,
     /// CoPO Stage 2: the flow's SVOs are redrawn from its coordinator's Gaussian every step
     /// (not in cells that fix every SVO, the SVO sweep).
     svo_gaussian: Option<SvoGaussian>,
@@ -186,7 +186,7 @@ impl Acting {
     /// adversary sample.
     fn drivers(&self) -> Drivers<'_> {
         let (background, adversary) = (
-            self.background.as_deref().map(Actor::sampled).or(self.noise),
+            self.background.as_deref().map(Actor::sampled).or(self.noise.map(noise_actor)),
             self.adversary.as_deref().map(Actor::sampled),
         );
         match (&self.ego, &self.background) {
@@ -203,12 +203,18 @@ impl Acting {
             // The noise-matched IDM flow drives every vehicle; the all-IDM flow's controllers
             // ignore the actions they are given.
             (Seat::Empty, None) => Drivers {
-                alive: self.noise.unwrap_or(Actor::Random { dim: 2 }),
+                alive: self.noise.map_or(Actor::Random { dim: 2 }, noise_actor),
                 background: None,
                 adversary: None,
             },
         }
     }
+}
+
+/// The noise-matched IDM flow's vehicles: the IDM driver plus noise of standard deviation `std`
+/// on both components of the lateral residual.
+fn noise_actor(std: f32) -> Actor<'static> {
+    Actor::IdmNoise { std, action: sf_sim::DriveAction::IdmResidualLateral }
 }
 
 /// The IDM driver in the ego's seat: the demonstrator with no noise, as a zero residual.
@@ -245,7 +251,7 @@ fn cell_setup(
                     ego: if matches!(scripted, EgoDef::Idm) { Seat::Idm } else { Seat::IdmMobil },
                     background: f.background,
                     adversary: f.adversary,
-                    noise: flow.noise_actor(),
+                    noise: flow.noise_std(),
                     svo_gaussian,
                 },
             ));
@@ -283,7 +289,7 @@ fn cell_setup(
         _ => None,
     };
     let ego = ego.map_or(Seat::Empty, Seat::Policy);
-    let noise = flow.noise_actor();
+    let noise = flow.noise_std();
     Ok((Arc::new(sim), mode, Acting { ego, background, adversary, noise, svo_gaussian }))
 }
 
@@ -441,8 +447,8 @@ pub struct FlowSetup {
     pub mode: Mode,
     background: Option<Arc<PolicyRunner>>,
     adversary: Option<Arc<PolicyRunner>>,
-    /// The noise-matched IDM flow's vehicles.
-    noise: Option<Actor<'static>>,
+    /// The noise-matched IDM flow's noise.
+    noise: Option<f32>,
     pub svo_gaussian: Option<SvoGaussian>,
 }
 
@@ -460,7 +466,7 @@ impl FlowSetup {
                 if let Some(l) = layout {
                     sim.obs.layout = l;
                 }
-                let noise = flow.noise_actor();
+                let noise = flow.noise_std();
                 // The IDM flow's vehicles are the simulator's; the noisy one's act from outside.
                 let background =
                     if noise.is_some() { Controller::External } else { Controller::Idm };
@@ -503,7 +509,11 @@ impl FlowSetup {
     pub fn drivers<'a>(&'a self, ego: Actor<'a>) -> Drivers<'a> {
         Drivers {
             alive: ego,
-            background: self.background.as_deref().map(Actor::sampled).or(self.noise),
+            background: self
+                .background
+                .as_deref()
+                .map(Actor::sampled)
+                .or(self.noise.map(noise_actor)),
             adversary: self.adversary.as_deref().map(Actor::sampled),
         }
     }

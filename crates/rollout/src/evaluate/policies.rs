@@ -13,7 +13,6 @@ use sf_sim::config::MessageProbe;
 use sf_sim::SimConfig;
 
 use super::{io, EvalError};
-use crate::drive::Actor;
 use crate::setup;
 
 /// A finished job's final policy, with its job config resolved once ([`Policy::resolved`]).
@@ -72,7 +71,7 @@ pub enum FlowDef {
     Idm,
     /// The noise-matched IDM flow (an evaluation grid's `job = "idm-noise"`): every vehicle the
     /// IDM driver plus a learned flow's sampling noise of standard deviation `std` on each
-    /// component of the lateral residual action ([`Actor::IdmNoise`]), so "a learned flow beats
+    /// component of the lateral residual action ([`crate::drive::Actor::IdmNoise`]), so "a learned flow beats
     /// IDM" can be told apart from "noise beats IDM".
     IdmNoise {
         std: f32,
@@ -118,12 +117,10 @@ impl FlowDef {
         }
     }
 
-    /// The actor of the noise-matched IDM flow's vehicles; `None` for the other flows.
-    pub fn noise_actor(&self) -> Option<Actor<'static>> {
+    /// The noise-matched IDM flow's noise standard deviation; `None` for the other flows.
+    pub fn noise_std(&self) -> Option<f32> {
         match self {
-            Self::IdmNoise { std } => {
-                Some(Actor::IdmNoise { std: *std, action: sf_sim::DriveAction::IdmResidualLateral })
-            }
+            Self::IdmNoise { std } => Some(*std),
             _ => None,
         }
     }
