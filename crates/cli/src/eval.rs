@@ -124,6 +124,10 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?)
         .with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
+    let gz = sf_report::episodes::gz_path(&path);
+    if !path.exists() && gz.exists() {
+        bail!("{} is stored gzipped: gunzip it to add cells to it", gz.display());
+    }
     let stored = sf_report::episodes::read_episodes(&path)
         .with_context(|| format!("reading {}", path.display()))?;
     let mut have: BTreeMap<Cell, u64> = BTreeMap::new();
@@ -200,11 +204,12 @@ pub fn report(a: ReportArgs) -> Result<()> {
     let mut sets = Vec::with_capacity(a.results.len());
     let mut meta: Option<(PathBuf, sf_report::episodes::Meta)> = None;
     for dir in &a.results {
-        let rows = sf_report::episodes::read_episodes(&dir.join("episodes.csv"))?;
+        let episodes = sf_report::episodes::episodes_file(dir);
+        let rows = sf_report::episodes::read_episodes(&episodes)?;
         if rows.is_empty() {
             bail!(
                 "{} holds no evaluated episodes (run `socialflow eval` first)",
-                dir.join("episodes.csv").display()
+                episodes.display()
             );
         }
         let m = sf_report::episodes::read_meta(&dir.join("meta.json"))?;

@@ -211,7 +211,7 @@ async fn evaluate(
             .find(|j| j.id == *id)
             .with_context(|| format!("evaluation job {id} is gone"))?;
         let dir = PathBuf::from(&j.artifact_dir);
-        if !dir.join("episodes.csv").exists() {
+        if !sf_report::episodes::episodes_file(&dir).exists() {
             bail!("the results of evaluation job {id} ({}) are not on this machine: run `socialflow report` where they are", dir.display());
         }
         results.push(dir);

@@ -1,5 +1,5 @@
-//! The evaluation's result files: one row per evaluated episode (`episodes.csv`) and the
-//! grid's metadata (`meta.json`).
+//! The evaluation's result files: one row per evaluated episode (`episodes.csv`, read gzipped as
+//! `episodes.csv.gz` too: committed results are stored so) and the grid's metadata (`meta.json`).
 //!
 //! Owns: [`EpisodeRow`] and its CSV line format, the validating reader [`read_episodes`] (a bad
 //! line is named by its number and field), [`EpisodesWriter`] (whole cells appended and synced,
@@ -210,12 +210,50 @@ pub(crate) fn io_err(path: &Path, e: std::io::Error) -> FileError {
     FileError { path: path.display().to_string(), reason: e.to_string(), io: Some(e) }
 }
 
-/// Reads `episodes.csv`; a missing file is an empty result set.
-pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
-    if !path.exists() {
-        return Ok(Vec::new());
+/// The gzipped form of a stored result file: `episodes.csv` -> `episodes.csv.gz`.
+pub fn gz_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".gz");
+    PathBuf::from(name)
+}
+
+/// Where a results directory keeps its episodes: `episodes.csv`, or `episodes.csv.gz` when only
+/// that is stored (committed results are gzipped); `episodes.csv` when neither exists.
+pub fn episodes_file(dir: &Path) -> PathBuf {
+    let plain = dir.join("episodes.csv");
+    let gz = gz_path(&plain);
+    if !plain.exists() && gz.exists() {
+        gz
+    } else {
+        plain
     }
-    let text = std::fs::read_to_string(path).map_err(|e| io_err(path, e))?;
+}
+
+/// A whole text file, gunzipped when its name ends in `.gz`.
+fn read_text(path: &Path) -> Result<String, FileError> {
+    use std::io::Read as _;
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    if path.extension().is_some_and(|e| e == "gz") {
+        let mut text = String::new();
+        flate2::read::GzDecoder::new(bytes.as_slice())
+            .read_to_string(&mut text)
+            .map_err(|e| io_err(path, e))?;
+        Ok(text)
+    } else {
+        String::from_utf8(bytes).map_err(|e| file_err(path, format!("not UTF-8 text: {e}")))
+    }
+}
+
+/// Reads `episodes.csv`, or `episodes.csv.gz` (gunzipped) when the path names it or when the plain
+/// file is absent and the gzipped one is stored; a missing file is an empty result set.
+pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
+    let path = match path {
+        p if p.exists() => p.to_path_buf(),
+        p if p.extension().is_none_or(|e| e != "gz") && gz_path(p).exists() => gz_path(p),
+        _ => return Ok(Vec::new()),
+    };
+    let path = path.as_path();
+    let text = read_text(path)?;
     let mut lines = text.lines();
     let format = match lines.next() {
         None => return Ok(Vec::new()),
@@ -396,6 +434,37 @@ mod tests {
             .expect("write");
         let e = read_episodes(&p).expect_err("short line").to_string();
         assert!(e.contains("line 2") && e.contains("12 fields, expected 14"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The same rows read back from a plain and a gzipped file (named or found beside the plain
+    /// name); a corrupt `.gz` is an error naming the file.
+    #[test]
+    fn gzipped_episodes_read_as_plain() {
+        use std::io::Write as _;
+        let dir = std::env::temp_dir().join(format!("sf-report-gz-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let text: String = std::iter::once(EPISODES_HEADER.to_string())
+            .chain((0..5).map(|c| row(c, Some(0.25 * c as f32)).to_csv()))
+            .map(|l| l + "\n")
+            .collect();
+        let plain_dir = dir.join("plain");
+        std::fs::create_dir_all(&plain_dir).expect("dir");
+        std::fs::write(plain_dir.join("episodes.csv"), &text).expect("write");
+        let plain = read_episodes(&episodes_file(&plain_dir)).expect("plain");
+        assert_eq!(plain.len(), 5);
+        let gz = dir.join("episodes.csv.gz");
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+        enc.write_all(text.as_bytes()).expect("gzip");
+        std::fs::write(&gz, enc.finish().expect("gzip")).expect("write");
+        assert_eq!(episodes_file(&dir), gz);
+        assert_eq!(read_episodes(&gz).expect("gz"), plain);
+        assert_eq!(read_episodes(&dir.join("episodes.csv")).expect("gz beside"), plain);
+        std::fs::write(&gz, b"\x1f\x8b\x08\x00 not gzip at all").expect("write");
+        let e = read_episodes(&dir.join("episodes.csv")).expect_err("corrupt").to_string();
+        assert!(e.contains("episodes.csv.gz"), "{e}");
+        assert!(read_episodes(&dir.join("absent.csv")).expect("absent").is_empty());
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -1,11 +1,12 @@
 //! The reproduction report: per-episode results in, tables, statistics and figures out.
 //!
 //! Owns: [`build`] and [`build_replicates`], which turn stored per-episode results and the
-//! grid's metadata ([`crate::episodes`]) into `report.md` and a self-contained `report.html`
-//! (figures embedded) with every experiment the results hold: flow quality, the SVO and density
-//! sweeps ([`flows`]), adversary degradation, cross-validation heatmaps, zero-shot transfer and
-//! the trained egos against the IDM driver ([`egos`]); the findings table (each run's family
-//! Holm-corrected, the training run as the unit across runs) and the power of each finding.
+//! grid's metadata ([`crate::episodes`]) into `report.md` and `report.html` (figures as files
+//! beside both, referenced by name, never embedded) with every experiment the results hold: flow
+//! quality, the SVO and density sweeps ([`flows`]), adversary degradation, cross-validation
+//! heatmaps, zero-shot transfer and the trained egos against the IDM driver ([`egos`]); the
+//! findings table (each run's family Holm-corrected, the training run as the unit across runs)
+//! and the power of each finding.
 //! Every mean, interval and test is over stored cases ([`units`]: a start's seeds averaged,
 //! then a case's starts under several flows, egos or SVOs). The paper's numbers
 //! are printed beside ours where the paper gives them in its text. Must not: run simulations,
@@ -21,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::episodes::{io_err, EpisodeRow, FileError, Meta};
+use crate::episodes::{file_err, io_err, EpisodeRow, FileError, Meta};
 use crate::findings::{self, AcrossRuns, Check};
 use crate::inference;
 use crate::plot;
@@ -167,13 +168,22 @@ impl Doc {
         self.html.push_str("</table>\n");
     }
 
-    /// A figure already written to `self.dir/<file>`: linked from markdown, embedded in HTML.
+    /// A figure already written to `self.dir/<file>`: linked from markdown, referenced by its
+    /// file name from HTML (the report's directory keeps the HTML and its figures together, so
+    /// the page stays small and a figure is stored once).
     fn figure(&mut self, file: &str, caption: &str) -> Result<(), ReportError> {
         let path = self.dir.join(file);
-        let bytes = std::fs::read(&path).map_err(|e| io_err(&path, e))?;
+        if !path.is_file() {
+            return Err(file_err(&path, "figure missing beside the report").into());
+        }
         let _ = writeln!(self.md, "![{caption}]({file})\n");
-        let mime = if file.ends_with(".gif") { "image/gif" } else { "image/png" };
-        let _ = writeln!(self.html, "<figure><img src=\"data:{mime};base64,{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>", b64(&bytes), esc(caption), esc(caption));
+        let _ = writeln!(
+            self.html,
+            "<figure><img src=\"{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>",
+            esc_attr(file),
+            esc(caption),
+            esc(caption)
+        );
         Ok(())
     }
 }
@@ -182,9 +192,9 @@ fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
 }
 
-fn b64(bytes: &[u8]) -> String {
-    use base64::Engine;
-    base64::engine::general_purpose::STANDARD.encode(bytes)
+/// Text for a double-quoted HTML attribute.
+fn esc_attr(s: &str) -> String {
+    esc(s).replace('"', "&quot;")
 }
 
 /// What the report found, for the caller's summary.
@@ -699,9 +709,12 @@ mod tests {
         }
         let html = std::fs::read_to_string(out.join("report.html")).expect("html");
         assert!(
-            html.contains("data:image/png;base64,") && !html.contains("src=\"cross-"),
-            "figures are embedded"
+            !html.contains("data:") && html.contains("<img src=\"cross-success-merge.png\""),
+            "figures are referenced by file name, not embedded"
         );
+        for needle in ["cross-success-merge.png", "zero-shot-success.png", "density.png"] {
+            assert!(out.join(needle).is_file(), "{needle} is written beside report.html");
+        }
         let best = f
             .checks
             .iter()
