@@ -2,7 +2,10 @@
 
 Usage:
     socialflow report RUN1 RUN2 --out DIR > findings.json
-    python tests/report_stats_check.py findings.json RUN1/episodes.csv RUN2/episodes.csv
+    python tests/report_stats_check.py findings.json RUN1/episodes.csv.gz RUN2/episodes.csv.gz
+
+Each episodes file may be plain (`episodes.csv`) or gzipped (`episodes.csv.gz`, as committed);
+a plain name that is absent is read from the `.gz` beside it.
 
 The unit of every test is the stored case (scenario, case): a start's seeds (and, in the pooled
 findings, its runs) are averaged first, then the starts one case has under several SVOs, flows
@@ -54,6 +57,10 @@ def same(what, ours, ref):
 
 def read(path, replicate):
     """Episodes as the report reads them: the metric parsed as a 32-bit float."""
+    path = str(path)
+    if not path.endswith(".gz") and not Path(path).exists() and Path(path + ".gz").exists():
+        path += ".gz"
+    # pandas gunzips by the `.gz` suffix.
     e = pd.read_csv(path, dtype={"success": np.float32, "ego": str}, keep_default_na=False)
     e["success"] = e["success"].astype(np.float64)
     for col in ["svo_deg", "vehicles"]:

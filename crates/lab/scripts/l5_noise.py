@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import gzip
 import json
 import math
 import sys
@@ -27,14 +26,15 @@ from collections import defaultdict
 
 from scipy import stats
 
+from csv_files import open_csv
+
 BASELINES = ("IDM", "IDM+noise")
 
 
 def read_case_means(path: str) -> dict[tuple[str, str], dict[int, float]]:
     """(flow, scenario) -> {case: success averaged over the case's seeds}, flow_quality only."""
     sums: dict[tuple[str, str], dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
-    opener = gzip.open if path.endswith(".gz") else open
-    with opener(path, "rt", newline="", encoding="utf-8") as f:
+    with open_csv(path) as f:
         for row in csv.DictReader(f):
             if row["experiment"] != "flow_quality" or row["ego"]:
                 continue

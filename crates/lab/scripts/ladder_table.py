@@ -23,6 +23,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from csv_files import csv_path, open_csv
+
 ROOT = Path(__file__).resolve().parents[3]
 README = ROOT / "README.md"
 SIDE = ROOT / "docs/ladder/table.json"
@@ -66,7 +68,11 @@ def load_json(path):
 
 
 def load_csv(path):
-    return list(csv.DictReader(read(path).splitlines()))
+    """A committed CSV's rows; `path` may name the gzipped file (`.csv.gz`)."""
+    if not Path(csv_path(ROOT / path)).is_file():
+        raise TableError(f"{path}: missing")
+    with open_csv(ROOT / path) as f:
+        return list(csv.DictReader(f))
 
 
 def f3(x):

@@ -14,8 +14,8 @@ graph (run 1: `--data-dir runs/paper-small`, run 2: `runs/paper-small-seed1`):
     python3 docs/archive/2026-11-25-report-seeds-0-1/idm-ego-compare.py docs/archive/2026-11-25-report-seeds-0-1/run-$k/results/episodes.csv $out > $out/summary.md
 
 Both replicates pooled (pairs within a replicate): give every run's pair of arguments, e.g.
-`idm-ego-compare.py docs/archive/2026-11-25-report-seeds-0-1/run-1/results/episodes.csv docs/archive/2026-11-25-report-seeds-0-1/run-1/idm-ego
-docs/archive/2026-11-25-report-seeds-0-1/run-2/results/episodes.csv docs/archive/2026-11-25-report-seeds-0-1/run-2/idm-ego > docs/archive/2026-11-25-report-seeds-0-1/idm-ego.md`.
+`idm-ego-compare.py docs/archive/2026-11-25-report-seeds-0-1/run-1/results/episodes.csv.gz docs/archive/2026-11-25-report-seeds-0-1/run-1/idm-ego
+docs/archive/2026-11-25-report-seeds-0-1/run-2/results/episodes.csv.gz docs/archive/2026-11-25-report-seeds-0-1/run-2/idm-ego > docs/archive/2026-11-25-report-seeds-0-1/idm-ego.md`.
 
 Each trained ego's success is paired with the IDM ego's on the same (flow, scenario, case,
 seed); the p-value is the paired t-test's in its normal approximation (160-640 pairs).
@@ -24,6 +24,20 @@ import collections, csv, json, math, sys
 
 FLOWS = ["IDM", "MACAD", "CoPO", "SocialComm"]
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
+
+
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
 
 
 def paired(d):
@@ -43,7 +57,7 @@ def main(sets):
             for s in SCENARIOS:
                 for e in json.load(open(f"{idm_dir}/{f}-{s}.json"))["episodes"]:
                     idm[(k, f, s, e["case"], e["seed"])] = e["success"]
-        cross += [dict(r, run=k) for r in csv.DictReader(open(episodes)) if r["experiment"] == "cross"]
+        cross += [dict(r, run=k) for r in csv.DictReader(open_csv(episodes)) if r["experiment"] == "cross"]
     key = lambda r, s=None: (r["run"], r["flow"], s or r["scenario"], int(r["case"]), int(r["seed"]))
     egos = list(dict.fromkeys(r["ego"] for r in cross))
     mean = lambda v: 100 * sum(v) / len(v)

@@ -15,6 +15,20 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def holm(ps):
     """Holm-adjusted p-values, in the order given."""
     order, adj, run = sorted(range(len(ps)), key=ps.__getitem__), [0.0] * len(ps), 0.0
@@ -25,7 +39,7 @@ def holm(ps):
 
 def table(results):
     by = defaultdict(lambda: defaultdict(list))
-    with open(results / "episodes.csv") as f:
+    with open_csv(results / "episodes.csv") as f:
         for r in csv.DictReader(f):
             by[(r["ego"], r["flow"])][(r["scenario"], r["case"])].append(float(r["success"]))
     egos = sorted({e for e, _ in by if e != "IDM ego"}) + ["IDM ego"]

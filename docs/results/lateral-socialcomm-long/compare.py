@@ -16,9 +16,23 @@ HERE = Path(__file__).resolve().parent
 FIRST = HERE.parent / "lateral-flows"
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def per_start(path, flow, metric="success"):
     by = defaultdict(list)
-    with open(path) as f:
+    with open_csv(path) as f:
         for r in csv.DictReader(f):
             if r["experiment"] == "flow_quality" and r["flow"] == flow:
                 by[(r["scenario"], r["case"])].append(float(r[metric]))

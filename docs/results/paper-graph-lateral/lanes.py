@@ -1,7 +1,7 @@
 """How often the lateral graph's egos leave their route's lane, from the grid's episodes.
 
 Usage: python lanes.py LABEL=<episodes.csv> [LABEL=<episodes.csv> ...] > lanes.md
-e.g.   python lanes.py "seed 9=docs/report/run-1/results/episodes.csv" "seed 10=docs/report/run-2/results/episodes.csv"
+e.g.   python lanes.py "seed 9=docs/report/run-1/results/episodes.csv.gz" "seed 10=docs/report/run-2/results/episodes.csv.gz"
 
 `lane_change` is the share of an episode's scored agents that left their route's lane at some
 point; in cross-validation that is the ego. Prints, per run, each ego's share per evaluation
@@ -13,9 +13,23 @@ import sys
 from collections import defaultdict
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def table(label, path):
     try:
-        with open(path) as f:
+        with open_csv(path) as f:
             rows = list(csv.DictReader(f))
     except OSError as e:
         sys.exit(f"{path}: {e}")

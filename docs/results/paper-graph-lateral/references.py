@@ -1,7 +1,7 @@
 """The lateral graph's trained egos against the two scripted drivers, flow by flow.
 
     python3 docs/results/paper-graph-lateral/references.py \
-        docs/results/paper-graph-lateral/references/episodes.csv > docs/results/paper-graph-lateral/references.md
+        docs/results/paper-graph-lateral/references/episodes.csv.gz > docs/results/paper-graph-lateral/references.md
 
 For each flow: every driver's success (percent), and each trained ego's lead over the better of
 the two scripted drivers (the lane-keeping IDM driver, IDM with MOBIL's lane changes) in that
@@ -22,10 +22,24 @@ from statsmodels.stats.multitest import multipletests
 SCRIPTED = ("IDM driver", "IDM+MOBIL")
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def load(path):
     """{(ego, flow): {(scenario, case): mean over seeds of (success, lane_change)}}."""
     acc = defaultdict(lambda: defaultdict(list))
-    with open(path) as f:
+    with open_csv(path) as f:
         for r in csv.DictReader(f):
             acc[(r["ego"], r["flow"])][(r["scenario"], r["case"])].append(
                 (float(r["success"]), float(r.get("lane_change") or 0.0))

@@ -42,7 +42,7 @@ def table(title, lines):
 
 def main():
     print("## The decisive probes (seed 6, 2026-11-27)")
-    mf = pd.read_csv(os.path.join(HERE, "messages-and-flow-actors/results/episodes.csv"))
+    mf = pd.read_csv(os.path.join(HERE, "messages-and-flow-actors/results/episodes.csv.gz"))
     fq = mf[mf.experiment == "flow_quality"]
     if len(fq):
         lines = []
@@ -58,7 +58,7 @@ def main():
                 rows = cross if f is None else cross[cross.flow == f]
                 lines.append((f"RL/{x} - {x} actor, in {f or 'all four flows'}", compare(rows, f"RL/{x}", f"{x} actor", "ego", ["flow", "scenario", "case"])))
         table("Does ego training add anything among learned flows? Each flow's actor in the ego's seat", lines)
-    path = os.path.join(HERE, "constant-message-adversary/results/episodes.csv")
+    path = os.path.join(HERE, "constant-message-adversary/results/episodes.csv.gz")
     if os.path.exists(path):
         adv = pd.read_csv(path)
         adv = adv[adv.experiment == "adversary"]

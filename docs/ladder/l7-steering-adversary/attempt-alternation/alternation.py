@@ -9,7 +9,7 @@ interval and a paired t-test's p, Holm's correction over every p the tables prin
   FailMaker-k minus among IDM;
 - the last ego against every adversary and among IDM: RARL-3 minus RL/IDM.
 
-    python3 docs/ladder/l7-steering-adversary/attempt-alternation/alternation.py docs/ladder/l7-steering-adversary/attempt-alternation/seed-*/results/episodes.csv
+    python3 docs/ladder/l7-steering-adversary/attempt-alternation/alternation.py docs/ladder/l7-steering-adversary/attempt-alternation/seed-*/results/episodes.csv.gz
 """
 
 import argparse
@@ -29,10 +29,24 @@ EGOS = ["RL/IDM", "RARL-1", "RARL-2", "RARL-3"]
 FLOWS = ["IDM", "FailMaker-1", "FailMaker-2", "FailMaker-3"]
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def load(path):
     """{(ego, flow): {(scenario, case, seed): episode row}}."""
     cells = {}
-    with open(path) as f:
+    with open_csv(path) as f:
         for r in csv.DictReader(f):
             cells.setdefault((r["ego"], r["flow"]), {})[(r["scenario"], r["case"], r["seed"])] = r
     return cells

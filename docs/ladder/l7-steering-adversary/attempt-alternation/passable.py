@@ -5,8 +5,8 @@ differs: optimistic). Each file is one training seed's `episodes.csv`; its egos 
 evaluated among FailMaker-1 in it and in the further files given with `--also`.
 
     python3 docs/ladder/l7-steering-adversary/attempt-alternation/passable.py \
-      docs/ladder/l7-steering-adversary/attempt-alternation/seed-1/results/episodes.csv \
-      --also docs/ladder/l7-steering-adversary/attempt-alternation/probe-unanchored/seed-1/results/episodes.csv
+      docs/ladder/l7-steering-adversary/attempt-alternation/seed-1/results/episodes.csv.gz \
+      --also docs/ladder/l7-steering-adversary/attempt-alternation/probe-unanchored/seed-1/results/episodes.csv.gz
 """
 
 import argparse

@@ -2,7 +2,7 @@
 FailMaker minus among IDM, paired on the same (scenario, case, seed) starts, with a 95 % t
 interval and a paired t-test's p; and how the episodes among FailMaker end.
 
-    python3 docs/ladder/l7-steering-adversary/attempt-hostile/effects.py docs/ladder/l7-steering-adversary/attempt-hostile/seed-*/results/episodes.csv
+    python3 docs/ladder/l7-steering-adversary/attempt-hostile/effects.py docs/ladder/l7-steering-adversary/attempt-hostile/seed-*/results/episodes.csv.gz
 """
 
 import csv
@@ -13,8 +13,22 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from recovery import paired  # noqa: E402
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def load(path):
-    with open(path) as f:
+    with open_csv(path) as f:
         return list(csv.DictReader(f))
 
 

@@ -6,7 +6,7 @@ correction over every p the table prints. `--rarl NAME` (up to twice) names the 
 (default `RARL/FailMaker`); with two, the table adds the second minus the first. `--flow NAME`
 names the hostile flow (default `FailMaker`).
 
-    python3 docs/ladder/l7-steering-adversary/attempt-lateral-rarl/recovery.py docs/ladder/l7-steering-adversary/attempt-lateral-rarl/seed-*/results/episodes.csv
+    python3 docs/ladder/l7-steering-adversary/attempt-lateral-rarl/recovery.py docs/ladder/l7-steering-adversary/attempt-lateral-rarl/seed-*/results/episodes.csv.gz
 """
 
 import argparse
@@ -15,6 +15,20 @@ import math
 
 from scipy import stats
 from statsmodels.stats.multitest import multipletests
+
+
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
 
 
 def paired(a, b):
@@ -36,7 +50,7 @@ def main(paths, rarl_names, fm="FailMaker"):
     for path in paths:
         seed = path.split("seed-")[1].split("/")[0]
         succ = {}
-        with open(path) as f:
+        with open_csv(path) as f:
             for r in csv.DictReader(f):
                 succ.setdefault((r["ego"], r["flow"]), {})[(r["scenario"], r["case"], r["seed"])] = float(r["success"])
         attack = paired(succ[("RL/IDM", "IDM")], succ[("RL/IDM", fm)])

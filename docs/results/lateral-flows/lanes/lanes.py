@@ -15,8 +15,22 @@ HERE = Path(__file__).resolve().parent
 METRICS = ("success", "safety", "speed", "collision")
 
 
+def open_csv(path):
+    """A committed CSV as text: gunzipped when named `.gz`, or read from the `.gz` beside it when
+    only that is stored (large per-episode files are committed gzipped; docs/results-policy.md)."""
+    import gzip
+    import os
+
+    path = os.fspath(path)
+    if not path.endswith(".gz") and not os.path.exists(path) and os.path.exists(path + ".gz"):
+        path += ".gz"
+    if path.endswith(".gz"):
+        return gzip.open(path, "rt", newline="", encoding="utf-8")
+    return open(path, newline="", encoding="utf-8")
+
+
 def load(path):
-    with open(path) as f:
+    with open_csv(path) as f:
         return list(csv.DictReader(f))
 
 
