@@ -12,8 +12,9 @@ import socialflow
 from test_evaluate import REPO, socialflow_bin
 
 # paper-small's RL/IDM ego (replicate s25): the acceleration residual, query-centric, four
-# scenarios.
-EGO = REPO / "docs/curves/paper-small-s25/jobs/1-ego-idm"
+# scenarios. A copy of docs/curves/paper-small-s25/jobs/1-ego-idm (its config and actor): tests
+# read fixtures, never docs/, so results can move or leave docs/ without breaking a test.
+EGO = REPO / "tests/fixtures/paper-small-s25/jobs/1-ego-idm"
 
 
 def test_a_committed_actor_loads_and_acts_in_an_env():
