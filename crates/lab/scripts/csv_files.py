@@ -3,12 +3,21 @@
 Per-episode files larger than 50 KB are committed gzipped (`episodes.csv.gz`, see
 docs/results-policy.md); a fresh run writes plain `episodes.csv`. `open_csv` takes either name:
 a path ending in `.gz` is gunzipped, and a plain path that is absent is read from the `.gz`
-beside it. Imported by the scripts in this directory; scripts elsewhere carry a copy of
-`open_csv` (they run standalone from the repository root).
+beside it. `REPO` is the repository root, for scripts whose default inputs are committed results
+under `REPO / "docs"`.
+
+Imported by the scripts in this directory and by those in `results/` (one folder per result page),
+which put this directory on `sys.path` first:
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # crates/lab/scripts
+    from csv_files import open_csv
 """
 
 import gzip
 import os
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[3]
 
 
 def csv_path(path):
