@@ -10,6 +10,8 @@ Fails (exit 1, one line per breach naming the file and the rule) when:
 - weights: a tracked `.bpk` is missing from the manifest, or its size or sha256 differs; a
   manifest row names a file that is not tracked;
 - embedded-image: an HTML file under docs/ embeds an image (`data:image/...`);
+- script-in-docs: a `.py` or `.sh` file is tracked under docs/ (result scripts live in
+  crates/lab/scripts/results/, one folder per result page, where CI lints them with ruff);
 - plain-episodes: a plain per-episode CSV (`episodes*.csv`) over 50 KB is tracked under docs/
   (commit it as `gzip -9n`; every reader takes `.csv.gz`);
 - test-reads-docs: a test file (tests/, python/tests/, crates/*/tests/) holds a quoted path that
@@ -59,6 +61,7 @@ TEST_DIRS = re.compile(r"^(tests/|python/tests/|crates/[^/]+/tests/)")
 TEST_DOCS_PATH = re.compile(r"""["']docs/""")
 EMBEDDED = re.compile(rb"data:image/")
 EPISODES = re.compile(r"^episodes[^/]*\.csv$")
+SCRIPT_SUFFIXES = (".py", ".sh")
 LINK = re.compile(r"!?\[(?:[^\]\\]|\\.)*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 FENCE = re.compile(r"^\s*(```|~~~)")
 
@@ -165,6 +168,8 @@ def check(root):
                     errors.append(("embedded-image", p, "embeds an image as data:; reference the file beside it"))
         if EPISODES.match(name) and size[p] > PLAIN_EPISODES_BYTES:
             errors.append(("plain-episodes", p, f"{size[p] / 1024:.0f} KB plain; commit it gzipped (gzip -9n)"))
+        if p.endswith(SCRIPT_SUFFIXES):
+            errors.append(("script-in-docs", p, "a script under docs/; move it to crates/lab/scripts/results/<page>/"))
 
     # tests read fixtures, not docs/
     for p in present:
@@ -227,6 +232,7 @@ def self_test():
         "weights": lambda r: write(r, "docs/curves/run/policy.bpk", b"\x02" * 1000),
         "embedded-image": lambda r: write(r, "docs/report/report.html", '<img src="data:image/png;base64,AAAA">'),
         "plain-episodes": lambda r: write(r, "docs/report/episodes.csv", "a,b\n" + "1,2\n" * 20000),
+        "script-in-docs": lambda r: write(r, "docs/report/table.py", "print('a table')\n"),
         "test-reads-docs": lambda r: write(r, "python/tests/test_x.py", 'P = "docs/curves/run"\n'),
         "link": lambda r: write(r, "docs/page.md", "See [gone](curves/gone.csv).\n"),
     }
@@ -268,7 +274,7 @@ def main():
     if errors:
         print(f"budget: {len(errors)} breach(es); see docs/results-policy.md", file=sys.stderr)
         return 1
-    print("budget: docs/ within budget, weights listed, no embedded images, no large plain episodes, tests and links clean")
+    print("budget: docs/ within budget, weights listed, no embedded images, no large plain episodes, no scripts, tests and links clean")
     return 0
 
 
