@@ -195,9 +195,9 @@ def check(root):
             if not t:
                 continue
             target = os.path.normpath(os.path.join(os.path.dirname(page), t)).replace(os.sep, "/")
-            if target.startswith("../") or not (target in fileset or target in dirs):
-                if (page, t) not in KNOWN_BROKEN_LINKS:
-                    errors.append(("link", page, f"`{t}` does not resolve to a tracked file"))
+            resolves = not target.startswith("../") and (target in fileset or target in dirs)
+            if not resolves and (page, t) not in KNOWN_BROKEN_LINKS:
+                errors.append(("link", page, f"`{t}` does not resolve to a tracked file"))
     return errors
 
 

@@ -85,14 +85,14 @@ def paired(a, b, pair_on):
     n = len(d)
     se = d.std(ddof=1) / np.sqrt(n)
     p = stats.ttest_1samp(d, 0.0).pvalue if se > 0 else (1.0 if d.mean() == 0 else 0.0)
-    return dict(effect=d.mean(), se=se, df=n - 1, p=p, n=n, starts=starts, against="reverses")
+    return {"effect": d.mean(), "se": se, "df": n - 1, "p": p, "n": n, "starts": starts, "against": "reverses"}
 
 
 def welch(a, b, starts):
     n_a, n_b = len(a), len(b)
     se = np.sqrt(a.var(ddof=1) / n_a + b.var(ddof=1) / n_b)
     p = stats.ttest_ind(a, b, equal_var=False).pvalue
-    return dict(effect=a.mean() - b.mean(), se=se, p=p, n=n_a + n_b, starts=starts)
+    return {"effect": a.mean() - b.mean(), "se": se, "p": p, "n": n_a + n_b, "starts": starts}
 
 
 def all_of(parts):
@@ -111,14 +111,14 @@ def all_of(parts):
 def recompute(claim, e, meta):
     """The test of one finding on episodes `e`, or None for a claim this check does not know."""
     fq = e[e.experiment == "flow_quality"]
-    flow = lambda rows, f: rows[rows.flow == f]  # noqa: E731
+    flow = lambda rows, f: rows[rows.flow == f]
     if m := re.fullmatch(r"SocialComm flow succeeds more often than (.+) \(flow quality, all .*\)", claim):
         return paired(flow(fq, "SocialComm"), flow(fq, m[1]), ["ego"])
     if m := re.fullmatch(r"SocialComm flow succeeds more often than (.+) in merge", claim):
         merge = fq[fq.scenario == "merge"]
         return paired(flow(merge, "SocialComm"), flow(merge, m[1]), ["ego"])
     if m := re.fullmatch(r"SocialComm's advantage over (.+) is larger in merge than in each .*", claim):
-        at = lambda s, f: flow(fq[fq.scenario == s], f)  # noqa: E731
+        at = lambda s, f: flow(fq[fq.scenario == s], f)
         diffs = {
             s: per_case(at(s, "SocialComm"), at(s, m[1]), ["ego"])
             for s in SCENARIOS
@@ -135,7 +135,7 @@ def recompute(claim, e, meta):
     if m := re.fullmatch(r"(.+) degrades egos more than (.+?) \(pooled success .*\)", claim):
         return paired(flow(ad, m[2]), flow(ad, m[1]), ["ego"])
     cross = e[e.experiment == "cross"]
-    ego = lambda rows, x: rows[rows.ego == x]  # noqa: E731
+    ego = lambda rows, x: rows[rows.ego == x]
     if m := re.fullmatch(r"(.+) transfers best in (.+) \(success above every other .*\)", claim):
         ours, here = m[1], cross[cross.scenario == m[2]]
         others = [
@@ -210,23 +210,23 @@ def hksj(eff, var):
     close("HKSJ variance, definition vs statsmodels", scale / w.sum(), var_h, atol=1e-12)
     se = np.sqrt(max(var_h, se_dl**2))
     t = stats.t(k - 1)
-    return dict(
-        estimate=est,
-        tau2=tau2,
-        se_dl=se_dl,
-        ci95_z=stats.norm.ppf(0.975) * se_dl,
-        hksj_scale=scale,
-        se=se,
-        df=k - 1,
-        ci95=t.ppf(0.975) * se,
-        p_value=2 * t.sf(abs(est / se)),
-    )
+    return {
+        "estimate": est,
+        "tau2": tau2,
+        "se_dl": se_dl,
+        "ci95_z": stats.norm.ppf(0.975) * se_dl,
+        "hksj_scale": scale,
+        "se": se,
+        "df": k - 1,
+        "ci95": t.ppf(0.975) * se,
+        "p_value": 2 * t.sf(abs(est / se)),
+    }
 
 
 def main(findings_path, *episode_paths):
-    findings = json.load(open(findings_path))
+    findings = json.loads(Path(findings_path).read_text())
     meta_path = Path(episode_paths[0]).parent / "meta.json"
-    meta = json.load(open(meta_path)) if meta_path.exists() else {"egos": [], "idm_ego": "IDM ego"}
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"egos": [], "idm_ego": "IDM ego"}
     runs = [read(p, k) for k, p in enumerate(episode_paths)]
     checked = 0
     for k, (run, f) in enumerate(zip(runs, findings["replicates"])):

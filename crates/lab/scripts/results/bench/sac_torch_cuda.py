@@ -9,8 +9,9 @@ import statistics
 import sys
 import time
 
-import torch
 import sac_torch as m
+import torch
+
 
 def to_cuda(x):
     if isinstance(x, dict):
@@ -35,9 +36,9 @@ def bench(size, iters, warmup):
         times.append(time.perf_counter() - t0)
     torch.set_default_device("cpu")
     med = statistics.median(times)
-    return dict(size=size, updates_per_s=1.0 / med, median_s=med, min_s=min(times), n=iters)
+    return {"size": size, "updates_per_s": 1.0 / med, "median_s": med, "min_s": min(times), "n": iters}
 
 if __name__ == "__main__":
-    out = dict(impl=f"pytorch {torch.__version__} cuda", gpu=torch.cuda.get_device_name(0))
+    out = {"impl": f"pytorch {torch.__version__} cuda", "gpu": torch.cuda.get_device_name(0)}
     out["runs"] = [bench(s, int(n), 5) for s, n in (a.split(":") for a in sys.argv[1:])]
     print(json.dumps(out, indent=1))

@@ -33,6 +33,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # crates/lab/scripts
+import itertools
+
 from csv_files import REPO
 
 ROOT = os.fspath(REPO / "docs" / "curves")
@@ -46,14 +48,14 @@ def rows(path):
 
 
 def toml_int(text, key):
-    return int(float(re.search(rf"^{key} = (\S+)", text, re.M).group(1)))
+    return int(float(re.search(rf"^{key} = (\S+)", text, re.MULTILINE).group(1)))
 
 
 def interp(pts, x):
     """Piecewise-linear over (env_steps, success), clamped at the ends."""
     if x <= pts[0][0]:
         return pts[0][1]
-    for (x0, y0), (x1, y1) in zip(pts, pts[1:]):
+    for (x0, y0), (x1, y1) in itertools.pairwise(pts):
         if x0 <= x <= x1:
             return y0 if x1 == x0 else y0 + (y1 - y0) * (x - x0) / (x1 - x0)
     return pts[-1][1]
@@ -61,7 +63,8 @@ def interp(pts, x):
 
 def analyse(run, job):
     base = os.path.join(ROOT, run, job)
-    cfg = open(base + ".config.toml").read()
+    with open(base + ".config.toml") as f:
+        cfg = f.read()
     window, warm, total = toml_int(cfg, "window"), toml_int(cfg, "warmup_steps"), toml_int(cfg, "env_steps")
     curve = rows(base + ".csv")
     val = rows(base + ".validation.csv")
@@ -102,10 +105,10 @@ def analyse(run, job):
     V_last = val[-1]["success"]
     V_kept = max(v["success"] for v in val)
     diffs = [b["success"] - a["success"] for a, b in zip(val[-12:], val[-11:])]
-    return dict(run=run, job=job, E=E, window=window, L=L, warm_n=E - n_pol, A=A, A_pol=A_pol, Vd=Vd, Ve=Ve,
-                V_last=V_last, V_kept=V_kept, res=wm, se=se, n_t=n_t, T=T, Vt=Vt,
-                vsd=statistics.pstdev(diffs) / 2 ** 0.5, curve_last=curve[-1]["success"],
-                W=(A * E - A_pol * n_pol) / (E - n_pol), sd_ep=sd_ep)
+    return {"run": run, "job": job, "E": E, "window": window, "L": L, "warm_n": E - n_pol, "A": A, "A_pol": A_pol,
+            "Vd": Vd, "Ve": Ve, "V_last": V_last, "V_kept": V_kept, "res": wm, "se": se, "n_t": n_t, "T": T, "Vt": Vt,
+            "vsd": statistics.pstdev(diffs) / 2 ** 0.5, "curve_last": curve[-1]["success"],
+            "W": (A * E - A_pol * n_pol) / (E - n_pol), "sd_ep": sd_ep}
 
 
 def main():

@@ -28,10 +28,9 @@ print(
 print("|" + "---|" * 12)
 for path in sys.argv[1:]:
     name = path.rsplit("/", 1)[-1].split(".")[0]
-    for line in open(path):
-        if not line.startswith("{"):
-            continue
-        p = json.loads(line)["point"]
+    with open(path) as fh:
+        points = [json.loads(line)["point"] for line in fh if line.startswith("{")]
+    for p in points:
         if "averaged" in p:
             av, ac = loop(p["averaged"]), loop(p["actor"])
         else:  # the first runs: the averaged actor only, and its collision rate

@@ -39,7 +39,7 @@ def shares(eps, column="road_closed"):
     """Shares of `{start: row}` that arrive, collide, fail otherwise, end safe and not arrived
     with the road closed (`column`), and with it open."""
     n = len(eps)
-    f = lambda k: sum(float(r[k]) for r in eps.values()) / n  # noqa: E731
+    f = lambda k: sum(float(r[k]) for r in eps.values()) / n
     arrived, safe, col, closed = f("success"), f("safety"), f("collision"), f(column)
     return arrived, col, 1 - safe - col, closed, safe - arrived - closed
 
@@ -112,16 +112,15 @@ def splits(paths, column, rule, base_from=None):
         rl, rarl, drv = c[("RL/IDM", FM)], c[("RARL-3", FM)], c[("IDM driver", FM)]
         base = c[("RL/IDM", "IDM")]
         closed = {s for s, r in rl.items() if float(r[column]) > 0}
-        arr = lambda eps, s: float(eps[s]["success"]) > 0  # noqa: E731
+        arr = lambda eps, s: float(eps[s]["success"]) > 0
         n = len(rl)
         nc = max(len(closed), 1)
         by_rarl = sum(arr(rarl, s) for s in closed) / nc
         by_drv = sum(arr(drv, s) for s in closed) / nc
         by_any = sum(arr(rarl, s) or arr(drv, s) for s in closed) / nc
         rest = set(rl) - closed
-        sub = lambda eps: {s: float(eps[s]["success"]) for s in rest}  # noqa: E731
-        loss, lh, _ = paired(sub(base), sub(rl))
-        rec, rh, _ = paired(sub(rl), sub(rarl))
+        loss, lh, _ = paired(values(base, keys=rest), values(rl, keys=rest))
+        rec, rh, _ = paired(values(rl, keys=rest), values(rarl, keys=rest))
         share = f"{100 * rec / -loss:.0f} %" if loss < 0 else "no loss"
         print(f"| {seed} | {n} | {pct(len(closed) / n)} % | {pct(by_rarl)} / {pct(by_drv)} / {pct(by_any)} % | "
               f"{100 * loss:+.1f} +- {100 * lh:.1f} | {100 * rec:+.1f} +- {100 * rh:.1f} ({share}) |")

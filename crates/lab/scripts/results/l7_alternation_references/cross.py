@@ -53,7 +53,7 @@ def main(paths):
     holm = multipletests([r[4][2] for r in rows], method="holm")[1]
     print("| adversary | aimed at its own run's RL/IDM | aimed at the other run's RL/IDM | own minus other | p (Holm) |")
     print("|---|---|---|---|---|")
-    t = lambda x: f"{100 * x[0]:+.1f} +- {100 * x[1]:.1f}"  # noqa: E731
+    t = lambda x: f"{100 * x[0]:+.1f} +- {100 * x[1]:.1f}"
     for (fm, own, other, aimed, diff), p in zip(rows, holm):
         print(f"| {fm} | {t(aimed[own])} (seed {own}) | {t(aimed[other])} (seed {other}) | {t(diff)} | {p:.2g} |")
     print()

@@ -37,7 +37,7 @@ def main(paths):
 def table(path):
     run = path.split("learned-flows-seed-")[1].split("/")[0]
     c = load(path)
-    mean = lambda e, f: 100 * sum(success(c[(e, f)]).values()) / len(c[(e, f)])  # noqa: E731
+    mean = lambda e, f: 100 * sum(success(c[(e, f)]).values()) / len(c[(e, f)])
     rows = []
     for f in FLOWS:
         best = max(SCRIPTED, key=lambda e: mean(e, f))

@@ -53,14 +53,13 @@ def main(paths):
             fm = f"FailMaker-{k}"
             att = {e: paired(success(c[(e, "IDM")]), success(c[(e, fm)])) for e in (ego,) + REFS}
             aimed = did(c, ego, "IDM driver", fm)
-            mean = lambda e: sum(success(c[(e, fm)]).values()) / len(c[(e, fm)])  # noqa: E731
-            best = max(REFS, key=mean)
+            best = max(REFS, key=lambda e: sum(success(c[(e, fm)]).values()) / len(c[(e, fm)]))
             edge = paired(success(c[(best, fm)]), success(c[(ego, fm)]))
             retrained = paired(success(c[(best, fm)]), success(c[(f"RARL-{k}", fm)]))
             rows.append((fm, ego, att, aimed, best, edge, retrained))
         holm = multipletests([r[3][2] for r in rows], method="holm")[1]
         for (fm, ego, att, aimed, best, edge, retrained), p in zip(rows, holm):
-            f = lambda t: f"{100 * t[0]:+.1f} +- {100 * t[1]:.1f}"  # noqa: E731
+            f = lambda t: f"{100 * t[0]:+.1f} +- {100 * t[1]:.1f}"
             print(f"| {seed} | {fm} | {ego} | {f(att[ego])} | {f(att['IDM driver'])} | {f(att['IDM+MOBIL'])} | "
                   f"{f(aimed)} | {p:.2g} | {f(edge)} ({best}) | {f(retrained)} |")
     print()

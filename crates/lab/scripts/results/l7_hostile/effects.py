@@ -19,6 +19,11 @@ def load(path):
         return list(csv.DictReader(f))
 
 
+def success(eps, keys):
+    """{start: success} of `eps` (`{start: row}`) on `keys`."""
+    return {k: float(eps[k]["success"]) for k in keys}
+
+
 def ends(eps):
     """Shares of the episodes (`{start: row}`) that end in a collision, in another failure (off
     the road or the lane), or safely but not arrived, and the share with a lane change (0 where
@@ -44,11 +49,10 @@ def main(paths):
                     by.setdefault(r["flow"], {})[(r["scenario"], r["case"], r["seed"])] = r
             idm, fm = by["IDM"], by["FailMaker"]
             keys = sorted(idm.keys() & fm.keys())
-            success = lambda eps: {k: float(eps[k]["success"]) for k in keys}
-            mean, half, p = paired(success(idm), success(fm))
+            mean, half, p = paired(success(idm, keys), success(fm, keys))
             n = len(keys)
-            a = sum(success(idm).values()) / n
-            b = sum(success(fm).values()) / n
+            a = sum(success(idm, keys).values()) / n
+            b = sum(success(fm, keys).values()) / n
             col, other, stuck, _ = ends({k: fm[k] for k in keys})
             print(f"| {seed} | {ego} | {a:.3f} | {b:.3f} | {100 * mean:+.1f} | +-{100 * half:.1f} | {p:.1e} | {col:.3f} / {other:.3f} / {stuck:.3f} |")
 

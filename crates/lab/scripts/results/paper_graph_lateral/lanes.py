@@ -29,7 +29,7 @@ def table(label, path):
     for r in rows:
         if r["experiment"] == "cross":
             cross[(r["ego"], r["flow"])].append((float(r["lane_change"]), float(r["success"])))
-    mean = lambda xs, i: 100.0 * sum(x[i] for x in xs) / len(xs)  # noqa: E731
+    mean = lambda xs, i: 100.0 * sum(x[i] for x in xs) / len(xs)
     fl = list(dict.fromkeys(f for _, f in cross))
     print(f"## Cross-validation, {label}: episodes whose ego left its lane, % (success %)\n")
     print("| ego | " + " | ".join(fl) + " |")

@@ -56,7 +56,7 @@ def main(path):
     egos = list(dict.fromkeys(e for e, _ in c))
     flows = list(dict.fromkeys(f for _, f in c))
     learned = [e for e in egos if e not in SCRIPTED]
-    mean = lambda e, f, i=0: 100 * sum(v[i] for v in c[(e, f)].values()) / len(c[(e, f)])  # noqa: E731
+    mean = lambda e, f, i=0: 100 * sum(v[i] for v in c[(e, f)].values()) / len(c[(e, f)])
     print("## Success, % (episodes whose driver left its lane, %)\n")
     print("| flow | " + " | ".join(egos) + " |")
     print("|---|" + "---|" * len(egos))

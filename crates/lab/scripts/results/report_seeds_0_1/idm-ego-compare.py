@@ -49,7 +49,9 @@ def main(sets):
     for k, (episodes, idm_dir) in enumerate(sets):
         for f in FLOWS:
             for s in SCENARIOS:
-                for e in json.load(open(f"{idm_dir}/{f}-{s}.json"))["episodes"]:
+                with open(f"{idm_dir}/{f}-{s}.json") as fh:
+                    idm_episodes = json.load(fh)["episodes"]
+                for e in idm_episodes:
                     idm[(k, f, s, e["case"], e["seed"])] = e["success"]
         cross += [dict(r, run=k) for r in csv.DictReader(open_csv(episodes)) if r["experiment"] == "cross"]
     key = lambda r, s=None: (r["run"], r["flow"], s or r["scenario"], int(r["case"]), int(r["seed"]))
