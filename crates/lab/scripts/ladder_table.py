@@ -303,6 +303,35 @@ def row_flows(row):
         f"({row['noise_when']}; the old gate, at or above the deterministic all-IDM flow, "
         f"{row['when']}: {old} of {old_n})"
     )
+    if "stage1" in row:
+        result, gate = stage1_flows(row, result, gate)
+    return result, gate
+
+
+def stage1_flows(row, result, gate):
+    """L5's Stage-1 clause: the kept actors of `configs/stage1/` runs against the noise-matched
+    IDM flow (`l5_noise.py` over flows named `<Flow>-s<seed>@<mark>`); a flow the runs lack is
+    said to be not run."""
+    s1 = row["stage1"]
+    res = load_json(s1["path"])
+    v = res["verdicts"]
+    if res["min_gain"] != 3.0 or res["alpha"] != 0.05 or res["need"] != row["min_scenarios"]:
+        raise TableError(f"{s1['path']}: not the rung's gate (+3 points, Holm p < 0.05, {row['min_scenarios']} scenarios)")
+    parts, missing, met, n = [], [], 0, 0
+    for flow in row["flows"]:
+        runs = [f"{flow}-s{seed}@{s1['mark']}" for seed in s1["seeds"]]
+        if not all(r in v for r in runs):
+            parts.append(f"{flow} not run")
+            missing.append(flow)
+            continue
+        parts.append(f"{flow} " + ", ".join(str(v[r]["scenarios_passed"]) for r in runs))
+        met += sum(v[r]["met"] for r in runs)
+        n += len(runs)
+    seeds = ", ".join(str(x) for x in s1["seeds"])
+    result += f"; Stage 1 at {s1['mark']} updates, seeds {seeds}: " + "; ".join(parts)
+    gate += f"; Stage 1 ({s1['when']}): met by {met} of {n} flow-runs" + (
+        f", {' and '.join(missing)} not run: not met as a rung" if missing else ""
+    )
     return result, gate
 
 
