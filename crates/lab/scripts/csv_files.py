@@ -1,4 +1,4 @@
-"""Opening committed result CSVs, plain or gzipped.
+"""Opening committed result CSVs, plain or gzipped, and writing a script's JSON results.
 
 Per-episode files larger than 50 KB are committed gzipped (`episodes.csv.gz`, see
 docs/results-policy.md); a fresh run writes plain `episodes.csv`. `open_csv` takes either name:
@@ -14,6 +14,7 @@ which put this directory on `sys.path` first:
 """
 
 import gzip
+import json
 import os
 from pathlib import Path
 
@@ -34,3 +35,10 @@ def open_csv(path):
     if path.endswith(".gz"):
         return gzip.open(path, "rt", newline="", encoding="utf-8")
     return open(path, newline="", encoding="utf-8")
+
+
+def write_json(path, obj):
+    """`obj` as indented JSON with a final newline: the form every script here writes."""
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1)
+        f.write("\n")

@@ -23,12 +23,12 @@ Needs scipy (the CI's report venv has it).
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 
 from scipy import stats
 
+from csv_files import write_json
 from l5_noise import holm, paired, pct, read_case_means
 
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
@@ -108,10 +108,8 @@ def main() -> int:
         where = ", ".join(f"seed {t['seed']} {t['scenario']}" for t in used) or "nowhere"
         print(f"- **Messages** (>= 3 points either way, Holm p < {a.alpha:g}): used in {where}")
     if a.json:
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump({"mark": a.mark, "episodes": a.episodes, "alpha": a.alpha, "tests": tests,
-                       "verdict": verdict}, f, indent=1)
-            f.write("\n")
+        write_json(a.json, {"mark": a.mark, "episodes": a.episodes, "alpha": a.alpha,
+                            "tests": tests, "verdict": verdict})
     return 0
 
 

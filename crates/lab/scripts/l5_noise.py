@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 from collections import defaultdict
 
 from scipy import stats
 
-from csv_files import open_csv
+from csv_files import open_csv, write_json
 
 BASELINES = ("IDM", "IDM+noise")
 
@@ -124,9 +123,7 @@ def main() -> int:
     if a.json:
         out = {"run": a.run, "episodes": a.episodes, "baseline": a.baseline, "min_gain": a.min_gain,
                "alpha": a.alpha, "need": a.need, "tests": tests, "verdicts": verdicts}
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
-            f.write("\n")
+        write_json(a.json, out)
     return 0
 
 

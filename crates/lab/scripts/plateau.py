@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import sys
+
+from csv_files import write_json
 
 GAIN_POINTS = 2.0
 MIN_UPDATES = 120_000
@@ -80,9 +81,7 @@ def main() -> int:
         print(f"| {job} | {v['updates']:,} | " + " | ".join(cells)
               + f" | {v['last_mean']:.3f} | {gain} | {v['best']:.3f} ({v['best_at'] // 1000}k) | {v['state']} |")
     if a.json:
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
-            f.write("\n")
+        write_json(a.json, out)
     return 0
 
 
