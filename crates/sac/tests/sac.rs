@@ -290,32 +290,35 @@ fn gradients_do_not_reach_frozen_modules() {
     assert!(sac.critic.q1.layers[0].weight.val().grad(&grads).is_some());
 }
 
-#[test]
-fn checkpoint_restore_continues_exactly() {
-    let sim = Arc::new(SimConfig::default());
-    let (r, m) = replay_from_sim(&sim, 64);
-    let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let batches: Vec<Batch> = (0..6).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
-    let mut a = sac_for(&sim, &m, 3);
-    for b in &batches[..3] {
+/// Trains `a` for `before` updates, checkpoints it, trains on over the remaining batches; a
+/// fresh learner (another seed) restored from the checkpoint and fed the same batches must end
+/// bit-identical: weights, targets, optimizer state and alpha all come back.
+fn assert_restore_continues_exactly(
+    make: impl Fn(u64) -> Sac,
+    batches: &[Batch],
+    before: usize,
+    tag: &str,
+) {
+    let mut a = make(3);
+    for b in &batches[..before] {
         a.update(b);
     }
-    let dir = std::env::temp_dir().join(format!("sf-sac-ckpt-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("sf-sac-ckpt-{tag}-{}", std::process::id()));
     checkpoint::save(&a, &dir).expect("save");
     checkpoint::save(&a, &dir).expect("save over an existing checkpoint");
-    for b in &batches[3..] {
+    for b in &batches[before..] {
         a.update(b);
     }
-    let mut b = sac_for(&sim, &m, 77);
+    let mut b = make(77);
     checkpoint::restore(&mut b, &dir).expect("restore");
-    assert_eq!(b.updates, 3);
-    for batch in &batches[3..] {
+    assert_eq!(b.updates, before as u64);
+    for batch in &batches[before..] {
         b.update(batch);
     }
-    assert_eq!(flat(&a.actor), flat(&b.actor), "actor differs after restore");
-    assert_eq!(flat(&a.critic), flat(&b.critic), "critic differs after restore");
-    assert_eq!(flat(&a.target), flat(&b.target), "target differs after restore");
-    assert_eq!(a.alpha(), b.alpha());
+    assert_eq!(flat(&a.actor), flat(&b.actor), "{tag}: actor differs after restore");
+    assert_eq!(flat(&a.critic), flat(&b.critic), "{tag}: critic differs after restore");
+    assert_eq!(flat(&a.target), flat(&b.target), "{tag}: target differs after restore");
+    assert_eq!(a.alpha(), b.alpha(), "{tag}: alpha differs after restore");
     // A corrupt checkpoint is refused and leaves the learner as it was.
     std::fs::write(dir.join("critic.bpk"), b"not a record").expect("corrupt");
     let before = flat(&b.critic);
@@ -323,6 +326,50 @@ fn checkpoint_restore_continues_exactly() {
     assert!(e.to_string().contains("critic"), "{e}");
     assert_eq!(flat(&b.critic), before);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn checkpoint_restore_continues_exactly() {
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let batches: Vec<Batch> = (0..6).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
+    assert_restore_continues_exactly(|seed| sac_for(&sim, &m, seed), &batches, 3, "plain");
+}
+
+/// The same with `configs/stage1`'s recipe (a shared encoder, a LayerNorm critic with the ego
+/// skip, Q-filtered cloning towards the zero residual, a Huber critic loss, cloning then critic
+/// pretraining then SAC), checkpointed during critic pretraining and continued into SAC: what a
+/// Stage-1 run continued from its committed state (`train.continue_from`) restores.
+#[test]
+fn checkpoint_restore_continues_exactly_with_the_stage1_recipe() {
+    use sf_sac::sac::{BcTarget, CriticLoss};
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let batches: Vec<Batch> = (0..8).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
+    let make = |seed| {
+        let cfg = SacConfig {
+            seed,
+            batch_size: 16,
+            gamma: 0.97,
+            reward_scale: 10.0,
+            critic_loss: CriticLoss::Huber,
+            huber_delta: 10.0,
+            bc_updates: 2,
+            critic_pretrain_updates: 2,
+            bc_weight: 0.4,
+            bc_target: BcTarget::Zero,
+            bc_q_filter: true,
+            initial_alpha: 0.05,
+            shared_encoder: true,
+            ..SacConfig::default()
+        };
+        let net =
+            NetConfig { critic_layer_norm: true, ego_skip: true, pose_layers: 2, ..tiny_net() };
+        sac_with(&sim, &m, cfg, net)
+    };
+    assert_restore_continues_exactly(make, &batches, 3, "stage1");
 }
 
 /// The learner on wgpu (Vulkan; Mesa's software lavapipe in CI) against the CPU one: the same
