@@ -71,7 +71,7 @@ enum Cmd {
     /// The paper's evaluation grid (egos x flows x scenarios, sweeps) over stored cases and
     /// seeds; per-episode results appended to `<out>/episodes.csv` (a rerun skips stored cells).
     Eval(eval::EvalArgs),
-    /// Builds the reproduction report (markdown + self-contained HTML) from `eval` results.
+    /// Builds the reproduction report (markdown and HTML, charts beside them) from `eval` results.
     Report(eval::ReportArgs),
     /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
     EvalFlow(evalflow::EvalFlowArgs),
