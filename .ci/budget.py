@@ -6,7 +6,7 @@ Fails (exit 1, one line per breach naming the file and the rule) when:
 - area: tracked files under an area of `docs/budget.csv` (a path prefix; `docs/` is the total)
   add up to more than its budget;
 - large-file: a tracked file under docs/ is over 2 MB (2^20 bytes) and is not a weight listed in
-  `docs/curves/weights.csv` (KNOWN_LARGE below lists the few that wait for the next step);
+  `docs/curves/weights.csv` (KNOWN_LARGE below lists any exception, with why);
 - weights: a tracked `.bpk` is missing from the manifest, or its size or sha256 differs; a
   manifest row names a file that is not tracked;
 - embedded-image: an HTML file under docs/ embeds an image (`data:image/...`);
@@ -16,6 +16,10 @@ Fails (exit 1, one line per breach naming the file and the rule) when:
   (commit it as `gzip -9n`; every reader takes `.csv.gz`);
 - test-reads-docs: a test file (tests/, python/tests/, crates/*/tests/) holds a quoted path that
   starts with `docs/` (tests read tests/fixtures/, never results);
+- large-image: a PNG under docs/ is over 300 KB (charts are committed quantised: `pngquant
+  --quality=70-95 --strip`, which takes a matplotlib or plotters chart to a tenth of its size);
+- uncited-image: a PNG or GIF under docs/ that no page names (a markdown page, an HTML report or
+  README.md naming it by a path relative to itself or to the repository's root): images are kept where a page shows them;
 - link: a relative markdown link in docs/**/*.md, README.md or ARCHITECTURE.md does not resolve
   to a tracked file or a directory holding one (http(s) links and anchors are not checked;
   KNOWN_BROKEN_LINKS lists the existing ones not fixed yet).
@@ -39,18 +43,16 @@ import tempfile
 MIB = 1 << 20
 LARGE_BYTES = 2 * MIB
 PLAIN_EPISODES_BYTES = 50 * 1024
+LARGE_PNG_BYTES = 300 * 1024
+IMAGE_SUFFIXES = (".png", ".gif")
+IMAGE_NAME = re.compile(r"[\w./@+-]+\.(?:png|gif)\b")
 BUDGET = "docs/budget.csv"
 MANIFEST = "docs/curves/weights.csv"
 MANIFEST_FIELDS = ["path", "name", "role", "config", "seed", "updates", "bytes", "sha256"]
 
-# Tracked files over 2 MB that are not weights: episode GIFs, left for the next step (images and
-# GIFs; the per-submission diff limit, docs/results-policy.md). Shrink or remove, then delete the
-# entry here.
-KNOWN_LARGE = {
-    "docs/ladder/l7-steering-adversary/attempt-alternation/blockade/gif-merge-seed-1.gif",
-    "docs/ladder/l7-steering-adversary/attempt-alternation/mobil/gif-merge-seed-1.gif",
-    "docs/results/paper-graph-lateral/gif-roundabout.gif",
-}
+# Tracked files over 2 MB that are not weights, each with a comment saying why it stays. None since
+# 2026-12-07 (the three episode GIFs that were over 2 MB were re-encoded to 1.4-1.6 MB).
+KNOWN_LARGE: set[str] = set()
 
 # Relative links known not to resolve, as (page, target), each with a comment saying why; fix
 # the page, then delete its entry. None when this check was added (2026-12-07): every relative
@@ -171,6 +173,23 @@ def check(root):
         if p.endswith(SCRIPT_SUFFIXES):
             errors.append(("script-in-docs", p, "a script under docs/; move it to crates/lab/scripts/results/<page>/"))
 
+        if p.endswith(".png") and size[p] > LARGE_PNG_BYTES:
+            errors.append(("large-image", p, f"{size[p] / 1024:.0f} KB PNG; quantise it (pngquant --quality=70-95 --strip)"))
+
+    # images only where a page shows them
+    named = set()
+    for page in present:
+        if not (page in ("README.md", "ARCHITECTURE.md") or (page.startswith("docs/") and page.endswith((".md", ".html")))):
+            continue
+        with open(os.path.join(root, page), encoding="utf-8", errors="replace") as f:
+            text = f.read()
+        for m in IMAGE_NAME.finditer(text):
+            for base in (os.path.dirname(page), ""):
+                named.add(os.path.normpath(os.path.join(base, m.group(0))).replace(os.sep, "/"))
+    for p in docs:
+        if p.endswith(IMAGE_SUFFIXES) and p not in named:
+            errors.append(("uncited-image", p, "no page names this image; link it from its page or remove it"))
+
     # tests read fixtures, not docs/
     for p in present:
         if TEST_DIRS.match(p) and p.endswith((".rs", ".py", ".sh", ".toml")):
@@ -230,10 +249,12 @@ def self_test():
         "area": lambda r: write(r, "docs/curves/big.txt", b"x" * (MIB // 2 + 1)),
         "large-file": lambda r: write(r, "docs/other/big.bin", b"x" * (LARGE_BYTES + 1)),
         "weights": lambda r: write(r, "docs/curves/run/policy.bpk", b"\x02" * 1000),
-        "embedded-image": lambda r: write(r, "docs/report/report.html", '<img src="data:image/png;base64,AAAA">'),
+        "embedded-image": lambda r: write(r, "docs/report/report.html", '<img src="chart.png"><img src="data:image/png;base64,AAAA">'),
         "plain-episodes": lambda r: write(r, "docs/report/episodes.csv", "a,b\n" + "1,2\n" * 20000),
         "script-in-docs": lambda r: write(r, "docs/report/table.py", "print('a table')\n"),
         "test-reads-docs": lambda r: write(r, "python/tests/test_x.py", 'P = "docs/curves/run"\n'),
+        "large-image": lambda r: write(r, "docs/report/chart.png", b"\x89PNG" + b"x" * LARGE_PNG_BYTES),
+        "uncited-image": lambda r: write(r, "docs/report/unused.gif", b"GIF89a"),
         "link": lambda r: write(r, "docs/page.md", "See [gone](curves/gone.csv).\n"),
     }
     failed = []
@@ -274,7 +295,7 @@ def main():
     if errors:
         print(f"budget: {len(errors)} breach(es); see docs/results-policy.md", file=sys.stderr)
         return 1
-    print("budget: docs/ within budget, weights listed, no embedded images, no large plain episodes, no scripts, tests and links clean")
+    print("budget: docs/ within budget, weights listed, images cited and quantised, none embedded, no large plain episodes, no scripts, tests and links clean")
     return 0
 
 
