@@ -8,7 +8,7 @@
 //! a finished CoPO flow.
 
 use anyhow::{bail, Context, Result};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use rand::SeedableRng;
 use rayon::prelude::*;
 use serde_json::json;
@@ -20,7 +20,6 @@ use sf_sim::vec_env::{EpisodeSpec, VecEnv};
 use sf_sim::{Env, Mode, SimConfig};
 
 use crate::scenarios::Ctx;
-use crate::Flow;
 
 #[derive(Args, Debug)]
 pub struct EvalFlowArgs {
@@ -62,6 +61,17 @@ pub struct EvalFlowArgs {
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum EgoDriver {
     Idm,
+}
+
+/// Traffic flows selectable on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Flow {
+    Idm,
+    Macad,
+    Copo,
+    Socialcomm,
+    Failmaker,
+    Socialcommadv,
 }
 
 /// The environment mode of a flow that needs no trained policy.

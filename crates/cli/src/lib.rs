@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{Parser, Subcommand};
 
 mod eval;
 mod evalflow;
@@ -97,16 +97,7 @@ enum Cmd {
     },
 }
 
-/// Traffic flows selectable on the command line.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum Flow {
-    Idm,
-    Macad,
-    Copo,
-    Socialcomm,
-    Failmaker,
-    Socialcommadv,
-}
+pub use evalflow::Flow;
 
 pub fn main() -> ExitCode {
     sf_nn::device::tune_allocator();

@@ -11,8 +11,8 @@ use sf_sim::render::{write_png, ColourBy, GifWriter, Renderer};
 use sf_sim::{Env, SimConfig};
 
 use crate::evalflow::flow_mode;
+use crate::evalflow::Flow;
 use crate::scenarios::Ctx;
-use crate::Flow;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {

@@ -19,7 +19,7 @@ use sf_worker::{WorkerConfig, WorkerMetrics};
 use tokio::sync::watch;
 
 use crate::client;
-use crate::Ctx;
+use crate::dirs::Ctx;
 
 /// A learner and its workers in this process.
 pub struct Embedded {

@@ -17,7 +17,8 @@ use serde::{Deserialize, Serialize};
 
 use sf_sim::config::MessageProbe;
 
-use crate::{CellId, Frozen, JobId};
+use crate::ids::{CellId, JobId};
+use crate::record::Frozen;
 
 /// A config that is not a valid evaluation grid; the message names the field.
 #[derive(Debug, thiserror::Error, PartialEq)]

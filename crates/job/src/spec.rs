@@ -10,7 +10,7 @@
 
 use crate::config::{ConfigError, DepRole, JobConfig};
 use crate::eval::{is_eval_toml, EvalConfig, EvalConfigError};
-use crate::JobId;
+use crate::ids::JobId;
 
 /// A submitted or stored job: what it runs, parsed and validated.
 #[derive(Clone, Debug, PartialEq)]

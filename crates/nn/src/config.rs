@@ -1,6 +1,11 @@
 //! Network sizes and variants. Sizes are configuration, not code.
 
 use serde::{Deserialize, Serialize};
+
+/// The top of the actor's log-std range (the released code's).
+pub const LOG_STD_MAX: f32 = 0.5;
+/// The bottom of it unless `NetConfig::log_std_min` says otherwise (the released code's).
+pub const LOG_STD_MIN: f32 = -2.5;
 pub use sf_sim::DriveAction;
 /// Which encoder reads the observation: the observation layout it was built for (one type
 /// for the choice, from the simulator to the job config).
@@ -88,7 +93,7 @@ impl NetConfig {
             action: DriveAction::Direct,
             squash_mean_twice: false,
             init_log_std: -1.0,
-            log_std_min: crate::policy::LOG_STD_MIN,
+            log_std_min: LOG_STD_MIN,
             critic_layer_norm: false,
             ego_skip: false,
         }
@@ -134,12 +139,10 @@ impl NetConfig {
                 return Err(NetConfigError::NotPositive { field: f });
             }
         }
-        if !(self.log_std_min.is_finite()
-            && (-10.0..crate::policy::LOG_STD_MAX).contains(&self.log_std_min))
-        {
+        if !(self.log_std_min.is_finite() && (-10.0..LOG_STD_MAX).contains(&self.log_std_min)) {
             return Err(NetConfigError::LogStdMin { log_std_min: self.log_std_min });
         }
-        if !(self.log_std_min..=crate::policy::LOG_STD_MAX).contains(&self.init_log_std) {
+        if !(self.log_std_min..=LOG_STD_MAX).contains(&self.init_log_std) {
             return Err(NetConfigError::InitLogStd {
                 init_log_std: self.init_log_std,
                 log_std_min: self.log_std_min,

@@ -8,7 +8,7 @@ use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::batch::ObsBatch;
-use crate::config::NetConfig;
+use crate::config::{NetConfig, LOG_STD_MAX};
 use crate::encoder::{Encoder, SegmentTable};
 use crate::layers::{Init, Mlp};
 
@@ -37,11 +37,6 @@ pub struct Critic {
     /// each hidden layer of each head (`[features, q1 hidden.., q2 hidden..]`); empty when off.
     pub norms: Vec<LayerNorm>,
 }
-
-/// The top of the actor's log-std range (the released code's).
-pub const LOG_STD_MAX: f32 = 0.5;
-/// The bottom of it unless `NetConfig::log_std_min` says otherwise (the released code's).
-pub const LOG_STD_MIN: f32 = -2.5;
 
 /// Half the width and the middle of the log-std range `[min, LOG_STD_MAX]`.
 fn log_std_range(min: f32) -> (f32, f32) {

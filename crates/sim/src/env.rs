@@ -773,7 +773,7 @@ impl Env {
                 }
             }
             if cap < cand.len() {
-                crate::obs::nearest_first(cand, cap);
+                crate::geom::nearest_first(cand, cap);
             }
             let (mut sum, mut cnt) = (0.0, 0u32);
             for &(_, j) in cand.iter() {

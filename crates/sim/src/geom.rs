@@ -1,8 +1,9 @@
 //! Plane geometry used by the map builder, the rules and the observation code.
 //!
 //! Owns: 2-D points, angle wrapping, frame transforms, polyline resampling, offsetting,
-//! projection, point-in-polygon and a uniform grid index. Must not: know about vehicles,
-//! lanes or scenarios. All angles are radians, all lengths metres.
+//! projection, point-in-polygon, a uniform grid index and the nearest-first cut of candidate
+//! lists (`nearest_first`, which the observer and the leader search share). Must not: know
+//! about vehicles, lanes or scenarios. All angles are radians, all lengths metres.
 
 use std::f32::consts::PI;
 
@@ -288,6 +289,18 @@ impl Grid {
             }
         }
     }
+}
+
+/// Keeps the `cap` smallest (distance, index) pairs, sorted ascending.
+pub(crate) fn nearest_first(v: &mut Vec<(f32, u32)>, cap: usize) {
+    let cmp = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    if v.len() > cap {
+        if cap > 0 {
+            v.select_nth_unstable_by(cap - 1, cmp);
+        }
+        v.truncate(cap);
+    }
+    v.sort_unstable_by(cmp);
 }
 
 #[cfg(test)]

@@ -387,7 +387,7 @@ impl Observer {
                 }
             }
         }
-        nearest_first(&mut self.cand, spec.neighbours);
+        geom::nearest_first(&mut self.cand, spec.neighbours);
         for (slot, &(_, j)) in self.cand.iter().enumerate() {
             let j = j as usize;
             let b = &agents[j];
@@ -464,7 +464,7 @@ impl Observer {
             }
         }
         self.pieces_in_reach = self.pieces.len();
-        nearest_first(&mut self.pieces, spec.map_pieces);
+        geom::nearest_first(&mut self.pieces, spec.map_pieces);
         let p = spec.piece_points;
         for (slot, &(_, k)) in self.pieces.iter().enumerate() {
             let k = k as usize;
@@ -509,16 +509,4 @@ impl Observer {
     pub fn last_pieces_in_reach(&self) -> usize {
         self.pieces_in_reach
     }
-}
-
-/// Keeps the `cap` smallest (distance, index) pairs, sorted ascending.
-pub(crate) fn nearest_first(v: &mut Vec<(f32, u32)>, cap: usize) {
-    let cmp = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-    if v.len() > cap {
-        if cap > 0 {
-            v.select_nth_unstable_by(cap - 1, cmp);
-        }
-        v.truncate(cap);
-    }
-    v.sort_unstable_by(cmp);
 }

@@ -71,11 +71,10 @@ pub(crate) fn read_final(dir: &Path, job_id: JobId, name: &str) -> Result<Vec<u8
 
 /// `name` if it is one of [`READABLE`].
 pub(crate) fn readable(name: &str) -> Result<&'static str, LearnerError> {
-    READABLE
-        .iter()
-        .find(|&&n| n == name)
-        .copied()
-        .ok_or_else(|| LearnerError::UnknownJobFile { name: name.to_string() })
+    READABLE.iter().find(|&&n| n == name).copied().ok_or_else(|| LearnerError::UnknownJobFile {
+        name: name.to_string(),
+        readable: READABLE.join(", "),
+    })
 }
 
 /// The content of file `name` ([`readable`]) of job `job_id`'s artifact directory `dir`, if it

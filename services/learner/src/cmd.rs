@@ -8,7 +8,7 @@ use anyhow::Context;
 use clap::Parser;
 use sf_service::auth::Token;
 
-use crate::LearnerConfig;
+use crate::config::LearnerConfig;
 
 #[derive(Parser, Debug, Clone)]
 #[command(

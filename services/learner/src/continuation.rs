@@ -31,7 +31,7 @@ const FILES: &[&str] =
 const DIRS: &[&str] = &["checkpoint", "kept", "replay"];
 /// What a continued job writes about where it came from (`seed`, then the trainer adds the
 /// restored weights' digests).
-pub const MARKER: &str = "continued_from.json";
+pub use trainer::CONTINUED_FROM as MARKER;
 
 fn refuse(reason: String) -> LearnerError {
     LearnerError::Continuation { reason }

@@ -61,8 +61,8 @@ pub enum LearnerError {
     WorkerNotRegistered { worker_id: WorkerId },
     #[error("job {job_id} is {state}, not running")]
     NotRunning { job_id: JobId, state: &'static str },
-    #[error("field `name`: `{name}` is not a job file a client may read (one of {})", crate::artifacts::READABLE.join(", "))]
-    UnknownJobFile { name: String },
+    #[error("field `name`: `{name}` is not a job file a client may read (one of {readable})")]
+    UnknownJobFile { name: String, readable: String },
     #[error("job {job_id} has no {name} (not written yet, or not a file this kind of job writes)")]
     NoJobFile { job_id: JobId, name: &'static str },
     #[error(

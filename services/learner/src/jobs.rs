@@ -59,7 +59,11 @@ pub(crate) struct Shared {
 }
 
 impl Jobs {
-    pub(crate) fn new(store: Arc<Store>, cfg: &crate::LearnerConfig, shared: Shared) -> Self {
+    pub(crate) fn new(
+        store: Arc<Store>,
+        cfg: &crate::config::LearnerConfig,
+        shared: Shared,
+    ) -> Self {
         let Shared { slots, storage, shutting_down, wake } = shared;
         Self {
             store,

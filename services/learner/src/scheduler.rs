@@ -13,17 +13,22 @@
 //! stops it) or wrote CANCELLED first (and the start undoes itself). Must not: answer workers or clients (the experience side and the job table do), or
 //! change a final state (records change only through `JobRecord::advance`).
 
-use std::path::PathBuf;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
 use sf_job::eval::EvalConfig;
-use sf_job::{JobConfig, JobId, JobRecord, JobSpec, JobState, Progress};
+use sf_job::{
+    DepRole, Frozen, FrozenRole, JobConfig, JobId, JobRecord, JobSpec, JobState, Progress,
+};
 use sf_rollout::setup;
 use sf_sac::RateLimiter;
 use tokio::sync::Notify;
 
+use crate::artifacts::read_final;
+use crate::deps::InitDep;
 use crate::error::LearnerError;
 use crate::eval::{self, EvalJob};
 use crate::job::{ActiveJob, StopReason};
@@ -222,8 +227,7 @@ impl Scheduler {
         };
         let limiter = RateLimiter::new(setup::rate_limiter(&cfg, fill.min(capacity)), capacity)?;
         let counters = resume.as_ref().map(|r| r.counters.clone()).unwrap_or_default();
-        let deps::JobDeps { frozen, frozen_weights, init } =
-            deps::job_deps(&self.jobs, &cfg).await?;
+        let JobDeps { frozen, frozen_weights, init } = job_deps(&self.jobs, &cfg).await?;
         let resolved = Arc::new(setup::resolve(&cfg, None));
         let segment_points = resolved.sim.obs.segment_points;
         let maps2 = maps.clone();
@@ -453,4 +457,91 @@ impl Scheduler {
             }
         }
     }
+}
+
+/// What a starting training job takes from its dependencies.
+pub(crate) struct JobDeps {
+    /// The frozen policies its workers act with (background, ego, adversary).
+    pub frozen: Vec<Frozen>,
+    /// `frozen`'s final weights, in order, when the job validates (`[validation]`); else empty.
+    pub frozen_weights: Vec<Arc<Vec<u8>>>,
+    /// `train.init_job`: a continuation starts from its checkpoint's critic and its final
+    /// policy (`sf_sac::checkpoint::warm_start`).
+    pub init: Option<InitDep>,
+}
+
+/// The dependencies of training job `cfg` among `jobs`: every one must have succeeded with a
+/// final policy; the error names the field.
+pub(crate) async fn job_deps(jobs: &Jobs, cfg: &JobConfig) -> Result<JobDeps, LearnerError> {
+    let mut frozen = Vec::new();
+    // Each frozen policy's artifact directory, for validation's weights.
+    let mut dirs: HashMap<JobId, PathBuf> = HashMap::new();
+    let mut init = None;
+    for (role, dep) in cfg.deps() {
+        let d = jobs.get(dep).map_err(|e| LearnerError::DependencyLookup {
+            dep,
+            field: role.field(),
+            source: e.into(),
+        })?;
+        if d.state != JobState::Succeeded || !Path::new(&d.artifact_dir).join("policy.bpk").exists()
+        {
+            return Err(LearnerError::NoFinalPolicy {
+                dep,
+                field: role.field(),
+                state: d.state.as_str(),
+            });
+        }
+        match role {
+            DepRole::Init => {
+                init = Some(InitDep { job_id: dep, dir: PathBuf::from(&d.artifact_dir) })
+            }
+            DepRole::Ego => {
+                dirs.insert(dep, PathBuf::from(&d.artifact_dir));
+                frozen.push(Frozen::new(FrozenRole::Ego, dep, d.config_toml));
+            }
+            DepRole::Background => {
+                let spec = jobs.spec(&d)?;
+                let flow_cfg = spec
+                    .train()
+                    .ok_or_else(|| LearnerError::Dependency {
+                        field: role.field(),
+                        dep,
+                        reason: "is an evaluation, not a training job".into(),
+                    })?
+                    .clone();
+                let all = jobs.list();
+                let fz = {
+                    let jobs = all.clone();
+                    tokio::task::spawn_blocking(move || {
+                        deps::flow_frozen(&d, &flow_cfg, |id| {
+                            jobs.iter()
+                                .find(|r| r.id == id)
+                                .cloned()
+                                .ok_or(LearnerError::JobNotFound { job_id: id })
+                        })
+                    })
+                    .await??
+                };
+                for f in &fz {
+                    if let Some(r) = all.iter().find(|r| r.id == f.job_id) {
+                        dirs.insert(f.job_id, PathBuf::from(&r.artifact_dir));
+                    }
+                }
+                frozen.extend(fz);
+            }
+        }
+    }
+    // `[validation]` runs episodes with the frozen policies the workers fetch.
+    let mut frozen_weights = Vec::new();
+    if cfg.validation.is_some() {
+        for f in &frozen {
+            let job_id = f.job_id;
+            let dir = dirs.get(&job_id).cloned().ok_or(LearnerError::JobNotFound { job_id })?;
+            let bytes = tokio::task::spawn_blocking(move || read_final(&dir, job_id, "policy.bpk"))
+                .await
+                .map_err(|source| LearnerError::Task { task: "policy reading task", source })?;
+            frozen_weights.push(Arc::new(bytes?));
+        }
+    }
+    Ok(JobDeps { frozen, frozen_weights, init })
 }

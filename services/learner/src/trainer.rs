@@ -71,6 +71,10 @@ impl TrainState {
     }
 }
 
+/// The marker a continuation's copy leaves in the new job's directory (`continuation::seed`);
+/// the trainer adds the state it restored at the job's first start.
+pub const CONTINUED_FROM: &str = "continued_from.json";
+
 pub fn state_path(dir: &Path) -> PathBuf {
     dir.join("state.json")
 }
@@ -299,7 +303,7 @@ fn start_state(
 /// counter and the SHA-256 of the actor and critic as restored (equal to the source
 /// checkpoint's `actor.bpk` and `critic.bpk`).
 fn record_continuation(sac: &Sac, dir: &Path) -> Result<(), LearnerError> {
-    let p = dir.join(crate::continuation::MARKER);
+    let p = dir.join(CONTINUED_FROM);
     let Ok(text) = std::fs::read_to_string(&p) else { return Ok(()) };
     let mut marker: serde_json::Value = serde_json::from_str(&text)
         .map_err(|source| LearnerError::StateFile { path: p.clone(), source })?;
