@@ -124,8 +124,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?)
         .with_context(|| format!("writing {}", meta_path.display()))?;
     let path = out.join("episodes.csv");
-    let gz = sf_report::episodes::gz_path(&path);
-    if !path.exists() && gz.exists() {
+    if let Some(gz) = sf_report::episodes::stored_gzipped(&path) {
         bail!("{} is stored gzipped: gunzip it to add cells to it", gz.display());
     }
     let stored = sf_report::episodes::read_episodes(&path)

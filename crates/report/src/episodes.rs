@@ -217,16 +217,19 @@ pub fn gz_path(path: &Path) -> PathBuf {
     PathBuf::from(name)
 }
 
+/// The gzipped file stored in place of `plain` (committed results are gzipped): `Some` when
+/// `plain` is absent, names no `.gz` itself, and `plain.gz` exists. The one test of "stored
+/// gzipped" that reading, finding and refusing to append share.
+pub fn stored_gzipped(plain: &Path) -> Option<PathBuf> {
+    let gz = gz_path(plain);
+    (plain.extension().is_none_or(|e| e != "gz") && !plain.exists() && gz.exists()).then_some(gz)
+}
+
 /// Where a results directory keeps its episodes: `episodes.csv`, or `episodes.csv.gz` when only
-/// that is stored (committed results are gzipped); `episodes.csv` when neither exists.
+/// that is stored; `episodes.csv` when neither exists.
 pub fn episodes_file(dir: &Path) -> PathBuf {
     let plain = dir.join("episodes.csv");
-    let gz = gz_path(&plain);
-    if !plain.exists() && gz.exists() {
-        gz
-    } else {
-        plain
-    }
+    stored_gzipped(&plain).unwrap_or(plain)
 }
 
 /// A whole text file, gunzipped when its name ends in `.gz`.
@@ -247,10 +250,10 @@ fn read_text(path: &Path) -> Result<String, FileError> {
 /// Reads `episodes.csv`, or `episodes.csv.gz` (gunzipped) when the path names it or when the plain
 /// file is absent and the gzipped one is stored; a missing file is an empty result set.
 pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
-    let path = match path {
-        p if p.exists() => p.to_path_buf(),
-        p if p.extension().is_none_or(|e| e != "gz") && gz_path(p).exists() => gz_path(p),
-        _ => return Ok(Vec::new()),
+    let path = match (path.exists(), stored_gzipped(path)) {
+        (true, _) => path.to_path_buf(),
+        (false, Some(gz)) => gz,
+        (false, None) => return Ok(Vec::new()),
     };
     let path = path.as_path();
     let text = read_text(path)?;
