@@ -1,0 +1,62 @@
+"""Result pages regenerate from their committed inputs: a spot check run by CI.
+
+Each check runs one result script of crates/lab/scripts/ on the committed per-episode or
+validation files it was run on, and compares what it prints and the JSON it writes, byte for
+byte, with the committed files a page cites. The report (`docs/report/`) and the README's ladder
+table are checked by their own CI steps; these cover the Stage-1 results (the plateau table, F1
+at 120k and L5 against the noise-matched IDM flow). A difference names the file: regenerate it
+with the command the check shows (its page gives the same one), or find what changed the script.
+
+    python .ci/results_regenerate.py        # needs scipy (CI's report venv has it)
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+
+REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+STAGE1 = "docs/curves/stage1"
+F1_120K = f"{STAGE1}/f1-120k/episodes.csv.gz"
+
+# (script, its arguments, committed stdout, committed --json output)
+CHECKS = [
+    ("plateau.py",
+     [f"{STAGE1}/macad-s11", f"{STAGE1}/macad-s12", f"{STAGE1}/socialcomm-s11", f"{STAGE1}/socialcomm-s12"],
+     f"{STAGE1}/plateau.md", f"{STAGE1}/plateau.json"),
+    ("f1_stage1.py", [F1_120K, "--mark", "120k"],
+     f"{STAGE1}/f1-120k/f1.md", f"{STAGE1}/f1-120k/f1.json"),
+    ("l5_noise.py", [F1_120K, "--run", "stage 1, seeds 11 and 12, kept actors at 120k, against IDM+noise"],
+     f"{STAGE1}/f1-120k/vs-idm-noise.md", f"{STAGE1}/f1-120k/vs-idm-noise.json"),
+]
+
+
+def read(path: str) -> bytes:
+    with open(path, "rb") as f:
+        return f.read()
+
+
+def main() -> int:
+    failed = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for script, args, md, js in CHECKS:
+            out_json = os.path.join(tmp, os.path.basename(js))
+            cmd = [sys.executable, os.path.join("crates/lab/scripts", script), *args, "--json", out_json]
+            run = subprocess.run(cmd, cwd=REPO, capture_output=True, check=False)
+            shown = " ".join(cmd[1:-2]) + f" --json {js} > {md}"
+            if run.returncode != 0:
+                failed.append(f"{shown}: exited {run.returncode}: {run.stderr.decode(errors='replace').strip()}")
+                continue
+            for committed, made in ((md, run.stdout), (js, read(out_json))):
+                if made != read(os.path.join(REPO, committed)):
+                    failed.append(f"{committed} is not what `{shown}` makes of the committed inputs")
+            print(f"regenerates: {md}, {js}")
+    for f in failed:
+        print(f"results_regenerate: {f}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
