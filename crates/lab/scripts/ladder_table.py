@@ -304,15 +304,16 @@ def row_flows(row):
         f"{row['when']}: {old} of {old_n})"
     )
     if "stage1" in row:
-        result, gate = stage1_flows(row, result, gate)
+        clauses = row["stage1"] if isinstance(row["stage1"], list) else [row["stage1"]]
+        for s1 in clauses:
+            result, gate = stage1_flows(row, s1, result, gate)
     return result, gate
 
 
-def stage1_flows(row, result, gate):
-    """L5's Stage-1 clause: the kept actors of `configs/stage1/` runs against the noise-matched
-    IDM flow (`l5_noise.py` over flows named `<Flow>-s<seed>@<mark>`); a flow the runs lack is
-    said to be not run."""
-    s1 = row["stage1"]
+def stage1_flows(row, s1, result, gate):
+    """One of L5's Stage-1 clauses (`row["stage1"]`: one, or a list): the kept actors of
+    `configs/stage1/` runs at one mark against the noise-matched IDM flow (`l5_noise.py` over
+    flows named `<Flow>-s<seed>@<mark>`); a flow the runs lack is said to be not run."""
     res = load_json(s1["path"])
     v = res["verdicts"]
     if res["min_gain"] != 3.0 or res["alpha"] != 0.05 or res["need"] != row["min_scenarios"]:
@@ -327,9 +328,9 @@ def stage1_flows(row, result, gate):
         parts.append(f"{flow} " + ", ".join(str(v[r]["scenarios_passed"]) for r in runs))
         met += sum(v[r]["met"] for r in runs)
         n += len(runs)
-    seeds = ", ".join(str(x) for x in s1["seeds"])
-    result += f"; Stage 1 at {s1['mark']} updates, seeds {seeds}: " + "; ".join(parts)
-    gate += f"; Stage 1 ({s1['when']}): met by {met} of {n} flow-runs" + (
+    seeds = ("seeds " if len(s1["seeds"]) > 1 else "seed ") + ", ".join(str(x) for x in s1["seeds"])
+    result += f"; Stage 1 at {s1['mark']} updates, {seeds}: " + "; ".join(parts)
+    gate += f"; Stage 1 at {s1['mark']} ({s1['when']}): met by {met} of {n} flow-runs" + (
         f", {' and '.join(missing)} not run: not met as a rung" if missing else ""
     )
     return result, gate
