@@ -26,10 +26,8 @@ import argparse
 import re
 import sys
 
-from scipy import stats
-
 from csv_files import write_json
-from l5_noise import holm, paired, pct, read_case_means
+from l5_noise import holm, paired_mde, pct, read_case_means
 
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
 FLOW = re.compile(r"^(MACAD|SocialComm)-s(\d+)@(\S+)( msg45)?$")
@@ -41,11 +39,9 @@ def pooled_cases(means: dict, flow: str) -> dict[tuple[str, int], float]:
 
 
 def test(a: dict, b: dict, label: str, scenario: str, seed: int) -> dict:
-    diff, ci, p, n = paired(a, b)
-    # Minimum detectable effect of the paired test: (z_0.975 + z_0.8) x its standard error.
-    se = ci / float(stats.t.ppf(0.975, n - 1)) if n > 1 and ci > 0 else 0.0
+    diff, ci, p, n, mde = paired_mde(a, b)
     return {"test": label, "seed": seed, "scenario": scenario, "cases": n, "a": pct(a), "b": pct(b),
-            "diff": diff, "ci95": ci, "p": p, "mde80": (1.959964 + 0.841621) * se}
+            "diff": diff, "ci95": ci, "p": p, "mde80": mde}
 
 
 def main() -> int:

@@ -24,10 +24,8 @@ import re
 import sys
 from collections import defaultdict
 
-from scipy import stats
-
 from csv_files import open_csv, write_json
-from l5_noise import holm, paired, pct
+from l5_noise import holm, paired_mde, pct
 
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
 TOLD = re.compile(r"^(.*) (told-?\d+)$")
@@ -45,10 +43,9 @@ def read_ego_case_means(path: str) -> dict[tuple[str, str, str], dict[int, float
 
 
 def test(a: dict, b: dict, ego: str, arm: str, scenario: str) -> dict:
-    diff, ci, p, n = paired(a, b)
-    se = ci / float(stats.t.ppf(0.975, n - 1)) if n > 1 and ci > 0 else 0.0
+    diff, ci, p, n, mde = paired_mde(a, b)
     return {"ego": ego, "arm": arm, "scenario": scenario, "cases": n, "told": pct(a), "truth": pct(b),
-            "diff": diff, "ci95": ci, "p": p, "mde80": (1.959964 + 0.841621) * se}
+            "diff": diff, "ci95": ci, "p": p, "mde80": mde}
 
 
 def main() -> int:
