@@ -97,8 +97,6 @@ enum Cmd {
     },
 }
 
-pub use evalflow::Flow;
-
 pub fn main() -> ExitCode {
     sf_nn::device::tune_allocator();
     let cli = Cli::parse();

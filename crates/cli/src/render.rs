@@ -10,8 +10,7 @@ use clap::Args;
 use sf_sim::render::{write_png, ColourBy, GifWriter, Renderer};
 use sf_sim::{Env, SimConfig};
 
-use crate::evalflow::flow_mode;
-use crate::evalflow::Flow;
+use crate::evalflow::{flow_mode, Flow};
 use crate::scenarios::Ctx;
 
 #[derive(Args, Debug)]

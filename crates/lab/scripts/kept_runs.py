@@ -5,7 +5,8 @@ An evaluation grid names learned flows by job (`job = "macad-s13-at-240000"`) an
 a learner data directory's `jobs/<id>-<name>/` (a `config.toml` and a `policy.bpk`). A Stage-1
 run keeps its actors at fixed update counts (`train.keep_actors_at`: `kept/actor-<N>.bpk`), and its
 last actor is its checkpoint's (`checkpoint/actor.bpk`, with the update count in
-`checkpoint/state.json`; a finished job's `policy.bpk` is the same actor). This writes,
+`checkpoint/state.json`; a job with `[validation]` finishes with its best validated actor as
+`policy.bpk`, not its last). This writes,
 for each `RUN:N` given, `OUT/jobs/<i>-<label>-at-<N>/` with the run's `config.toml` (its `name`
 changed to `<label>-at-<N>`) and that actor as `policy.bpk`; `<label>` is the run directory's
 name (`macad-s13`). `N` is a kept count, or `last` for the run's last actor (its update count
@@ -27,8 +28,7 @@ import sys
 
 
 def last_actor(run):
-    """The run's last actor (its checkpoint's, which a finished job's `policy.bpk` equals) and
-    the update count the checkpoint records."""
+    """The run's last actor (its checkpoint's) and the update count the checkpoint records."""
     state = os.path.join(run, "checkpoint", "state.json")
     with open(state, encoding="utf-8") as f:
         updates = json.load(f).get("updates")

@@ -304,14 +304,13 @@ def row_flows(row):
         f"{row['when']}: {old} of {old_n})"
     )
     if "stage1" in row:
-        clauses = row["stage1"] if isinstance(row["stage1"], list) else [row["stage1"]]
-        for s1 in clauses:
+        for s1 in row["stage1"]:
             result, gate = stage1_flows(row, s1, result, gate)
     return result, gate
 
 
 def stage1_flows(row, s1, result, gate):
-    """One of L5's Stage-1 clauses (`row["stage1"]`: one, or a list): the kept actors of
+    """One of L5's Stage-1 clauses (`row["stage1"]`, a list): the kept actors of
     `configs/stage1/` runs at one mark against the noise-matched IDM flow (`l5_noise.py` over
     flows named `<Flow>-s<seed>@<mark>`); a flow the runs lack is said to be not run."""
     res = load_json(s1["path"])

@@ -58,7 +58,7 @@ def main() -> int:
 
     means = read_ego_case_means(a.episodes)
     tests = []
-    for ego, flow, _ in sorted({(e, f, "") for e, f, _ in means}):
+    for ego, flow in sorted({(e, f) for e, f, _ in means}):
         m = TOLD.match(flow)
         if not m:
             continue

@@ -250,11 +250,10 @@ fn read_text(path: &Path) -> Result<String, FileError> {
 /// Reads `episodes.csv`, or `episodes.csv.gz` (gunzipped) when the path names it or when the plain
 /// file is absent and the gzipped one is stored; a missing file is an empty result set.
 pub fn read_episodes(path: &Path) -> Result<Vec<EpisodeRow>, FileError> {
-    let path = match (path.exists(), stored_gzipped(path)) {
-        (true, _) => path.to_path_buf(),
-        (false, Some(gz)) => gz,
-        (false, None) => return Ok(Vec::new()),
-    };
+    let path = stored_gzipped(path).unwrap_or_else(|| path.to_path_buf());
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
     let path = path.as_path();
     let text = read_text(path)?;
     let mut lines = text.lines();

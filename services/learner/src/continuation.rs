@@ -29,9 +29,6 @@ const FILES: &[&str] =
 /// The directories a continuation takes over (flat: files only). `replay/` is linked where the
 /// file system allows (segments are never rewritten in place), else copied.
 const DIRS: &[&str] = &["checkpoint", "kept", "replay"];
-/// What a continued job writes about where it came from (`seed`, then the trainer adds the
-/// restored weights' digests).
-pub use trainer::CONTINUED_FROM as MARKER;
 
 fn refuse(reason: String) -> LearnerError {
     LearnerError::Continuation { reason }
@@ -145,7 +142,10 @@ pub fn seed(cfg: &JobConfig, dir: &Path) -> Result<Option<Seeded>, LearnerError>
     let replay = dir.join("replay").is_dir()
         && std::fs::read_dir(dir.join("replay")).map(|mut r| r.next().is_some()).unwrap_or(false);
     let marker = serde_json::json!({"from": from.display().to_string(), "replay": replay});
-    crate::artifacts::write_atomic(&dir.join(MARKER), marker.to_string().as_bytes())?;
+    crate::artifacts::write_atomic(
+        &dir.join(trainer::CONTINUED_FROM),
+        marker.to_string().as_bytes(),
+    )?;
     let st = from.join("state.json");
     std::fs::copy(&st, trainer::state_path(dir)).map_err(io("copying", &st))?;
     Ok(Some(Seeded { replay }))
