@@ -434,7 +434,7 @@ def consistency_checks(label, objs, a, facts):
                     yield from keys(v)
 
         bad = sorted(set(keys(job)) - job_fields)
-        check(not bad, "sample job keys are JobConfig fields (crates/job/src/config.rs)", f"unknown {bad}")
+        check(not bad, "sample job keys are JobConfig fields (crates/job/src/config/)", f"unknown {bad}")
         device = job.get("sac", {}).get("device", "cpu")
         gpu = "nvidia.com/gpu" in (lc.get("resources", {}).get("limits") or {})
         check(device in devices, f"sample job sac.device {device!r} is one of {sorted(devices)}")
@@ -495,7 +495,9 @@ def main():
     lib = "\n".join(read(a.repo, os.path.join("services/learner/src", f)) for f in sorted(os.listdir(src_dir)) if f.endswith(".rs"))
     lcfg = struct_fields(lib, "LearnerConfig")
     check(bool(lcfg), f"LearnerConfig fields: {sorted(lcfg)}")
-    cfg_src = read(a.repo, "crates/job/src/config.rs")
+    # JobConfig is split per section (crates/job/src/config/*.rs): read them all.
+    cfg_dir = os.path.join(a.repo, "crates/job/src/config")
+    cfg_src = "\n".join(read(a.repo, os.path.join("crates/job/src/config", f)) for f in sorted(os.listdir(cfg_dir)) if f.endswith(".rs"))
     job_fields = set(re.findall(r"^\s*pub (\w+):", cfg_src, re.M))
     devices = enum_variants_kebab(cfg_src, "Device")
     check(bool(job_fields) and "device" in job_fields, f"JobConfig fields ({len(job_fields)}), devices {sorted(devices)}")
