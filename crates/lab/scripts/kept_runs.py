@@ -10,10 +10,12 @@ last actor is its checkpoint's (`checkpoint/actor.bpk`, with the update count in
 for each `RUN:N` given, `OUT/jobs/<i>-<label>-at-<N>/` with the run's `config.toml` (its `name`
 changed to `<label>-at-<N>`) and that actor as `policy.bpk`; `<label>` is the run directory's
 name (`macad-s13`). `N` is a kept count, or `last` for the run's last actor (its update count
-read from the checkpoint).
+read from the checkpoint). `last` is for a run's own data directory (`runs/stage1/macad-s13`,
+checkpoint included); the committed runs under docs/curves/stage1/ carry no checkpoint (removed
+2026-12-07), and seed 13's last actors are kept there as `kept/actor-240128.bpk`:
 
     python3 crates/lab/scripts/kept_runs.py --out runs/stage1/kept240 \\
-        docs/curves/stage1/macad-s13:last docs/curves/stage1/socialcomm-s13:last
+        docs/curves/stage1/macad-s13:240128 docs/curves/stage1/socialcomm-s13:240128
 
 Refuses (exit 2, naming the file) an actor or config that is not there, and an OUT whose
 `jobs/` already holds a directory of the same name with other weights.
