@@ -113,8 +113,10 @@ def evaluate(
     `obs_format="dict"`) and returns `[n, action_dim]` actions in [-1, 1] of the kind `action`.
     `grid`: `{"flows": {name: "idm" | flow job dir}, "scenarios": [...], "cases", "seeds",
     "envs", "vehicles", "svo_deg", "experiment", "ego"}`; keyword arguments override it.
-    Learned flows sample one random stream per seed, so results depend on `envs` as in
-    `socialflow eval`. Returns an `EvalResult`."""
+    Every random draw of an episode (learned flows' sampled actions, noise) is the episode's
+    own, keyed by (case, seed, step, agent), as in `socialflow eval`: scripted flows give the
+    same episodes at any `envs`, learned flows the same outcomes (batched inference rounds the
+    last bits of an action by batch size). Returns an `EvalResult`."""
     if not callable(policy):
         raise ValueError(f"policy: {policy!r} is not callable")
     check_choice("obs_format", obs_format, ("flat", "dict"))

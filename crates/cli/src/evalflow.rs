@@ -9,10 +9,9 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use rand::SeedableRng;
 use rayon::prelude::*;
 use serde_json::json;
-use sf_report::Summary;
+use sf_report::stats::Summary;
 use sf_rollout::coordinator::CoordinatorFile;
 use sf_rollout::drive::{Actor, Drivers};
 use sf_sim::metrics::EpisodeMetrics;
@@ -284,32 +283,30 @@ pub fn run(ctx: &Ctx, a: EvalFlowArgs) -> Result<()> {
                     VecEnv::from_episodes(map.clone(), flow.sim.clone(), Mode::MultiAgent, 16, eps)
                         .map_err(anyhow::Error::msg)?;
                 v.set_svo_gaussian(gaussian);
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed as u64);
                 let mut step = 0usize;
-                let mut done =
-                    sf_rollout::drive::run_episodes(&mut v, &drivers, &mut rng, |v, _| {
-                        step += 1;
-                        if !step.is_multiple_of(4) {
-                            return;
-                        }
-                        let len = v.spec.len;
-                        let rows: Vec<usize> =
-                            (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0).collect();
-                        if rows.is_empty() {
-                            return;
-                        }
-                        let obs: Vec<f32> = rows
-                            .iter()
-                            .flat_map(|&r| v.observations()[r * len..(r + 1) * len].iter().copied())
-                            .collect();
-                        let sd = flow.runner.std_dev(&obs, &vec![0u32; rows.len()]);
-                        let dim = sd.len() / rows.len();
-                        std_sum.resize(dim, 0.0);
-                        for (k, x) in sd.iter().enumerate() {
-                            std_sum[k % dim] += *x as f64;
-                        }
-                        std_rows += rows.len();
-                    });
+                let mut done = sf_rollout::drive::run_episodes(&mut v, &drivers, |v, _| {
+                    step += 1;
+                    if !step.is_multiple_of(4) {
+                        return;
+                    }
+                    let len = v.spec.len;
+                    let rows: Vec<usize> =
+                        (0..v.alive().len()).filter(|&r| v.alive()[r] == 1.0).collect();
+                    if rows.is_empty() {
+                        return;
+                    }
+                    let obs: Vec<f32> = rows
+                        .iter()
+                        .flat_map(|&r| v.observations()[r * len..(r + 1) * len].iter().copied())
+                        .collect();
+                    let sd = flow.runner.std_dev(&obs, &vec![0u32; rows.len()]);
+                    let dim = sd.len() / rows.len();
+                    std_sum.resize(dim, 0.0);
+                    for (k, x) in sd.iter().enumerate() {
+                        std_sum[k % dim] += *x as f64;
+                    }
+                    std_rows += rows.len();
+                });
                 done.sort_by_key(|(tag, _)| *tag);
                 out.extend(done.into_iter().map(|(_, m)| m));
             }

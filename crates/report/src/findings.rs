@@ -14,7 +14,7 @@
 use serde::Serialize;
 
 use crate::inference::{self, RandomEffects};
-use crate::{PairedT, WelchT};
+use crate::stats::{PairedT, WelchT};
 
 /// Significance level of every verdict (after the family's Holm correction).
 pub const ALPHA: f64 = 0.05;

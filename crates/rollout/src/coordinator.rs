@@ -204,7 +204,7 @@ pub fn fit_scenario(
             specs,
         )?;
         let (mut sum, mut count) = (vec![0f64; pop], vec![0u64; pop]);
-        run_episodes(&mut v, &drivers, &mut rng, |v, tags| {
+        run_episodes(&mut v, &drivers, |v, tags| {
             for (r, st) in v.row_steps().iter().enumerate().filter(|(_, st)| st.stepped) {
                 if let Some(t) = tags[r / v.max_agents] {
                     sum[t as usize / eps] += st.rewards.individual as f64;

@@ -6,10 +6,15 @@
 //! lane changes, or a policy), [`decide`] (the adversary's message first, communicated before
 //! anyone drives, then the driving actions as the roles chose them), [`apply`] (steps the
 //! environments with them, adding the IDM driver's action for roles whose actions are
-//! residuals) and [`run_episodes`] (stored episodes to their end). Shared by rollout workers and evaluation, so both run a flow the same
-//! way. Must not: record transitions or choose which role is being trained.
+//! residuals) and [`run_episodes`] (stored episodes to their end). Shared by rollout workers and
+//! evaluation, so both run a flow the same way. Where a step's random draws (sampled policy
+//! actions, noise, uniform warm-up actions) come from is [`Draws`]: one stream in row order for
+//! training, per episode for stored episodes, so an evaluated episode's draws are a function of
+//! its case, seed, step and agents alone, whatever the batch width or thread count. Must not: record
+//! transitions or choose which role is being trained.
 
-use rand::Rng;
+use rand::{Rng, RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use sf_job::config::JobKind;
 use sf_sim::metrics::EpisodeMetrics;
@@ -191,34 +196,108 @@ pub fn oracle_labels(venvs: &[VecEnv], rows: &[Vec<usize>], action: DriveAction)
         .collect()
 }
 
+/// Where a step's random numbers come from.
+pub enum Draws<'r> {
+    /// One stream, drawn in row order (batch by batch, row by row, component by component):
+    /// training, where a job's stream is its own and no episode is replayed alone.
+    Stream(&'r mut dyn RngCore),
+    /// Each row's own stream, keyed by its episode's tag, the episode's step, the row's agent
+    /// and the role that draws: a stored episode's draws do not depend on which other episodes
+    /// share its steps (the batch width), nor on the order they run in.
+    PerEpisode,
+}
+
+/// The roles that draw, so each role's per-episode draws are its own.
+#[derive(Clone, Copy)]
+enum Role {
+    Adversary = 1,
+    Alive = 2,
+    Background = 3,
+}
+
+/// What one draw is: a standard normal, or uniform in [-1, 1).
+#[derive(Clone, Copy)]
+enum Draw {
+    Normal,
+    Uniform,
+}
+
+fn draw_one<R: Rng + ?Sized>(g: &mut R, what: Draw) -> f32 {
+    match what {
+        Draw::Normal => g.sample(StandardNormal),
+        Draw::Uniform => g.random_range(-1.0..1.0),
+    }
+}
+
+/// The stream of one row's draws in one step of a stored episode: ChaCha8 seeded with the
+/// episode's tag, the step, the agent and the role laid side by side (a one-to-one key, so two
+/// rows never share a stream).
+fn row_stream(tag: u64, step: u32, agent: usize, role: Role) -> ChaCha8Rng {
+    let mut seed = [0u8; 32];
+    seed[..8].copy_from_slice(&tag.to_le_bytes());
+    seed[8..12].copy_from_slice(&step.to_le_bytes());
+    seed[12..20].copy_from_slice(&(agent as u64).to_le_bytes());
+    seed[20] = role as u8;
+    seed[24..].copy_from_slice(b"sf-draws");
+    ChaCha8Rng::from_seed(seed)
+}
+
+/// `dim` draws per listed row, in row order.
+fn draws(
+    venvs: &[VecEnv],
+    rows: &[Vec<usize>],
+    dim: usize,
+    what: Draw,
+    role: Role,
+    from: &mut Draws,
+) -> Vec<f32> {
+    let n: usize = rows.iter().map(Vec::len).sum();
+    match from {
+        Draws::Stream(rng) => (0..n * dim).map(|_| draw_one(&mut **rng, what)).collect(),
+        Draws::PerEpisode => {
+            let mut out = Vec::with_capacity(n * dim);
+            for (v, rs) in venvs.iter().zip(rows) {
+                for &r in rs {
+                    let (slot, agent) = (r / v.max_agents, r % v.max_agents);
+                    // A listed row is live, so its slot runs an episode (idle slots' rows are
+                    // never flagged); u64::MAX keeps the key total all the same.
+                    let tag = v.tag(slot).unwrap_or(u64::MAX);
+                    let mut g = row_stream(tag, v.env(slot).step_index(), agent, role);
+                    out.extend((0..dim).map(|_| draw_one(&mut g, what)));
+                }
+            }
+            out
+        }
+    }
+}
+
 /// `actor.dim()` actions per listed row of every batch, one inference for all of them.
 fn act(
     venvs: &[VecEnv],
     rows: &[Vec<usize>],
     actor: Actor,
-    rng: &mut impl Rng,
+    role: Role,
+    from: &mut Draws,
 ) -> (Vec<Vec<f32>>, usize) {
     let n: usize = rows.iter().map(Vec::len).sum();
     let dim = actor.dim();
     let flat = match actor {
-        Actor::Random { .. } => (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        Actor::Random { .. } => draws(venvs, rows, dim, Draw::Uniform, role, from),
         Actor::Demo { noise, action } => {
             let mut a: Vec<f32> = oracle_labels(venvs, rows, action).concat();
             // Noise-free demonstrations draw nothing, so the stream other roles sample from (a
             // learned flow's) is the one an outside actor with the same actions would leave.
             if noise > 0.0 {
-                for x in &mut a {
-                    let e: f32 = rng.sample(StandardNormal);
+                let e = draws(venvs, rows, dim, Draw::Normal, role, from);
+                for (x, e) in a.iter_mut().zip(e) {
                     *x = (*x + noise * e).clamp(-1.0, 1.0);
                 }
             }
             a
         }
-        Actor::IdmNoise { std, .. } => (0..n * dim)
-            .map(|_| {
-                let e: f32 = rng.sample(StandardNormal);
-                (std * e).tanh()
-            })
+        Actor::IdmNoise { std, .. } => draws(venvs, rows, dim, Draw::Normal, role, from)
+            .into_iter()
+            .map(|e| (std * e).tanh())
             .collect(),
         Actor::Mobil(p) => venvs
             .iter()
@@ -231,7 +310,7 @@ fn act(
             let a = if deterministic {
                 runner.mean(&obs, &ids)
             } else {
-                runner.sample(&obs, &ids, rng)
+                runner.sample_with(&obs, &ids, draws(venvs, rows, dim, Draw::Normal, role, from))
             };
             assert_eq!(a.len(), n * dim, "policy action size differs from its role's");
             a
@@ -258,13 +337,19 @@ fn act(
 }
 
 /// Decides the step: the adversary speaks first (its message reaches the background's
-/// observations before they act), then every role drives.
+/// observations before they act), then every role drives. Draws from `rng` in row order
+/// ([`Draws::Stream`]).
 pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision {
+    decide_drawing(venvs, d, &mut Draws::Stream(rng))
+}
+
+/// [`decide`] with the draws taken `from` where the caller says.
+pub fn decide_drawing(venvs: &mut [VecEnv], d: &Drivers, from: &mut Draws) -> Decision {
     let alive_rows: Vec<Vec<usize>> = venvs.iter().map(|v| flagged(v.alive())).collect();
     let mut out = Decision { alive_rows, ..Decision::default() };
     if let Some(adv) = d.adversary {
         assert_eq!(adv.dim(), 1, "the adversary's action is one SVO");
-        let (a, n) = act(venvs, &out.alive_rows, adv, rng);
+        let (a, n) = act(venvs, &out.alive_rows, adv, Role::Adversary, from);
         out.inferred_rows += n;
         for ((v, rs), acts) in venvs.iter_mut().zip(&out.alive_rows).zip(&a) {
             // The ego is agent 0 of its environment: row k * max_agents.
@@ -277,12 +362,12 @@ pub fn decide(venvs: &mut [VecEnv], d: &Drivers, rng: &mut impl Rng) -> Decision
         out.adversary_actions = a;
     }
     out.background_rows = venvs.iter().map(|v| flagged(v.background())).collect();
-    let (a, n) = act(venvs, &out.alive_rows, d.alive, rng);
+    let (a, n) = act(venvs, &out.alive_rows, d.alive, Role::Alive, from);
     out.alive_actions = a;
     out.alive_action = d.alive.drive_action();
     out.inferred_rows += n;
     if let Some(bg) = d.background {
-        let (a, n) = act(venvs, &out.background_rows, bg, rng);
+        let (a, n) = act(venvs, &out.background_rows, bg, Role::Background, from);
         out.background_actions = a;
         out.background_action = bg.drive_action();
         out.inferred_rows += n;
@@ -422,21 +507,21 @@ impl WarmupSegments {
     }
 }
 
-/// Runs the stored episodes of `v` (`VecEnv::from_episodes`) to their end with `d`.
-/// `after_step(v, tags)` sees every step's results (`VecEnv::row_steps`, the environments)
-/// with the tags of the episodes that took it, per environment (`None`: idle). Returns every
-/// episode's `(tag, metrics)` in the order they finished.
+/// Runs the stored episodes of `v` (`VecEnv::from_episodes`) to their end with `d`, every
+/// random draw the episode's own ([`Draws::PerEpisode`]): an episode draws the same at any
+/// batch width. `after_step(v, tags)` sees every step's results (`VecEnv::row_steps`, the
+/// environments) with the tags of the episodes that took it, per environment (`None`: idle).
+/// Returns every episode's `(tag, metrics)` in the order they finished.
 pub fn run_episodes(
     v: &mut VecEnv,
     d: &Drivers,
-    rng: &mut impl Rng,
     mut after_step: impl FnMut(&VecEnv, &[Option<u64>]),
 ) -> Vec<(u64, EpisodeMetrics)> {
     let mut out = Vec::new();
     let venvs = std::slice::from_mut(v);
     while !venvs[0].is_finished() {
         let tags: Vec<Option<u64>> = (0..venvs[0].n_envs()).map(|k| venvs[0].tag(k)).collect();
-        let decision = decide(venvs, d, rng);
+        let decision = decide_drawing(venvs, d, &mut Draws::PerEpisode);
         apply(venvs, &decision);
         after_step(&venvs[0], &tags);
         out.extend(venvs[0].take_finished_tagged());

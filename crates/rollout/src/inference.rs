@@ -137,9 +137,16 @@ impl PolicyRunner {
 
     /// Stochastic actions `[B * A]` (row-major) for `B` observation rows.
     pub fn sample(&self, rows: &[f32], map_ids: &[u32], rng: &mut impl Rng) -> Vec<f32> {
+        let n = map_ids.len() * self.net.action_dim;
+        self.sample_with(rows, map_ids, (0..n).map(|_| rng.sample(StandardNormal)).collect())
+    }
+
+    /// Stochastic actions `[B * A]` with the standard normal draws `eps` (`[B * A]`, row-major)
+    /// given: what [`Self::sample`] does with draws taken elsewhere (per episode, say).
+    pub fn sample_with(&self, rows: &[f32], map_ids: &[u32], eps: Vec<f32>) -> Vec<f32> {
         let b = map_ids.len();
         let a = self.net.action_dim;
-        let eps: Vec<f32> = (0..b * a).map(|_| rng.sample(StandardNormal)).collect();
+        assert_eq!(eps.len(), b * a, "one draw per action component");
         let eps = Tensor::<2>::from_data(TensorData::new(eps, [b, a]), &self.device);
         let (act, _) = self.actor.sample(&self.batch(rows, map_ids), self.table.as_ref(), eps);
         act.into_data().try_to_vec::<f32>().expect("actions are f32")

@@ -6,13 +6,29 @@ use std::sync::Arc;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_nn::NetConfig;
-use sf_sim::obs::MapSegments;
+use sf_rollout::inference::PolicyRunner;
+use sf_sim::obs::{MapSegments, ObsSpec};
 use sf_sim::policy::route_follower;
 use sf_sim::vec_env::{VecEnv, VecEnvConfig};
 use sf_sim::{Action, Map, Mode, SimConfig};
 
 fn tiny_net() -> NetConfig {
     NetConfig { d_model: 16, set_hidden: 16, head_hidden: 32, heads: 2, ..NetConfig::fast() }
+}
+
+/// An untrained actor of [`tiny_net`] (seed 7) on the CPU, reading `m`'s segments.
+fn tiny_runner(m: &Map, spec: &ObsSpec, sim: &SimConfig) -> PolicyRunner {
+    let segs = MapSegments::build(m, sim.obs.segment_points);
+    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu");
+    PolicyRunner::new(
+        sf_nn::Actor::new(&tiny_net(), 7, &device),
+        &tiny_net(),
+        spec,
+        sim.dt_s,
+        &[&segs],
+        sf_job::PolicyVersion::new(1),
+        &device,
+    )
 }
 
 fn map() -> Arc<Map> {
@@ -55,18 +71,7 @@ fn a_rollout_step_encodes_each_agent_history_once_and_acts_the_same() {
     }
     let b = ids.len();
     assert!(b >= 16, "two environments of 10-12 live vehicles ({b})");
-    let segs = MapSegments::build(&m, sim.obs.segment_points);
-    let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu).expect("cpu");
-    let actor = sf_nn::Actor::new(&tiny_net(), 7, &device);
-    let runner = sf_rollout::inference::PolicyRunner::new(
-        actor,
-        &tiny_net(),
-        &spec,
-        sim.dt_s,
-        &[&segs],
-        sf_job::PolicyVersion::new(1),
-        &device,
-    );
+    let runner = tiny_runner(&m, &spec, &sim);
     let (shared, copies) = (runner.batch(&rows, &ids), runner.batch_unshared(&rows, &ids));
     assert!(matches!(shared.histories, sf_nn::AgentInput::Shared { .. }));
     let n = spec.neighbours;
@@ -359,4 +364,56 @@ fn the_noise_matched_idm_flow_without_noise_is_the_idm_flow() {
     let noisy = run(&FlowDef::IdmNoise { std: 0.3 }, None, "idm-noise", 5);
     assert_ne!(noisy, idm, "the learned flows' noise changes the episodes");
     assert_eq!(noisy, run(&FlowDef::IdmNoise { std: 0.3 }, None, "idm-noise", 5), "repeatable");
+}
+
+/// Every random draw of a stored episode is the episode's own (`Draws::PerEpisode`): the
+/// noise-matched IDM flow ends every episode identically at batch widths 1, 7 and 40, and a
+/// sampled learned flow with the same outcomes (success, collision, lane change, road closed)
+/// and scores within 1e-5: batched inference rounds the last bits of an action differently at
+/// other batch sizes, which the draws cannot fix.
+#[test]
+fn a_stored_episode_ends_the_same_at_any_batch_width() {
+    use sf_rollout::drive::{Actor, Drivers};
+    use sf_rollout::evaluate::{run_stored, Episodes};
+    use sf_sim::DriveAction;
+    let m = map();
+    let sim = Arc::new(SimConfig::default());
+    let cases = sf_sim::case::generate(&m, 12, 7, (3, 6));
+    let probe = VecEnvConfig { n_envs: 1, mode: Mode::MultiAgent, vehicles: (3, 3), seed: 0 };
+    let spec = VecEnv::new(m.clone(), sim.clone(), probe).spec.clone();
+    let runner = tiny_runner(&m, &spec, &sim);
+    let flow = |alive| Drivers { alive, background: None, adversary: None };
+    let run = |d: &Drivers, envs| {
+        let episodes =
+            Episodes { cases: &cases.cases, seeds: 2, envs, vehicles: None, svo_deg: None };
+        run_stored(&m, &sim, Mode::MultiAgent, None, &episodes, d).expect("episodes run")
+    };
+    let noisy = flow(Actor::IdmNoise { std: 0.3, action: DriveAction::IdmAccelResidual });
+    let alone = run(&noisy, 1);
+    assert_eq!(alone.len(), 24, "12 cases x 2 seeds");
+    assert_eq!(run(&noisy, 7), alone, "IDM+noise: 7 simulators stepped together");
+    assert_eq!(run(&noisy, 40), alone, "IDM+noise: 40 simulators, most of them idle");
+    let sampled = flow(Actor::sampled(&runner));
+    let alone = run(&sampled, 1);
+    for envs in [7, 40] {
+        for (a, b) in run(&sampled, envs).iter().zip(&alone) {
+            let same =
+                (a.case, a.seed, a.scores.success, a.collision, a.lane_change, a.road_closed)
+                    == (
+                        b.case,
+                        b.seed,
+                        b.scores.success,
+                        b.collision,
+                        b.lane_change,
+                        b.road_closed,
+                    );
+            let near = (a.scores.safety - b.scores.safety).abs() < 1e-5
+                && (a.scores.speed - b.scores.speed).abs() < 1e-5;
+            assert!(same && near, "learned flow at {envs} simulators: {a:?} alone: {b:?}");
+        }
+    }
+    // The draws matter: the flow's mean action and the noise-free IDM flow end otherwise.
+    assert_ne!(run(&flow(Actor::mean(&runner)), 7), run(&sampled, 7), "sampling changes episodes");
+    let quiet = flow(Actor::IdmNoise { std: 0.0, action: DriveAction::IdmAccelResidual });
+    assert_ne!(run(&quiet, 7), run(&noisy, 7), "the noise changes episodes");
 }

@@ -8,8 +8,6 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use sf_rollout::drive::{self, Actor, Drivers};
 use sf_rollout::evaluate::{EgoDef, FlowDef, Policy, Runners};
 use sf_sim::env::{Controller, Mode};
@@ -100,9 +98,8 @@ pub(super) fn evaluate(
             eps,
         )
         .map_err(anyhow::Error::msg)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<EpisodeMetrics>> = vec![None; n];
-        for (tag, m) in drive::run_episodes(&mut v, &drivers, &mut rng, |_, _| {}) {
+        for (tag, m) in drive::run_episodes(&mut v, &drivers, |_, _| {}) {
             done[(tag & 0xffff_ffff) as usize] = Some(m);
         }
         for (c, m) in done.into_iter().enumerate() {

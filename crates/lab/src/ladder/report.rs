@@ -131,7 +131,7 @@ pub(super) fn paired_by_case(a: &[&Row], b: &[&Row]) -> (usize, f64) {
     let (ma, mb) = (by_case(a), by_case(b));
     let (xs, ys): (Vec<f64>, Vec<f64>) =
         ma.iter().filter_map(|(k, &x)| mb.get(k).map(|&y| (x, y))).unzip();
-    let p = match sf_report::paired_t_test(&xs, &ys) {
+    let p = match sf_report::stats::paired_t_test(&xs, &ys) {
         Ok(t) => t.p_value,
         // Identical outcomes everywhere: no difference to test.
         Err(_) => 1.0,

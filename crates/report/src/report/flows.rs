@@ -121,7 +121,7 @@ pub(super) fn flow_quality(
                     .filter_map(|s| {
                         let in_s = |f: &str| by(rows, |r| r.cell.experiment == "flow_quality" && r.cell.flow == f && &r.cell.scenario == s);
                         let there = case_diffs(&in_s("SocialComm"), &in_s(other), |r| r.ep.scores.success, false);
-                        let w = crate::welch_t_test(&in_merge.values, &there.values).ok()?;
+                        let w = crate::stats::welch_t_test(&in_merge.values, &there.values).ok()?;
                         Some((format!("merge vs {s}"), Check::from_welch("", &format!("success difference SocialComm - {other} per case, merge vs {s}"), &w, in_merge.starts + there.starts)))
                     })
                     .collect();

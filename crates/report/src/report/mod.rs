@@ -26,7 +26,7 @@ use crate::episodes::{file_err, io_err, EpisodeRow, FileError, Meta};
 use crate::findings::{self, AcrossRuns, Check};
 use crate::inference;
 use crate::plot;
-use crate::Summary;
+use crate::stats::Summary;
 pub use egos::medals;
 use units::Metric;
 

@@ -34,7 +34,7 @@
 use std::collections::BTreeMap;
 
 use crate::episodes::EpisodeRow;
-use crate::{one_sample_t_test, PairedT, Summary};
+use crate::stats::{one_sample_t_test, PairedT, Summary};
 
 pub(crate) type Metric = fn(&EpisodeRow) -> f32;
 

@@ -6,8 +6,6 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use sf_job::eval::Cell;
 use sf_sim::case::CaseFile;
 use sf_sim::vec_env::{EpisodeSpec, VecEnv};
@@ -32,6 +30,8 @@ pub fn render_gif(
 ) -> Result<(), EvalError> {
     use sf_sim::render::{panels, ColourBy, GifWriter, Renderer};
     let scenario = map.name.clone();
+    // Seed 0's episode of the case, as a cell runs it: same tag, so the same draws.
+    let tag = super::episode_tag(0, case as usize);
     let case = cases.cases.get(case as usize).ok_or_else(|| {
         EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}"))
     })?;
@@ -52,12 +52,11 @@ pub fn render_gif(
             sim,
             mode,
             1,
-            vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag: 0 }],
+            vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag }],
         )?;
         v.set_svo_gaussian(acting.svo_gaussian);
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut frames = vec![renderer.frame(v.env(0))];
-        drive::run_episodes(&mut v, &acting.drivers(), &mut rng, |v, _| {
+        drive::run_episodes(&mut v, &acting.drivers(), |v, _| {
             frames.push(renderer.frame(v.env(0)))
         });
         films.push(frames);

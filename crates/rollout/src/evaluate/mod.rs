@@ -11,16 +11,16 @@
 //! weights) or write results.
 //!
 //! Actions: ego policies act with their mean action (the IDM driver in the ego's seat with
-//! the zero residual, so exactly as IDM drives); learned flows and the adversary sample,
-//! one random stream per seed (the seed is the stream's seed), so the same policies, cases,
-//! seeds and `envs` give the same numbers.
+//! the zero residual, so exactly as IDM drives); learned flows and the adversary sample, each
+//! episode from its own draws (keyed by seed, case, step, agent and role), so an episode's
+//! draws do not depend on `envs` or the other cases (since 2026-12-07; before, one stream per
+//! seed ran through the batch). Learned policies' batched inference still rounds the last bits
+//! of an action by batch size, so their episodes agree across `envs` in outcome, not bit for bit.
 
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use sf_job::config::JobKind;
 use sf_job::eval::{Cell, EvalEpisode};
 use sf_job::{JobId, PolicyVersion, SvoGaussian};
@@ -387,8 +387,9 @@ pub struct Episodes<'a> {
     pub svo_deg: Option<f32>,
 }
 
-/// Runs `episodes` with `drivers` (one random stream per seed, seeded by the seed) and returns
-/// one row per episode in (seed, case) order. What a cell runs once its policies are chosen;
+/// Runs `episodes` with `drivers` and returns one row per episode in (seed, case) order. Every
+/// random draw of an episode is its own (keyed by seed, case, step, agent and role:
+/// [`drive::Draws::PerEpisode`]), so a row's draws do not depend on `envs` or the other cases. What a cell runs once its policies are chosen;
 /// also the loop of an ego chosen outside ([`FlowSetup`]).
 pub fn run_stored(
     map: &Arc<Map>,
@@ -418,9 +419,8 @@ pub fn run_stored(
         let mut v =
             VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
         v.set_svo_gaussian(svo_gaussian);
-        let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let mut done: Vec<Option<sf_sim::metrics::EpisodeMetrics>> = vec![None; n_cases];
-        for (tag, m) in drive::run_episodes(&mut v, drivers, &mut rng, |_, _| {}) {
+        for (tag, m) in drive::run_episodes(&mut v, drivers, |_, _| {}) {
             done[(tag & 0xffff_ffff) as usize] = Some(m);
         }
         for (c, m) in done.into_iter().enumerate() {
