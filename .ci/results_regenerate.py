@@ -24,7 +24,7 @@ F1_120K = f"{STAGE1}/f1-120k/episodes.csv.gz"
 # (script, its arguments, committed stdout, committed --json output)
 CHECKS = [
     ("plateau.py",
-     [f"{STAGE1}/{flow}-s{seed}" for flow in ("macad", "socialcomm") for seed in (11, 12, 13)],
+     [f"{STAGE1}/{flow}-s{seed}" for flow in ("macad", "socialcomm") for seed in (11, 12, 13, 14)],
      f"{STAGE1}/plateau.md", f"{STAGE1}/plateau.json"),
     ("f1_stage1.py", [F1_120K, "--mark", "120k"],
      f"{STAGE1}/f1-120k/f1.md", f"{STAGE1}/f1-120k/f1.json"),

@@ -331,8 +331,9 @@ def stage1_flows(row, s1, result, gate):
         met += sum(v[r]["met"] for r in runs)
         n += len(runs)
     seeds = ("seeds " if len(s1["seeds"]) > 1 else "seed ") + ", ".join(str(x) for x in s1["seeds"])
-    result += f"; Stage 1 at {s1['mark']} updates, {seeds}: " + "; ".join(parts)
-    gate += f"; Stage 1 at {s1['mark']} ({s1['when']}): met by {met} of {n} flow-runs" + (
+    at = s1.get("label", f"{s1['mark']} updates")
+    result += f"; Stage 1 at {at}, {seeds}: " + "; ".join(parts)
+    gate += f"; Stage 1 at {at} ({s1['when']}): met by {met} of {n} flow-runs" + (
         f", {' and '.join(missing)} not run: not met as a rung" if missing else ""
     )
     return result, gate
