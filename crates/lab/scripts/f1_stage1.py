@@ -27,7 +27,7 @@ import re
 import sys
 
 from csv_files import write_json
-from l5_noise import holm, paired_mde, pct, read_case_means
+from l5_noise import holm, paired_row, read_case_means
 
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
 FLOW = re.compile(r"^(MACAD|SocialComm)-s(\d+)@(\S+)( msg45)?$")
@@ -39,9 +39,7 @@ def pooled_cases(means: dict, flow: str) -> dict[tuple[str, int], float]:
 
 
 def test(a: dict, b: dict, label: str, scenario: str, seed: int) -> dict:
-    diff, ci, p, n, mde = paired_mde(a, b)
-    return {"test": label, "seed": seed, "scenario": scenario, "cases": n, "a": pct(a), "b": pct(b),
-            "diff": diff, "ci95": ci, "p": p, "mde80": mde}
+    return paired_row(a, b, {"test": label, "seed": seed, "scenario": scenario})
 
 
 def main() -> int:

@@ -65,6 +65,14 @@ def paired_mde(a: dict[int, float], b: dict[int, float]) -> tuple[float, float, 
     return diff, ci, p, n, (1.959964 + 0.841621) * se
 
 
+def paired_row(a: dict, b: dict, labels: dict, names: tuple[str, str] = ("a", "b")) -> dict:
+    """One paired test as a result row: `labels` first, then the cases, each side's success
+    (keyed by `names`), the difference with its 95 % interval, p and the MDE."""
+    diff, ci, p, n, mde = paired_mde(a, b)
+    return {**labels, "cases": n, names[0]: pct(a), names[1]: pct(b),
+            "diff": diff, "ci95": ci, "p": p, "mde80": mde}
+
+
 def pct(case_means: dict[int, float]) -> float:
     """Mean success over the cases, in percent."""
     return 100.0 * sum(case_means.values()) / len(case_means)

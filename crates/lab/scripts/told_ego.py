@@ -25,7 +25,7 @@ import sys
 from collections import defaultdict
 
 from csv_files import open_csv, write_json
-from l5_noise import holm, paired_mde, pct
+from l5_noise import holm, paired_row
 
 SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
 TOLD = re.compile(r"^(.*) (told-?\d+)$")
@@ -43,9 +43,7 @@ def read_ego_case_means(path: str) -> dict[tuple[str, str, str], dict[int, float
 
 
 def test(a: dict, b: dict, ego: str, arm: str, scenario: str) -> dict:
-    diff, ci, p, n, mde = paired_mde(a, b)
-    return {"ego": ego, "arm": arm, "scenario": scenario, "cases": n, "told": pct(a), "truth": pct(b),
-            "diff": diff, "ci95": ci, "p": p, "mde80": mde}
+    return paired_row(a, b, {"ego": ego, "arm": arm, "scenario": scenario}, ("told", "truth"))
 
 
 def main() -> int:
