@@ -4,8 +4,6 @@
 //! Owns: [`PolicyRunner`], what a worker (and evaluation) acts with. Must not: train.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use rand::Rng;
-use rand_distr::StandardNormal;
 use sf_job::PolicyVersion;
 use sf_nn::encoder::{SegmentInput, SegmentTable};
 use sf_nn::{weights, Actor, Histories, NetConfig, ObsBatch};
@@ -135,14 +133,9 @@ impl PolicyRunner {
             .expect("actions are f32")
     }
 
-    /// Stochastic actions `[B * A]` (row-major) for `B` observation rows.
-    pub fn sample(&self, rows: &[f32], map_ids: &[u32], rng: &mut impl Rng) -> Vec<f32> {
-        let n = map_ids.len() * self.net.action_dim;
-        self.sample_with(rows, map_ids, (0..n).map(|_| rng.sample(StandardNormal)).collect())
-    }
-
-    /// Stochastic actions `[B * A]` with the standard normal draws `eps` (`[B * A]`, row-major)
-    /// given: what [`Self::sample`] does with draws taken elsewhere (per episode, say).
+    /// Stochastic actions `[B * A]` (row-major) for `B` observation rows, with the standard
+    /// normal draws `eps` (`[B * A]`, row-major) taken by the caller (`drive`: from one stream
+    /// or per episode).
     pub fn sample_with(&self, rows: &[f32], map_ids: &[u32], eps: Vec<f32>) -> Vec<f32> {
         let b = map_ids.len();
         let a = self.net.action_dim;
