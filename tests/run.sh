@@ -24,6 +24,18 @@ export PROMTOOL="$tools/usr/bin/promtool" SOCIALFLOW_REQUIRE_PROMTOOL=1
 # iptables rules of its own: as root they must run, not skip.
 if [ "$(id -u)" = 0 ]; then export SOCIALFLOW_REQUIRE_TMPFS=1 SOCIALFLOW_REQUIRE_NETNS=1; fi
 "$PROMTOOL" check rules deploy/alerts.yml
+# A headless Chromium (Debian's) for the episode viewer's browser test (tests/viewer.rs); as root
+# it is installed if missing and the test must run, not skip. Its screenshot is kept in
+# ~/.cache/socialflow/artifacts/viewer.png.
+step "chromium"
+if [ "$(id -u)" = 0 ]; then
+  if ! command -v chromium >/dev/null 2>&1; then
+    apt_chromium() { DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends chromium >/dev/null; }
+    apt_chromium || { apt-get update >/dev/null 2>&1 || true; apt_chromium; } || { echo "cannot install Debian's chromium (the viewer's browser test)" >&2; exit 1; }
+  fi
+  export SOCIALFLOW_REQUIRE_BROWSER=1
+fi
+export SOCIALFLOW_ARTIFACTS="$cache/artifacts"
 # One cached venv for the Python sides of the tests: the official tensorboard package reads a
 # job's event files, onnxruntime runs an exported policy, and the socialflow Python package
 # (built from this tree below) runs its pytest suite with Gymnasium's and PettingZoo's checkers;

@@ -35,6 +35,12 @@ pub struct EvalArgs {
     /// Override the config's `runs` directory (the same grid on another replicate's jobs).
     #[arg(long)]
     pub runs: Option<PathBuf>,
+    /// Failure mining once the grid is evaluated: `worst=N` replays the N worst stored episodes
+    /// of every cell (lowest success, then most collisions) into viewer pages under
+    /// `<out>/mined/`, with `index.html` listing them by outcome (collision, off-road, ...,
+    /// road closed, timeout).
+    #[arg(long, value_name = "worst=N")]
+    pub mine: Option<String>,
 }
 
 /// Reads and validates an evaluation config file.
@@ -82,18 +88,23 @@ pub fn load_maps(
     Ok(maps)
 }
 
-pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
-    let cfg = load(&a.config)?;
-    let runs = a.runs.or(cfg.runs.clone()).with_context(|| format!("{}: field `runs` (or --runs: the data directory of the trained jobs) is needed to evaluate here", a.config.display()))?;
-    let out = a.out.or(cfg.out.clone()).with_context(|| {
-        format!("{}: field `out` (or --out) is needed to evaluate here", a.config.display())
-    })?;
+/// A grid's names resolved in its trained runs (every flow and ego found and fitting its
+/// cells), with the maps and stored cases of its scenarios: what running cells and replaying
+/// episodes need.
+pub struct Grid {
+    pub cfg: EvalConfig,
+    pub resolved: evaluate::Resolved,
+    pub maps: BTreeMap<String, (Arc<sf_sim::Map>, sf_sim::CaseFile)>,
+}
+
+/// Resolves the grid of `cfg` (read from `config`) in `runs`.
+pub fn resolve(ctx: &Ctx, config: &Path, cfg: EvalConfig, runs: &Path) -> Result<Grid> {
     // Everything named must exist, and every cell's ego and flow fit, before anything runs.
     let mut grid = evaluate::Resolved::default();
     for f in &cfg.flows {
         grid.flows.insert(
             f.name.clone(),
-            flow_def(&runs, f).with_context(|| format!("flow `{}`", f.name))?,
+            flow_def(runs, f).with_context(|| format!("flow `{}`", f.name))?,
         );
     }
     for e in &cfg.egos {
@@ -101,7 +112,7 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
             grid.egos.insert(e.name.clone(), s.into());
             continue;
         }
-        let t = find_job(&runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
+        let t = find_job(runs, &e.job, e.job_id).with_context(|| format!("ego `{}`", e.name))?;
         // A probe places a Stage-1 flow's actor in the ego's seat, zero-shot.
         let stage1_flow =
             matches!(t.cfg.kind, JobKind::Macad | JobKind::Copo | JobKind::Socialcomm);
@@ -113,11 +124,33 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         }
         grid.egos.insert(e.name.clone(), evaluate::EgoDef::Learned(t));
     }
-    let all = cfg.cells();
-    grid.check(&all).map_err(anyhow::Error::msg)?;
+    grid.check(&cfg.cells()).map_err(anyhow::Error::msg)?;
     let maps = load_maps(ctx, &cfg)?;
     cfg.check_stored_cases(|s| maps.get(s).map_or(0, |(_, c)| c.cases.len()))
-        .with_context(|| a.config.display().to_string())?;
+        .with_context(|| config.display().to_string())?;
+    Ok(Grid { cfg, resolved: grid, maps })
+}
+
+/// The config's `runs` and `out`, or the flags that override them.
+pub fn runs_and_out(
+    config: &Path,
+    cfg: &EvalConfig,
+    runs: Option<PathBuf>,
+    out: Option<PathBuf>,
+) -> Result<(PathBuf, PathBuf)> {
+    let runs = runs.or(cfg.runs.clone()).with_context(|| format!("{}: field `runs` (or --runs: the data directory of the trained jobs) is needed to evaluate here", config.display()))?;
+    let out = out.or(cfg.out.clone()).with_context(|| {
+        format!("{}: field `out` (or --out) is needed to evaluate here", config.display())
+    })?;
+    Ok((runs, out))
+}
+
+pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
+    let mine = a.mine.as_deref().map(crate::view::MineSpec::parse).transpose()?;
+    let cfg = load(&a.config)?;
+    let (runs, out) = runs_and_out(&a.config, &cfg, a.runs, a.out)?;
+    let Grid { cfg, resolved: grid, maps } = resolve(ctx, &a.config, cfg, &runs)?;
+    let all = cfg.cells();
     let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let meta_path = out.join("meta.json");
@@ -183,6 +216,11 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
             eprintln!("wrote {}", p.display());
         }
     }
+    if let Some(spec) = mine {
+        let grid = Grid { cfg, resolved: grid, maps };
+        let index = crate::view::mine(&grid, &out, spec, &mut runners)?;
+        eprintln!("wrote {}", index.display());
+    }
     Ok(())
 }
 
@@ -230,6 +268,21 @@ pub fn report(a: ReportArgs) -> Result<()> {
         if name.starts_with("gif-") && name.ends_with(".gif") {
             std::fs::copy(e.path(), a.out.join(&name))
                 .with_context(|| format!("copying {name}"))?;
+        }
+    }
+    // Failure mining's pages of the first replicate (`eval --mine`), which the report links.
+    let mined = a.results[0].join("mined");
+    if mined.join("cells.json").is_file() {
+        let to = a.out.join("mined");
+        std::fs::create_dir_all(&to).with_context(|| format!("creating {}", to.display()))?;
+        for e in std::fs::read_dir(&mined)
+            .with_context(|| format!("reading {}", mined.display()))?
+            .flatten()
+        {
+            if e.path().is_file() {
+                std::fs::copy(e.path(), to.join(e.file_name()))
+                    .with_context(|| format!("copying {}", e.path().display()))?;
+            }
         }
     }
     let f = sf_report::report::build_replicates(&sets, &meta, &a.out)?;

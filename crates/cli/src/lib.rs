@@ -19,6 +19,7 @@ mod remote;
 mod render;
 mod scenarios;
 mod train;
+mod view;
 
 /// Zero-shot transfer of driving policies via socially adversarial traffic flow.
 #[derive(Parser, Debug)]
@@ -73,6 +74,9 @@ enum Cmd {
     Eval(eval::EvalArgs),
     /// Builds the reproduction report (markdown and HTML, charts beside them) from `eval` results.
     Report(eval::ReportArgs),
+    /// One stored episode of an evaluation grid, replayed into a self-contained browser page
+    /// (play, pause, scrub; roles, SVOs, observed neighbours; metrics beside the stored row).
+    View(view::ViewArgs),
     /// Success, Safety and Speed of a traffic flow over the stored evaluation cases.
     EvalFlow(evalflow::EvalFlowArgs),
     /// CoPO Stage 2: fits a scenario's SVO Gaussian on a frozen CoPO Stage-1 flow (CEM).
@@ -146,6 +150,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Bench { what } => sf_lab::bench::run(&ctx, what),
         Cmd::Eval(a) => eval::run(&ctx, a),
         Cmd::Report(a) => eval::report(a),
+        Cmd::View(a) => view::run(&ctx, a),
         Cmd::EvalFlow(a) => evalflow::run(&ctx, a),
         Cmd::CopoCoordinator(a) => evalflow::coordinator(&ctx, a),
         Cmd::Render(a) => render::run(&ctx, a),

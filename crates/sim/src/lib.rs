@@ -3,7 +3,7 @@
 //! Owns: maps as data ([`map`]), the four scenarios' geometry ([`scenarios`]), vehicles
 //! ([`vehicle`]), IDM traffic ([`idm`]), episodes with collisions, failure/success rules and
 //! rewards ([`env`]), observations in two layouts ([`obs`]), evaluation cases ([`case`]),
-//! metrics ([`metrics`]), IDM with MOBIL's lane changes ([`mobil`]), whether standing vehicles close the road ahead ([`passage`]), batched stepping ([`vec_env`]) and rendering ([`render`]).
+//! metrics ([`metrics`]), IDM with MOBIL's lane changes ([`mobil`]), whether standing vehicles close the road ahead ([`passage`]), batched stepping ([`vec_env`]), rendering ([`render`]) and episode traces for the browser viewer ([`trace`]).
 //! Must not: depend on burn, tokio or prost; anything learned reaches it only as actions.
 //!
 //! Determinism: no randomness inside a step and no hash-map iteration; the same scenario
@@ -24,6 +24,7 @@ pub mod passage;
 pub mod policy;
 pub mod render;
 pub mod scenarios;
+pub mod trace;
 pub mod vec_env;
 pub mod vehicle;
 

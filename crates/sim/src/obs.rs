@@ -369,15 +369,19 @@ impl Observer {
         }
     }
 
-    /// Neighbours: the nearest live agents within the radius, their histories, poses relative
-    /// to agent `i`, communicated SVO and ego flag.
-    fn write_neighbours(&mut self, env: &Env, i: usize, frame: &Frame, out: &mut [f32]) {
-        let (spec, cfg) = (&self.spec, &self.cfg);
-        let h = cfg.history;
-        let hist_len = h * AGENT_FEATS;
+    /// The live agents agent `i` observes as neighbours, nearest first (what its observation's
+    /// neighbour slots hold, in their order).
+    pub fn neighbours(&mut self, env: &Env, i: usize) -> Vec<usize> {
+        self.nearest(env, i);
+        self.cand.iter().map(|&(_, j)| j as usize).collect()
+    }
+
+    /// Fills `cand` with the nearest live agents within the radius of agent `i`, nearest first,
+    /// at most the layout's neighbour slots.
+    fn nearest(&mut self, env: &Env, i: usize) {
         let agents = env.agents();
         let me = &agents[i];
-        let r2 = cfg.radius_m * cfg.radius_m;
+        let r2 = self.cfg.radius_m * self.cfg.radius_m;
         self.cand.clear();
         for (j, b) in agents.iter().enumerate() {
             if j != i && b.alive {
@@ -387,7 +391,17 @@ impl Observer {
                 }
             }
         }
-        geom::nearest_first(&mut self.cand, spec.neighbours);
+        geom::nearest_first(&mut self.cand, self.spec.neighbours);
+    }
+
+    /// Neighbours: the nearest live agents within the radius, their histories, poses relative
+    /// to agent `i`, communicated SVO and ego flag.
+    fn write_neighbours(&mut self, env: &Env, i: usize, frame: &Frame, out: &mut [f32]) {
+        self.nearest(env, i);
+        let (spec, cfg) = (&self.spec, &self.cfg);
+        let h = cfg.history;
+        let hist_len = h * AGENT_FEATS;
+        let agents = env.agents();
         for (slot, &(_, j)) in self.cand.iter().enumerate() {
             let j = j as usize;
             let b = &agents[j];

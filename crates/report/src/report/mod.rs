@@ -168,6 +168,23 @@ impl Doc {
         self.html.push_str("</table>\n");
     }
 
+    /// A paragraph that is one link.
+    fn link(&mut self, text: &str, href: &str) {
+        self.links("", &[(text.to_string(), href.to_string())]);
+    }
+
+    /// A paragraph: `label:` and its links, comma separated.
+    fn links(&mut self, label: &str, links: &[(String, String)]) {
+        let head = if label.is_empty() { String::new() } else { format!("{label}: ") };
+        let md: Vec<String> = links.iter().map(|(t, h)| format!("[{t}]({h})")).collect();
+        let _ = writeln!(self.md, "{head}{}\n", md.join(", "));
+        let html: Vec<String> = links
+            .iter()
+            .map(|(t, h)| format!("<a href=\"{}\">{}</a>", esc_attr(h), esc(t)))
+            .collect();
+        let _ = writeln!(self.html, "<p>{}{}</p>", esc(&head), html.join(", "));
+    }
+
     /// A figure already written to `self.dir/<file>`: linked from markdown, referenced by its
     /// file name from HTML (the report's directory keeps the HTML and its figures together, so
     /// the page stays small and a figure is stored once).
@@ -186,6 +203,44 @@ impl Doc {
         );
         Ok(())
     }
+}
+
+/// The worst episodes of each cell, if failure mining left them beside the report
+/// (`mined/cells.json`, written by `socialflow eval --mine`): a line per cell linking each
+/// episode's viewer page, and the index.
+fn mined_section(doc: &mut Doc, out: &Path) -> Result<(), ReportError> {
+    let path = out.join("mined").join("cells.json");
+    if !path.is_file() {
+        return Ok(());
+    }
+    let text = std::fs::read_to_string(&path).map_err(|e| io_err(&path, e))?;
+    let cells: BTreeMap<String, Vec<MinedEpisode>> = serde_json::from_str(&text)
+        .map_err(|e| file_err(&path, &format!("not the mined cells' JSON: {e}")))?;
+    doc.h(2, "Worst episodes per cell");
+    doc.p("Each cell's worst stored episodes, replayed into browser pages (play, pause, scrub; who drives each vehicle, what the focus agent observed): lowest success first, then most collisions. All of them, sortable by outcome: mined/index.html.");
+    doc.link("all mined episodes", "mined/index.html");
+    for (cell, eps) in &cells {
+        let links: Vec<(String, String)> = eps
+            .iter()
+            .map(|e| {
+                (
+                    format!("{} (case {}, seed {})", e.outcome, e.case, e.seed),
+                    format!("mined/{}", e.href),
+                )
+            })
+            .collect();
+        doc.links(cell, &links);
+    }
+    Ok(())
+}
+
+/// One mined episode as `mined/cells.json` lists it.
+#[derive(serde::Deserialize)]
+struct MinedEpisode {
+    href: String,
+    outcome: String,
+    case: u32,
+    seed: u32,
 }
 
 fn esc(s: &str) -> String {
@@ -316,6 +371,8 @@ fn build_doc(
             doc.figure(&g, &format!("{scen}: the same case under each flow"))?;
         }
     }
+
+    mined_section(&mut doc, out)?;
 
     if replicates.is_empty() {
         findings_table(&mut doc, &found.checks);

@@ -8,11 +8,9 @@ use std::sync::Arc;
 
 use sf_job::eval::Cell;
 use sf_sim::case::CaseFile;
-use sf_sim::vec_env::{EpisodeSpec, VecEnv};
 use sf_sim::Map;
 
-use super::{cell_setup, io, EgoDef, EvalError, FlowDef, Resolved, Runners};
-use crate::drive;
+use super::{io, EgoDef, EvalError, FlowDef, Resolved, Runners};
 
 /// One episode of stored case `case` with `ego` (its name and policy) under each of `flows`, or
 /// each flow alone with no ego, rendered into a GIF at `path`: one panel per flow whose longer
@@ -29,12 +27,12 @@ pub fn render_gif(
     size_px: u32,
 ) -> Result<(), EvalError> {
     use sf_sim::render::{panels, ColourBy, GifWriter, Renderer};
-    let scenario = map.name.clone();
-    // Seed 0's episode of the case, as a cell runs it: same tag, so the same draws.
-    let tag = super::episode_tag(0, case as usize);
-    let case = cases.cases.get(case as usize).ok_or_else(|| {
-        EvalError::Misfit(format!("experiments.gifs.case {case} is not stored for {scenario}"))
-    })?;
+    if case as usize >= cases.cases.len() {
+        return Err(EvalError::Misfit(format!(
+            "experiments.gifs.case {case} is not stored for {}",
+            map.name
+        )));
+    }
     let renderer = Renderer::new(map, size_px, ColourBy::Svo)?;
     let mut films = Vec::new();
     for (name, flow) in flows {
@@ -42,23 +40,23 @@ pub fn render_gif(
             experiment: "gif".into(),
             ego: ego.map_or_else(String::new, |(n, _)| n.into()),
             flow: name.to_string(),
-            scenario: scenario.clone(),
+            scenario: map.name.clone(),
             svo_deg: None,
             vehicles: None,
         };
-        let (sim, mode, acting) = cell_setup(&cell, map, flow, ego.map(|(_, e)| e), runners)?;
-        let mut v = VecEnv::from_episodes(
-            Arc::clone(map),
-            sim,
-            mode,
-            1,
-            vec![EpisodeSpec { case: case.clone(), vehicles: None, svo_deg: None, tag }],
+        // Seed 0's episode of the case, as a cell runs it.
+        let mut frames = Vec::new();
+        super::replay_episode(
+            &cell,
+            map,
+            cases,
+            case as usize,
+            0,
+            flow,
+            ego.map(|(_, e)| e),
+            runners,
+            |env, _| frames.push(renderer.frame(env)),
         )?;
-        v.set_svo_gaussian(acting.svo_gaussian);
-        let mut frames = vec![renderer.frame(v.env(0))];
-        drive::run_episodes(&mut v, &acting.drivers(), |v, _| {
-            frames.push(renderer.frame(v.env(0)))
-        });
         films.push(frames);
     }
     let len = films.iter().map(Vec::len).max().unwrap_or(0);

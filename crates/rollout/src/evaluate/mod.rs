@@ -36,6 +36,7 @@ use crate::setup;
 
 mod gif;
 mod policies;
+pub mod view;
 
 pub use gif::render_gif;
 pub use policies::{check_cell, from_frozen, from_frozen_with, EgoDef, FlowDef, Policy};
@@ -291,6 +292,47 @@ fn cell_setup(
     let ego = ego.map_or(Seat::Empty, Seat::Policy);
     let noise = flow.noise_std();
     Ok((Arc::new(sim), mode, Acting { ego, background, adversary, noise, svo_gaussian }))
+}
+
+/// One stored episode of `cell` run alone as its cell runs it: the same settings and policies,
+/// case `case_index` of `cases` with the cell's vehicles and SVO, and the draws of (seed, case)
+/// (its tag). `on_state(env, sim)` sees the reset state and the state after every step. Returns
+/// the simulator's metrics of the episode. GIFs and viewer pages are drawn from it, so they show
+/// what the cell measures.
+#[allow(clippy::too_many_arguments)]
+fn replay_episode(
+    cell: &Cell,
+    map: &Arc<Map>,
+    cases: &CaseFile,
+    case_index: usize,
+    seed: u32,
+    flow: &FlowDef,
+    ego: Option<&EgoDef>,
+    runners: &mut Runners,
+    mut on_state: impl FnMut(&sf_sim::Env, &SimConfig),
+) -> Result<sf_sim::metrics::EpisodeMetrics, EvalError> {
+    let case = cases.cases.get(case_index).ok_or_else(|| {
+        EvalError::Misfit(format!(
+            "case {case_index} is not stored for {} ({} cases)",
+            map.name,
+            cases.cases.len()
+        ))
+    })?;
+    let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
+    let spec = EpisodeSpec {
+        case: case.clone(),
+        vehicles: cell.vehicles,
+        svo_deg: cell.svo_deg.map(|s| s as f32),
+        tag: episode_tag(seed, case_index),
+    };
+    let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, 1, vec![spec])?;
+    v.set_svo_gaussian(acting.svo_gaussian);
+    on_state(v.env(0), &sim);
+    let done = drive::run_episodes(&mut v, &acting.drivers(), |v, _| on_state(v.env(0), &sim));
+    done.into_iter()
+        .next()
+        .map(|(_, m)| m)
+        .ok_or_else(|| EvalError::Run(format!("case {case_index} of {} did not finish", map.name)))
 }
 
 /// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
