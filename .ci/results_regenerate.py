@@ -24,12 +24,15 @@ F1_120K = f"{STAGE1}/f1-120k/episodes.csv.gz"
 # (script, its arguments, committed stdout, committed --json output)
 CHECKS = [
     ("plateau.py",
-     [f"{STAGE1}/{flow}-s{seed}" for flow in ("macad", "socialcomm") for seed in (11, 12, 13, 14)],
+     [f"{STAGE1}/{flow}-s{seed}" for flow in ("macad", "socialcomm") for seed in (11, 12, 13, 14)]
+     + [f"{STAGE1}/copo-s11"],
      f"{STAGE1}/plateau.md", f"{STAGE1}/plateau.json"),
     ("f1_stage1.py", [F1_120K, "--mark", "120k"],
      f"{STAGE1}/f1-120k/f1.md", f"{STAGE1}/f1-120k/f1.json"),
     ("l5_noise.py", [F1_120K, "--run", "stage 1, seeds 11 and 12, kept actors at 120k, against IDM+noise"],
      f"{STAGE1}/f1-120k/vs-idm-noise.md", f"{STAGE1}/f1-120k/vs-idm-noise.json"),
+    ("l5_noise.py", [f"{STAGE1}/copo-s11-eval/episodes.csv.gz", "--run", "stage 1 CoPO, seed 11, kept actors and the job against IDM+noise"],
+     f"{STAGE1}/copo-s11-eval/vs-idm-noise.md", f"{STAGE1}/copo-s11-eval/vs-idm-noise.json"),
 ]
 
 

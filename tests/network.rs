@@ -27,12 +27,17 @@ struct Learner {
 }
 
 fn start_learner(lab: &mut Lab, dir: &Path, worker_timeout_s: u64) -> Learner {
+    start_learner_with(lab, dir, worker_timeout_s, "")
+}
+
+/// A learner whose config has `extra` (TOML lines) added.
+fn start_learner_with(lab: &mut Lab, dir: &Path, worker_timeout_s: u64, extra: &str) -> Learner {
     let host = lab.host("learner");
     let cfg = dir.join("learner.toml");
     std::fs::write(
         &cfg,
         format!(
-            "grpc_addr = \"{ip}:{GRPC_PORT}\"\nadmin_addr = \"{ip}:{ADMIN_PORT}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nworker_timeout_s = {worker_timeout_s}\nallow_plaintext_token = true\n",
+            "grpc_addr = \"{ip}:{GRPC_PORT}\"\nadmin_addr = \"{ip}:{ADMIN_PORT}\"\ndata_dir = \"{}\"\nscenarios_dir = \"configs/scenarios\"\nworker_timeout_s = {worker_timeout_s}\nallow_plaintext_token = true\n{extra}\n",
             dir.join("data").display(),
             ip = host.ip
         ),
@@ -231,6 +236,102 @@ fn a_partitioned_worker_is_timed_out_and_comes_back_and_nothing_is_counted_twice
     watch_for(&rt, &mut c, &l, job, Duration::from_secs(2), &mut versions);
     assert_counted_once(&rt, &mut c, &l, (job, n, before));
     drop(lab);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Ingest figures for `docs/results/reliability.md` (JSON to `SOCIALFLOW_NETFAULT_OUT`): one
+/// worker's warm-up transitions through the proxy at 0 / 25 / 100 ms one way and a 10 Mbit/s cap,
+/// for the worker's window fixed at 2 (the old default) and 8 batches and sized to the link (the
+/// default, cap 32); each row a fresh worker and connection, rows interleaved (every
+/// repetition goes through all links and windows in turn, the order rotated), 3 repetitions
+/// (`SOCIALFLOW_NETFAULT_REPS`), 8 s each after 3 s to settle. `SOCIALFLOW_NETFAULT_LEARNER`
+/// adds lines to the learner's config (`http2_adaptive_window = true`: the windows before).
+#[test]
+#[ignore = "a measurement (about 10 minutes): run by hand, see the module header"]
+fn network_ingest_figures() {
+    let Some(mut lab) = lab_or_skip("the ingest figures") else { return };
+    let dir = scratch("netingest");
+    let out = std::env::var("SOCIALFLOW_NETFAULT_OUT").ok().map(PathBuf::from);
+    let learner_extra = std::env::var("SOCIALFLOW_NETFAULT_LEARNER").unwrap_or_default();
+    let reps: usize =
+        std::env::var("SOCIALFLOW_NETFAULT_REPS").ok().and_then(|r| r.parse().ok()).unwrap_or(3);
+    let l = start_learner_with(&mut lab, &dir, 10, &learner_extra);
+    let rt = rt();
+    let mut c = jobs(&rt, &l.url, Some(TOKEN));
+    // Warm-up transitions only (no updates); a fresh job per repetition, so one replay never
+    // holds more than a repetition's transitions.
+    // `SOCIALFLOW_NETFAULT_CHECKPOINTS=1`: the job as `network_fault_figures` runs it, a
+    // checkpoint every second with the replay's new rows written beside it.
+    let as_before = std::env::var_os("SOCIALFLOW_NETFAULT_CHECKPOINTS").is_some();
+    let ingest_job = |c: &mut Jobs, rep: usize| {
+        let (big, warm) = (100_000_000u64, 1_000_000u64);
+        let mut cfg = tiny_job(TWO_MAPS, &format!("ingest-{rep}"), big)
+            .replace("warmup_steps = 200", &format!("warmup_steps = {warm}"))
+            .replace("replay_capacity = 20000", &format!("replay_capacity = {warm}"));
+        if !as_before {
+            // Checkpoints as a long job takes them, not every second: the link is measured here.
+            cfg = cfg.replace("checkpoint_every_s = 1", "checkpoint_every_s = 300").replace(
+                &format!("replay_capacity = {warm}"),
+                &format!("replay_capacity = {warm}\npersist_replay = false"),
+            );
+        }
+        submit(&rt, c, cfg).job_id
+    };
+    let links = [
+        ("0 ms", Faults::default()),
+        ("25 ms one way", Faults { delay_ms: 25, ..Faults::default() }),
+        ("100 ms one way", Faults { delay_ms: 100, ..Faults::default() }),
+        ("10 Mbit/s", Faults { rate_bps: Some(10_000_000), ..Faults::default() }),
+    ];
+    let windows: [(&str, &[&str]); 3] = [
+        ("fixed 2", &["--in-flight-batches", "2", "--fixed-window"]),
+        ("fixed 8", &["--in-flight-batches", "8", "--fixed-window"]),
+        ("adaptive (default, cap 32)", &[]),
+    ];
+    let mut rows = Vec::new();
+    let mut k = 10;
+    for rep in 0..reps {
+        let ingest = ingest_job(&mut c, rep);
+        let order: Vec<usize> = (0..links.len() * windows.len()).collect();
+        let shift = rep * 5 % order.len();
+        for &cell in order[shift..].iter().chain(&order[..shift]) {
+            let ((label, f), (window, flags)) =
+                (links[cell % links.len()], windows[cell / links.len()]);
+            k += 1;
+            let w = start_worker_with(&mut lab, &l, &dir, k, 10, flags);
+            w.proxy.set(f);
+            let steps = |c: &mut Jobs| progress(&get(&rt, c, ingest)).env_steps;
+            let from = steps(&mut c);
+            wait_for("ingest to start", Duration::from_secs(120), || {
+                (steps(&mut c) > from + 200).then_some(())
+            });
+            std::thread::sleep(Duration::from_secs(3));
+            let (t0, s0, b0) = (Instant::now(), steps(&mut c), w.proxy.bytes());
+            std::thread::sleep(Duration::from_secs(8));
+            let secs = t0.elapsed().as_secs_f64();
+            let s = (steps(&mut c) - s0) as f64 / secs;
+            let mbit = (w.proxy.bytes() - b0) as f64 * 8.0 / secs / 1e6;
+            let win = metrics(&w.admin).map(|m| metric(&m, "socialflow_worker_in_flight_window"));
+            eprintln!("rep {rep}: ingest at {label}, window {window}: {s:.0} transitions/s, {mbit:.2} Mbit/s, window now {win:?}");
+            rows.push(serde_json::json!({
+                "rep": rep, "link": label, "window": window, "transitions_per_s": s.round(),
+                "mbit_per_s": (mbit * 100.0).round() / 100.0, "window_batches_at_end": win,
+            }));
+            drop(w);
+            std::thread::sleep(Duration::from_secs(1));
+        }
+        rt.block_on(c.cancel_job(sf_proto::pb::CancelJobRequest { job_id: ingest }))
+            .expect("cancel");
+    }
+    let figures = serde_json::json!({
+        "learner_config_extra": learner_extra,
+        "job_checkpoints_every_second_with_replay": as_before,
+        "ingest": rows,
+    });
+    if let Some(p) = out {
+        std::fs::write(&p, serde_json::to_string_pretty(&figures).expect("json"))
+            .expect("figures file");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -72,6 +72,7 @@ impl Embedded {
                 threads: 0,
                 tls: Default::default(),
                 in_flight_batches: sf_worker::DEFAULT_IN_FLIGHT_BATCHES,
+                adaptive_window: true,
             };
             let metrics = WorkerMetrics::register(&mut Registry::default());
             workers.push(tokio::spawn(sf_worker::run(wc, metrics, stop_rx.clone())));

@@ -38,7 +38,20 @@ pub struct LearnerConfig {
     /// Without TLS, a bearer token from a peer that is not on loopback is refused unless this is
     /// set (a private network the operator trusts: compose, a cluster's pod network).
     pub allow_plaintext_token: bool,
+    /// HTTP/2 receive windows sized by hyper's bandwidth-delay estimates (the default): ingest
+    /// across a link is at most a window per round trip, and these grow with the link. With
+    /// `false`, the fixed windows below.
+    pub http2_adaptive_window: bool,
+    /// A fixed HTTP/2 receive window per stream, KiB (with `http2_adaptive_window = false`):
+    /// how much a worker may send on its transition stream before the learner reads it.
+    pub http2_stream_window_kib: u32,
+    /// A fixed HTTP/2 receive window per connection (all its streams), KiB; at least the
+    /// stream's.
+    pub http2_connection_window_kib: u32,
 }
+
+/// HTTP/2 windows, KiB: the smallest (the protocol's 64 KiB) and the largest (2^31 - 1 bytes).
+const WINDOW_KIB: std::ops::RangeInclusive<u32> = 64..=2_097_151;
 
 impl Default for LearnerConfig {
     fn default() -> Self {
@@ -56,6 +69,9 @@ impl Default for LearnerConfig {
             tls_key_file: None,
             tls_client_ca_file: None,
             allow_plaintext_token: false,
+            http2_adaptive_window: true,
+            http2_stream_window_kib: 8 << 10,
+            http2_connection_window_kib: 32 << 10,
         }
     }
 }
@@ -81,6 +97,23 @@ impl LearnerConfig {
             self.max_message_bytes
         );
         anyhow::ensure!(self.worker_timeout_s > 0, "field `worker_timeout_s` must be positive");
+        for (field, kib) in [
+            ("http2_stream_window_kib", self.http2_stream_window_kib),
+            ("http2_connection_window_kib", self.http2_connection_window_kib),
+        ] {
+            anyhow::ensure!(
+                WINDOW_KIB.contains(&kib),
+                "field `{field}`: {kib} is not in {}..={} (KiB: HTTP/2's 64 KiB to 2 GiB)",
+                WINDOW_KIB.start(),
+                WINDOW_KIB.end()
+            );
+        }
+        anyhow::ensure!(
+            self.http2_connection_window_kib >= self.http2_stream_window_kib,
+            "field `http2_connection_window_kib`: {} is below `http2_stream_window_kib` ({}): one stream could never fill its window",
+            self.http2_connection_window_kib,
+            self.http2_stream_window_kib
+        );
         anyhow::ensure!(
             self.max_running_jobs != Some(0),
             "field `max_running_jobs`: 0 would run no job (leave it out for the machine's cores)"
@@ -116,5 +149,32 @@ impl LearnerConfig {
             );
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(extra: &str) -> anyhow::Result<LearnerConfig> {
+        let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
+        let text = format!("scenarios_dir = \"{root}/configs/scenarios\"\ncases_dir = \"{root}/configs/cases\"\n{extra}");
+        LearnerConfig::from_toml(&text, "test")
+    }
+
+    #[test]
+    fn http2_windows_are_checked_by_field() {
+        let c = parse("").expect("defaults");
+        assert_eq!((c.http2_stream_window_kib, c.http2_connection_window_kib), (8192, 32768));
+        assert!(c.http2_adaptive_window);
+        for (extra, field) in [
+            ("http2_stream_window_kib = 16", "http2_stream_window_kib"),
+            ("http2_connection_window_kib = 4000000", "http2_connection_window_kib"),
+            ("http2_stream_window_kib = 4096\nhttp2_connection_window_kib = 1024", "is below"),
+        ] {
+            let e = format!("{:#}", parse(extra).expect_err(extra));
+            assert!(e.contains(field), "{extra}: {e}");
+        }
+        assert!(!parse("http2_adaptive_window = false").expect("fixed").http2_adaptive_window);
     }
 }

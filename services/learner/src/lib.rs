@@ -211,10 +211,16 @@ pub async fn start(cfg: LearnerConfig, token: Token) -> anyhow::Result<RunningLe
         reflection_builder().build_v1alpha().context("gRPC reflection service (v1alpha)")?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(grpc);
-    // HTTP/2 receive windows sized to the link (BDP estimates), not a fixed 1 MB: with fixed
-    // windows ingest across tens of milliseconds is bound by window / round trip
-    // (`docs/results/reliability.md`, slow links).
-    let mut builder = tonic::transport::Server::builder().http2_adaptive_window(Some(true));
+    // HTTP/2 receive windows: ingest across a link is at most a window per round trip; sized
+    // to the link by default (BDP estimates), fixed on request (`docs/results/reliability.md`,
+    // slow links).
+    let mut builder = if cfg.http2_adaptive_window {
+        tonic::transport::Server::builder().http2_adaptive_window(Some(true))
+    } else {
+        tonic::transport::Server::builder()
+            .initial_stream_window_size(cfg.http2_stream_window_kib * 1024)
+            .initial_connection_window_size(cfg.http2_connection_window_kib * 1024)
+    };
     if let (Some(c), Some(k)) = (&cfg.tls_cert_file, &cfg.tls_key_file) {
         builder = builder
             .tls_config(sf_service::tls::server(c, k, cfg.tls_client_ca_file.as_deref())?)

@@ -36,13 +36,16 @@ pub struct WorkerConfig {
     pub threads: usize,
     /// Trust root for an `https://` learner and the worker's client certificate (mutual TLS).
     pub tls: sf_service::tls::ClientTls,
-    /// Transition batches sent and not yet acknowledged, at most.
+    /// Transition batches sent and not yet acknowledged, at most (the window's cap).
     pub in_flight_batches: u32,
+    /// Size the window to the link (from 2 up to the cap), else keep it at the cap.
+    pub adaptive_window: bool,
 }
 
-/// The default window of unacknowledged batches: right for loopback and a LAN; across tens of
-/// milliseconds ingest is bound by it (`docs/results/reliability.md`), where 8 carries it.
-pub const DEFAULT_IN_FLIGHT_BATCHES: u32 = 2;
+/// The cap of the window of unacknowledged batches: 32 batches carry ingest across 100 ms one
+/// way (`docs/results/reliability.md`) and bound what a worker's death loses (8,192
+/// transitions at the default batch size); the window itself starts at 2 and sizes itself.
+pub const DEFAULT_IN_FLIGHT_BATCHES: u32 = 32;
 
 /// The experience service's client, its token attached to every call.
 pub(crate) type Client = ExperienceServiceClient<InterceptedService<Channel, AttachToken>>;

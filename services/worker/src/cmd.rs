@@ -37,11 +37,16 @@ pub struct WorkerArgs {
     /// Longest reconnect delay, seconds.
     #[arg(long, default_value_t = 10)]
     pub max_backoff_s: u64,
-    /// Transition batches sent and not yet acknowledged, at most: the window that carries
-    /// ingest across a slow link (throughput is at most this many batches per round trip);
-    /// more is more lost if the worker dies and more stale data.
+    /// Transition batches sent and not yet acknowledged, at most: the cap of the window that
+    /// carries ingest across a slow link (throughput is at most the window's batches per round
+    /// trip). The window sizes itself to the link between 2 and this cap (it grows while
+    /// acknowledgements come back as fast as the fastest and shrinks when they queue); more is
+    /// more lost if the worker dies.
     #[arg(long, env = "SOCIALFLOW_IN_FLIGHT_BATCHES", default_value_t = DEFAULT_IN_FLIGHT_BATCHES)]
     pub in_flight_batches: u32,
+    /// Keep the window at `--in-flight-batches` instead of sizing it to the link.
+    #[arg(long, env = "SOCIALFLOW_FIXED_WINDOW")]
+    pub fixed_window: bool,
     #[arg(long, env = "SOCIALFLOW_LOG_JSON")]
     pub log_json: bool,
 }
@@ -87,6 +92,7 @@ impl WorkerArgs {
             threads: 0,
             tls: self.conn.tls(),
             in_flight_batches: self.in_flight_batches,
+            adaptive_window: !self.fixed_window,
         })
     }
 }

@@ -100,7 +100,13 @@ async fn session(
     let first = if asg.warmup && !acts_in_warmup { None } else { Some(policy.latest().await?) };
     let spec =
         RolloutSpec::for_assignment(&asg, job, frozen.into_vec(), maps, me.worker_id, cfg.threads);
-    let (rollout, batches) =
-        Rollout::start(spec, asg.warmup, first, cfg.in_flight_batches, metrics)?;
+    let (rollout, batches) = Rollout::start(
+        spec,
+        asg.warmup,
+        first,
+        cfg.in_flight_batches,
+        cfg.adaptive_window,
+        metrics,
+    )?;
     stream(&mut client, batches, &rollout, &mut policy, &mut heartbeats, metrics).await
 }

@@ -24,6 +24,7 @@ pub struct WorkerMetrics {
     pub inference_obs: Counter,
     pub inference_seconds: Counter<f64, AtomicU64>,
     pub eval_cells: Counter,
+    pub in_flight_window: Gauge,
 }
 
 impl WorkerMetrics {
@@ -41,6 +42,7 @@ impl WorkerMetrics {
             inference_obs: Counter::default(),
             inference_seconds: Counter::default(),
             eval_cells: Counter::default(),
+            in_flight_window: Gauge::default(),
         };
         reg.register(
             "socialflow_worker_env_steps",
@@ -58,6 +60,11 @@ impl WorkerMetrics {
             m.batches_sent.clone(),
         );
         reg.register("socialflow_worker_episodes", "Episodes finished", m.episodes.clone());
+        reg.register(
+            "socialflow_worker_in_flight_window",
+            "Transition batches the worker may have unacknowledged now (sized to the link, up to --in-flight-batches)",
+            m.in_flight_window.clone(),
+        );
         reg.register(
             "socialflow_worker_policy_version",
             "Policy version acting now (0 = warm-up actions)",

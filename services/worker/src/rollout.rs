@@ -3,16 +3,17 @@
 //! acting policy version.
 //!
 //! Owns: [`Rollout`], the session's handle on the thread (it hands new policy weights and the
-//! warm-up flag through [`Control`], a [`Credits`] credit per acknowledgement, and stops the
+//! warm-up flag through [`Control`], a [`Window`] slot back per acknowledgement, and stops the
 //! thread on drop); [`spawn`] and the environment loop it runs (who acts in which role, the
 //! simulator steps). What leaves the thread is `writer`'s: its `TransitionWriter` batches,
 //! stamps and sends through a bounded channel, so a back-pressured stream stops the simulators
 //! instead of growing memory. Must not: do network IO itself.
 
 mod nstep;
+mod window;
 mod writer;
 
-pub use writer::Credits;
+pub use window::Window;
 use writer::TransitionWriter;
 
 use std::sync::{Arc, Mutex};
@@ -99,31 +100,38 @@ impl RolloutSpec {
 /// The session's handle on a running rollout thread. Dropping it stops the thread.
 pub struct Rollout {
     control: Arc<Mutex<Control>>,
-    credits: Arc<Credits>,
+    window: Arc<Window>,
     thread: std::thread::JoinHandle<()>,
 }
 
 impl Rollout {
     /// Starts the thread acting with `policy` (`None`: warm-up actions until weights come) and
-    /// two credits; returns the batches it sends.
+    /// a window of unacknowledged batches capped at `in_flight_batches` (sized to the link
+    /// when `adaptive`); returns the batches it sends.
     pub fn start(
         spec: RolloutSpec,
         warmup: bool,
         policy: Option<(PolicyVersion, Vec<u8>)>,
         in_flight_batches: u32,
+        adaptive: bool,
         metrics: &WorkerMetrics,
     ) -> anyhow::Result<(Self, mpsc::Receiver<pb::TransitionBatch>)> {
         let control = Arc::new(Mutex::new(Control { warmup, policy, stop: false }));
         let (batch_tx, batch_rx) = mpsc::channel::<pb::TransitionBatch>(2);
-        let credits = Arc::new(Credits::new(in_flight_batches.max(1)));
+        let window = Arc::new(Window::new(in_flight_batches, adaptive));
         let thread =
-            spawn(spec, Arc::clone(&control), Arc::clone(&credits), batch_tx, metrics.clone())?;
-        Ok((Self { control, credits, thread }, batch_rx))
+            spawn(spec, Arc::clone(&control), Arc::clone(&window), batch_tx, metrics.clone())?;
+        Ok((Self { control, window, thread }, batch_rx))
     }
 
     /// One acknowledgement arrived: the thread may send one more batch.
     pub fn grant(&self) {
-        self.credits.grant();
+        self.window.grant();
+    }
+
+    /// The window of unacknowledged batches now.
+    pub fn window(&self) -> u32 {
+        self.window.limit()
     }
 
     pub fn is_finished(&self) -> bool {
@@ -158,7 +166,7 @@ impl Drop for Rollout {
 pub fn spawn(
     spec: RolloutSpec,
     control: Arc<Mutex<Control>>,
-    credits: Arc<Credits>,
+    window: Arc<Window>,
     tx: mpsc::Sender<pb::TransitionBatch>,
     metrics: WorkerMetrics,
 ) -> anyhow::Result<std::thread::JoinHandle<()>> {
@@ -176,7 +184,7 @@ pub fn spawn(
         .name(format!("rollout-{}", spec.worker_id))
         .spawn(move || {
             let stop = Arc::clone(&control);
-            if let Err(e) = rollout(spec, resolved, control, credits, tx, metrics) {
+            if let Err(e) = rollout(spec, resolved, control, window, tx, metrics) {
                 // The session closes the stream when it ends; only other failures are errors.
                 if lock(&stop).stop || e.to_string() == STREAM_CLOSED {
                     tracing::debug!(error = %format!("{e:#}"), "rollout thread stopped");
@@ -193,7 +201,7 @@ fn rollout(
     spec: RolloutSpec,
     resolved: setup::ResolvedJob,
     control: Arc<Mutex<Control>>,
-    credits: Arc<Credits>,
+    window: Arc<Window>,
     tx: mpsc::Sender<pb::TransitionBatch>,
     metrics: WorkerMetrics,
 ) -> anyhow::Result<()> {
@@ -249,7 +257,7 @@ fn rollout(
         nstep,
         job.worker.batch_transitions,
         Arc::clone(&control),
-        credits,
+        window,
         tx,
         metrics.clone(),
     );

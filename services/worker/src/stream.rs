@@ -64,6 +64,7 @@ pub async fn stream(
         };
         metrics.common.rpc("PushTransitions", Code::Ok);
         rollout.grant();
+        metrics.in_flight_window.set(i64::from(rollout.window()));
         policy.follow(&ack, rollout).await?;
     }
 }

@@ -1,11 +1,11 @@
 //! The rollout loop's adder: what leaves the rollout thread, and when.
 //!
 //! Owns: [`TransitionWriter`] (batching of the job's transitions and finished episodes, version
-//! stamping, sending through the bounded channel) and [`Credits`] (batches it may send before
-//! the learner acknowledges one). Steps pass through the n-step windows (`super::nstep`) on
+//! stamping, sending through the bounded channel), each batch after a slot of the
+//! [`super::window::Window`] of batches in flight is taken. Steps pass through the n-step windows (`super::nstep`) on
 //! their way in. Invariant: every batch holds transitions of one acting policy version (or the
 //! warm-up) and is stamped with it (a version change flushes the windows first); a batch is
-//! sent only after a credit is taken. Must not: do network IO (the session streams what the
+//! sent only after a window slot is taken. Must not: do network IO (the session streams what the
 //! channel carries), or decide who acts (the environment loop does).
 
 use std::ops::ControlFlow;
@@ -15,56 +15,18 @@ use anyhow::bail;
 use sf_job::{ActedBy, Ends, EpisodeResult, JobConfig, Transition, TransitionBatch};
 use sf_proto::pb;
 use sf_rollout::setup;
-use sf_service::sync::lock;
 use sf_sim::vec_env::VecEnv;
 use tokio::sync::mpsc;
 
 use super::nstep::NStep;
+use super::window::Window;
 use super::{Control, STREAM_CLOSED};
 use crate::metrics::WorkerMetrics;
 
-/// Batches the rollout thread may send before the learner acknowledges one: bounds the data in
-/// flight, and so its policy lag, when the learner's rate limiter holds workers back.
-pub struct Credits {
-    n: Mutex<u32>,
-    changed: std::sync::Condvar,
-}
-
-impl Credits {
-    pub fn new(n: u32) -> Self {
-        Self { n: Mutex::new(n), changed: std::sync::Condvar::new() }
-    }
-
-    /// One acknowledgement arrived.
-    pub fn grant(&self) {
-        *lock(&self.n) += 1;
-        self.changed.notify_all();
-    }
-
-    /// Waits for a credit; `false` if `stop` turned true first.
-    fn take(&self, control: &Mutex<Control>) -> bool {
-        let mut n = lock(&self.n);
-        loop {
-            if *n > 0 {
-                *n -= 1;
-                return true;
-            }
-            if lock(control).stop {
-                return false;
-            }
-            n = self
-                .changed
-                .wait_timeout(n, std::time::Duration::from_millis(100))
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
-        }
-    }
-}
-
 /// The rollout loop's adder: packs the job's transitions and finished episodes into batches,
 /// one acting policy version per batch, and sends each when it is full (or when the version
-/// changes), after taking a credit. `Break` from a method: `stop` was set while waiting for a
-/// credit.
+/// changes), after taking a window slot. `Break` from a method: `stop` was set while waiting for a
+/// window slot.
 pub struct TransitionWriter {
     batch: TransitionBatch,
     /// Each agent's steps not yet summed into a transition (`sac.n_step`).
@@ -74,7 +36,7 @@ pub struct TransitionWriter {
     /// Transitions that make a batch full (`worker.batch_transitions`).
     full_at: usize,
     control: Arc<Mutex<Control>>,
-    credits: Arc<Credits>,
+    window: Arc<Window>,
     tx: mpsc::Sender<pb::TransitionBatch>,
     metrics: WorkerMetrics,
 }
@@ -86,11 +48,11 @@ impl TransitionWriter {
         nstep: NStep,
         full_at: usize,
         control: Arc<Mutex<Control>>,
-        credits: Arc<Credits>,
+        window: Arc<Window>,
         tx: mpsc::Sender<pb::TransitionBatch>,
         metrics: WorkerMetrics,
     ) -> Self {
-        Self { batch, nstep, acted_by: None, full_at, control, credits, tx, metrics }
+        Self { batch, nstep, acted_by: None, full_at, control, window, tx, metrics }
     }
 
     /// The coming step is acted by `acted_by`: the previous actor's pending n-step windows are
@@ -170,9 +132,9 @@ impl TransitionWriter {
         Ok(ControlFlow::Continue(()))
     }
 
-    /// Takes a credit, stamps the batch with `acted_by` and sends it.
+    /// Takes a window slot, stamps the batch with `acted_by` and sends it.
     fn send(&mut self, acted_by: ActedBy) -> anyhow::Result<ControlFlow<()>> {
-        if !self.credits.take(&self.control) {
+        if !self.window.take(&self.control) {
             return Ok(ControlFlow::Break(()));
         }
         self.batch.acted_by = acted_by;
@@ -191,6 +153,7 @@ impl TransitionWriter {
 mod tests {
     use super::*;
     use prometheus_client::registry::Registry;
+    use sf_service::sync::lock;
 
     fn writer(
         credits: u32,
@@ -199,12 +162,17 @@ mod tests {
         let control = Arc::new(Mutex::new(Control { warmup: false, policy: None, stop: false }));
         let (tx, rx) = mpsc::channel(8);
         let metrics = WorkerMetrics::register(&mut Registry::default());
+        // A fixed window of `credits` slots (none free for 0: its one slot is taken here).
+        let window = Arc::new(Window::new(credits.max(1), false));
+        if credits == 0 {
+            assert!(window.take(&control));
+        }
         let w = TransitionWriter::new(
             TransitionBatch::new(7.into(), 3.into(), 2, 1),
             NStep::new(1, 0.9),
             full_at,
             Arc::clone(&control),
-            Arc::new(Credits::new(credits)),
+            window,
             tx,
             metrics,
         );
@@ -290,7 +258,7 @@ mod tests {
     }
 
     #[test]
-    fn without_credits_a_stop_breaks_before_sending() -> anyhow::Result<()> {
+    fn with_the_window_full_a_stop_breaks_before_sending() -> anyhow::Result<()> {
         let (mut w, mut rx, control) = writer(0, 1);
         lock(&control).stop = true;
         assert!(w.stamp(ActedBy::Warmup)?.is_continue());
