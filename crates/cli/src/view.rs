@@ -130,6 +130,7 @@ fn write_episode(
     std::fs::write(path, html).with_context(|| format!("writing {}", path.display()))?;
     Ok(IndexRow {
         href,
+        cell: cell.key(),
         experiment: cell.experiment.clone(),
         ego: cell.ego.clone(),
         flow: cell.flow.clone(),
@@ -261,16 +262,7 @@ pub fn mine(grid: &Grid, out: &Path, spec: MineSpec, runners: &mut Runners) -> R
     // Per cell, what `socialflow report` links (`mined/cells.json`).
     let mut cells: BTreeMap<String, Vec<serde_json::Value>> = BTreeMap::new();
     for r in &index {
-        let key = Cell {
-            experiment: r.experiment.clone(),
-            ego: r.ego.clone(),
-            flow: r.flow.clone(),
-            scenario: r.scenario.clone(),
-            svo_deg: r.svo_deg,
-            vehicles: r.vehicles,
-        }
-        .key();
-        cells.entry(key).or_default().push(serde_json::json!({
+        cells.entry(r.cell.clone()).or_default().push(serde_json::json!({
             "href": r.href, "outcome": r.outcome, "case": r.case, "seed": r.seed,
             "success": r.metrics.scores.success,
         }));

@@ -215,7 +215,7 @@ fn mined_section(doc: &mut Doc, out: &Path) -> Result<(), ReportError> {
     }
     let text = std::fs::read_to_string(&path).map_err(|e| io_err(&path, e))?;
     let cells: BTreeMap<String, Vec<MinedEpisode>> = serde_json::from_str(&text)
-        .map_err(|e| file_err(&path, &format!("not the mined cells' JSON: {e}")))?;
+        .map_err(|e| file_err(&path, format!("not the mined cells' JSON: {e}")))?;
     doc.h(2, "Worst episodes per cell");
     doc.p("Each cell's worst stored episodes, replayed into browser pages (play, pause, scrub; who drives each vehicle, what the focus agent observed): lowest success first, then most collisions. All of them, sortable by outcome: mined/index.html.");
     doc.link("all mined episodes", "mined/index.html");

@@ -140,6 +140,8 @@ pub fn page(trace: &Trace, title: &str, stored: Option<&StoredRow>) -> Result<St
 #[derive(Clone, Debug, Serialize)]
 pub struct IndexRow {
     pub href: String,
+    /// The cell's key (`Cell::key`); its parts follow.
+    pub cell: String,
     pub experiment: String,
     pub ego: String,
     pub flow: String,
