@@ -122,7 +122,8 @@ fn write_episode(
         collision: r.ep.collision,
         road_closed: r.ep.road_closed,
     });
-    let title = format!("{} - case {case_id}, seed {seed}", cell.key());
+    let key = cell.key();
+    let title = format!("{key} - case {case_id}, seed {seed}");
     let html = view::page(&trace, &title, stored.as_ref()).map_err(anyhow::Error::msg)?;
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -130,7 +131,7 @@ fn write_episode(
     std::fs::write(path, html).with_context(|| format!("writing {}", path.display()))?;
     Ok(IndexRow {
         href,
-        cell: cell.key(),
+        cell: key,
         experiment: cell.experiment.clone(),
         ego: cell.ego.clone(),
         flow: cell.flow.clone(),

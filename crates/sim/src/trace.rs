@@ -73,8 +73,14 @@ pub struct Trace {
 
 impl Trace {
     /// Starts a trace at `env`'s reset state. `role_of(i, role)` names agent `i`'s driver;
-    /// `focus` is the agent whose observations are followed.
-    pub fn new(env: &Env, focus: usize, role_of: impl Fn(usize, Role) -> String) -> Self {
+    /// `focus` is the agent whose observations are followed, `observer` finds its neighbours as
+    /// its observation does.
+    pub fn new(
+        env: &Env,
+        focus: usize,
+        role_of: impl Fn(usize, Role) -> String,
+        observer: &mut Observer,
+    ) -> Self {
         let map: &Map = &env.map;
         let agents = env
             .agents()
@@ -107,25 +113,20 @@ impl Trace {
             steps: Vec::new(),
             metrics: None,
         };
-        t.push_state(env, None);
+        t.push(env, observer);
         t
     }
 
-    /// Records `env`'s state after a step (`observer` finds the focus agent's neighbours as its
-    /// observation does; without one none are recorded).
-    pub fn push(&mut self, env: &Env, observer: Option<&mut Observer>) {
-        self.push_state(env, observer);
-    }
-
-    fn push_state(&mut self, env: &Env, observer: Option<&mut Observer>) {
+    /// Records `env`'s state (the reset's, then after each step) with the focus agent's
+    /// neighbours as `observer` finds them.
+    pub fn push(&mut self, env: &Env, observer: &mut Observer) {
         let agents = env.agents();
         let first = self.steps.is_empty();
         let focus = self.focus as usize;
-        let observed = match observer {
-            Some(o) if agents.get(focus).is_some_and(|a| a.alive) => {
-                o.neighbours(env, focus).into_iter().map(|j| j as u32).collect()
-            }
-            _ => Vec::new(),
+        let observed = if agents.get(focus).is_some_and(|a| a.alive) {
+            observer.neighbours(env, focus).into_iter().map(|j| j as u32).collect()
+        } else {
+            Vec::new()
         };
         self.steps.push(StepState {
             pose: agents

@@ -78,16 +78,13 @@ pub fn record(
         |env, sim| {
             let o = observer.get_or_insert_with(|| Observer::new(map, sim));
             match trace.as_mut() {
-                Some(t) => t.push(env, Some(o)),
+                Some(t) => t.push(env, o),
                 None => {
-                    let mut t = Trace::new(env, 0, |i, role| match (&ego_label, i, role) {
+                    let role_of = |i, role| match (&ego_label, i, role) {
                         (Some(e), 0, Role::Learner) => e.clone(),
                         _ => background.clone(),
-                    });
-                    // The reset state's neighbours, as the first observation saw them.
-                    t.steps.clear();
-                    t.push(env, Some(o));
-                    trace = Some(t);
+                    };
+                    trace = Some(Trace::new(env, 0, role_of, o));
                 }
             }
         },
@@ -128,8 +125,15 @@ fn script_json(v: &impl Serialize) -> Result<String, EvalError> {
         .map_err(|e| EvalError::Run(format!("encoding the viewer's data: {e}")))
 }
 
-/// The viewer page of `trace`, titled `title`, with the stored row (if any) beside the replay.
+/// The viewer page of `trace`, titled `title`, with the stored row (if any) beside the replay
+/// and whether the replay agrees with it ([`StoredRow::agrees`]).
 pub fn page(trace: &Trace, title: &str, stored: Option<&StoredRow>) -> Result<String, EvalError> {
+    let stored = stored.map(|row| {
+        serde_json::json!({
+            "row": row,
+            "agrees": trace.metrics.as_ref().is_some_and(|m| row.agrees(m)),
+        })
+    });
     Ok(PAGE
         .replace("__TITLE__", &escape_html(title))
         .replace("__STORED__", &script_json(&stored)?)
