@@ -1218,6 +1218,41 @@ fn train_continues_a_run_from_a_copied_job_directory_without_its_replay() {
     // The source is left as it was.
     assert!(!committed.join("continued_from.json").exists());
 
+    // A warm start across kinds: a SocialComm job from the MACAD run's weights, a run of its
+    // own (its own counters and kept actors), the source named beside it.
+    let other = write("other.toml", 1200, "socialcomm");
+    let data4 = dir.join("data4").display().to_string();
+    let args = [
+        "train",
+        &other,
+        "--workers",
+        "1",
+        "--quiet",
+        "--data-dir",
+        &data4,
+        "--warm-start-from",
+        &from,
+    ];
+    let v = json_of(&socialflow(&args, T));
+    assert_eq!(v["state"], "succeeded", "{v}");
+    let art4 = std::path::PathBuf::from(v["artifact_dir"].as_str().expect("artifact_dir"));
+    let marker: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(art4.join("warm_started_from.json")).expect("marker"),
+    )
+    .expect("json");
+    assert_eq!(marker["kind"], "macad", "{marker}");
+    assert_eq!(marker["svo"], "none", "{marker}");
+    assert!(!art4.join("continued_from.json").exists());
+    let state4: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(art4.join("state.json")).expect("state"))
+            .expect("json");
+    let steps4 = state4["counters"]["env_steps"].as_u64().expect("env_steps");
+    assert!((1200..1200 + 600).contains(&steps4), "its own transitions, from 0: {state4}");
+    assert_ne!(
+        std::fs::read(art4.join("kept/actor-5.bpk")).expect("its own kept actor"),
+        std::fs::read(committed.join("kept/actor-5.bpk")).expect("the source's"),
+    );
+
     // Refusals name the field, before anything starts.
     let refused = |args: &[&str], field: &str| {
         let out = socialflow(args, T);
@@ -1231,7 +1266,6 @@ fn train_continues_a_run_from_a_copied_job_directory_without_its_replay() {
         &["train", &same, "--quiet", "--data-dir", &data3, "--continue-from", &from],
         "train.env_steps",
     );
-    let other = write("other.toml", 1200, "socialcomm");
     refused(
         &["train", &other, "--quiet", "--data-dir", &data3, "--continue-from", &from],
         "train.continue_from",
@@ -1249,6 +1283,13 @@ fn train_continues_a_run_from_a_copied_job_directory_without_its_replay() {
             &empty.display().to_string(),
         ],
         "train.continue_from",
+    );
+    let wide = ["train", &other, "--set", "net.width=32", "--quiet", "--data-dir", &data3];
+    refused(&[&wide[..], &["--warm-start-from", &from]].concat(), "train.warm_start_from");
+    let empty = empty.display().to_string();
+    refused(
+        &["train", &other, "--quiet", "--data-dir", &data3, "--warm-start-from", &empty],
+        "train.warm_start_from",
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -33,6 +33,11 @@ pub struct TrainArgs {
     /// `train.env_steps` is the run's total. Rerun with the same data directory, it resumes.
     #[arg(long, value_name = "JOB_DIR")]
     pub continue_from: Option<PathBuf>,
+    /// Start from the weights of this job directory (its `checkpoint/`), which may be of
+    /// another kind with the same network sizes (a MACAD flow's into a SocialComm job): sets
+    /// `train.warm_start_from`. Rerun with the same data directory, it resumes.
+    #[arg(long, value_name = "JOB_DIR", conflicts_with = "continue_from")]
+    pub warm_start_from: Option<PathBuf>,
     /// Override a setting of the config (repeatable): `--set sac.seed=12`; validated like
     /// the file and recorded in the job's stored config.
     #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
@@ -42,18 +47,22 @@ pub struct TrainArgs {
 pub fn run(dirs: &Ctx, a: TrainArgs) -> Result<()> {
     let text = std::fs::read_to_string(&a.config)
         .with_context(|| format!("reading {}", a.config.display()))?;
-    let (text, cfg) = crate::remote::with_overrides(&a.config, &text, &a.set)?;
-    let mut cfg = cfg;
-    // The learner is in this process: the source directory as an absolute path of this host.
-    let text = match &a.continue_from {
-        Some(from) => {
-            let abs = std::fs::canonicalize(from)
-                .with_context(|| format!("--continue-from {}", from.display()))?;
-            cfg.train.continue_from = Some(abs.display().to_string());
-            cfg.to_toml()
-        }
-        None => text,
+    // The learner is in this process: a source directory as an absolute path of this host,
+    // written in as one more override so that the config is validated with it (an absolute
+    // path is not TOML, so it is read as a string).
+    let abs = |from: &PathBuf, flag: &str| {
+        std::fs::canonicalize(from)
+            .map(|p| p.display().to_string())
+            .with_context(|| format!("{flag} {}", from.display()))
     };
+    let mut sets = a.set.clone();
+    if let Some(from) = &a.continue_from {
+        sets.push(format!("train.continue_from={}", abs(from, "--continue-from")?));
+    }
+    if let Some(from) = &a.warm_start_from {
+        sets.push(format!("train.warm_start_from={}", abs(from, "--warm-start-from")?));
+    }
+    let (text, cfg) = crate::remote::with_overrides(&a.config, &text, &sets)?;
     if a.workers == 0 {
         bail!("--workers must be at least 1");
     }

@@ -124,6 +124,14 @@ impl NetConfig {
         Self { init_log_std: other.init_log_std, ..self.clone() } == *other
     }
 
+    /// Whether weights of a network built from `other` load into one built from `self`, which
+    /// may consume context channels `other` did not (its SVO inputs, the ego flag): the sizes
+    /// are the same, and [`crate::encoder::Encoder::silence_new_context`] makes them mean the
+    /// same. What a warm start across kinds needs.
+    pub fn same_shapes(&self, other: &Self) -> bool {
+        Self { svo: other.svo, ego_flag: other.ego_flag, ..self.clone() }.same_network(other)
+    }
+
     /// Checks sizes; names the field.
     pub fn validate(&self) -> Result<(), NetConfigError> {
         for (f, v) in [

@@ -6,7 +6,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use sf_sim::obs::{MapSegments, AGENT_CTX, EGO_CTX, MAP_FEATS, SEG_POSE};
 
 use crate::batch::{AgentInput, MapInput, ObsBatch, AGENT_IN, STATIC_IN};
-use crate::config::{Layout, NetConfig};
+use crate::config::{Layout, NetConfig, SvoVisibility};
 use crate::layers::{DeepSet, EgoAttention, Init, Mlp, TokenRun};
 
 /// Token types (rows of the type embedding added to keys).
@@ -179,4 +179,44 @@ impl Encoder {
     pub fn d(&self) -> usize {
         self.attn.wq.weight.dims()[1]
     }
+
+    /// The encoder of a network trained as `from` (its weights) made to read observations as
+    /// `to` (same sizes, more context channels consumed) exactly as it read them before: the
+    /// weights that read a context channel `from` did not consume (its input was zero, so they
+    /// never learned) are set to zero. A warm start across kinds (a MACAD flow's weights into a
+    /// SocialComm job) thereby starts as the source policy, whatever SVOs it is now shown.
+    pub fn silence_new_context(mut self, from: &NetConfig, to: &NetConfig) -> Self {
+        let own = |n: &NetConfig| n.svo != SvoVisibility::None;
+        let all = |n: &NetConfig| n.svo == SvoVisibility::All;
+        let new = |seen: fn(&NetConfig) -> bool| !seen(from) && seen(to);
+        let flag = !from.ego_flag && to.ego_flag;
+        let ego_rows: Vec<usize> =
+            [(new(own), 0), (flag, 1)].into_iter().filter(|p| p.0).map(|p| p.1).collect();
+        let agent_rows: Vec<usize> =
+            [(new(all), 4), (flag, 5)].into_iter().filter(|p| p.0).map(|p| p.1).collect();
+        self.ego_ctx.weight = zero_rows(self.ego_ctx.weight, &ego_rows);
+        if let Some(first) = self.agent_ctx.layers.first_mut() {
+            first.weight = zero_rows(first.weight.clone(), &agent_rows);
+        }
+        self
+    }
+}
+
+/// `w: [d_in, d_out]` with the input rows `rows` set to zero.
+fn zero_rows(w: Param<Tensor<2>>, rows: &[usize]) -> Param<Tensor<2>> {
+    if rows.is_empty() {
+        return w;
+    }
+    w.map(|t| {
+        let [_, d_out] = t.dims();
+        let (device, learns) = (t.device(), t.is_require_grad());
+        // A leaf again: the assignment must not stay in the autodiff graph as the weight's
+        // history (the first backward would consume it, the second would find it gone).
+        rows.iter()
+            .fold(t, |t, &r| {
+                t.slice_assign([r..r + 1, 0..d_out], Tensor::zeros([1, d_out], &device))
+            })
+            .detach()
+            .set_require_grad(learns)
+    })
 }

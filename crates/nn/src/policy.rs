@@ -127,6 +127,12 @@ impl Actor {
     pub fn act_mean(&self, obs: &ObsBatch, table: Option<&SegmentTable>) -> Tensor<2> {
         self.dist(obs, table).0.tanh()
     }
+
+    /// This actor read as `to` reads (see [`Encoder::silence_new_context`]).
+    pub fn silence_new_context(mut self, from: &NetConfig, to: &NetConfig) -> Self {
+        self.enc = self.enc.silence_new_context(from, to);
+        self
+    }
 }
 
 impl Critic {
@@ -144,6 +150,12 @@ impl Critic {
             Vec::new()
         };
         Self { enc, q1, q2, norms }
+    }
+
+    /// This critic read as `to` reads (see [`Encoder::silence_new_context`]).
+    pub fn silence_new_context(mut self, from: &NetConfig, to: &NetConfig) -> Self {
+        self.enc = self.enc.silence_new_context(from, to);
+        self
     }
 
     /// One Q head, with LayerNorm after each hidden layer (`norms`, one per hidden layer) or not.

@@ -185,10 +185,43 @@ fn sibling(dir: &Path, suffix: &str) -> PathBuf {
     dir.with_file_name(format!(".{name}.{suffix}"))
 }
 
+/// Starts a new run from another kind's checkpoint (a SocialComm flow from a MACAD flow's
+/// weights): weights, target, alpha and optimizer states as [`warm_start`] restores them, into
+/// a network of the same sizes that may consume context channels the source's did not (SVOs,
+/// the ego flag). The weights that read those channels never learned (their input was zero)
+/// and are set to zero ([`sf_nn::Actor::silence_new_context`]), so the run starts acting and
+/// valuing exactly as the source did. The run keeps its own RNG and starts at update 0.
+/// Returns the source's network. Nothing is changed on error.
+pub fn warm_start_across(sac: &mut Sac, dir: &Path) -> Result<sf_nn::NetConfig, CheckpointError> {
+    let from = load(sac, dir, Fit::SameShapes)?;
+    let to = sac.net.clone();
+    sac.actor = sac.actor.clone().silence_new_context(&from, &to);
+    sac.critic = sac.critic.clone().silence_new_context(&from, &to);
+    sac.target = sac.target.clone().silence_new_context(&from, &to);
+    sac.actor_avg = sac.actor_avg.take().map(|a| a.silence_new_context(&from, &to));
+    sac.updates = 0;
+    Ok(from)
+}
+
+/// How a checkpoint's network must fit the one it is loaded into.
+#[derive(Clone, Copy, PartialEq)]
+enum Fit {
+    /// The same network ([`sf_nn::NetConfig::same_network`]): a continuation; its RNG too.
+    SameNetwork,
+    /// The same sizes ([`sf_nn::NetConfig::same_shapes`]): a warm start across kinds; the
+    /// run's own RNG stays.
+    SameShapes,
+}
+
 /// Restores a checkpoint into `sac`, which must have been built with the same network and
 /// observation layout (the usual case: the same job config); `sac` keeps its own SAC settings
 /// (the job config is their one source). Nothing is changed on error.
 pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
+    load(sac, dir, Fit::SameNetwork).map(|_| ())
+}
+
+/// [`restore`] with the network fit `fit`; returns the checkpoint's network.
+fn load(sac: &mut Sac, dir: &Path, fit: Fit) -> Result<sf_nn::NetConfig, CheckpointError> {
     let read = |name: &str| {
         let p = dir.join(name);
         std::fs::read(&p).map_err(io(&p))
@@ -208,7 +241,11 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
             ),
         });
     }
-    if !state.net.same_network(&sac.net) {
+    let fits = match fit {
+        Fit::SameNetwork => state.net.same_network(&sac.net),
+        Fit::SameShapes => sac.net.same_shapes(&state.net),
+    };
+    if !fits {
         return Err(CheckpointError::State {
             path: dir.display().to_string(),
             reason: format!("network {:?} differs from the configured {:?}", state.net, sac.net),
@@ -249,7 +286,9 @@ pub fn restore(sac: &mut Sac, dir: &Path) -> Result<(), CheckpointError> {
     sac.opt_actor = opt_actor;
     sac.opt_critic = opt_critic;
     sac.opt_alpha = opt_alpha;
-    sac.rng = rng;
+    if fit == Fit::SameNetwork {
+        sac.rng = rng;
+    }
     sac.updates = state.updates;
-    Ok(())
+    Ok(state.net)
 }

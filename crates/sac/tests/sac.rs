@@ -337,6 +337,73 @@ fn checkpoint_restore_continues_exactly() {
     assert_restore_continues_exactly(|seed| sac_for(&sim, &m, seed), &batches, 3, "plain");
 }
 
+/// A warm start across kinds (`train.warm_start_from`: a SocialComm flow from a MACAD flow's
+/// checkpoint): the job that reads SVOs acts exactly as its source on observations whose SVOs
+/// it now reads, its critic differs from the source's only in the zeroed weights that read
+/// them, it starts at update 0 and trains on; a network of other sizes is refused untouched.
+#[test]
+fn a_warm_start_across_kinds_starts_as_its_source() {
+    use sf_nn::SvoVisibility;
+    let sim = Arc::new(SimConfig::default());
+    let (r, m) = replay_from_sim(&sim, 64);
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let batches: Vec<Batch> = (0..4).map(|_| r.sample(&mut rng, 16).expect("batch")).collect();
+    let mut src = sac_for(&sim, &m, 3);
+    for b in &batches[..3] {
+        src.update(b);
+    }
+    let dir = std::env::temp_dir().join(format!("sf-sac-warm-{}", std::process::id()));
+    checkpoint::save(&src, &dir).expect("save");
+    let cfg = SacConfig { seed: 9, batch_size: 16, reward_scale: 1.0, ..SacConfig::default() };
+    let svo_net = NetConfig { svo: SvoVisibility::All, ..tiny_net() };
+    let mut dst = sac_with(&sim, &m, cfg.clone(), svo_net);
+    // Observations with SVOs on every channel that carries one.
+    let spec = dst.spec.clone();
+    let mut rows = batches[3].obs.clone();
+    for row in rows.chunks_mut(spec.len) {
+        row[spec.ego_ctx.start] = 0.6;
+        for j in 0..spec.neighbours {
+            row[spec.agents_ctx.start + j * sf_sim::obs::AGENT_CTX + 4] = -0.4;
+        }
+    }
+    let ids = &batches[3].map_ids;
+    let act = |s: &Sac| -> Vec<f32> {
+        let (a, t) = s.policy();
+        a.act_mean(&s.obs_batch(&rows, ids), t.as_ref())
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("f32")
+    };
+    assert_ne!(act(&src), act(&dst), "a fresh network acts otherwise");
+    let from = checkpoint::warm_start_across(&mut dst, &dir).expect("warm start");
+    assert_eq!(from.svo, SvoVisibility::None);
+    assert_eq!(dst.updates, 0);
+    assert_eq!(act(&src), act(&dst), "the warm-started job acts as its source, SVOs shown");
+    // The critic: the weights that read the own SVO (one row of the ego context layer) and the
+    // neighbours' (one row of the agent context MLP's first layer) are zero, the rest as loaded.
+    let d = tiny_net().d_model;
+    for (what, a, b) in [
+        ("critic", flat(&src.critic), flat(&dst.critic)),
+        ("target", flat(&src.target), flat(&dst.target)),
+    ] {
+        let differ: Vec<usize> = (0..a.len()).filter(|&i| a[i] != b[i]).collect();
+        assert_eq!(differ.len(), 2 * d, "{what}: {} weights differ", differ.len());
+        assert!(differ.iter().all(|&i| b[i] == 0.0), "{what}: only zeroed weights differ");
+    }
+    // The zeroed weights are leaves again: every later backward finds its graph.
+    for b in &batches {
+        dst.update(b);
+    }
+    assert_eq!(dst.updates, 4, "it trains on");
+    // Other sizes: refused, nothing changed.
+    let mut wide = sac_with(&sim, &m, cfg, NetConfig { d_model: 32, ..tiny_net() });
+    let before = flat(&wide.actor);
+    let e = checkpoint::warm_start_across(&mut wide, &dir).expect_err("other sizes");
+    assert!(e.to_string().contains("network"), "{e}");
+    assert_eq!(flat(&wide.actor), before);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The same with `configs/stage1`'s recipe (a shared encoder, a LayerNorm critic with the ego
 /// skip, Q-filtered cloning towards the zero residual, a Huber critic loss, cloning then critic
 /// pretraining then SAC), checkpointed during critic pretraining and continued into SAC: what a

@@ -45,20 +45,8 @@ pub fn source(cfg: &JobConfig) -> Option<PathBuf> {
 pub fn check(cfg: &JobConfig) -> Result<(), LearnerError> {
     let Some(from) = source(cfg) else { return Ok(()) };
     let shown = from.display();
-    if !from.is_dir() {
-        return Err(refuse(format!("{shown} is not a directory on the learner's host")));
-    }
-    for needed in ["config.toml", "state.json", "checkpoint/state.json"] {
-        if !from.join(needed).is_file() {
-            return Err(refuse(format!(
-                "{shown} has no {needed} (a job directory: config.toml, state.json, checkpoint/)"
-            )));
-        }
-    }
-    let text = std::fs::read_to_string(from.join("config.toml"))
-        .map_err(|e| refuse(format!("reading {shown}/config.toml: {e}")))?;
-    let theirs =
-        JobConfig::from_toml(&text).map_err(|e| refuse(format!("{shown}/config.toml: {e}")))?;
+    let needed = ["config.toml", "state.json", "checkpoint/state.json"];
+    let theirs = job_dir_config(&from, &needed, "config.toml, state.json, checkpoint/", refuse)?;
     if theirs.kind != cfg.kind {
         return Err(refuse(format!(
             "{shown} is a {} job, this one {}",
@@ -98,6 +86,27 @@ pub fn check(cfg: &JobConfig) -> Result<(), LearnerError> {
         }));
     }
     Ok(())
+}
+
+/// The job config of job directory `from` (on the learner's host), which must hold the files
+/// `needed` (`what` says what a job directory has); `refuse` makes the error, naming the field
+/// that named the directory. Blocking.
+pub(crate) fn job_dir_config(
+    from: &Path,
+    needed: &[&str],
+    what: &str,
+    refuse: fn(String) -> LearnerError,
+) -> Result<JobConfig, LearnerError> {
+    let shown = from.display();
+    if !from.is_dir() {
+        return Err(refuse(format!("{shown} is not a directory on the learner's host")));
+    }
+    if let Some(missing) = needed.iter().find(|n| !from.join(n).is_file()) {
+        return Err(refuse(format!("{shown} has no {missing} (a job directory: {what})")));
+    }
+    let text = std::fs::read_to_string(from.join("config.toml"))
+        .map_err(|e| refuse(format!("reading {shown}/config.toml: {e}")))?;
+    JobConfig::from_toml(&text).map_err(|e| refuse(format!("{shown}/config.toml: {e}")))
 }
 
 /// Copies the source's state into `dir` (the new job's directory) unless `dir` already has a

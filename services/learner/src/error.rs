@@ -128,6 +128,9 @@ pub enum LearnerError {
     /// `train.continue_from` names a directory the job cannot continue.
     #[error("job config field `train.continue_from`: {reason}")]
     Continuation { reason: String },
+    /// `train.warm_start_from` names a directory whose weights the job cannot start from.
+    #[error("job config field `train.warm_start_from`: {reason}")]
+    WarmStart { reason: String },
     /// A starting job's dependency could not be looked up.
     #[error("job {dep} ({field}): {source}")]
     DependencyLookup { dep: JobId, field: &'static str, source: ServiceError },
@@ -211,6 +214,7 @@ impl LearnerError {
             | L::Coordinator(_)
             | L::Dependency { .. }
             | L::Continuation { .. }
+            | L::WarmStart { .. }
             | L::Scenario { .. }
             | L::Task { .. } => S::InvalidArgument,
             L::UnresolvedName { .. }

@@ -174,11 +174,14 @@ impl Jobs {
                 return Err(refuse(&format!("is {}", rec.state.as_str())).into());
             }
         }
-        if cfg.train.continue_from.is_some() {
+        if cfg.train.continue_from.is_some() || cfg.train.warm_start_from.is_some() {
             let c2 = cfg.clone();
-            tokio::task::spawn_blocking(move || crate::continuation::check(&c2))
-                .await
-                .map_err(|source| LearnerError::Task { task: "blocking task", source })??;
+            tokio::task::spawn_blocking(move || {
+                crate::continuation::check(&c2)?;
+                crate::warm_start::check(&c2)
+            })
+            .await
+            .map_err(|source| LearnerError::Task { task: "blocking task", source })??;
         }
         let target = cfg.train.env_steps;
         let rec = self.queue(JobSpec::Train(cfg), toml_text, target).await?;

@@ -39,6 +39,7 @@ pub mod store;
 mod task;
 pub mod trainer;
 pub mod validation;
+pub mod warm_start;
 pub mod workers;
 
 use std::net::SocketAddr;

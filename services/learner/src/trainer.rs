@@ -263,7 +263,7 @@ fn train(input: TrainerInput) -> Result<Outcome, LearnerError> {
 /// The SAC state a run starts from: the job's own checkpoint when it has one (a resumed job;
 /// returns true), else `train.init_job`'s last checkpoint with its final policy as the actor
 /// (the actor its adversary attacked: `sf_sac::checkpoint::warm_start`) when it names one, else
-/// fresh weights.
+/// `train.warm_start_from`'s weights (`warm_start.rs`), else fresh weights.
 fn start_state(
     job: &ActiveJob,
     sac: &mut Sac,
@@ -294,6 +294,9 @@ fn start_state(
             LearnerError::Checkpoint { action: "starting from", path: ckpt.clone(), source }
         })?;
         tracing::info!(job_id = job.id.get(), from = %init.display(), "started from another job's critic and final policy");
+    } else if let Some(from) = crate::warm_start::source(&job.cfg) {
+        crate::warm_start::start(sac, &job.cfg, dir)?;
+        tracing::info!(job_id = job.id.get(), from = %from.display(), "warm-started from another job's weights");
     }
     Ok(false)
 }

@@ -370,8 +370,8 @@ impl JobConfig {
                 ),
             );
         }
-        if s.warmup_policy == WarmupPolicy::Policy && !self.train.continues() {
-            return bad("sac.warmup_policy", "\"policy\" warms up with the policy a continuation starts from: set train.init_job or train.init_from");
+        if s.warmup_policy == WarmupPolicy::Policy && !self.train.starts_from_weights() {
+            return bad("sac.warmup_policy", "\"policy\" warms up with the policy a job starts from: set train.init_job, train.init_from or train.warm_start_from");
         }
         if self.env.action != ActionMode::Direct && s.warmup_policy == WarmupPolicy::Random {
             return bad("sac.warmup_policy", "a residual policy warms up around the IDM driver: set sac.warmup_policy = \"idm\" (or \"policy\" for a continuation)");

@@ -61,11 +61,27 @@ pub struct TrainSection {
     /// --continue-from DIR` sets it as an absolute path.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub continue_from: Option<String>,
+    /// Start from the weights of a job directory on the learner's host (its `checkpoint/`:
+    /// actor, critic, target, alpha, optimizer moments) whose job may be of another kind, with
+    /// the same network sizes: a SocialComm flow warm-started from a MACAD flow. The weights
+    /// that read context channels the source did not consume (its SVOs) start at zero, so the
+    /// job starts acting as the source did. Everything else is this job's own: a fresh replay
+    /// (filled by `sac.warmup_policy`; `"policy"` warms up with the loaded actor), update 0,
+    /// its own seed, counters and curve. Its cloning and critic pretraining
+    /// (`sac.bc_updates`, `sac.critic_pretrain_updates`) run as in any job.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_start_from: Option<String>,
 }
 impl TrainSection {
     /// Whether the job continues another (`train.init_job`, or `train.init_from` by name).
     pub fn continues(&self) -> bool {
         self.init_job.is_some() || self.init_from.is_some()
+    }
+
+    /// Whether the job starts from weights it did not draw (a continuation of another job, or
+    /// `train.warm_start_from`): a policy it can warm up with.
+    pub fn starts_from_weights(&self) -> bool {
+        self.continues() || self.warm_start_from.is_some()
     }
 }
 
@@ -157,6 +173,17 @@ impl JobConfig {
                 return bad(
                     "train.continue_from",
                     "continues a run's directory; train.init_job / init_from start from a job of this learner: set one of them",
+                );
+            }
+        }
+        if let Some(from) = &t.warm_start_from {
+            if from.trim().is_empty() {
+                return bad("train.warm_start_from", "must name a job directory");
+            }
+            if t.continue_from.is_some() || self.train.continues() {
+                return bad(
+                    "train.warm_start_from",
+                    "starts fresh from another job's weights; train.continue_from, init_job and init_from continue a run: set one of them",
                 );
             }
         }
