@@ -115,6 +115,20 @@ def evaluate(
     vehicles: Optional[int] = None,
     svo_deg: Optional[float] = None,
 ) -> List[Tuple[int, int, float, float, float, float, Optional[float], Optional[float]]]: ...
+def view_episode(
+    policy: Any,
+    scenario_name: str,
+    case: int,
+    seed: int,
+    flow: Optional[str] = None,
+    layout: Optional[str] = None,
+    action: str = "direct",
+    vehicles: Optional[int] = None,
+    svo_deg: Optional[float] = None,
+    title: str = "",
+    stored: Optional[Dict[str, Any]] = None,
+) -> Tuple[str, str, str, Optional[bool]]: ...
+def view_index(title: str, rows_json: str) -> str: ...
 def scenarios() -> List[str]: ...
 def apply_overrides(text: str, sets: List[str]) -> str: ...
 def terminations() -> List[str]: ...

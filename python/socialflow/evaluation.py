@@ -3,7 +3,9 @@ cases x seeds, among the chosen flows, through the same Rust loop as `socialflow
 (so the same policy gives the same numbers). Rows have the columns of `episodes.csv`."""
 
 import csv
+import json
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Union, cast
 
@@ -55,12 +57,81 @@ def _summary(xs):
     return {"mean": mean, "ci95": _t95(n) * sd / math.sqrt(n) if n > 1 else float("nan")}
 
 
+#: Outcome classes of a mined episode, worst first (`socialflow eval --mine`'s order).
+OUTCOMES = ("collision", "off-road", "off-route", "wrong-lane", "road-closed", "timeout", "success")
+
+
+@dataclass
+class _Replay:
+    """How `evaluate` ran one (flow, scenario) cell, so that `EvalResult.mine` can replay it."""
+
+    policy: Any
+    flow: Optional[str]
+    layout: Optional[str]
+    action: str
+    vehicles: Optional[int]
+    svo_deg: Optional[float]
+
+
+def _safe(text: str) -> str:
+    """Letters, digits, `-` and `_` kept, the rest `_` (`socialflow eval --mine`'s page names)."""
+    return "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "_" for c in text)
+
+
 @dataclass
 class EvalResult:
     """Per-episode `rows` (dicts with `EPISODE_COLUMNS`) and a `summary` per (flow, scenario)."""
 
     rows: List[Dict[str, Any]] = field(default_factory=list)
     summary: List[Dict[str, Any]] = field(default_factory=list)
+    _replay: Dict[Any, _Replay] = field(default_factory=dict, repr=False, compare=False)
+
+    def mine(self, out: PathLike, worst: int = 3) -> str:
+        """Failure mining, as `socialflow eval --mine worst=N`: each (flow, scenario) cell's
+        `worst` episodes (lowest success first, then most collisions, then slowest; ties by
+        case and seed) replayed with the evaluated policy into self-contained browser pages in
+        `out`, and `out/index.html` listing them by outcome (collision, off-road, off-route,
+        wrong-lane, road-closed, timeout, success), worst first, each page linked and marked
+        with whether its replay ended as the stored row says. Returns the index's path. Replays
+        with the policy `evaluate` ran, so it works on a result made in this process."""
+        if isinstance(worst, bool) or not isinstance(worst, (int, np.integer)) or worst < 1:
+            raise ValueError(f"worst: {worst!r} is not a positive integer")
+        if not self.rows:
+            raise ValueError("mine: the result has no episodes")
+        if not self._replay:
+            raise ValueError("mine: this result has no policy to replay with (make it with socialflow.evaluate in this process)")
+        os.makedirs(out, exist_ok=True)
+        cells: Dict[Any, List[Dict[str, Any]]] = {}
+        for r in self.rows:
+            cells.setdefault((r["flow"], r["scenario"]), []).append(r)
+        index = []
+        for key, rows in cells.items():
+            how = self._replay.get(key)
+            if how is None:
+                raise ValueError(f"mine: no policy recorded for flow {key[0]!r} in {key[1]!r}")
+            picked = sorted(rows, key=lambda r: (r["success"], -r["collision"], r["speed"], r["case"], r["seed"]))[:worst]
+            for r in picked:
+                cell = "|".join("" if r[c] is None else str(r[c]) for c in ("experiment", "ego", "flow", "scenario", "svo_deg", "vehicles"))
+                name = f"{_safe(cell)}-case{r['case']}-seed{r['seed']}.html"
+                title = f"{cell} - case {r['case']}, seed {r['seed']}"
+                html, outcome, metrics, agrees = _socialflow.view_episode(
+                    how.policy, r["scenario"], int(r["case"]), int(r["seed"]), how.flow, how.layout, how.action,
+                    how.vehicles, how.svo_deg, title, {k: r[k] for k in ("success", "safety", "speed", "collision", "road_closed")},
+                )
+                with open(os.path.join(out, name), "w", encoding="utf-8") as f:
+                    f.write(html)
+                index.append({
+                    "href": name, "cell": cell, "experiment": r["experiment"], "ego": r["ego"], "flow": r["flow"],
+                    "scenario": r["scenario"], "svo_deg": r["svo_deg"], "vehicles": r["vehicles"], "case": r["case"],
+                    "seed": r["seed"], "outcome": outcome, "metrics": json.loads(metrics), "replay_agrees": agrees,
+                })
+        index.sort(key=lambda x: (OUTCOMES.index(x["outcome"]), x["metrics"]["success"], x["href"]))
+        agree = sum(1 for x in index if x["replay_agrees"])
+        title = f"{worst} worst episodes per cell ({agree} of {len(index)} replays end as stored)"
+        path = os.path.join(out, "index.html")
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(_socialflow.view_index(title, json.dumps(index)))
+        return path
 
     def to_csv(self, path: PathLike) -> None:
         """Writes the rows as an `episodes.csv` (the format `socialflow report` reads)."""
@@ -148,7 +219,9 @@ def evaluate(
                 a = np.ascontiguousarray(np.asarray(_call(obs), dtype=np.float32))
                 return a.reshape(len(obs), -1) if a.ndim == 1 else a
 
-            rows = _socialflow.evaluate(loaded if loaded is not None else wrapped, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
+            acting = loaded if loaded is not None else wrapped
+            rows = _socialflow.evaluate(acting, scenario, flow_arg(flow), layout, action, n_cases, n_seeds, n_envs, vehicles, svo)
+            result._replay[(name, scenario)] = _Replay(acting, flow_arg(flow), layout, action, vehicles, svo)
             mine = [
                 dict(zip(EPISODE_COLUMNS, (experiment, ego, name, scenario, None if svo is None else int(svo), vehicles, case, seed, success, safety, speed, collision, lane_change, road_closed)))
                 for case, seed, success, safety, speed, collision, lane_change, road_closed in rows

@@ -5,8 +5,9 @@
 //! SocialCommAdv's adversary; in ego mode Python drives agent 0 of every simulator, in
 //! multi-agent mode every vehicle), [`LoadedPolicy`] (a finished job's kept actor, Rust
 //! inference of its mean action), [`evaluate`] (a Python policy over stored cases x seeds
-//! through `sf_rollout::evaluate::run_stored`, the loop of `socialflow eval`'s cells) and the
-//! conversions to NumPy. Must not: re-implement the simulator, the flows or inference (it
+//! through `sf_rollout::evaluate::run_stored`, the loop of `socialflow eval`'s cells),
+//! [`view_episode`] / [`view_index`] (one of those episodes replayed with the same seat into a
+//! viewer page, and the mined pages' index: `EvalResult.mine`) and the conversions to NumPy. Must not: re-implement the simulator, the flows or inference (it
 //! calls `sf_sim` and `sf_rollout`), or hold the GIL while simulators step.
 //!
 //! [`client`] is the job API's half (`socialflow.client`).
@@ -28,7 +29,8 @@ use pyo3::types::PyDict;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sf_rollout::drive::{self, Actor};
-use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Policy, Runners};
+use sf_rollout::evaluate::view;
+use sf_rollout::evaluate::{Episodes, FlowDef, FlowSetup, Policy, Runners, Setting, StoredEpisode};
 use sf_rollout::inference::PolicyRunner;
 use sf_sim::obs::{MapSegments, ObsSpec, AGENT_CTX};
 use sf_sim::vec_env::{EpisodeSpec, VecEnv, VecEnvConfig};
@@ -763,26 +765,23 @@ impl LoadedPolicy {
     }
 }
 
-/// Runs `policy` (a callable `[n, obs_len] float32 -> [n, action_dim] float32`) in the ego's
-/// seat over the first `cases` stored cases x `seeds` among the flow, through the loop of
-/// `socialflow eval`'s cells. Returns `(case, seed, success, safety, speed, collision,
-/// lane_change, road_closed)` per episode in (seed, case) order.
-#[pyfunction]
-#[pyo3(signature = (policy, scenario_name, flow=None, layout=None, action="direct", cases=200, seeds=10, envs=16, vehicles=None, svo_deg=None))]
+/// The ego's seat taken by `policy` (a finished job's actor from `load_policy`, driven in Rust,
+/// or a callable `[n, obs_len] float32 -> [n, action_dim] float32`) among `flow` in
+/// `scenario_name`, as `socialflow eval`'s cells seat a policy: `body` gets the setting, the
+/// drivers, the scenario's stored cases and the flow, and runs what it runs. An exception the
+/// callable raised (or a wrong shape it returned) is raised after the run, the run's own result
+/// dropped. What [`evaluate`] and [`view_episode`] share.
 #[allow(clippy::too_many_arguments)]
-fn evaluate(
+fn with_ego_seat<R>(
     py: Python<'_>,
-    policy: Bound<'_, PyAny>,
+    policy: &Bound<'_, PyAny>,
     scenario_name: &str,
     flow: Option<&str>,
     layout: Option<&str>,
     action: &str,
-    cases: usize,
-    seeds: u32,
-    envs: usize,
-    vehicles: Option<usize>,
     svo_deg: Option<f32>,
-) -> PyResult<Vec<EpisodeRow>> {
+    body: impl FnOnce(&Setting, &drive::Drivers, &CaseFile, &FlowDef, &str) -> PyResult<R>,
+) -> PyResult<R> {
     if !policy.is_callable() {
         return Err(bad("policy", "is not callable"));
     }
@@ -794,21 +793,6 @@ fn evaluate(
     let loaded = policy.extract::<PyRef<'_, LoadedPolicy>>().ok();
     if let Some(p) = &loaded {
         layout = Some(p.fits(action, layout)?);
-    }
-    if cases == 0 || cases > stored.cases.len() {
-        return Err(bad(
-            "cases",
-            format!(
-                "{cases} is not in 1..={} (the stored cases of {scenario_name})",
-                stored.cases.len()
-            ),
-        ));
-    }
-    if seeds == 0 || !(1..=4096).contains(&envs) {
-        return Err(bad(
-            "seeds/envs",
-            format!("seeds {seeds} and envs {envs} must be positive (envs at most 4096)"),
-        ));
     }
     if let Some(s) = svo_deg.filter(|s| !(0.0..=90.0).contains(s)) {
         return Err(bad("svo_deg", format!("{s} is not in [0, 90]")));
@@ -824,6 +808,10 @@ fn evaluate(
         .map(|p| runners.get(&p.policy, &map, &setup.sim))
         .transpose()
         .map_err(|e| bad("policy", e))?;
+    let ego_label = match &loaded {
+        Some(p) => format!("ego (learned, {} job {})", p.policy.cfg.kind.as_str(), p.job_dir),
+        None => "ego (the Python policy)".to_string(),
+    };
     let spec = ObsSpec::new(&setup.sim.obs);
     let (len, dim, hide) = (spec.len, action.dim(), !matches!(def, FlowDef::Idm));
     let failed: RefCell<Option<PyErr>> = RefCell::new(None);
@@ -859,19 +847,63 @@ fn evaluate(
         None => Actor::External { act: &act, action },
     };
     let drivers = setup.drivers(ego);
-    let episodes = Episodes { cases: &stored.cases[..cases], seeds, envs, vehicles, svo_deg };
-    let rows = sf_rollout::evaluate::run_stored(
-        &map,
-        &setup.sim,
-        setup.mode,
-        setup.svo_gaussian,
-        &episodes,
-        &drivers,
-    )
-    .map_err(|e| bad("evaluate", e))?;
+    let at =
+        Setting { map: &map, sim: &setup.sim, mode: setup.mode, svo_gaussian: setup.svo_gaussian };
+    let out = body(&at, &drivers, &stored, &def, &ego_label);
     if let Some(e) = failed.into_inner() {
         return Err(e);
     }
+    out
+}
+
+/// Runs `policy` (a callable `[n, obs_len] float32 -> [n, action_dim] float32`) in the ego's
+/// seat over the first `cases` stored cases x `seeds` among the flow, through the loop of
+/// `socialflow eval`'s cells. Returns `(case, seed, success, safety, speed, collision,
+/// lane_change, road_closed)` per episode in (seed, case) order.
+#[pyfunction]
+#[pyo3(signature = (policy, scenario_name, flow=None, layout=None, action="direct", cases=200, seeds=10, envs=16, vehicles=None, svo_deg=None))]
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    py: Python<'_>,
+    policy: Bound<'_, PyAny>,
+    scenario_name: &str,
+    flow: Option<&str>,
+    layout: Option<&str>,
+    action: &str,
+    cases: usize,
+    seeds: u32,
+    envs: usize,
+    vehicles: Option<usize>,
+    svo_deg: Option<f32>,
+) -> PyResult<Vec<EpisodeRow>> {
+    if seeds == 0 || !(1..=4096).contains(&envs) {
+        return Err(bad(
+            "seeds/envs",
+            format!("seeds {seeds} and envs {envs} must be positive (envs at most 4096)"),
+        ));
+    }
+    let run = |at: &Setting, drivers: &drive::Drivers, stored: &CaseFile, _: &FlowDef, _: &str| {
+        if cases == 0 || cases > stored.cases.len() {
+            return Err(bad(
+                "cases",
+                format!(
+                    "{cases} is not in 1..={} (the stored cases of {scenario_name})",
+                    stored.cases.len()
+                ),
+            ));
+        }
+        let episodes = Episodes { cases: &stored.cases[..cases], seeds, envs, vehicles, svo_deg };
+        sf_rollout::evaluate::run_stored(
+            at.map,
+            at.sim,
+            at.mode,
+            at.svo_gaussian,
+            &episodes,
+            drivers,
+        )
+        .map_err(|e| bad("evaluate", e))
+    };
+    let rows = with_ego_seat(py, &policy, scenario_name, flow, layout, action, svo_deg, run)?;
     Ok(rows
         .into_iter()
         .map(|r| {
@@ -880,6 +912,89 @@ fn evaluate(
             (r.case, r.seed, s.success, s.safety, s.speed, r.collision, lane_change, road_closed)
         })
         .collect())
+}
+
+/// Replays one stored episode of `evaluate`'s (stored case id `case`, evaluation seed `seed`)
+/// with `policy` in the ego's seat, as `evaluate` ran it, into a self-contained browser page
+/// (the page of `socialflow view`). `stored`: the episode's row from `evaluate` (`success`,
+/// `safety`, `speed`, `collision`, `road_closed`), shown beside the replay with whether they
+/// agree. Returns `(html, outcome, metrics_json, agrees)`: the page, the outcome class
+/// (`collision`, `off-road`, `off-route`, `wrong-lane`, `road-closed`, `timeout` or `success`),
+/// the replay's metrics as JSON and whether the replay ended as `stored` says (`None` without
+/// one).
+#[pyfunction]
+#[pyo3(signature = (policy, scenario_name, case, seed, flow=None, layout=None, action="direct", vehicles=None, svo_deg=None, title="", stored=None))]
+#[allow(clippy::too_many_arguments)]
+fn view_episode(
+    py: Python<'_>,
+    policy: Bound<'_, PyAny>,
+    scenario_name: &str,
+    case: u32,
+    seed: u32,
+    flow: Option<&str>,
+    layout: Option<&str>,
+    action: &str,
+    vehicles: Option<usize>,
+    svo_deg: Option<f32>,
+    title: &str,
+    stored: Option<Bound<'_, PyDict>>,
+) -> PyResult<(String, String, String, Option<bool>)> {
+    let stored = stored.map(|d| stored_row(&d)).transpose()?;
+    let run =
+        |at: &Setting, drivers: &drive::Drivers, cases: &CaseFile, def: &FlowDef, ego: &str| {
+            let case_index = cases.cases.iter().position(|c| c.id == case).ok_or_else(|| {
+                bad(
+                    "case",
+                    format!(
+                        "{case} is not among the {} stored cases of {scenario_name}",
+                        cases.cases.len()
+                    ),
+                )
+            })?;
+            let episode =
+                StoredEpisode { cases: &cases.cases, case_index, seed, vehicles, svo_deg };
+            view::record_with(at, &episode, drivers, Some(ego.to_string()), def)
+                .map_err(|e| bad("view_episode", e))
+        };
+    let trace = with_ego_seat(py, &policy, scenario_name, flow, layout, action, svo_deg, run)?;
+    let metrics = trace.metrics.ok_or_else(|| bad("view_episode", "the replay has no metrics"))?;
+    let html = view::page(&trace, title, stored.as_ref()).map_err(|e| bad("view_episode", e))?;
+    let json = serde_json::to_string(&metrics).map_err(|e| bad("view_episode", e))?;
+    let agrees = stored.as_ref().map(|s| s.agrees(&metrics));
+    Ok((html, view::outcome_class(&metrics).to_string(), json, agrees))
+}
+
+/// An episode row's stored scores (a dict of `evaluate`'s columns); `ValueError` names a
+/// missing or non-numeric one.
+fn stored_row(d: &Bound<'_, PyDict>) -> PyResult<view::StoredRow> {
+    let num = |k: &str| -> PyResult<Option<f32>> {
+        match d.get_item(k)? {
+            None => Ok(None),
+            Some(v) if v.is_none() => Ok(None),
+            Some(v) => v
+                .extract::<f32>()
+                .map(Some)
+                .map_err(|_| bad("stored", format!("`{k}` is not a number: {v}"))),
+        }
+    };
+    let need = |k: &str| num(k)?.ok_or_else(|| bad("stored", format!("has no `{k}`")));
+    Ok(view::StoredRow {
+        success: need("success")?,
+        safety: need("safety")?,
+        speed: need("speed")?,
+        collision: need("collision")?,
+        road_closed: num("road_closed")?,
+    })
+}
+
+/// The index page of mined episodes (`socialflow eval --mine`'s `mined/index.html`): `rows_json`
+/// a JSON list of rows with `href`, `cell`, `experiment`, `ego`, `flow`, `scenario`, `svo_deg`,
+/// `vehicles`, `case`, `seed`, `outcome`, `metrics` and `replay_agrees`, in the order to show.
+#[pyfunction]
+fn view_index(title: &str, rows_json: &str) -> PyResult<String> {
+    let rows: Vec<serde_json::Value> =
+        serde_json::from_str(rows_json).map_err(|e| bad("rows_json", e))?;
+    view::index(title, &rows).map_err(|e| bad("view_index", e))
 }
 
 /// The built-in scenarios.
@@ -909,6 +1024,8 @@ fn _socialflow(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<client::JobClient>()?;
     m.add_class::<client::JobWatch>()?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(view_episode, m)?)?;
+    m.add_function(wrap_pyfunction!(view_index, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios, m)?)?;
     m.add_function(wrap_pyfunction!(terminations, m)?)?;
     m.add_function(wrap_pyfunction!(apply_overrides, m)?)?;

@@ -86,3 +86,42 @@ def test_bad_policy_and_grid():
         socialflow.evaluate(lambda obs: obs, scenarios=["merge"], cases=100_000)
     with pytest.raises(ValueError, match="policy"):
         socialflow.evaluate(42)
+
+
+def test_mining_replays_the_worst_episodes_into_pages(tmp_path):
+    """`EvalResult.mine`, the Python side of `socialflow eval --mine`: each cell's worst
+    episodes replayed with the evaluated policy into pages that end as the stored rows say, and
+    an index sorted by outcome."""
+
+    def crawl(obs):
+        # Barely moving: many episodes time out, some with the road closed behind.
+        return np.tile(np.array([-0.9, 0.0], np.float32), (len(obs), 1))
+
+    res = socialflow.evaluate(crawl, flows=["idm"], scenarios=["merge", "roundabout"], cases=6, seeds=2)
+    index = res.mine(tmp_path / "mined", worst=2)
+    assert index == os.path.join(tmp_path / "mined", "index.html")
+    text = Path(index).read_text()
+    rows = json.loads(text.split('id="data">', 1)[1].split("</script>", 1)[0])
+    pages = sorted(p.name for p in (tmp_path / "mined").glob("*.html") if p.name != "index.html")
+    assert len(pages) == 4 and sorted(r["href"] for r in rows) == pages, (pages, rows)
+    for name in pages:
+        page = (tmp_path / "mined" / name).read_text()
+        assert '"agrees":true' in page, f"{name}: the replay does not end as the stored row"
+    assert "4 of 4 replays end as stored" in text and all(r["replay_agrees"] for r in rows)
+    # Sorted by outcome, worst first; each cell's picks are its worst episodes.
+    order = [socialflow.evaluation.OUTCOMES.index(r["outcome"]) for r in rows]
+    assert order == sorted(order), rows
+    for scenario in ("merge", "roundabout"):
+        picked = [r for r in rows if r["scenario"] == scenario]
+        keys = {(r["case"], r["seed"]) for r in picked}
+        left = [r["success"] for r in res.rows if r["scenario"] == scenario and (r["case"], r["seed"]) not in keys]
+        assert len(picked) == 2 and max(r["metrics"]["success"] for r in picked) <= min(left)
+
+
+def test_mining_refuses_bad_arguments(tmp_path):
+    res = socialflow.evaluate(socialflow.zero_residual_policy(), flows=["idm"], scenarios=["merge"], cases=2, seeds=1, action="idm-accel-residual")
+    for worst in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="worst"):
+            res.mine(tmp_path, worst=worst)
+    with pytest.raises(ValueError, match="mine"):
+        socialflow.EvalResult(rows=res.rows).mine(tmp_path)

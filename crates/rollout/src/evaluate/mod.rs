@@ -309,30 +309,71 @@ fn replay_episode(
     flow: &FlowDef,
     ego: Option<&EgoDef>,
     runners: &mut Runners,
-    mut on_state: impl FnMut(&sf_sim::Env, &SimConfig),
+    on_state: impl FnMut(&sf_sim::Env, &SimConfig),
 ) -> Result<sf_sim::metrics::EpisodeMetrics, EvalError> {
-    let case = cases.cases.get(case_index).ok_or_else(|| {
-        EvalError::Misfit(format!(
-            "case {case_index} is not stored for {} ({} cases)",
-            map.name,
-            cases.cases.len()
-        ))
-    })?;
     let (sim, mode, acting) = cell_setup(cell, map, flow, ego, runners)?;
-    let spec = EpisodeSpec {
-        case: case.clone(),
+    let episode = StoredEpisode {
+        cases: &cases.cases,
+        case_index,
+        seed,
         vehicles: cell.vehicles,
         svo_deg: cell.svo_deg.map(|s| s as f32),
-        tag: episode_tag(seed, case_index),
     };
-    let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(&sim), mode, 1, vec![spec])?;
-    v.set_svo_gaussian(acting.svo_gaussian);
-    on_state(v.env(0), &sim);
-    let done = drive::run_episodes(&mut v, &acting.drivers(), |v, _| on_state(v.env(0), &sim));
+    let setting = Setting { map, sim: &sim, mode, svo_gaussian: acting.svo_gaussian };
+    replay_stored(&setting, &episode, &acting.drivers(), on_state)
+}
+
+/// Where stored episodes run: the map, the simulator settings the policies observe with, the
+/// mode and CoPO's Gaussian for the scenario (what [`run_stored`] takes besides the episodes).
+#[derive(Clone, Copy)]
+pub struct Setting<'a> {
+    pub map: &'a Arc<Map>,
+    pub sim: &'a Arc<SimConfig>,
+    pub mode: Mode,
+    pub svo_gaussian: Option<SvoGaussian>,
+}
+
+/// One episode of [`Episodes`]: case `case_index` of `cases` at evaluation seed `seed`.
+#[derive(Clone, Copy)]
+pub struct StoredEpisode<'a> {
+    pub cases: &'a [sf_sim::Case],
+    pub case_index: usize,
+    pub seed: u32,
+    pub vehicles: Option<usize>,
+    pub svo_deg: Option<f32>,
+}
+
+/// One stored episode run alone with `drivers`, with the draws [`run_stored`] gives it among
+/// the others (its tag: seed and case index). `on_state(env, sim)` sees the reset state and the
+/// state after every step. Returns the simulator's metrics of the episode.
+pub fn replay_stored(
+    at: &Setting,
+    episode: &StoredEpisode,
+    drivers: &Drivers,
+    mut on_state: impl FnMut(&sf_sim::Env, &SimConfig),
+) -> Result<sf_sim::metrics::EpisodeMetrics, EvalError> {
+    let (map, sim, i) = (at.map, at.sim, episode.case_index);
+    let case = episode.cases.get(i).ok_or_else(|| {
+        EvalError::Misfit(format!(
+            "case {i} is not stored for {} ({} cases)",
+            map.name,
+            episode.cases.len()
+        ))
+    })?;
+    let spec = EpisodeSpec {
+        case: case.clone(),
+        vehicles: episode.vehicles,
+        svo_deg: episode.svo_deg,
+        tag: episode_tag(episode.seed, i),
+    };
+    let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), at.mode, 1, vec![spec])?;
+    v.set_svo_gaussian(at.svo_gaussian);
+    on_state(v.env(0), sim);
+    let done = drive::run_episodes(&mut v, drivers, |v, _| on_state(v.env(0), sim));
     done.into_iter()
         .next()
         .map(|(_, m)| m)
-        .ok_or_else(|| EvalError::Run(format!("case {case_index} of {} did not finish", map.name)))
+        .ok_or_else(|| EvalError::Run(format!("case {i} of {} did not finish", map.name)))
 }
 
 /// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO

@@ -1,5 +1,6 @@
 //! Browser viewer pages of stored episodes: [`record`] replays one episode of a cell as the cell
-//! runs it (the parent's `replay_episode`) into an [`sf_sim::trace::Trace`]; [`page`] makes it a
+//! runs it (the parent's `replay_episode`) into an [`sf_sim::trace::Trace`], [`record_with`] one
+//! run with drivers chosen outside (the Python package's `EvalResult.mine`); [`page`] makes it a
 //! self-contained HTML page (the trace as JSON beside a canvas player: play / pause / scrub,
 //! every vehicle drawn with its role and SVO, the focus agent's route and observed neighbours,
 //! per-agent reward and end on hover, the episode's metrics beside the stored row's); [`index`]
@@ -17,7 +18,8 @@ use sf_sim::metrics::EpisodeMetrics;
 use sf_sim::trace::Trace;
 use sf_sim::{Map, Observer, Role};
 
-use super::{EgoDef, EvalError, FlowDef, Runners};
+use super::{EgoDef, EvalError, FlowDef, Runners, Setting, StoredEpisode};
+use crate::drive::Drivers;
 
 /// The player page; `__TITLE__`, `__TRACE__` and `__STORED__` are filled in by [`page`].
 const PAGE: &str = include_str!("viewer.html");
@@ -25,7 +27,7 @@ const PAGE: &str = include_str!("viewer.html");
 const INDEX: &str = include_str!("viewer_index.html");
 
 /// Who drives the background of `flow`, as the viewer labels it.
-fn flow_role(flow: &FlowDef) -> String {
+pub fn flow_role(flow: &FlowDef) -> String {
     match flow {
         FlowDef::Idm => "IDM".into(),
         FlowDef::IdmNoise { std } => format!("IDM + noise (std {std})"),
@@ -62,10 +64,7 @@ pub fn record(
     ego: Option<&EgoDef>,
     runners: &mut Runners,
 ) -> Result<Trace, EvalError> {
-    let background = flow_role(flow);
-    let ego_label = ego.map(|e| ego_role(&cell.ego, e));
-    let mut trace: Option<Trace> = None;
-    let mut observer: Option<Observer> = None;
+    let mut rec = Recorder::new(map, ego.map(|e| ego_role(&cell.ego, e)), flow_role(flow));
     let metrics = super::replay_episode(
         cell,
         map,
@@ -75,23 +74,62 @@ pub fn record(
         flow,
         ego,
         runners,
-        |env, sim| {
-            let o = observer.get_or_insert_with(|| Observer::new(map, sim));
-            match trace.as_mut() {
-                Some(t) => t.push(env, o),
-                None => {
-                    let role_of = |i, role| match (&ego_label, i, role) {
-                        (Some(e), 0, Role::Learner) => e.clone(),
-                        _ => background.clone(),
-                    };
-                    trace = Some(Trace::new(env, 0, role_of, o));
-                }
-            }
-        },
+        |env, sim| rec.push(env, sim),
     )?;
-    let mut t = trace.ok_or_else(|| EvalError::Run("the episode recorded no state".into()))?;
-    t.metrics = Some(metrics);
-    Ok(t)
+    rec.finish(metrics)
+}
+
+/// Replays one stored episode with `drivers` chosen outside (a Python policy in the ego's seat,
+/// say) as [`super::run_stored`] runs it, recording every step. The focus agent is agent 0,
+/// labelled `ego_label` when it sits in an ego's seat; every other vehicle is the flow of
+/// `flow` ([`flow_role`]).
+pub fn record_with(
+    at: &Setting,
+    episode: &StoredEpisode,
+    drivers: &Drivers,
+    ego_label: Option<String>,
+    flow: &FlowDef,
+) -> Result<Trace, EvalError> {
+    let mut rec = Recorder::new(at.map, ego_label, flow_role(flow));
+    let metrics = super::replay_stored(at, episode, drivers, |env, sim| rec.push(env, sim))?;
+    rec.finish(metrics)
+}
+
+/// A trace being recorded, state by state, with its roles' labels.
+struct Recorder<'a> {
+    map: &'a Arc<Map>,
+    ego_label: Option<String>,
+    background: String,
+    trace: Option<Trace>,
+    observer: Option<Observer>,
+}
+
+impl<'a> Recorder<'a> {
+    fn new(map: &'a Arc<Map>, ego_label: Option<String>, background: String) -> Self {
+        Self { map, ego_label, background, trace: None, observer: None }
+    }
+
+    fn push(&mut self, env: &sf_sim::Env, sim: &sf_sim::SimConfig) {
+        let o = self.observer.get_or_insert_with(|| Observer::new(self.map, sim));
+        match self.trace.as_mut() {
+            Some(t) => t.push(env, o),
+            None => {
+                let (ego, background) = (&self.ego_label, &self.background);
+                let role_of = |i, role| match (ego, i, role) {
+                    (Some(e), 0, Role::Learner) => e.clone(),
+                    _ => background.clone(),
+                };
+                self.trace = Some(Trace::new(env, 0, role_of, o));
+            }
+        }
+    }
+
+    fn finish(self, metrics: EpisodeMetrics) -> Result<Trace, EvalError> {
+        let mut t =
+            self.trace.ok_or_else(|| EvalError::Run("the episode recorded no state".into()))?;
+        t.metrics = Some(metrics);
+        Ok(t)
+    }
 }
 
 /// What the episodes file stored for the episode, shown beside the replay's metrics.
@@ -181,7 +219,7 @@ pub fn outcome_class(m: &EpisodeMetrics) -> &'static str {
 }
 
 /// The index page over `rows`, sorted as given (the page sorts by any column on a click).
-pub fn index(title: &str, rows: &[IndexRow]) -> Result<String, EvalError> {
+pub fn index(title: &str, rows: &[impl Serialize]) -> Result<String, EvalError> {
     Ok(INDEX.replace("__TITLE__", &escape_html(title)).replace("__ROWS__", &script_json(&rows)?))
 }
 
