@@ -4,7 +4,7 @@ Each check runs one result script of crates/lab/scripts/ on the committed per-ep
 validation files it was run on, and compares what it prints and the JSON it writes, byte for
 byte, with the committed files a page cites. The report (`docs/report/`) and the README's ladder
 table are checked by their own CI steps; these cover the Stage-1 results (the plateau table, F1
-at 120k and L5 against the noise-matched IDM flow). A difference names the file: regenerate it
+at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run). A difference names the file: regenerate it
 with the command the check shows (its page gives the same one), or find what changed the script.
 
     python .ci/results_regenerate.py        # needs scipy (CI's report venv has it)
@@ -20,11 +20,13 @@ import tempfile
 REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 STAGE1 = "docs/curves/stage1"
 F1_120K = f"{STAGE1}/f1-120k/episodes.csv.gz"
+PLATEAU = f"{STAGE1}/f1-plateau/episodes.csv.gz"
 
 # (script, its arguments, committed stdout, committed --json output)
 CHECKS = [
     ("plateau.py",
-     [f"{STAGE1}/{flow}-s{seed}" for flow in ("macad", "socialcomm") for seed in (11, 12, 13, 14)]
+     [f"{STAGE1}/macad-s{seed}" for seed in (11, 12, 13, 14)]
+     + [f"{STAGE1}/socialcomm-s{seed}" for seed in (11, 12, 13, 14, 15)]
      + [f"{STAGE1}/copo-s11"],
      f"{STAGE1}/plateau.md", f"{STAGE1}/plateau.json"),
     ("f1_stage1.py", [F1_120K, "--mark", "120k"],
@@ -33,6 +35,12 @@ CHECKS = [
      f"{STAGE1}/f1-120k/vs-idm-noise.md", f"{STAGE1}/f1-120k/vs-idm-noise.json"),
     ("l5_noise.py", [f"{STAGE1}/copo-s11-eval/episodes.csv.gz", "--run", "stage 1 CoPO, seed 11, kept actors and the job against IDM+noise"],
      f"{STAGE1}/copo-s11-eval/vs-idm-noise.md", f"{STAGE1}/copo-s11-eval/vs-idm-noise.json"),
+    ("f1_stage1.py", [PLATEAU, "--mark", "end", "--pairs", "13:13,13:14,15:13,15:14"],
+     f"{STAGE1}/f1-plateau/f1-end.md", f"{STAGE1}/f1-plateau/f1-end.json"),
+    ("l5_noise.py", [PLATEAU, "--run", "stage 1 at the plateau: the last actors, SocialComm seed 15's kept actors, the companion and its control, against IDM+noise"],
+     f"{STAGE1}/f1-plateau/vs-idm-noise.md", f"{STAGE1}/f1-plateau/vs-idm-noise.json"),
+    ("l5_noise.py", [PLATEAU, "--baseline", "Control-s13@24k", "--min-gain", "0", "--run", "the companion (SocialComm warm-started from MACAD seed 13) against its control (MACAD warm-started the same way)"],
+     f"{STAGE1}/f1-plateau/vs-control.md", f"{STAGE1}/f1-plateau/vs-control.json"),
 ]
 
 

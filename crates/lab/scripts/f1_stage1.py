@@ -9,6 +9,10 @@ two-sided t-test per scenario and one over all the scenarios' cases, Holm-correc
 file's family (every seed x (scenarios + pooled) test). The messages probe beside it: SocialComm
 with every neighbour's SVO told as 45 deg against the same actor told the truth.
 
+`--pairs 15:14,13:13` tests the SocialComm run of one seed against the MACAD run of another
+(each SocialComm run against each MACAD run that reached the plateau, when a seed's two runs did
+not both get there); its rows' `seed` is `<SocialComm seed>:<MACAD seed>`.
+
 The issue's rule: SocialComm - MACAD >= +2 points with Holm p < 0.05 (pooled) in every seed:
 reproduced; <= -3 points in every seed: does not reproduce at these updates; otherwise mixed.
 Messages count as used where the probe moves success by >= 3 points (Holm p < 0.05).
@@ -47,6 +51,8 @@ def main() -> int:
     ap.add_argument("episodes", nargs="+", help="episodes.csv (or .csv.gz) files, concatenated")
     ap.add_argument("--mark", default="120k", help="the kept actors' mark in the flow names")
     ap.add_argument("--alpha", type=float, default=0.05)
+    ap.add_argument("--pairs", help="SocialComm seed:MACAD seed pairs to test, comma-separated "
+                    "(runs that are not a seed's pair: 15:14,13:13); default every seed with both")
     ap.add_argument("--json", help="also write the results here")
     a = ap.parse_args()
 
@@ -59,11 +65,22 @@ def main() -> int:
                 print(f"{path}: cells of flow `{key[0]}` in {key[1]} appear in two files", file=sys.stderr)
                 return 2
             means[key] = cases
-    seeds = sorted({int(m.group(2)) for f, _ in means if (m := FLOW.match(f)) and m.group(3) == a.mark})
+    if a.pairs:
+        try:
+            pairs = [(int(x), int(y)) for x, y in (p.split(":") for p in a.pairs.split(","))]
+        except ValueError:
+            print(f"--pairs {a.pairs!r}: expected SocialComm seed:MACAD seed pairs, e.g. 15:14,13:13",
+                  file=sys.stderr)
+            return 2
+    else:
+        seeds = sorted({int(m.group(2)) for f, _ in means if (m := FLOW.match(f)) and m.group(3) == a.mark})
+        pairs = [(s, s) for s in seeds]
     tests = []
-    for seed in seeds:
-        mac, sc, msg = (f"MACAD-s{seed}@{a.mark}", f"SocialComm-s{seed}@{a.mark}",
-                        f"SocialComm-s{seed}@{a.mark} msg45")
+    probed = set()
+    for sc_seed, mac_seed in pairs:
+        seed = sc_seed if sc_seed == mac_seed else f"{sc_seed}:{mac_seed}"
+        mac, sc, msg = (f"MACAD-s{mac_seed}@{a.mark}", f"SocialComm-s{sc_seed}@{a.mark}",
+                        f"SocialComm-s{sc_seed}@{a.mark} msg45")
         for f in (mac, sc):
             missing = [s for s in SCENARIOS if (f, s) not in means]
             if missing:
@@ -72,9 +89,10 @@ def main() -> int:
         for s in SCENARIOS:
             tests.append(test(means[(sc, s)], means[(mac, s)], "SocialComm - MACAD", s, seed))
         tests.append(test(pooled_cases(means, sc), pooled_cases(means, mac), "SocialComm - MACAD", "pooled", seed))
-        if all((msg, s) in means for s in SCENARIOS):
+        if sc_seed not in probed and all((msg, s) in means for s in SCENARIOS):
+            probed.add(sc_seed)
             for s in SCENARIOS:
-                tests.append(test(means[(msg, s)], means[(sc, s)], "told 45 deg - told the truth", s, seed))
+                tests.append(test(means[(msg, s)], means[(sc, s)], "told 45 deg - told the truth", s, sc_seed))
     if not tests:
         print(f"no seed has both MACAD-s<seed>@{a.mark} and SocialComm-s<seed>@{a.mark}", file=sys.stderr)
         return 2
