@@ -39,6 +39,8 @@ CHECKS = [
      f"{STAGE1}/f1-plateau/f1-end.md", f"{STAGE1}/f1-plateau/f1-end.json"),
     ("l5_noise.py", [PLATEAU, "--run", "stage 1 at the plateau: the last actors, SocialComm seed 15's kept actors, the companion and its control, against IDM+noise"],
      f"{STAGE1}/f1-plateau/vs-idm-noise.md", f"{STAGE1}/f1-plateau/vs-idm-noise.json"),
+    ("told_ego.py", [f"{STAGE1}/told-ego-s15/episodes.csv.gz"],
+     f"{STAGE1}/told-ego-s15/told-ego.md", f"{STAGE1}/told-ego-s15/told-ego.json"),
     ("l5_noise.py", [PLATEAU, "--baseline", "Control-s13@24k", "--min-gain", "0", "--run", "the companion (SocialComm warm-started from MACAD seed 13) against its control (MACAD warm-started the same way)"],
      f"{STAGE1}/f1-plateau/vs-control.md", f"{STAGE1}/f1-plateau/vs-control.json"),
 ]
