@@ -360,12 +360,7 @@ pub fn replay_stored(
             episode.cases.len()
         ))
     })?;
-    let spec = EpisodeSpec {
-        case: case.clone(),
-        vehicles: episode.vehicles,
-        svo_deg: episode.svo_deg,
-        tag: episode_tag(episode.seed, i),
-    };
+    let spec = episode_spec(case, i, episode.seed, episode.vehicles, episode.svo_deg);
     let mut v = VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), at.mode, 1, vec![spec])?;
     v.set_svo_gaussian(at.svo_gaussian);
     on_state(v.env(0), sim);
@@ -374,6 +369,18 @@ pub fn replay_stored(
         .next()
         .map(|(_, m)| m)
         .ok_or_else(|| EvalError::Run(format!("case {i} of {} did not finish", map.name)))
+}
+
+/// Stored case `case` (index `case_index` among its scenario's) at evaluation seed `seed`, as
+/// every stored episode is set up: one place, so a replay gets the draws its row had.
+fn episode_spec(
+    case: &sf_sim::Case,
+    case_index: usize,
+    seed: u32,
+    vehicles: Option<usize>,
+    svo_deg: Option<f32>,
+) -> EpisodeSpec {
+    EpisodeSpec { case: case.clone(), vehicles, svo_deg, tag: episode_tag(seed, case_index) }
 }
 
 /// An episode's tag: its case index and seed (the simulator's per-episode draws, such as CoPO
@@ -492,12 +499,7 @@ pub fn run_stored(
             .cases
             .iter()
             .enumerate()
-            .map(|(c, case)| EpisodeSpec {
-                case: case.clone(),
-                vehicles: episodes.vehicles,
-                svo_deg: episodes.svo_deg,
-                tag: episode_tag(seed, c),
-            })
+            .map(|(c, case)| episode_spec(case, c, seed, episodes.vehicles, episodes.svo_deg))
             .collect();
         let mut v =
             VecEnv::from_episodes(Arc::clone(map), Arc::clone(sim), mode, episodes.envs, eps)?;
