@@ -311,11 +311,17 @@ fn network_ingest_figures() {
             let secs = t0.elapsed().as_secs_f64();
             let s = (steps(&mut c) - s0) as f64 / secs;
             let mbit = (w.proxy.bytes() - b0) as f64 * 8.0 / secs / 1e6;
-            let win = metrics(&w.admin).map(|m| metric(&m, "socialflow_worker_in_flight_window"));
-            eprintln!("rep {rep}: ingest at {label}, window {window}: {s:.0} transitions/s, {mbit:.2} Mbit/s, window now {win:?}");
+            let m = metrics(&w.admin);
+            let read = |name: &str| m.as_ref().map(|m| metric(m, name));
+            let win = read("socialflow_worker_in_flight_window");
+            let rtt_ms =
+                read("socialflow_worker_link_min_rtt_seconds").map(|s| (s * 1e4).round() / 10.0);
+            let acked = read("socialflow_worker_link_acked_batches_per_second").map(f64::round);
+            eprintln!("rep {rep}: ingest at {label}, window {window}: {s:.0} transitions/s, {mbit:.2} Mbit/s, window now {win:?} (min rtt {rtt_ms:?} ms, acked {acked:?} batches/s)");
             rows.push(serde_json::json!({
                 "rep": rep, "link": label, "window": window, "transitions_per_s": s.round(),
                 "mbit_per_s": (mbit * 100.0).round() / 100.0, "window_batches_at_end": win,
+                "min_rtt_ms": rtt_ms, "acked_batches_per_s": acked,
             }));
             drop(w);
             std::thread::sleep(Duration::from_secs(1));

@@ -39,9 +39,9 @@ pub struct WorkerArgs {
     pub max_backoff_s: u64,
     /// Transition batches sent and not yet acknowledged, at most: the cap of the window that
     /// carries ingest across a slow link (throughput is at most the window's batches per round
-    /// trip). The window sizes itself to the link between 2 and this cap (it grows while
-    /// acknowledgements come back as fast as the fastest and shrinks when they queue); more is
-    /// more lost if the worker dies.
+    /// trip). The window sizes itself to the link between 2 and this cap (twice the measured
+    /// bandwidth-delay product: the fastest recent acknowledged rate times the shortest recent
+    /// round trip); more is more lost if the worker dies.
     #[arg(long, env = "SOCIALFLOW_IN_FLIGHT_BATCHES", default_value_t = DEFAULT_IN_FLIGHT_BATCHES)]
     pub in_flight_batches: u32,
     /// Keep the window at `--in-flight-batches` instead of sizing it to the link.

@@ -25,6 +25,8 @@ pub struct WorkerMetrics {
     pub inference_seconds: Counter<f64, AtomicU64>,
     pub eval_cells: Counter,
     pub in_flight_window: Gauge,
+    pub link_min_rtt_seconds: Gauge<f64, AtomicU64>,
+    pub link_acked_batches_per_second: Gauge<f64, AtomicU64>,
 }
 
 impl WorkerMetrics {
@@ -43,6 +45,8 @@ impl WorkerMetrics {
             inference_seconds: Counter::default(),
             eval_cells: Counter::default(),
             in_flight_window: Gauge::default(),
+            link_min_rtt_seconds: Gauge::default(),
+            link_acked_batches_per_second: Gauge::default(),
         };
         reg.register(
             "socialflow_worker_env_steps",
@@ -64,6 +68,16 @@ impl WorkerMetrics {
             "socialflow_worker_in_flight_window",
             "Transition batches the worker may have unacknowledged now (sized to the link, up to --in-flight-batches)",
             m.in_flight_window.clone(),
+        );
+        reg.register(
+            "socialflow_worker_link_min_rtt_seconds",
+            "Shortest recent round trip of a transition batch (sent to acknowledged), which the window is sized from",
+            m.link_min_rtt_seconds.clone(),
+        );
+        reg.register(
+            "socialflow_worker_link_acked_batches_per_second",
+            "Fastest recent rate of acknowledged transition batches, which the window is sized from",
+            m.link_acked_batches_per_second.clone(),
         );
         reg.register(
             "socialflow_worker_policy_version",

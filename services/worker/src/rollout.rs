@@ -13,7 +13,7 @@ mod nstep;
 mod window;
 mod writer;
 
-pub use window::Window;
+pub use window::{LinkEstimate, Window};
 use writer::TransitionWriter;
 
 use std::sync::{Arc, Mutex};
@@ -132,6 +132,11 @@ impl Rollout {
     /// The window of unacknowledged batches now.
     pub fn window(&self) -> u32 {
         self.window.limit()
+    }
+
+    /// The round trip and acknowledged rate the window is sized from.
+    pub fn link_estimate(&self) -> Option<LinkEstimate> {
+        self.window.estimate()
     }
 
     pub fn is_finished(&self) -> bool {

@@ -65,6 +65,10 @@ pub async fn stream(
         metrics.common.rpc("PushTransitions", Code::Ok);
         rollout.grant();
         metrics.in_flight_window.set(i64::from(rollout.window()));
+        if let Some(e) = rollout.link_estimate() {
+            metrics.link_min_rtt_seconds.set(e.min_rtt.as_secs_f64());
+            metrics.link_acked_batches_per_second.set(e.acked_batches_per_s);
+        }
         policy.follow(&ack, rollout).await?;
     }
 }
