@@ -4,7 +4,8 @@ Each check runs one result script of crates/lab/scripts/ on the committed per-ep
 validation files it was run on, and compares what it prints and the JSON it writes, byte for
 byte, with the committed files a page cites. The report (`docs/report/`) and the README's ladder
 table are checked by their own CI steps; these cover the Stage-1 results (the plateau table, F1
-at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run). A difference names the file: regenerate it
+at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run) and the
+paper-style FailMaker's cost to the egos. A difference names the file: regenerate it
 with the command the check shows (its page gives the same one), or find what changed the script.
 
     python .ci/results_regenerate.py        # needs scipy (CI's report venv has it)
@@ -23,7 +24,12 @@ F1_120K = f"{STAGE1}/f1-120k/episodes.csv.gz"
 PLATEAU = f"{STAGE1}/f1-plateau/episodes.csv.gz"
 
 # (script, its arguments, committed stdout, committed --json output)
+FAILMAKER = "docs/results/failmaker-paper"
+
 CHECKS = [
+    ("failmaker_cost.py", [f"{FAILMAKER}/episodes.csv.gz", "--runs", "9", "--flows",
+                           "FailMaker-paper,FailMaker-paper r2,FailMaker-paper r1,FailMaker"],
+     f"{FAILMAKER}/cost.md", f"{FAILMAKER}/cost.json"),
     ("plateau.py",
      [f"{STAGE1}/macad-s{seed}" for seed in (11, 12, 13, 14)]
      + [f"{STAGE1}/socialcomm-s{seed}" for seed in (11, 12, 13, 14, 15)]
