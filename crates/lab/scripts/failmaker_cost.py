@@ -1,7 +1,6 @@
-"""What a FailMaker costs: the RL egos' success among it against among the SocialComm flow, and
-its own flow quality against the IDM flow's where the file has flow-quality cells of both, from
+"""What a FailMaker costs: the RL egos' success among it against among the SocialComm flow, from
 `socialflow eval` episodes of `configs/eval/failmaker-paper-adversary.toml` (one file per graph
-run; that grid has no flow-quality cells: the evaluation cannot score a FailMaker on its own).
+run). Its own flow quality is not scored: the evaluation cannot run a FailMaker without an ego.
 
 The stored case is the unit: each (scenario, case)'s success is averaged over its seeds (and, for
 the egos' cost, over the four egos, which meet the same stored cases), and two flows are compared
@@ -9,8 +8,8 @@ paired by case with a two-sided t-test, per scenario and pooled over the scenari
 egos' cost is also given per ego (pooled over scenarios). Each run's family of tests is
 Holm-corrected. The minimum detectable effect (80 % power, two-sided 0.05) is printed beside.
 
-Issue 66's gates, per run: the FailMaker's own flow success <= the IDM flow's - 15 points
-(pooled), and the four RL egos' pooled drop (among it against among SocialComm) >= 20 points.
+Issue 66's gate checked here, per run: the four RL egos' pooled drop (among it against among
+SocialComm) >= 20 points (its other, the FailMaker's own flow success <= IDM's - 15, is not).
 
     python3 crates/lab/scripts/failmaker_cost.py runs/fm-eval-s9/out/episodes.csv \\
         runs/fm-eval-s10/out/episodes.csv --runs 9,10 --json docs/results/failmaker-paper/cost.json
@@ -32,29 +31,19 @@ SCENARIOS = ["intersection", "bottleneck", "merge", "roundabout"]
 EGOS = ["RL/IDM", "RL/MACAD", "RL/CoPO", "RL/SocialComm"]
 
 
-def read(path: str) -> tuple[dict, dict]:
-    """Flow quality case means {(flow, scenario): {case: success}} and the adversary cells'
-    {(ego, flow, scenario): {case: success}}, each averaged over the case's seeds."""
-    own: dict = defaultdict(lambda: defaultdict(list))
+def read(path: str) -> dict:
+    """The adversary cells' {(ego, flow, scenario): {case: success averaged over its seeds}}."""
     adv: dict = defaultdict(lambda: defaultdict(list))
     with open_csv(path) as f:
         for row in csv.DictReader(f):
-            case, ok = int(row["case"]), float(row["success"])
-            if row["experiment"] == "flow_quality" and not row["ego"]:
-                own[(row["flow"], row["scenario"])][case].append(ok)
-            elif row["experiment"] == "adversary":
-                adv[(row["ego"], row["flow"], row["scenario"])][case].append(ok)
-    return case_means(own), case_means(adv)
+            if row["experiment"] == "adversary":
+                adv[(row["ego"], row["flow"], row["scenario"])][int(row["case"])].append(float(row["success"]))
+    return {k: {c: sum(v) / len(v) for c, v in cases.items()} for k, cases in adv.items()}
 
 
-def case_means(d: dict) -> dict:
-    """{key: {case: [successes]}} -> {key: {case: their mean}}."""
-    return {k: {c: sum(v) / len(v) for c, v in cases.items()} for k, cases in d.items()}
-
-
-def keyed(per_scenario: dict, scenarios: list[str]) -> dict:
-    """{(scenario, case): value} over `scenarios`."""
-    return {(s, c): v for s in scenarios for c, v in per_scenario.get(s, {}).items()}
+def pooled(cells, scenarios: list[str]) -> dict:
+    """{(scenario, case): value} over `scenarios`, `cells(scenario)` giving {case: value}."""
+    return {(s, c): v for s in scenarios for c, v in cells(s).items()}
 
 
 def over_egos(adv: dict, flow: str, scenario: str, egos: list[str]) -> dict[int, float]:
@@ -64,29 +53,19 @@ def over_egos(adv: dict, flow: str, scenario: str, egos: list[str]) -> dict[int,
     return {c: sum(cell[c] for cell in cells) / len(cells) for c in cases}
 
 
-def run_rows(own: dict, adv: dict, run: str, flows: list[str]) -> list[dict]:
+def run_rows(adv: dict, run: str, flows: list[str]) -> list[dict]:
     rows = []
     for flow in flows:
-        for s in SCENARIOS + ["pooled"]:
-            sc = SCENARIOS if s == "pooled" else [s]
-            a = keyed({x: own.get((flow, x), {}) for x in sc}, sc)
-            b = keyed({x: own.get(("IDM", x), {}) for x in sc}, sc)
+        tests = [(f"egos: {flow} - SocialComm", s, SCENARIOS if s == "pooled" else [s],
+                  lambda x, f: over_egos(adv, f, x, EGOS)) for s in SCENARIOS + ["pooled"]]
+        tests += [(f"{ego}: {flow} - SocialComm", "pooled", SCENARIOS,
+                   lambda x, f, ego=ego: adv.get((ego, f, x), {})) for ego in EGOS]
+        for test, scenario, sc, cells in tests:
+            a = pooled(lambda x, c=cells: c(x, flow), sc)
+            b = pooled(lambda x, c=cells: c(x, "SocialComm"), sc)
             if a and b:
-                rows.append(paired_row(a, b, {"run": run, "test": f"flow quality: {flow} - IDM",
-                                              "scenario": s}, ("flow", "reference")))
-        for s in SCENARIOS + ["pooled"]:
-            sc = SCENARIOS if s == "pooled" else [s]
-            a = keyed({x: over_egos(adv, flow, x, EGOS) for x in sc}, sc)
-            b = keyed({x: over_egos(adv, "SocialComm", x, EGOS) for x in sc}, sc)
-            if a and b:
-                rows.append(paired_row(a, b, {"run": run, "test": f"egos: {flow} - SocialComm",
-                                              "scenario": s}, ("flow", "reference")))
-        for ego in EGOS:
-            a = keyed({x: adv.get((ego, flow, x), {}) for x in SCENARIOS}, SCENARIOS)
-            b = keyed({x: adv.get((ego, "SocialComm", x), {}) for x in SCENARIOS}, SCENARIOS)
-            if a and b:
-                rows.append(paired_row(a, b, {"run": run, "test": f"{ego}: {flow} - SocialComm",
-                                              "scenario": "pooled"}, ("flow", "reference")))
+                rows.append(paired_row(a, b, {"run": run, "test": test, "scenario": scenario},
+                                       ("flow", "reference")))
     for r, p in zip(rows, holm([r["p"] for r in rows])):
         r["p_holm"] = p
     return rows
@@ -107,28 +86,21 @@ def main() -> int:
     rows: list[dict] = []
     gates: list[dict] = []
     for path, run in zip(a.episodes, labels):
-        own, adv = read(path)
+        adv = read(path)
         missing = [f for f in flows + ["SocialComm"] if not any(k[1] == f for k in adv)]
         if missing:
             print(f"{path}: no adversary cells among {', '.join(missing)}", file=sys.stderr)
             return 2
-        rr = run_rows(own, adv, run, flows)
+        rr = run_rows(adv, run, flows)
         rows += rr
         for flow in flows:
-            q = next((r for r in rr if r["test"] == f"flow quality: {flow} - IDM"
-                      and r["scenario"] == "pooled"), None)
             e = next(r for r in rr if r["test"] == f"egos: {flow} - SocialComm" and r["scenario"] == "pooled")
-            gates.append({"run": run, "flow": flow,
-                          "flow_minus_idm": q["diff"] if q else None,
-                          "flow_gate": q["diff"] <= -15.0 if q else None,
-                          "egos_drop": -e["diff"], "egos_gate": -e["diff"] >= 20.0})
+            gates.append({"run": run, "flow": flow, "egos_drop": -e["diff"], "egos_gate": -e["diff"] >= 20.0})
     for r in rows:
         print(f"run {r['run']:>3} {r['test']:42s} {r['scenario']:12s} {r['flow']:5.1f} vs {r['reference']:5.1f}: "
               f"{r['diff']:+6.1f} +- {r['ci95']:4.1f} (Holm p {r['p_holm']:.2g}, MDE {r['mde80']:.1f}, {r['cases']} cases)")
     for g in gates:
-        own_flow = ("not measured" if g["flow_gate"] is None else
-                    f"{g['flow_minus_idm']:+.1f} (gate <= -15: {'met' if g['flow_gate'] else 'not met'})")
-        print(f"run {g['run']} {g['flow']}: own flow - IDM {own_flow}; egos' drop {g['egos_drop']:+.1f} "
+        print(f"run {g['run']} {g['flow']}: egos' drop {g['egos_drop']:+.1f} "
               f"(gate >= 20: {'met' if g['egos_gate'] else 'not met'})")
     if a.json:
         write_json(a.json, {"rows": rows, "gates": gates})
