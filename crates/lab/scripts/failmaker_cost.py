@@ -41,9 +41,9 @@ def read(path: str) -> dict:
     return {k: {c: sum(v) / len(v) for c, v in cases.items()} for k, cases in adv.items()}
 
 
-def pooled(cells, scenarios: list[str]) -> dict:
-    """{(scenario, case): value} over `scenarios`, `cells(scenario)` giving {case: value}."""
-    return {(s, c): v for s in scenarios for c, v in cells(s).items()}
+def pooled(cells, flow: str, scenarios: list[str]) -> dict:
+    """{(scenario, case): value} over `scenarios`, `cells(scenario, flow)` giving {case: value}."""
+    return {(s, c): v for s in scenarios for c, v in cells(s, flow).items()}
 
 
 def over_egos(adv: dict, flow: str, scenario: str, egos: list[str]) -> dict[int, float]:
@@ -61,8 +61,7 @@ def run_rows(adv: dict, run: str, flows: list[str]) -> list[dict]:
         tests += [(f"{ego}: {flow} - SocialComm", "pooled", SCENARIOS,
                    lambda x, f, ego=ego: adv.get((ego, f, x), {})) for ego in EGOS]
         for test, scenario, sc, cells in tests:
-            a = pooled(lambda x, c=cells: c(x, flow), sc)
-            b = pooled(lambda x, c=cells: c(x, "SocialComm"), sc)
+            a, b = pooled(cells, flow, sc), pooled(cells, "SocialComm", sc)
             if a and b:
                 rows.append(paired_row(a, b, {"run": run, "test": test, "scenario": scenario},
                                        ("flow", "reference")))
