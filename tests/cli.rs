@@ -440,6 +440,8 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
                 &out.display().to_string(),
                 "--workers",
                 "1",
+                "--set",
+                "sac.batch_size=24",
             ],
             T,
         );
@@ -448,6 +450,9 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
             "ladder --seeds {seed}: {}",
             String::from_utf8_lossy(&o.stderr)
         );
+        // Off a terminal, a line per validation (or tenth) of the job it trains, and its end.
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.lines().any(|l| l.starts_with("job ") && l.contains(" succeeded: ")), "{err}");
         let summary: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json"))
                 .expect("json");
@@ -466,6 +471,8 @@ fn the_ladder_trains_evaluates_against_idm_and_adds_seeds_to_one_summary() {
     };
     assert_eq!((lines.len() - 1, drivers("policy"), drivers("idm")), (12, 6, 6), "{episodes}");
     assert!(out.join("seed-0/curve.csv").exists() && out.join("success.png").exists());
+    let stored = std::fs::read_to_string(out.join("seed-0/config.toml")).expect("config.toml");
+    assert!(stored.contains("batch_size = 24"), "the ladder's `--set` is recorded: {stored}");
     // A second seed run into the same directory keeps the first one's summary and episodes.
     let (summary, episodes) = ladder("1");
     let seeds: Vec<u64> = summary["seeds"]
@@ -700,9 +707,23 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
     )
     .expect("config");
     let data = dir.join("data").display().to_string();
-    let args = ["pipeline", &graph.display().to_string(), "--embedded", "1", "--data-dir", &data];
+    let g = graph.display().to_string();
+    let args =
+        ["pipeline", &g, "--embedded", "1", "--data-dir", &data, "--set", "sac.batch_size=24"];
     let out = socialflow(&args, T);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    // Off a terminal, a line per job as it is queued, starts, validates and ends: the ego waits
+    // for its flow, so it is first seen queued; each ends with its held-out success.
+    let said = |name: &str, what: &str, also: &str| {
+        err.lines().any(|l| {
+            l.starts_with(&format!("{name}: job ")) && l.contains(what) && l.contains(also)
+        })
+    };
+    assert!(said("ego-in-flow", " queued: ", ""), "{err}");
+    for name in ["flow", "ego-in-flow"] {
+        assert!(said(name, " succeeded: ", "held-out"), "no end line of {name}: {err}");
+    }
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
         .lines()
         .map(|l| serde_json::from_str(l).expect("JSON line"))
@@ -724,6 +745,8 @@ fn a_pipeline_runs_flows_before_the_egos_that_need_them_and_resumes() {
             serde_json::from_slice(&std::fs::read(art.join("policy.json")).expect("policy.json"))
                 .expect("json");
         assert_eq!(meta["selected_by"], "validation", "{}: {meta}", v["name"]);
+        let stored = std::fs::read_to_string(art.join("config.toml")).expect("config.toml");
+        assert!(stored.contains("batch_size = 24"), "`--set` is recorded: {stored}");
     }
     // Rerun: nothing new is submitted.
     let again = socialflow(&args, T);
@@ -1020,6 +1043,25 @@ adversary = { egos = ["RL/SocialComm", "SC actor"], flows = ["SocialComm", "SC t
     let l = socialflow_e2e::start_learner(&dir, 64 << 20);
     let _w: Vec<socialflow_e2e::Proc> =
         (0..2).map(|k| socialflow_e2e::start_worker(&l, &dir, k)).collect();
+    // `submit --set`: the override is in the config the learner stores (cancelled at once).
+    let token = [("SOCIALFLOW_TOKEN", socialflow_e2e::TOKEN)];
+    let job_file = dir.join("set-job.toml");
+    let tiny = socialflow_e2e::tiny_job(r#""merge""#, "set-job", 100_000);
+    std::fs::write(&job_file, format!("kind = \"ego\"\n{tiny}")).expect("job");
+    let job_path = job_file.display().to_string();
+    let args = ["submit", &job_path, "--learner", &l.url, "--set", "sac.batch_size=24"];
+    let set = socialflow_env(&args, &token, T);
+    assert!(set.status.success(), "{}", String::from_utf8_lossy(&set.stderr));
+    let queued: serde_json::Value = String::from_utf8_lossy(&set.stdout)
+        .lines()
+        .next()
+        .and_then(|l| serde_json::from_str(l).ok())
+        .expect("the job as JSON");
+    let stored = queued["config_toml"].as_str().unwrap_or_default();
+    assert!(stored.contains("batch_size = 24"), "`submit --set` is recorded: {stored}");
+    let id = queued["job_id"].to_string();
+    let cancel = socialflow_env(&["cancel", &id, "--learner", &l.url], &token, T);
+    assert!(cancel.status.success(), "{}", String::from_utf8_lossy(&cancel.stderr));
     // A probe only `socialflow eval` runs: the learner refuses it, naming the entry.
     let refused = socialflow_env(
         &["submit", &probe.display().to_string(), "--learner", &l.url],

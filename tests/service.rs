@@ -560,7 +560,8 @@ fn an_ego_job_waits_for_its_flow_and_trains_among_it_frozen() {
 }
 
 /// An evaluation grid over one trained ego and the two scripted drivers (IDM, IDM with MOBIL's
-/// lane changes) in the ego's seat in the IDM flow, `runs` / `out` for `socialflow eval`.
+/// lane changes) in the ego's seat in the IDM flow, `runs` / `out` for `socialflow eval`; each
+/// cell's worst episode mined into a viewer page at the end.
 fn eval_grid(data: &Path, out: &Path, ego_job: &str) -> String {
     format!(
         r#"kind = "eval"
@@ -571,6 +572,7 @@ scenarios = ["merge", "roundabout"]
 cases = 2
 seeds = 2
 envs = 4
+mine_worst = 1
 flows = [{{ name = "IDM", job = "idm" }}]
 egos = [{{ name = "RL/IDM", job = "{ego_job}", trained_in = "IDM" }}, {{ name = "IDM ego", job = "idm" }}, {{ name = "IDM+MOBIL", job = "idm-mobil" }}]
 [experiments]
@@ -720,6 +722,13 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
     let pinned = std::fs::read_to_string(Path::new(&done.artifact_dir).join("config.toml"))
         .expect("the grid beside its results");
     assert!(pinned.contains(&format!("job_id = {}", ego.job_id)), "{pinned}");
+    // Mined at the end (`mine_worst = 1`): one page per cell, the index, what the report links.
+    let mined = Path::new(&done.artifact_dir).join("mined");
+    let linked = std::fs::read_to_string(mined.join("cells.json")).expect("mined/cells.json");
+    assert_eq!(linked.matches("\"href\"").count() as u64, cells, "{linked}");
+    let pages = std::fs::read_dir(&mined).expect("mined pages").count();
+    assert_eq!(pages as u64, cells + 2, "a page per cell, index.html and cells.json");
+    assert!(std::fs::read_to_string(mined.join("index.html")).expect("index").contains(".html"));
 
     // The same grid evaluated in one process: the same numbers.
     let cfg = dir.join("grid.toml");
@@ -730,6 +739,11 @@ fn an_evaluation_is_shared_by_workers_and_a_lost_workers_cell_goes_to_another() 
         sorted_rows(&dir.join("embedded/episodes.csv")),
         rows,
         "embedded and shared by workers: the same episodes"
+    );
+    assert_eq!(
+        std::fs::read_to_string(dir.join("embedded/mined/cells.json")).expect("embedded mining"),
+        linked,
+        "and the same episodes mined"
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -185,9 +185,9 @@ def evaluate(
     `grid`: `{"flows": {name: "idm" | flow job dir}, "scenarios": [...], "cases", "seeds",
     "envs", "vehicles", "svo_deg", "experiment", "ego"}`; keyword arguments override it.
     Every random draw of an episode (learned flows' sampled actions, noise) is the episode's
-    own, keyed by (case, seed, step, agent), as in `socialflow eval`: scripted flows give the
-    same episodes at any `envs`, learned flows the same outcomes (batched inference rounds the
-    last bits of an action by batch size). Returns an `EvalResult`."""
+    own, keyed by (case, seed, step, agent), and learned policies run in Rust infer in calls of
+    a fixed number of rows, as in `socialflow eval`: an episode ends the same at any `envs`
+    (a Python callable's own batching is its own). Returns an `EvalResult`."""
     if not callable(policy):
         raise ValueError(f"policy: {policy!r} is not callable")
     check_choice("obs_format", obs_format, ("flat", "dict"))

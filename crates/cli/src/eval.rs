@@ -41,6 +41,36 @@ pub struct EvalArgs {
     /// road closed, timeout).
     #[arg(long, value_name = "worst=N")]
     pub mine: Option<String>,
+    /// Rows per inference call of the learned policies: a number (what every result evaluated
+    /// since 2026-12-08 used is the default), with which a stored episode ends the same at any
+    /// `envs`, thread or worker count; or `all`, one call per step (faster where many rows step
+    /// together, and episodes then depend on `envs`).
+    #[arg(long, value_name = "N|all", value_parser = parse_inference_rows,
+          default_value_t = InferenceRows(Some(evaluate::EVAL_INFERENCE_ROWS)))]
+    pub inference_rows: InferenceRows,
+}
+
+/// `--inference-rows`: a fixed width, or one call per step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InferenceRows(pub Option<usize>);
+
+impl std::fmt::Display for InferenceRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            Some(n) => write!(f, "{n}"),
+            None => f.write_str("all"),
+        }
+    }
+}
+
+fn parse_inference_rows(s: &str) -> Result<InferenceRows, String> {
+    if s == "all" {
+        return Ok(InferenceRows(None));
+    }
+    match s.parse::<usize>() {
+        Ok(n) if n > 0 => Ok(InferenceRows(Some(n))),
+        _ => Err(format!("`{s}` is neither a positive number of rows nor `all`")),
+    }
 }
 
 /// Reads and validates an evaluation config file.
@@ -146,12 +176,17 @@ pub fn runs_and_out(
 }
 
 pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
-    let mine = a.mine.as_deref().map(crate::view::MineSpec::parse).transpose()?;
     let cfg = load(&a.config)?;
+    // `--mine` over the grid's own `mine_worst`.
+    let mine = match a.mine.as_deref() {
+        Some(spec) => Some(crate::view::MineSpec::parse(spec)?),
+        None => cfg.mine_worst.map(|worst| crate::view::MineSpec { worst }),
+    };
     let (runs, out) = runs_and_out(&a.config, &cfg, a.runs, a.out)?;
     let Grid { cfg, resolved: grid, maps } = resolve(ctx, &a.config, cfg, &runs)?;
     let all = cfg.cells();
-    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?);
+    let mut runners = Runners::new(sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?)
+        .with_inference_rows(a.inference_rows.0);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let meta_path = out.join("meta.json");
     std::fs::write(&meta_path, serde_json::to_string_pretty(&Meta::of(&cfg))?)
@@ -188,6 +223,8 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
     };
     eprintln!("{} cells to run ({} stored), {each}", todo.len(), have.len());
     let mut file = EpisodesWriter::open(&path)?;
+    let progress =
+        sf_embedded::client::EpisodesBar::new(todo.iter().map(|c| cfg.episodes_of(c)).sum());
     for (k, cell) in todo.iter().enumerate() {
         let (n_cases, n_seeds) = cfg.size_of(cell);
         let size = CellSize { cases: n_cases, seeds: n_seeds, envs: cfg.envs };
@@ -201,15 +238,17 @@ pub fn run(ctx: &Ctx, a: EvalArgs) -> Result<()> {
         file.append(&rows)?;
         let s =
             rows.iter().map(|r| r.ep.scores.success as f64).sum::<f64>() / rows.len().max(1) as f64;
-        eprintln!(
+        progress.line(format!(
             "[{}/{}] {:<64} success {:5.1}%  ({:.1} s)",
             k + 1,
             todo.len(),
             cell.key(),
             100.0 * s,
             t.elapsed().as_secs_f64()
-        );
+        ));
+        progress.bar.inc(rows.len() as u64);
     }
+    progress.bar.finish_and_clear();
     eprintln!("wrote {}", path.display());
     if let Some(g) = &cfg.experiments.gifs {
         for p in grid.render_gifs(g, &out, &maps, &mut runners).map_err(anyhow::Error::msg)? {

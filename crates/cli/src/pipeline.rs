@@ -219,13 +219,20 @@ async fn evaluate(
     crate::eval::report(crate::eval::ReportArgs { results, out: out.to_path_buf() })
 }
 
-/// Polls until every job is final; prints one JSON line per job; fails if any did not succeed.
+/// Polls until every job is final, showing their progress ([`sf_embedded::client::Board`]: bars
+/// on a terminal, a line per start, validation and end elsewhere); then prints one JSON line per
+/// job; fails if any did not succeed.
 async fn follow(c: &mut JobsClient, ids: &[(String, JobId)]) -> Result<()> {
+    let mut board = sf_embedded::client::Board::new(ids.len());
     loop {
         let all = remote::list(c).await?;
         let mine: Vec<_> =
             ids.iter().filter_map(|(_, id)| all.iter().find(|j| j.id == *id)).collect();
+        for j in &mine {
+            board.update(&j.name, j.id, j.state, &j.progress);
+        }
         if mine.len() == ids.len() && mine.iter().all(|j| j.state.is_final()) {
+            board.finish();
             let mut bad = Vec::new();
             for j in &mine {
                 println!(

@@ -264,8 +264,8 @@ pub struct EvalConfig {
     /// `adversary = { cases = 200, seeds = 2 }`. Read through [`EvalConfig::size_of`].
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub sizes: BTreeMap<String, SizeOverride>,
-    /// Episodes stepped together. Part of what an episode's numbers depend on (the learned
-    /// flows sample from one stream per seed, shared by the episodes stepped together).
+    /// Episodes stepped together: how fast a cell runs, not how its episodes end (every draw is
+    /// the episode's own and learned policies infer in fixed-width calls).
     #[serde(default = "d_envs")]
     pub envs: usize,
     pub flows: Vec<Named>,
@@ -275,6 +275,11 @@ pub struct EvalConfig {
     pub ours: Option<String>,
     #[serde(default)]
     pub experiments: Experiments,
+    /// Failure mining once every cell is stored: the N worst stored episodes of every cell
+    /// replayed into viewer pages under `mined/`, with an index sorted by outcome (what
+    /// `socialflow eval --mine worst=N` does). 1 to [`EvalConfig::MAX_MINE_WORST`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mine_worst: Option<usize>,
 }
 
 fn d_envs() -> usize {
@@ -404,7 +409,16 @@ impl EvalConfig {
         toml::to_string(self).expect("an eval config always serialises to TOML")
     }
 
+    /// The most episodes per cell `mine_worst` replays (each is a page of ~100 KB).
+    pub const MAX_MINE_WORST: usize = 100;
+
     pub fn validate(&self) -> Result<(), EvalConfigError> {
+        if let Some(n) = self.mine_worst.filter(|n| !(1..=Self::MAX_MINE_WORST).contains(n)) {
+            return bad(format!(
+                "eval config field `mine_worst`: {n} is not in 1..={} episodes per cell",
+                Self::MAX_MINE_WORST
+            ));
+        }
         if self.kind != "eval" {
             return bad(format!("eval config field `kind`: `{}`, expected \"eval\"", self.kind));
         }
@@ -715,6 +729,8 @@ mod tests {
             ("flow_quality = [\"IDM\"]", "flow_quality = [\"Nope\"]", "experiments.flow_quality"),
             ("kind = \"eval\"", "kind = \"ego\"", "`kind`"),
             ("cases = 2", "cases = 0", "`cases`"),
+            ("cases = 2", "cases = 2\nmine_worst = 0", "`mine_worst`: 0 is not in 1..=100"),
+            ("cases = 2", "cases = 2\nmine_worst = 101", "`mine_worst`: 101"),
             ("name = \"E\", job = \"ego-a\"", "name = \"E\", job = \"idm\", trained_in = \"IDM\"", "`egos.trained_in` of `E`"),
             ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"I\"\negos = [{ name = \"I\", job = \"idm\" }]", "`ours`: `I` is a scripted driver"),
             ("egos = [{ name = \"E\", job = \"ego-a\" }]", "ours = \"M\"\negos = [{ name = \"M\", job = \"idm-mobil\" }]", "`ours`: `M` is a scripted driver"),

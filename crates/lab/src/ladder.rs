@@ -532,7 +532,7 @@ fn train(dirs: &Ctx, a: &LadderArgs, cfg: &JobConfig) -> Result<PathBuf> {
                 None => submit(&mut c, text).await?,
             };
             eprintln!("training {} (job {})", cfg.name, job.id);
-            let (state, _) = watch(&mut c, job.id, true).await?;
+            let (state, _) = watch(&mut c, job.id, false).await?;
             anyhow::ensure!(
                 state == JobState::Succeeded,
                 "job {} ({}) ended {}",

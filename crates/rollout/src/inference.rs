@@ -1,7 +1,11 @@
 //! Batched actor inference for rollouts: a policy version's actor and, for query-centric
 //! observations, its segment table (computed once per version and reused every step).
 //!
-//! Owns: [`PolicyRunner`], what a worker (and evaluation) acts with. Must not: train.
+//! Owns: [`PolicyRunner`], what a worker (and evaluation) acts with, and how many rows one
+//! inference call takes: all of a step's rows at once (training workers), or fixed-width
+//! chunks padded to the same width ([`PolicyRunner::with_fixed_width`], evaluation), because
+//! a row's action bits depend on how many rows the call holds (the CPU backend's matrix
+//! products block by row count) and on nothing else. Must not: train.
 
 use burn::tensor::{Device, Tensor, TensorData};
 use sf_job::PolicyVersion;
@@ -19,6 +23,8 @@ pub struct PolicyRunner {
     spec: ObsSpec,
     frame_dt_s: f32,
     device: Device,
+    /// Rows per inference call, padded with copies of the last row; `None`: one call per step.
+    fixed_rows: Option<usize>,
 }
 
 impl PolicyRunner {
@@ -61,7 +67,61 @@ impl PolicyRunner {
             spec: spec.clone(),
             frame_dt_s,
             device: device.clone(),
+            fixed_rows: None,
         }
+    }
+
+    /// Runs every inference in calls of exactly `rows` rows (the last one padded with copies of
+    /// its last row, whose actions are dropped), so a row's actions are the same bits whatever
+    /// the number of rows stepped beside it: an evaluated episode's outcome then does not
+    /// depend on how many simulators step together. `rows` is clamped to at least 1.
+    pub fn with_fixed_width(mut self, rows: usize) -> Self {
+        self.fixed_rows = Some(rows.max(1));
+        self
+    }
+
+    /// The rows per inference call, if fixed.
+    pub fn fixed_width(&self) -> Option<usize> {
+        self.fixed_rows
+    }
+
+    /// `f` over `rows` (one observation per `map_ids` entry) and their `per_row`-float extra
+    /// inputs `extra` (the sampled actions' normal draws; empty if none), returning
+    /// `per_row_out` floats per row: in one call, or in fixed-width padded chunks.
+    fn chunked(
+        &self,
+        rows: &[f32],
+        map_ids: &[u32],
+        extra: &[f32],
+        f: impl Fn(&[f32], &[u32], &[f32]) -> Vec<f32>,
+    ) -> Vec<f32> {
+        let n = map_ids.len();
+        let width = match self.fixed_rows {
+            Some(w) if n > 0 => w,
+            _ => return f(rows, map_ids, extra),
+        };
+        let obs = rows.len() / n;
+        let ext = extra.len() / n;
+        let mut out = Vec::new();
+        let (mut r, mut m, mut e) = (Vec::new(), Vec::new(), Vec::new());
+        for start in (0..n).step_by(width) {
+            let end = (start + width).min(n);
+            r.clear();
+            m.clear();
+            e.clear();
+            r.extend_from_slice(&rows[start * obs..end * obs]);
+            m.extend_from_slice(&map_ids[start..end]);
+            e.extend_from_slice(&extra[start * ext..end * ext]);
+            for _ in end..start + width {
+                r.extend_from_slice(&rows[(end - 1) * obs..end * obs]);
+                m.push(map_ids[end - 1]);
+                e.extend_from_slice(&extra[(end - 1) * ext..end * ext]);
+            }
+            let a = f(&r, &m, &e);
+            let per_row = a.len() / width;
+            out.extend_from_slice(&a[..(end - start) * per_row]);
+        }
+        out
     }
 
     /// Its actor's deterministic action as an ONNX model (`sf_nn::onnx`), the segment table of
@@ -137,23 +197,29 @@ impl PolicyRunner {
     /// normal draws `eps` (`[B * A]`, row-major) taken by the caller (`drive`: from one stream
     /// or per episode).
     pub fn sample_with(&self, rows: &[f32], map_ids: &[u32], eps: Vec<f32>) -> Vec<f32> {
-        let b = map_ids.len();
         let a = self.net.action_dim;
-        assert_eq!(eps.len(), b * a, "one draw per action component");
-        let eps = Tensor::<2>::from_data(TensorData::new(eps, [b, a]), &self.device);
-        let (act, _) = self.actor.sample(&self.batch(rows, map_ids), self.table.as_ref(), eps);
-        act.into_data().try_to_vec::<f32>().expect("actions are f32")
+        assert_eq!(eps.len(), map_ids.len() * a, "one draw per action component");
+        self.chunked(rows, map_ids, &eps, |rows, map_ids, eps| {
+            let b = map_ids.len();
+            let eps = Tensor::<2>::from_data(TensorData::new(eps.to_vec(), [b, a]), &self.device);
+            let (act, _) = self.actor.sample(&self.batch(rows, map_ids), self.table.as_ref(), eps);
+            act.into_data().try_to_vec::<f32>().expect("actions are f32")
+        })
     }
 
     /// Deterministic actions (evaluation).
     pub fn mean(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
-        self.mean_of(&self.batch(rows, map_ids))
+        self.chunked(rows, map_ids, &[], |rows, map_ids, _| {
+            self.mean_of(&self.batch(rows, map_ids))
+        })
     }
 
     /// The standard deviation `[B * A]` (row-major) of the Gaussian each row's action is
     /// sampled from before its tanh: how much noise the policy samples with.
     pub fn std_dev(&self, rows: &[f32], map_ids: &[u32]) -> Vec<f32> {
-        let (_, log_std) = self.actor.dist(&self.batch(rows, map_ids), self.table.as_ref());
-        log_std.exp().into_data().try_to_vec::<f32>().expect("log-std is f32")
+        self.chunked(rows, map_ids, &[], |rows, map_ids, _| {
+            let (_, log_std) = self.actor.dist(&self.batch(rows, map_ids), self.table.as_ref());
+            log_std.exp().into_data().try_to_vec::<f32>().expect("log-std is f32")
+        })
     }
 }

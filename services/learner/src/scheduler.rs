@@ -317,30 +317,65 @@ impl Scheduler {
         Ok(())
     }
 
-    /// Every cell is stored: draws the grid's GIFs into the job's directory.
+    /// Every cell is stored: draws the grid's GIFs into the job's directory and, with
+    /// `mine_worst`, replays every cell's worst episodes into viewer pages (`mined/`).
     async fn finish_eval(&self, job: &Arc<EvalJob>) -> Outcome {
-        let Some(g) = job.cfg.experiments.gifs.clone() else {
+        let (gifs, mine_worst) = (job.cfg.experiments.gifs.clone(), job.cfg.mine_worst);
+        if gifs.is_none() && mine_worst.is_none() {
             return Outcome::Succeeded;
-        };
+        }
         let (j, scen, cases) =
             (Arc::clone(job), self.jobs.scenarios_dir.clone(), self.jobs.cases_dir.clone());
         let r = blocking(move || -> Result<_, LearnerError> {
             let maps = eval::load_maps(&j.cfg, &scen, &cases)?;
             let device = sf_nn::device::device(sf_nn::device::DeviceKind::Cpu)?;
             let mut runners = sf_rollout::evaluate::Runners::new(device);
-            Ok(j.grid.render_gifs(&g, &j.dir, &maps, &mut runners)?)
+            let drawn = match &gifs {
+                Some(g) => j.grid.render_gifs(g, &j.dir, &maps, &mut runners)?.len(),
+                None => 0,
+            };
+            let mined = match mine_worst {
+                Some(worst) => {
+                    let path = sf_report::episodes::episodes_file(&j.dir);
+                    let rows: Vec<_> = sf_report::episodes::read_episodes(&path)?
+                        .into_iter()
+                        .map(|r| (r.cell, r.ep))
+                        .collect();
+                    let cells = j.cfg.cells();
+                    let m = sf_rollout::evaluate::mine::mine(
+                        &j.grid,
+                        &maps,
+                        &cells,
+                        &rows,
+                        &j.dir,
+                        worst,
+                        &mut runners,
+                    )?;
+                    m.pages
+                }
+                None => 0,
+            };
+            Ok((drawn, mined))
         })
         .await;
         match r {
-            Ok(paths) => {
-                tracing::info!(job_id = job.id.get(), gifs = paths.len(), "evaluation finished");
+            Ok((gifs, pages)) => {
+                tracing::info!(
+                    job_id = job.id.get(),
+                    gifs,
+                    mined_pages = pages,
+                    "evaluation finished"
+                );
                 Outcome::Succeeded
             }
-            // A full disk pauses the job like any other write; the GIFs are drawn again on resume.
+            // A full disk pauses the job like any other write; the GIFs and pages are made again
+            // on resume.
             Err(e) if crate::storage::is_storage_fault(&e) => {
-                Outcome::Paused(format!("every cell is stored, drawing the GIFs: {e}"))
+                Outcome::Paused(format!("every cell is stored, drawing the GIFs and pages: {e}"))
             }
-            Err(e) => Outcome::Failed(format!("every cell is stored, but the GIFs failed: {e}")),
+            Err(e) => Outcome::Failed(format!(
+                "every cell is stored, but the GIFs or the mined pages failed: {e}"
+            )),
         }
     }
 

@@ -35,6 +35,7 @@ use crate::inference::PolicyRunner;
 use crate::setup;
 
 mod gif;
+pub mod mine;
 mod policies;
 pub mod view;
 
@@ -108,16 +109,37 @@ pub fn load_scenario(
     Ok((Arc::new(map), cases))
 }
 
+/// Rows per inference call of every policy evaluation runs ([`PolicyRunner::with_fixed_width`]):
+/// a stored episode's actions, and so its outcome, are then the same at any `envs`, thread or
+/// worker count. Changing it changes every evaluated episode with a learned policy in its last
+/// bits (the cost of widths 8-64 against one call per step: `docs/usage.md`).
+pub const EVAL_INFERENCE_ROWS: usize = 64;
+
 /// Policies built for one scenario, loaded once and reused by every cell.
 pub struct Runners {
     device: sf_nn::device::Device,
     segments: BTreeMap<String, Arc<MapSegments>>,
     cache: BTreeMap<(String, String), Arc<PolicyRunner>>,
+    inference_rows: Option<usize>,
 }
 
 impl Runners {
+    /// Runners that infer in calls of [`EVAL_INFERENCE_ROWS`] rows.
     pub fn new(device: sf_nn::device::Device) -> Self {
-        Self { device, segments: BTreeMap::new(), cache: BTreeMap::new() }
+        Self {
+            device,
+            segments: BTreeMap::new(),
+            cache: BTreeMap::new(),
+            inference_rows: Some(EVAL_INFERENCE_ROWS),
+        }
+    }
+
+    /// The same with another width, or `None` for one call per step (episodes then depend on
+    /// the batch width; measurements of the width's cost compare the two).
+    pub fn with_inference_rows(mut self, rows: Option<usize>) -> Self {
+        self.inference_rows = rows;
+        self.cache.clear();
+        self
     }
 
     fn segments(&mut self, map: &Map) -> Arc<MapSegments> {
@@ -149,7 +171,10 @@ impl Runners {
             &self.device,
         )
         .map_err(|source| EvalError::Weights { key: p.key.clone(), source })?;
-        let r = Arc::new(r);
+        let r = Arc::new(match self.inference_rows {
+            Some(rows) => r.with_fixed_width(rows),
+            None => r,
+        });
         self.cache.insert(key, Arc::clone(&r));
         Ok(r)
     }
