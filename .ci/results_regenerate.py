@@ -27,7 +27,8 @@ PLATEAU = f"{STAGE1}/f1-plateau/episodes.csv.gz"
 FAILMAKER = "docs/results/failmaker-paper"
 
 CHECKS = [
-    ("failmaker_cost.py", [f"{FAILMAKER}/episodes.csv.gz", "--runs", "9", "--flows",
+    ("failmaker_cost.py", [f"{FAILMAKER}/episodes.csv.gz", f"{FAILMAKER}/episodes-s10.csv.gz",
+                           "--runs", "9,10", "--flows",
                            "FailMaker-paper,FailMaker-paper r2,FailMaker-paper r1,FailMaker"],
      f"{FAILMAKER}/cost.md", f"{FAILMAKER}/cost.json"),
     ("plateau.py",
