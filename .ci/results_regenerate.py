@@ -25,12 +25,16 @@ PLATEAU = f"{STAGE1}/f1-plateau/episodes.csv.gz"
 
 # (script, its arguments, committed stdout, committed --json output)
 FAILMAKER = "docs/results/failmaker-paper"
+LEVER = "docs/results/probes/constant-message-lateral"
 
 CHECKS = [
     ("failmaker_cost.py", [f"{FAILMAKER}/episodes.csv.gz", f"{FAILMAKER}/episodes-s10.csv.gz",
                            "--runs", "9,10", "--flows",
                            "FailMaker-paper,FailMaker-paper r2,FailMaker-paper r1,FailMaker"],
      f"{FAILMAKER}/cost.md", f"{FAILMAKER}/cost.json"),
+    ("failmaker_cost.py", [f"{LEVER}/episodes-s9.csv.gz", f"{LEVER}/episodes-s10.csv.gz", "--runs", "9,10",
+                           "--flows", "SocialComm told0,SocialComm told90", "--no-gate"],
+     f"{LEVER}/lever.md", f"{LEVER}/lever.json"),
     ("plateau.py",
      [f"{STAGE1}/macad-s{seed}" for seed in (11, 12, 13, 14)]
      + [f"{STAGE1}/socialcomm-s{seed}" for seed in (11, 12, 13, 14, 15)]

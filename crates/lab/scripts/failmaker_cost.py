@@ -76,6 +76,8 @@ def main() -> int:
     ap.add_argument("--runs", default="", help="comma-separated labels of the files (default 1, 2, ...)")
     ap.add_argument("--flows", default="FailMaker-paper,FailMaker", help="the adversaries to score")
     ap.add_argument("--json", help="write every row here")
+    ap.add_argument("--no-gate", action="store_true",
+                    help="leave out issue 66's FailMaker gate (flows that are not FailMakers, e.g. told messages)")
     a = ap.parse_args()
     labels = a.runs.split(",") if a.runs else [str(i + 1) for i in range(len(a.episodes))]
     if len(labels) != len(a.episodes):
@@ -92,7 +94,7 @@ def main() -> int:
             return 2
         rr = run_rows(adv, run, flows)
         rows += rr
-        for flow in flows:
+        for flow in [] if a.no_gate else flows:
             e = next(r for r in rr if r["test"] == f"egos: {flow} - SocialComm" and r["scenario"] == "pooled")
             gates.append({"run": run, "flow": flow, "egos_drop": -e["diff"], "egos_gate": -e["diff"] >= 20.0})
     for r in rows:
@@ -102,7 +104,7 @@ def main() -> int:
         print(f"run {g['run']} {g['flow']}: egos' drop {g['egos_drop']:+.1f} "
               f"(gate >= 20: {'met' if g['egos_gate'] else 'not met'})")
     if a.json:
-        write_json(a.json, {"rows": rows, "gates": gates})
+        write_json(a.json, {"rows": rows} if a.no_gate else {"rows": rows, "gates": gates})
     return 0
 
 
