@@ -80,14 +80,10 @@ impl PolicyRunner {
         self
     }
 
-    /// The rows per inference call, if fixed.
-    pub fn fixed_width(&self) -> Option<usize> {
-        self.fixed_rows
-    }
-
-    /// `f` over `rows` (one observation per `map_ids` entry) and their `per_row`-float extra
-    /// inputs `extra` (the sampled actions' normal draws; empty if none), returning
-    /// `per_row_out` floats per row: in one call, or in fixed-width padded chunks.
+    /// `f` over `rows` (one observation per `map_ids` entry) and `extra`, the same number of
+    /// floats per row (the sampled actions' normal draws; empty if none), returning the same
+    /// number of floats per row: in one call, or in fixed-width padded chunks whose padding
+    /// rows' outputs are dropped.
     fn chunked(
         &self,
         rows: &[f32],
