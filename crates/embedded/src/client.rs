@@ -27,13 +27,14 @@ pub async fn jobs_client(
 
 /// A progress bar over learner transitions.
 pub fn bar(target: u64) -> ProgressBar {
-    ProgressBar::new(target).with_style(steps_style(""))
+    ProgressBar::new(target).with_style(bar_style("", "steps"))
 }
 
-/// A job's bar: `lead` (a job's name, `{prefix}`) before the elapsed time.
-fn steps_style(lead: &str) -> ProgressStyle {
+/// A bar counting `unit` (a job's steps, a grid's episodes), `lead` (a job's name, `{prefix}`)
+/// before the elapsed time.
+fn bar_style(lead: &str, unit: &str) -> ProgressStyle {
     ProgressStyle::with_template(&format!(
-        "{lead}{{elapsed_precise}} [{{bar:30}}] {{pos}}/{{len}} steps, eta {{eta}}  {{msg}}"
+        "{lead}{{elapsed_precise}} [{{bar:30}}] {{pos}}/{{len}} {unit}, eta {{eta}}  {{msg}}"
     ))
     .map(|s| s.progress_chars("=> "))
     .unwrap_or_else(|_| ProgressStyle::default_bar())
@@ -163,7 +164,8 @@ impl Board {
             .then(|| format!("{name}: {}", line(id, state, p)))
             .filter(|_| state != JobState::Queued || last.is_none());
         if state != JobState::Queued && !self.bars.contains_key(&id) {
-            let pb = self.multi.add(ProgressBar::new(1).with_style(steps_style("{prefix} ")));
+            let pb =
+                self.multi.add(ProgressBar::new(1).with_style(bar_style("{prefix} ", "steps")));
             pb.set_prefix(name.to_string());
             self.bars.insert(id, pb);
         }
@@ -201,13 +203,7 @@ impl EpisodesBar {
     pub fn new(episodes: u64) -> Self {
         let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
         let bar = if terminal { ProgressBar::new(episodes) } else { ProgressBar::hidden() };
-        bar.set_style(
-            ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:30}] {pos}/{len} episodes, eta {eta}",
-            )
-            .map(|s| s.progress_chars("=> "))
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
+        bar.set_style(bar_style("", "episodes"));
         Self { bar, terminal }
     }
 
