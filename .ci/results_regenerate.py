@@ -5,7 +5,7 @@ validation files it was run on, and compares what it prints and the JSON it writ
 byte, with the committed files a page cites. The report (`docs/report/`) and the README's ladder
 table are checked by their own CI steps; these cover the Stage-1 results (the plateau table, F1
 at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run) and the
-paper-style FailMaker's cost to the egos. A difference names the file: regenerate it
+paper-style FailMaker's cost to the egos and the compute-optimal batch table. A difference names the file: regenerate it
 with the command the check shows (its page gives the same one), or find what changed the script.
 
     python .ci/results_regenerate.py        # needs scipy (CI's report venv has it)
@@ -26,6 +26,7 @@ PLATEAU = f"{STAGE1}/f1-plateau/episodes.csv.gz"
 # (script, its arguments, committed stdout, committed --json output)
 FAILMAKER = "docs/results/failmaker-paper"
 LEVER = "docs/results/probes/constant-message-lateral"
+BATCH = "docs/results/compute-optimal-batch"
 
 CHECKS = [
     ("failmaker_cost.py", [f"{FAILMAKER}/episodes.csv.gz", f"{FAILMAKER}/episodes-s10.csv.gz",
@@ -35,6 +36,8 @@ CHECKS = [
     ("failmaker_cost.py", [f"{LEVER}/episodes-s9.csv.gz", f"{LEVER}/episodes-s10.csv.gz", "--runs", "9,10",
                            "--flows", "SocialComm told0,SocialComm told90", "--no-gate"],
      f"{LEVER}/lever.md", f"{LEVER}/lever.json"),
+    ("batch_sweep.py", ["table", f"{BATCH}/points.csv", "--level", "0.75", "--at", "240,480,720"],
+     f"{BATCH}/table.md", f"{BATCH}/table.json"),
     ("plateau.py",
      [f"{STAGE1}/macad-s{seed}" for seed in (11, 12, 13, 14)]
      + [f"{STAGE1}/socialcomm-s{seed}" for seed in (11, 12, 13, 14, 15)]

@@ -11,7 +11,7 @@ mean of its validations, so one lucky 200-episode validation does not count as a
     python3 crates/lab/scripts/batch_sweep.py extract /work/runs/batch/b*-s1? --out points.csv
     python3 crates/lab/scripts/batch_sweep.py table points.csv --level 0.75 --at 240,480,720
 
-Stdlib only.
+Stdlib only. `table --json` also writes the rows.
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ import re
 import sys
 import tomllib
 from datetime import datetime
+
+from csv_files import write_json
 
 LINE = re.compile(r"^(\S+Z) .*validation job_id=\d+ updates=(\d+) success=([0-9.eE+-]+)")
 FIELDS = ["run", "batch", "seed", "updates", "wall_s", "success"]
@@ -87,8 +89,9 @@ def smoothed(points: list[dict]) -> list[tuple[float, float, float]]:
     return out
 
 
-def table(path: str, level: float, at: list[float]) -> None:
+def table(path: str, level: float, at: list[float]) -> list[dict]:
     runs = read_points(path)
+    rows = []
     arms: dict[int, list[str]] = {}
     for name, pts in runs.items():
         arms.setdefault(int(pts[0]["batch"]), []).append(name)
@@ -100,7 +103,7 @@ def table(path: str, level: float, at: list[float]) -> None:
         cells = [str(batch), str(len(arms[batch]))]
         for t in at:
             vals = []
-            for name in arms[batch]:
+            for name in sorted(arms[batch]):
                 sm = [s for w, _, s in smoothed(runs[name]) if w <= t]
                 vals.append(f"{sm[-1]:.3f}" if sm else "-")
             cells.append(" / ".join(vals))
@@ -109,9 +112,17 @@ def table(path: str, level: float, at: list[float]) -> None:
             hit = next(((w, u) for w, u, s in smoothed(runs[name]) if s >= level), None)
             reach.append(f"{hit[0]:.0f}" if hit else "not")
             upd.append(f"{hit[1]:.0f}" if hit else "-")
+            sm = smoothed(runs[name])
+            rows.append({
+                "run": name, "batch": batch, "level": level,
+                "near": {f"{t:.0f}": next((round(s, 4) for w, _, s in reversed(sm) if w <= t), None) for t in at},
+                "reaches_s": hit[0] if hit else None, "reaches_updates": hit[1] if hit else None,
+                "last_updates": runs[name][-1]["updates"],
+            })
         cells += [" / ".join(reach), " / ".join(upd)]
         cells.append(" / ".join(f"{runs[n][-1]['updates']:.0f}" for n in sorted(arms[batch])))
         print("| " + " | ".join(cells) + " |")
+    return rows
 
 
 def main() -> int:
@@ -124,6 +135,7 @@ def main() -> int:
     tb.add_argument("points")
     tb.add_argument("--level", type=float, default=0.75)
     tb.add_argument("--at", default="240,480,720")
+    tb.add_argument("--json", help="also write the rows here")
     a = ap.parse_args()
     try:
         if a.cmd == "extract":
@@ -133,7 +145,9 @@ def main() -> int:
                 w.writeheader()
                 w.writerows(rows)
         else:
-            table(a.points, a.level, [float(x) for x in a.at.split(",")])
+            rows = table(a.points, a.level, [float(x) for x in a.at.split(",")])
+            if a.json:
+                write_json(a.json, rows)
     except (OSError, ValueError, KeyError) as e:
         print(f"batch_sweep.py: {e}", file=sys.stderr)
         return 1
