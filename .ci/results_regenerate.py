@@ -38,6 +38,8 @@ CHECKS = [
      f"{LEVER}/lever.md", f"{LEVER}/lever.json"),
     ("batch_sweep.py", ["table", f"{BATCH}/points.csv", "--level", "0.75", "--at", "240,480,720"],
      f"{BATCH}/table.md", f"{BATCH}/table.json"),
+    ("batch_sweep.py", ["table", f"{BATCH}/points-l4.csv", "--level", "0.8", "--at", "120,240,420"],
+     f"{BATCH}/table-l4.md", f"{BATCH}/table-l4.json"),
     ("plateau.py",
      [f"{STAGE1}/macad-s{seed}" for seed in (11, 12, 13, 14)]
      + [f"{STAGE1}/socialcomm-s{seed}" for seed in (11, 12, 13, 14, 15)]
