@@ -4,9 +4,10 @@ Each check runs one result script of crates/lab/scripts/ on the committed per-ep
 validation files it was run on, and compares what it prints and the JSON it writes, byte for
 byte, with the committed files a page cites. The report (`docs/report/`) and the README's ladder
 table are checked by their own CI steps; these cover the Stage-1 results (the plateau table, F1
-at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run) and the
-paper-style FailMaker's cost to the egos and the compute-optimal batch table. A difference names the file: regenerate it
-with the command the check shows (its page gives the same one), or find what changed the script.
+at 120k and at the plateau, L5 against the noise-matched IDM flow, the companion run), the
+paper-style FailMaker's cost to the egos and the compute-optimal batch tables. A difference names
+the file: regenerate it with the command the check shows (its page gives the same one), or find
+what changed the script.
 
     python .ci/results_regenerate.py        # needs scipy (CI's report venv has it)
 """

@@ -4,9 +4,10 @@ Two halves. `extract` reads runs' data directories (each a `socialflow train` ru
 `socialflow.log` has one timestamped `validation` line per held-out validation, its job's
 `config.toml` the batch size and seed) and writes one CSV row per validation point, the wall time
 counted from the run's first log line (when `train` started, the clock `timeout` stopped it by).
-`table` reads that CSV and prints, per arm (batch size), the mean over seeds of the held-out
-success near given wall times and the wall time each run first reached a level (the 3-point moving
-mean of its validations, so one lucky 200-episode validation does not count as arrival).
+`table` reads that CSV and prints a row per arm (batch size), each cell one value per run: the
+held-out success at its last validation before given wall times and the wall time each run first
+reached a level, both on the 3-point trailing mean of its validations (so one lucky 200-episode
+validation does not count as arrival).
 
     python3 crates/lab/scripts/batch_sweep.py extract /work/runs/batch/b*-s1? --out points.csv
     python3 crates/lab/scripts/batch_sweep.py table points.csv --level 0.75 --at 240,480,720
@@ -30,10 +31,6 @@ LINE = re.compile(r"^(\S+Z) .*validation job_id=\d+ updates=(\d+) success=([0-9.
 FIELDS = ["run", "batch", "seed", "updates", "wall_s", "success"]
 
 
-def stamp(text: str) -> datetime:
-    return datetime.fromisoformat(text)
-
-
 def job_config(run_dir: str) -> dict:
     jobs = os.path.join(run_dir, "jobs")
     found = sorted(
@@ -55,7 +52,7 @@ def extract(run_dir: str) -> list[dict]:
         for line in f:
             t = line.split(" ", 1)[0]
             if start is None and t.endswith("Z"):
-                start = stamp(t)
+                start = datetime.fromisoformat(t)
             m = LINE.match(line)
             if m:
                 rows.append({
@@ -63,7 +60,7 @@ def extract(run_dir: str) -> list[dict]:
                     "batch": cfg["sac"]["batch_size"],
                     "seed": cfg["sac"]["seed"],
                     "updates": int(m.group(2)),
-                    "wall_s": round((stamp(m.group(1)) - start).total_seconds(), 1),
+                    "wall_s": round((datetime.fromisoformat(m.group(1)) - start).total_seconds(), 1),
                     "success": round(float(m.group(3)), 4),
                 })
     if not rows:
@@ -89,38 +86,42 @@ def smoothed(points: list[dict]) -> list[tuple[float, float, float]]:
     return out
 
 
+def summary(points: list[dict], level: float, at: list[float]) -> dict:
+    """One run's trailing-mean success near each of `at` and when it first reached `level`."""
+    sm = smoothed(points)
+    hit = next(((w, u) for w, u, s in sm if s >= level), None)
+    return {
+        "near": {f"{t:.0f}": next((s for w, _, s in reversed(sm) if w <= t), None) for t in at},
+        "reaches_s": hit[0] if hit else None,
+        "reaches_updates": hit[1] if hit else None,
+        "last_updates": points[-1]["updates"],
+    }
+
+
+def joined(values: list, fmt: str, none: str = "-") -> str:
+    """One table cell: the runs' values, `none` where a run has none."""
+    return " / ".join(none if v is None else fmt.format(v) for v in values)
+
+
 def table(path: str, level: float, at: list[float]) -> list[dict]:
     runs = read_points(path)
-    rows = []
     arms: dict[int, list[str]] = {}
-    for name, pts in runs.items():
-        arms.setdefault(int(pts[0]["batch"]), []).append(name)
+    for name in sorted(runs):
+        arms.setdefault(int(runs[name][0]["batch"]), []).append(name)
     head = ["batch", "runs"] + [f"success near {t:.0f} s" for t in at]
     head += [f"first reaches {level:.2f} (s)", "updates then", "last updates"]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
+    rows = []
     for batch in sorted(arms):
-        cells = [str(batch), str(len(arms[batch]))]
-        for t in at:
-            vals = []
-            for name in sorted(arms[batch]):
-                sm = [s for w, _, s in smoothed(runs[name]) if w <= t]
-                vals.append(f"{sm[-1]:.3f}" if sm else "-")
-            cells.append(" / ".join(vals))
-        reach, upd = [], []
-        for name in sorted(arms[batch]):
-            hit = next(((w, u) for w, u, s in smoothed(runs[name]) if s >= level), None)
-            reach.append(f"{hit[0]:.0f}" if hit else "not")
-            upd.append(f"{hit[1]:.0f}" if hit else "-")
-            sm = smoothed(runs[name])
-            rows.append({
-                "run": name, "batch": batch, "level": level,
-                "near": {f"{t:.0f}": next((round(s, 4) for w, _, s in reversed(sm) if w <= t), None) for t in at},
-                "reaches_s": hit[0] if hit else None, "reaches_updates": hit[1] if hit else None,
-                "last_updates": runs[name][-1]["updates"],
-            })
-        cells += [" / ".join(reach), " / ".join(upd)]
-        cells.append(" / ".join(f"{runs[n][-1]['updates']:.0f}" for n in sorted(arms[batch])))
+        sums = [summary(runs[name], level, at) for name in arms[batch]]
+        for name, r in zip(arms[batch], sums):
+            near = {k: None if v is None else round(v, 4) for k, v in r["near"].items()}
+            rows.append({"run": name, "batch": batch, "level": level, **r, "near": near})
+        cells = [str(batch), str(len(sums))]
+        cells += [joined([r["near"][f"{t:.0f}"] for r in sums], "{:.3f}") for t in at]
+        cells.append(joined([r["reaches_s"] for r in sums], "{:.0f}", none="not"))
+        cells += [joined([r[k] for r in sums], "{:.0f}") for k in ("reaches_updates", "last_updates")]
         print("| " + " | ".join(cells) + " |")
     return rows
 
